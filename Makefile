@@ -1,0 +1,54 @@
+# roadsurf: two commands on a fresh clone, `make demo` and `make test`.
+SHELL := /bin/bash
+PY ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+DEMO_OUT ?= out/demo
+
+.PHONY: demo test lint format sysdeps venv clean sample
+
+# open3d 0.20 links libusb-1.0; install it with apt-get when the loader cannot find it.
+sysdeps:
+	@if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then \
+	  echo "Installing system library libusb-1.0-0 (needed by open3d)"; \
+	  if [ "$$(id -u)" = "0" ]; then apt-get update -qq && apt-get install -y -qq libusb-1.0-0; \
+	  else sudo apt-get update -qq && sudo apt-get install -y -qq libusb-1.0-0; fi; \
+	fi
+
+$(STAMP): pyproject.toml
+	@$(MAKE) --no-print-directory sysdeps
+	@test -x $(BIN)/python || $(PY) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	# torch first and exactly pinned, so no resolver step can pick a CUDA build.
+	$(BIN)/python -m pip install -q torch==2.13.0
+	$(BIN)/python -m pip install -q -e '.[dev]'
+	@touch $(STAMP)
+
+venv: $(STAMP)
+
+demo: $(STAMP)
+	@start=$$(date +%s); \
+	$(BIN)/roadsurf run data_samples/drive --out $(DEMO_OUT) && \
+	$(BIN)/roadsurf view $(DEMO_OUT) --save $(DEMO_OUT)/run.rrd && \
+	echo "Demo finished in $$(( $$(date +%s) - start )) s. Outputs in $(DEMO_OUT)/" && \
+	ls -1 $(DEMO_OUT) | sed 's/^/  /' && \
+	echo "Report:    $(DEMO_OUT)/report.html" && \
+	echo "Recording: $(DEMO_OUT)/run.rrd"
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q tests
+
+lint: $(STAMP)
+	$(BIN)/ruff check . && $(BIN)/ruff format --check .
+
+format: $(STAMP)
+	$(BIN)/ruff format . && $(BIN)/ruff check --fix .
+
+# Regenerate the committed sample drive (deterministic for the seed).
+sample: $(STAMP)
+	rm -rf data_samples/drive
+	$(BIN)/roadsurf simulate --scenario sample --seed 7 --out data_samples/drive
+
+clean:
+	rm -rf $(VENV) out .pytest_cache .ruff_cache *.egg-info

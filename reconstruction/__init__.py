@@ -1,0 +1,1 @@
+"""Two-view near-planar road reconstruction with metric scale (dissertation Ch. 3-4)."""

@@ -1,0 +1,3 @@
+from roadsurf.cli import main
+
+main()

@@ -1,0 +1,59 @@
+"""The `roadsurf` command line. It parses arguments and calls one function per command; the
+logic lives in the stage packages. Output printed here is the CLI's own; stages log."""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from roadsurf.errors import RoadsurfError
+
+app = typer.Typer(add_completion=False, no_args_is_help=True, help=__doc__)
+bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks that print figures (not timed tests).")
+app.add_typer(bench_app, name="bench")
+
+Out = Annotated[Path, typer.Option("--out", "-o", help="Output folder.")]
+
+
+@app.callback()
+def _main(verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Debug logging.")] = False) -> None:
+    logging.basicConfig(
+        level=logging.DEBUG if verbose else logging.INFO,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+        datefmt="%H:%M:%S",
+    )
+
+
+@app.command()
+def simulate(
+    out: Out,
+    scenario: Annotated[str, typer.Option(help="Named scenario (see `roadsurf simulate --list`).")] = "potholes",
+    seed: Annotated[int | None, typer.Option(help="Random seed (default: the scenario's own).")] = None,
+    frames: Annotated[int | None, typer.Option(help="Override the number of frames.")] = None,
+    list_scenarios: Annotated[bool, typer.Option("--list", help="List scenarios and exit.")] = False,
+) -> None:
+    """Render a photo-textured drive with ground truth in the drive format."""
+    from simulation import scenarios
+
+    if list_scenarios:
+        for name, desc in scenarios.describe().items():
+            typer.echo(f"{name:12s} {desc}")
+        return
+    res = scenarios.simulate(scenario, out, seed=seed, n_frames=frames)
+    typer.echo(f"Wrote drive '{scenario}' to {res}")
+
+
+def main() -> None:
+    try:
+        app()
+    except RoadsurfError as e:
+        typer.echo(f"error: {e}", err=True)
+        sys.exit(2)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,130 @@
+"""The drive format (input contract) and its loader.
+
+```
+DRIVE/
+  camera.yaml    # model: pinhole, width, height, fx, fy, cx, cy, dist: [k1,k2,p1,p2,k3] (optional),
+                 # height_m (camera height above road, metres), fps
+  frames/        # images (jpg/png); sorted name order = capture order
+  frames.csv     # header: filename,timestamp_s
+  gps.csv        # header: timestamp_s,lat,lon[,alt_m][,hdop]  (or gps.gpx, or gps.nmea)
+  obd.csv        # optional, header: timestamp_s,speed_mps
+  truth/         # optional, written by the simulator only; ignored by the loader
+```
+See docs/formats.md. The loader validates everything; problems the run can live with (an
+unreadable image, a bad GPS row) are skipped and recorded in ``Drive.skipped``; problems it
+cannot live with raise ``DriveFormatError`` naming the file and line and saying what to do.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Camera:
+    """Pinhole camera with OpenCV distortion. Pixels (px), metres (m)."""
+
+    width: int  # image width (px)
+    height: int  # image height (px)
+    fx: float  # focal length x (px)
+    fy: float  # focal length y (px)
+    cx: float  # principal point x (px)
+    cy: float  # principal point y (px)
+    height_m: float  # nominal camera height above the road, h (m)
+    fps: float  # frame rate (Hz)
+    dist: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)  # k1,k2,p1,p2,k3
+    model: str = "pinhole"
+
+    @property
+    def K(self) -> np.ndarray:
+        """(3, 3) intrinsic matrix."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    @property
+    def has_distortion(self) -> bool:
+        return any(abs(d) > 0 for d in self.dist)
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One valid image of the drive."""
+
+    index: int  # position among the drive's valid frames, in capture order
+    filename: str  # as written in frames.csv (relative to DRIVE/frames/)
+    path: Path
+    timestamp_s: float
+
+
+@dataclass
+class GpsTrack:
+    """GPS fixes of the camera centre, WGS84. All arrays (N,), sorted by time."""
+
+    timestamp_s: np.ndarray
+    lat_deg: np.ndarray
+    lon_deg: np.ndarray
+    alt_m: np.ndarray  # NaN where the log has no altitude
+    hdop: np.ndarray  # NaN where the log has no HDOP
+    source: str = "gps.csv"  # file it came from
+
+    def __len__(self) -> int:
+        return int(self.timestamp_s.shape[0])
+
+
+@dataclass
+class ObdLog:
+    """Vehicle speed from OBD-II. Arrays (N,)."""
+
+    timestamp_s: np.ndarray
+    speed_mps: np.ndarray
+
+
+@dataclass(frozen=True)
+class Skipped:
+    """Something the loader or a stage dropped, and why (goes to report.json)."""
+
+    file: str
+    line: int | None
+    reason: str
+
+
+@dataclass
+class Drive:
+    root: Path
+    camera: Camera
+    frames: list[Frame]
+    gps: GpsTrack | None
+    obd: ObdLog | None
+    skipped: list[Skipped] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def truth_dir(self) -> Path | None:
+        p = self.root / "truth"
+        return p if p.is_dir() else None
+
+
+def load_drive(root: str | Path, check_images: bool = True) -> Drive:
+    """Load and validate a drive folder. See the module docstring for the contract."""
+    from roadsurf._drive_loader import load_drive as _load
+
+    return _load(root, check_images=check_images)
+
+
+def read_image(frame: Frame) -> np.ndarray:
+    """Read a frame as RGB uint8 (H, W, 3); greyscale images are replicated to 3 channels.
+
+    Raises ``FrameReadError`` for unreadable or truncated files.
+    """
+    from roadsurf._drive_loader import read_image as _read
+
+    return _read(frame)
+
+
+def read_gray(frame: Frame) -> np.ndarray:
+    """Read a frame as greyscale uint8 (H, W). Raises ``FrameReadError`` when unreadable."""
+    from roadsurf._drive_loader import read_gray as _read
+
+    return _read(frame)

@@ -1,0 +1,213 @@
+"""Pure numpy geometry helpers, named target-from-source.
+
+Frames (metres everywhere):
+- **ENU** (map frame): x east, y north, z up, origin at a saved WGS84 reference point
+  (``EnuReference``). All internal map work happens here.
+- **Camera**: x right (vehicle right), y backward (image down = towards the vehicle's rear),
+  z down along the optical axis. Pixels: u right, v down, origin at the top-left pixel centre.
+- **Pose** ``world_from_cam`` is a 4x4 matrix T with X_world = T[:3,:3] @ X_cam + T[:3,3].
+- **Heading** ``heading_deg`` is a compass bearing of the vehicle's forward direction, clockwise
+  from north, in [0, 360). The dissertation's eq. 6.1 angle θ = atan2(-dx, dy) is
+  counter-clockwise from north: heading = -θ.
+
+WGS84 / UTM only appear at the edges (loading GPS, exporting), through pyproj.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+from pyproj import CRS, Transformer
+
+
+def check_shape(name: str, arr: np.ndarray, shape: tuple[int | None, ...]) -> np.ndarray:
+    """Return ``arr`` as an ndarray after checking it matches ``shape`` (None = any size)."""
+    a = np.asarray(arr)
+    if a.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, a.shape, strict=True)):
+        want = "(" + ", ".join("N" if s is None else str(s) for s in shape) + ")"
+        raise ValueError(f"{name}: expected shape {want}, got {a.shape}")
+    return a
+
+
+# --------------------------------------------------------------------------- WGS84 / ENU / UTM
+
+
+@dataclass(frozen=True)
+class EnuReference:
+    """Origin of the local ENU map frame (WGS84 degrees, ellipsoidal metres)."""
+
+    lat_deg: float
+    lon_deg: float
+    alt_m: float = 0.0
+
+    def to_dict(self) -> dict[str, float]:
+        return {"lat_deg": self.lat_deg, "lon_deg": self.lon_deg, "alt_m": self.alt_m}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, float]) -> EnuReference:
+        return cls(float(d["lat_deg"]), float(d["lon_deg"]), float(d.get("alt_m", 0.0)))
+
+
+@lru_cache(maxsize=8)
+def _ecef_from_lla_transformer() -> Transformer:
+    return Transformer.from_crs("EPSG:4979", "EPSG:4978", always_xy=True)
+
+
+def _enu_rotation(lat_deg: float, lon_deg: float) -> np.ndarray:
+    """Rows are the E, N, U unit vectors in ECEF at (lat, lon)."""
+    la, lo = math.radians(lat_deg), math.radians(lon_deg)
+    sl, cl, so, co = math.sin(la), math.cos(la), math.sin(lo), math.cos(lo)
+    return np.array([[-so, co, 0.0], [-sl * co, -sl * so, cl], [cl * co, cl * so, sl]])
+
+
+def enu_from_lla(lat_deg: np.ndarray, lon_deg: np.ndarray, alt_m: np.ndarray | float, ref: EnuReference) -> np.ndarray:
+    """WGS84 (degrees, metres) -> local ENU (metres). Inputs broadcast to (N,); returns (N, 3)."""
+    lat = np.atleast_1d(np.asarray(lat_deg, dtype=float))
+    lon = np.atleast_1d(np.asarray(lon_deg, dtype=float))
+    alt = np.broadcast_to(np.asarray(alt_m, dtype=float), lat.shape)
+    tr = _ecef_from_lla_transformer()
+    x, y, z = tr.transform(lon, lat, alt)
+    x0, y0, z0 = tr.transform(ref.lon_deg, ref.lat_deg, ref.alt_m)
+    d = np.stack([np.asarray(x) - x0, np.asarray(y) - y0, np.asarray(z) - z0], axis=-1)
+    return d @ _enu_rotation(ref.lat_deg, ref.lon_deg).T
+
+
+def lla_from_enu(enu_m: np.ndarray, ref: EnuReference) -> np.ndarray:
+    """Local ENU (N, 3) metres -> WGS84 (N, 3) as columns lat_deg, lon_deg, alt_m."""
+    enu = check_shape("enu_m", np.atleast_2d(enu_m), (None, 3)).astype(float)
+    tr = _ecef_from_lla_transformer()
+    x0, y0, z0 = tr.transform(ref.lon_deg, ref.lat_deg, ref.alt_m)
+    ecef = enu @ _enu_rotation(ref.lat_deg, ref.lon_deg) + np.array([x0, y0, z0])
+    lon, lat, alt = tr.transform(ecef[:, 0], ecef[:, 1], ecef[:, 2], direction="INVERSE")
+    return np.stack([np.asarray(lat), np.asarray(lon), np.asarray(alt)], axis=-1)
+
+
+def utm_epsg_for(lat_deg: float, lon_deg: float) -> int:
+    """EPSG code of the WGS84 UTM zone holding (lat, lon), e.g. 32617 for 17N."""
+    zone = int((lon_deg + 180.0) // 6.0) % 60 + 1
+    return (32600 if lat_deg >= 0 else 32700) + zone
+
+
+@lru_cache(maxsize=16)
+def _utm_transformer(epsg: int) -> Transformer:
+    return Transformer.from_crs(CRS.from_epsg(4326), CRS.from_epsg(epsg), always_xy=True)
+
+
+def utm_from_lla(lat_deg: np.ndarray, lon_deg: np.ndarray, epsg: int) -> np.ndarray:
+    """WGS84 degrees -> UTM (N, 2) easting, northing in metres for the given EPSG zone."""
+    e, n = _utm_transformer(epsg).transform(np.atleast_1d(lon_deg), np.atleast_1d(lat_deg))
+    return np.stack([np.asarray(e, float), np.asarray(n, float)], axis=-1)
+
+
+def lla_from_utm(easting_m: np.ndarray, northing_m: np.ndarray, epsg: int) -> np.ndarray:
+    """UTM metres -> WGS84 (N, 2) columns lat_deg, lon_deg."""
+    lon, lat = _utm_transformer(epsg).transform(
+        np.atleast_1d(easting_m), np.atleast_1d(northing_m), direction="INVERSE"
+    )
+    return np.stack([np.asarray(lat, float), np.asarray(lon, float)], axis=-1)
+
+
+@dataclass(frozen=True)
+class ExportFrame:
+    """ENU <-> UTM mapping used when exporting (the ENU frame is tiny; UTM is the GIS frame)."""
+
+    ref: EnuReference
+    epsg: int
+
+    @property
+    def crs(self) -> str:
+        return f"EPSG:{self.epsg}"
+
+    @classmethod
+    def for_reference(cls, ref: EnuReference) -> ExportFrame:
+        return cls(ref, utm_epsg_for(ref.lat_deg, ref.lon_deg))
+
+    def utm_from_enu(self, enu_m: np.ndarray) -> np.ndarray:
+        """(N, 3) ENU metres -> (N, 3) easting, northing, height (metres, height = ENU up + ref alt)."""
+        enu = check_shape("enu_m", np.atleast_2d(enu_m), (None, 3))
+        lla = lla_from_enu(enu, self.ref)
+        en = utm_from_lla(lla[:, 0], lla[:, 1], self.epsg)
+        return np.column_stack([en, enu[:, 2] + self.ref.alt_m])
+
+    def lonlat_from_enu(self, enu_m: np.ndarray) -> np.ndarray:
+        """(N, 2|3) ENU metres -> (N, 2) lon, lat degrees (RFC 7946 axis order)."""
+        enu = np.atleast_2d(np.asarray(enu_m, float))
+        if enu.shape[1] == 2:
+            enu = np.column_stack([enu, np.zeros(len(enu))])
+        lla = lla_from_enu(enu, self.ref)
+        return lla[:, [1, 0]]
+
+
+# --------------------------------------------------------------------------- rotations / poses
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """(3,) -> (3, 3) cross-product matrix [v]x."""
+    x, y, z = check_shape("v", np.asarray(v, float), (3,))
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def rotation_from_euler_xyz(rx_rad: float, ry_rad: float, rz_rad: float) -> np.ndarray:
+    """R = Rz @ Ry @ Rx (rotations about the camera x, y, z axes, radians)."""
+    cx, sx, cy, sy, cz, sz = (
+        math.cos(rx_rad), math.sin(rx_rad), math.cos(ry_rad), math.sin(ry_rad), math.cos(rz_rad), math.sin(rz_rad)
+    )
+    rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+    return rz @ ry @ rx
+
+
+def world_from_vehicle_rotation(heading_deg: float) -> np.ndarray:
+    """Rotation whose columns are the camera axes (right, backward, down) in ENU for a level
+    vehicle with compass ``heading_deg``. Returns (3, 3) world_from_cam for zero roll/pitch."""
+    b = math.radians(heading_deg)
+    fwd = np.array([math.sin(b), math.cos(b), 0.0])
+    right = np.array([math.cos(b), -math.sin(b), 0.0])
+    down = np.array([0.0, 0.0, -1.0])
+    return np.column_stack([right, -fwd, down])
+
+
+def world_from_cam(heading_deg: float, roll_rad: float = 0.0, pitch_rad: float = 0.0,
+                   position_enu_m: np.ndarray | None = None) -> np.ndarray:
+    """4x4 pose of a camera mounted looking down, given heading and small roll/pitch.
+
+    Roll is a rotation about the camera y axis (backward), pitch about the camera x axis (right);
+    both are applied in the camera frame before the heading.
+    """
+    T = np.eye(4)
+    T[:3, :3] = world_from_vehicle_rotation(heading_deg) @ rotation_from_euler_xyz(pitch_rad, roll_rad, 0.0)
+    if position_enu_m is not None:
+        T[:3, 3] = check_shape("position_enu_m", np.asarray(position_enu_m, float), (3,))
+    return T
+
+
+def heading_deg_from_world_rotation(R_world_from_cam: np.ndarray) -> float:
+    """Compass heading of the vehicle's forward direction (= -camera y axis), degrees in [0, 360)."""
+    R = check_shape("R_world_from_cam", R_world_from_cam, (3, 3))
+    fwd = -R[:, 1]
+    return float(math.degrees(math.atan2(fwd[0], fwd[1])) % 360.0)
+
+
+def heading_deg_from_displacement(d_east_m: np.ndarray, d_north_m: np.ndarray) -> np.ndarray:
+    """Compass heading (degrees, [0, 360)) of successive-fix displacements (dissertation eq. 6.1)."""
+    return np.degrees(np.arctan2(np.asarray(d_east_m, float), np.asarray(d_north_m, float))) % 360.0
+
+
+def transform_points(T: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Apply a 4x4 transform to (N, 3) points."""
+    T = check_shape("T", T, (4, 4))
+    P = check_shape("pts", np.atleast_2d(pts), (None, 3))
+    return P @ T[:3, :3].T + T[:3, 3]
+
+
+def invert_pose(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid 4x4 transform."""
+    T = check_shape("T", T, (4, 4))
+    Ti = np.eye(4)
+    Ti[:3, :3] = T[:3, :3].T
+    Ti[:3, 3] = -T[:3, :3].T @ T[:3, 3]
+    return Ti
