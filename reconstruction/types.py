@@ -31,7 +31,9 @@ STATUS_FAILED = (
 class Features:
     """Keypoints and descriptors of one frame, computed once and reused by both its pairs."""
 
-    keypoints_px: np.ndarray  # (N, 2) float32 pixel positions (u right, v down), undistorted? no: raw
+    keypoints_px: (
+        np.ndarray
+    )  # (N, 2) float32 pixel positions (u right, v down), undistorted? no: raw
     descriptors: np.ndarray  # (N, D) float32 (SIFT) or uint8 (ORB/AKAZE)
     kind: str  # "sift" | "orb" | "akaze"
 
@@ -47,16 +49,28 @@ class PairResult:
     method: str  # "proposed" | "rotation_aware" | "classic" | "colmap" | "stereo"
     status: str  # STATUS_OK or one of STATUS_FAILED
     reason: str = ""  # human-readable explanation when status != ok
-    points_cam_a_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (N, 3) in camera a
+    points_cam_a_m: np.ndarray = field(
+        default_factory=lambda: np.zeros((0, 3))
+    )  # (N, 3) in camera a
     px_a: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # (N, 2) pixels in image a
     px_b: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # (N, 2) pixels in image b
-    cov_m2: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))  # (N, 3, 3) covariance, m^2
-    plane_dist_m: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (N,) signed, negative below road
-    plane: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))  # (p0, p1, p2): Z = p0 X + p1 Y + p2 (m)
+    cov_m2: np.ndarray = field(
+        default_factory=lambda: np.zeros((0, 3, 3))
+    )  # (N, 3, 3) covariance, m^2
+    plane_dist_m: np.ndarray = field(
+        default_factory=lambda: np.zeros(0)
+    )  # (N,) signed, negative below road
+    plane: np.ndarray = field(
+        default_factory=lambda: np.full(3, np.nan)
+    )  # (p0, p1, p2): Z = p0 X + p1 Y + p2 (m)
     R_b_from_a: np.ndarray = field(default_factory=lambda: np.eye(3))  # X_b = R X_a + t
     t_b_from_a_m: np.ndarray = field(default_factory=lambda: np.zeros(3))  # metric translation (m)
-    H: np.ndarray = field(default_factory=lambda: np.full((3, 3), np.nan))  # road-plane homography a -> b (px)
-    F: np.ndarray = field(default_factory=lambda: np.full((3, 3), np.nan))  # fundamental matrix, x_b^T F x_a = 0
+    H: np.ndarray = field(
+        default_factory=lambda: np.full((3, 3), np.nan)
+    )  # road-plane homography a -> b (px)
+    F: np.ndarray = field(
+        default_factory=lambda: np.full((3, 3), np.nan)
+    )  # fundamental matrix, x_b^T F x_a = 0
     scale_alpha: float = float("nan")  # α = h / d_c
     n_features_a: int = 0
     n_features_b: int = 0
@@ -64,7 +78,9 @@ class PairResult:
     n_prior_inliers: int = 0  # after the motion-prior rejection (λ)
     n_inliers: int = 0  # after RANSAC / final geometry
     outlier_ratio_h: float = float("nan")  # homography RANSAC outlier share (near-planar test)
-    rejected_px_a: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # mismatches (for the viewer)
+    rejected_px_a: np.ndarray = field(
+        default_factory=lambda: np.zeros((0, 2))
+    )  # mismatches (for the viewer)
     rejected_px_b: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     timings_s: dict[str, float] = field(default_factory=dict)
 
@@ -107,7 +123,9 @@ def load_pair(path: str | Path) -> PairResult:
         kw: dict[str, Any] = {}
         for f in fields(PairResult):
             if f.name == "timings_s":
-                kw[f.name] = dict(zip(z["timings_keys"].tolist(), z["timings_vals"].tolist(), strict=True))
+                kw[f.name] = dict(
+                    zip(z["timings_keys"].tolist(), z["timings_vals"].tolist(), strict=True)
+                )
                 continue
             v = z[f.name]
             if v.ndim == 0:

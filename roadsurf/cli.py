@@ -13,14 +13,18 @@ import typer
 from roadsurf.errors import RoadsurfError
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help=__doc__)
-bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks that print figures (not timed tests).")
+bench_app = typer.Typer(
+    no_args_is_help=True, help="Benchmarks that print figures (not timed tests)."
+)
 app.add_typer(bench_app, name="bench")
 
 Out = Annotated[Path, typer.Option("--out", "-o", help="Output folder.")]
 
 
 @app.callback()
-def _main(verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Debug logging.")] = False) -> None:
+def _main(
+    verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Debug logging.")] = False,
+) -> None:
     logging.basicConfig(
         level=logging.DEBUG if verbose else logging.INFO,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
@@ -31,10 +35,16 @@ def _main(verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Debug l
 @app.command()
 def simulate(
     out: Out,
-    scenario: Annotated[str, typer.Option(help="Named scenario (see `roadsurf simulate --list`).")] = "potholes",
-    seed: Annotated[int | None, typer.Option(help="Random seed (default: the scenario's own).")] = None,
+    scenario: Annotated[
+        str, typer.Option(help="Named scenario (see `roadsurf simulate --list`).")
+    ] = "potholes",
+    seed: Annotated[
+        int | None, typer.Option(help="Random seed (default: the scenario's own).")
+    ] = None,
     frames: Annotated[int | None, typer.Option(help="Override the number of frames.")] = None,
-    list_scenarios: Annotated[bool, typer.Option("--list", help="List scenarios and exit.")] = False,
+    list_scenarios: Annotated[
+        bool, typer.Option("--list", help="List scenarios and exit.")
+    ] = False,
 ) -> None:
     """Render a photo-textured drive with ground truth in the drive format."""
     from simulation import scenarios

@@ -26,7 +26,9 @@ from pyproj import CRS, Transformer
 def check_shape(name: str, arr: np.ndarray, shape: tuple[int | None, ...]) -> np.ndarray:
     """Return ``arr`` as an ndarray after checking it matches ``shape`` (None = any size)."""
     a = np.asarray(arr)
-    if a.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, a.shape, strict=True)):
+    if a.ndim != len(shape) or any(
+        s is not None and s != d for s, d in zip(shape, a.shape, strict=True)
+    ):
         want = "(" + ", ".join("N" if s is None else str(s) for s in shape) + ")"
         raise ValueError(f"{name}: expected shape {want}, got {a.shape}")
     return a
@@ -63,7 +65,9 @@ def _enu_rotation(lat_deg: float, lon_deg: float) -> np.ndarray:
     return np.array([[-so, co, 0.0], [-sl * co, -sl * so, cl], [cl * co, cl * so, sl]])
 
 
-def enu_from_lla(lat_deg: np.ndarray, lon_deg: np.ndarray, alt_m: np.ndarray | float, ref: EnuReference) -> np.ndarray:
+def enu_from_lla(
+    lat_deg: np.ndarray, lon_deg: np.ndarray, alt_m: np.ndarray | float, ref: EnuReference
+) -> np.ndarray:
     """WGS84 (degrees, metres) -> local ENU (metres). Inputs broadcast to (N,); returns (N, 3)."""
     lat = np.atleast_1d(np.asarray(lat_deg, dtype=float))
     lon = np.atleast_1d(np.asarray(lon_deg, dtype=float))
@@ -153,7 +157,12 @@ def skew(v: np.ndarray) -> np.ndarray:
 def rotation_from_euler_xyz(rx_rad: float, ry_rad: float, rz_rad: float) -> np.ndarray:
     """R = Rz @ Ry @ Rx (rotations about the camera x, y, z axes, radians)."""
     cx, sx, cy, sy, cz, sz = (
-        math.cos(rx_rad), math.sin(rx_rad), math.cos(ry_rad), math.sin(ry_rad), math.cos(rz_rad), math.sin(rz_rad)
+        math.cos(rx_rad),
+        math.sin(rx_rad),
+        math.cos(ry_rad),
+        math.sin(ry_rad),
+        math.cos(rz_rad),
+        math.sin(rz_rad),
     )
     rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
     ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
@@ -171,15 +180,21 @@ def world_from_vehicle_rotation(heading_deg: float) -> np.ndarray:
     return np.column_stack([right, -fwd, down])
 
 
-def world_from_cam(heading_deg: float, roll_rad: float = 0.0, pitch_rad: float = 0.0,
-                   position_enu_m: np.ndarray | None = None) -> np.ndarray:
+def world_from_cam(
+    heading_deg: float,
+    roll_rad: float = 0.0,
+    pitch_rad: float = 0.0,
+    position_enu_m: np.ndarray | None = None,
+) -> np.ndarray:
     """4x4 pose of a camera mounted looking down, given heading and small roll/pitch.
 
     Roll is a rotation about the camera y axis (backward), pitch about the camera x axis (right);
     both are applied in the camera frame before the heading.
     """
     T = np.eye(4)
-    T[:3, :3] = world_from_vehicle_rotation(heading_deg) @ rotation_from_euler_xyz(pitch_rad, roll_rad, 0.0)
+    T[:3, :3] = world_from_vehicle_rotation(heading_deg) @ rotation_from_euler_xyz(
+        pitch_rad, roll_rad, 0.0
+    )
     if position_enu_m is not None:
         T[:3, 3] = check_shape("position_enu_m", np.asarray(position_enu_m, float), (3,))
     return T

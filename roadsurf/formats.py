@@ -1,0 +1,294 @@
+"""Readers and writers for the standard exchange formats, kept together so they round-trip.
+
+- PLY (binary little-endian, via plyfile): double x,y,z; uchar red,green,blue; float residual_m
+  (+ any extra float/int per-vertex properties).
+- GeoTIFF (via rasterio): single-band float32 with nodata, or 3-band uint8 RGB; tiled, deflate
+  compressed, and sparse (tiles that hold only nodata are not stored, so a long curved corridor
+  does not cost its bounding box on disk).
+- GeoJSON (RFC 7946): WGS84 lon/lat, closed polygon rings, validated on write.
+All writers are atomic (temporary file, then rename).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from roadsurf.io import atomic_path, write_text_atomic
+
+# --------------------------------------------------------------------------- PLY
+
+
+def write_ply(
+    path: str | Path,
+    xyz: np.ndarray,
+    rgb: np.ndarray | None = None,
+    extra: dict[str, np.ndarray] | None = None,
+) -> Path:
+    """Write a binary PLY point cloud.
+
+    xyz: (N, 3) float64 coordinates (written as double); rgb: (N, 3) uint8 or None;
+    extra: name -> (N,) arrays (float -> float32 'float', ints -> int32), e.g. residual_m.
+    """
+    from plyfile import PlyData, PlyElement
+
+    xyz = np.asarray(xyz, dtype=np.float64)
+    if xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise ValueError(f"xyz: expected shape (N, 3), got {xyz.shape}")
+    n = xyz.shape[0]
+    dtype: list[tuple[str, str]] = [("x", "f8"), ("y", "f8"), ("z", "f8")]
+    cols: dict[str, np.ndarray] = {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2]}
+    if rgb is not None:
+        rgb = np.asarray(rgb)
+        if rgb.shape != (n, 3):
+            raise ValueError(f"rgb: expected shape ({n}, 3), got {rgb.shape}")
+        rgb = np.clip(rgb, 0, 255).astype(np.uint8)
+        for i, c in enumerate(("red", "green", "blue")):
+            dtype.append((c, "u1"))
+            cols[c] = rgb[:, i]
+    for name, arr in (extra or {}).items():
+        arr = np.asarray(arr)
+        if arr.shape != (n,):
+            raise ValueError(f"{name}: expected shape ({n},), got {arr.shape}")
+        kind = "f4" if arr.dtype.kind == "f" else "i4"
+        dtype.append((name, kind))
+        cols[name] = arr.astype(kind)
+    data = np.empty(n, dtype=dtype)
+    for k, v in cols.items():
+        data[k] = v
+    with atomic_path(path) as tmp:
+        PlyData([PlyElement.describe(data, "vertex")], text=False, byte_order="<").write(str(tmp))
+    return Path(path)
+
+
+def read_ply(path: str | Path) -> dict[str, np.ndarray]:
+    """Read a PLY's vertex element: returns {'xyz': (N,3) float64, 'rgb': (N,3) uint8 if present,
+    plus every other vertex property by name}."""
+    from plyfile import PlyData
+
+    v = PlyData.read(str(path))["vertex"].data
+    names = v.dtype.names or ()
+    out: dict[str, np.ndarray] = {
+        "xyz": np.column_stack([v["x"], v["y"], v["z"]]).astype(np.float64)
+    }
+    if all(c in names for c in ("red", "green", "blue")):
+        out["rgb"] = np.column_stack([v["red"], v["green"], v["blue"]]).astype(np.uint8)
+    for n in names:
+        if n not in ("x", "y", "z", "red", "green", "blue"):
+            out[n] = np.asarray(v[n])
+    return out
+
+
+# --------------------------------------------------------------------------- GeoTIFF
+
+
+@dataclass(frozen=True)
+class GridSpec:
+    """A north-up raster grid in a projected CRS. Pixel (row, col) centre is at
+    (x0 + (col + 0.5) * gsd, y0 - (row + 0.5) * gsd); (x0, y0) is the top-left corner."""
+
+    crs: str  # e.g. "EPSG:32617"
+    x0_m: float  # easting of the top-left corner (m)
+    y0_m: float  # northing of the top-left corner (m)
+    gsd_m: float  # pixel size (m), square pixels
+    width: int  # columns
+    height: int  # rows
+
+    @property
+    def transform(self) -> Any:
+        from rasterio.transform import from_origin
+
+        return from_origin(self.x0_m, self.y0_m, self.gsd_m, self.gsd_m)
+
+    def xy_from_rowcol(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """Pixel centres -> (N, 2) easting, northing (m)."""
+        r, c = np.asarray(rows, float), np.asarray(cols, float)
+        return np.column_stack(
+            [self.x0_m + (c + 0.5) * self.gsd_m, self.y0_m - (r + 0.5) * self.gsd_m]
+        )
+
+    def rowcol_from_xy(self, xy: np.ndarray) -> np.ndarray:
+        """(N, 2) easting, northing -> (N, 2) float row, col (pixel centres at integers)."""
+        xy = np.atleast_2d(np.asarray(xy, float))
+        col = (xy[:, 0] - self.x0_m) / self.gsd_m - 0.5
+        row = (self.y0_m - xy[:, 1]) / self.gsd_m - 0.5
+        return np.column_stack([row, col])
+
+
+def write_geotiff(
+    path: str | Path,
+    data: np.ndarray,
+    grid: GridSpec,
+    nodata: float | None = None,
+    tags: dict[str, str] | None = None,
+) -> Path:
+    """Write (H, W) float or (H, W, 3) uint8 data as a tiled, compressed, sparse GeoTIFF."""
+    import rasterio
+
+    arr = np.asarray(data)
+    if arr.ndim == 2:
+        bands = arr[None]
+    elif arr.ndim == 3 and arr.shape[2] in (3, 4):
+        bands = np.moveaxis(arr, 2, 0)
+    else:
+        raise ValueError(f"data: expected (H, W) or (H, W, 3|4), got {arr.shape}")
+    if bands.shape[1:] != (grid.height, grid.width):
+        raise ValueError(f"data is {bands.shape[1:]} but grid is {(grid.height, grid.width)}")
+    profile: dict[str, Any] = {
+        "driver": "GTiff",
+        "width": grid.width,
+        "height": grid.height,
+        "count": bands.shape[0],
+        "dtype": bands.dtype.name,
+        "crs": grid.crs,
+        "transform": grid.transform,
+        "compress": "deflate",
+        "tiled": True,
+        "blockxsize": 256,
+        "blockysize": 256,
+        "SPARSE_OK": "TRUE",
+        "BIGTIFF": "IF_SAFER",
+    }
+    if bands.shape[0] >= 3 and bands.dtype == np.uint8:
+        profile["photometric"] = "RGB"
+    if nodata is not None:
+        profile["nodata"] = nodata
+    with atomic_path(path) as tmp:
+        with rasterio.open(tmp, "w", **profile) as dst:
+            dst.write(bands)
+            if tags:
+                dst.update_tags(**tags)
+    return Path(path)
+
+
+def read_geotiff(path: str | Path) -> tuple[np.ndarray, GridSpec, float | None]:
+    """Read a GeoTIFF written by ``write_geotiff``: (data, grid, nodata). data is (H, W) for one
+    band or (H, W, C) otherwise."""
+    import rasterio
+
+    with rasterio.open(path) as src:
+        arr = src.read()
+        t = src.transform
+        if abs(t.a + t.e) > 1e-12 * max(1.0, abs(t.a)) or t.b != 0 or t.d != 0:
+            raise ValueError(f"{path}: only north-up square-pixel rasters are supported")
+        grid = GridSpec(str(src.crs), t.c, t.f, t.a, src.width, src.height)
+        nodata = src.nodata
+    data = arr[0] if arr.shape[0] == 1 else np.moveaxis(arr, 0, 2)
+    return data, grid, nodata
+
+
+# --------------------------------------------------------------------------- GeoJSON (RFC 7946)
+
+
+def _check_lonlat(coords: Any, where: str) -> None:
+    a = np.asarray(coords, dtype=float)
+    if a.size == 0:
+        return
+    a = a.reshape(-1, a.shape[-1])
+    if a.shape[1] < 2 or not np.all(np.isfinite(a[:, :2])):
+        raise ValueError(f"{where}: coordinates must be finite [lon, lat] pairs")
+    if np.any(np.abs(a[:, 0]) > 180) or np.any(np.abs(a[:, 1]) > 90):
+        raise ValueError(
+            f"{where}: coordinates out of lon/lat range (RFC 7946 needs WGS84 lon, lat)"
+        )
+
+
+def polygon_geometry(ring_lonlat: np.ndarray) -> dict[str, Any]:
+    """(N, 2) lon/lat ring -> closed, counter-clockwise GeoJSON Polygon (RFC 7946 §3.1.6)."""
+    ring = np.asarray(ring_lonlat, float)[:, :2]
+    if len(ring) < 3:
+        raise ValueError("a polygon ring needs at least 3 distinct points")
+    if not np.allclose(ring[0], ring[-1]):
+        ring = np.vstack([ring, ring[:1]])
+    x, y = ring[:, 0], ring[:, 1]
+    signed_area = 0.5 * np.sum(x[:-1] * y[1:] - x[1:] * y[:-1])
+    if signed_area < 0:
+        ring = ring[::-1]
+    return {"type": "Polygon", "coordinates": [ring.tolist()]}
+
+
+def feature(geometry: dict[str, Any], properties: dict[str, Any]) -> dict[str, Any]:
+    return {"type": "Feature", "geometry": geometry, "properties": _jsonable(properties)}
+
+
+def _jsonable(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _jsonable(obj.tolist())
+    if isinstance(obj, np.generic):
+        obj = obj.item()
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+def validate_geojson(fc: dict[str, Any]) -> None:
+    """Raise ValueError unless ``fc`` is an RFC 7946 FeatureCollection with lon/lat coordinates
+    and closed polygon rings."""
+    if fc.get("type") != "FeatureCollection" or not isinstance(fc.get("features"), list):
+        raise ValueError("GeoJSON: expected a FeatureCollection with a 'features' list")
+    for i, f in enumerate(fc["features"]):
+        g = f.get("geometry") or {}
+        where = f"feature {i} ({g.get('type')})"
+        if g.get("type") != "Polygon":
+            _check_lonlat(g.get("coordinates", []), where)
+        else:
+            for ring in g["coordinates"]:
+                if len(ring) < 4 or ring[0] != ring[-1]:
+                    raise ValueError(f"{where}: polygon rings must be closed with >= 4 positions")
+                _check_lonlat(ring, where)
+
+
+def write_geojson(
+    path: str | Path, features: Iterable[dict[str, Any]], properties: dict[str, Any] | None = None
+) -> Path:
+    """Write an RFC 7946 FeatureCollection (validated) atomically. Extra top-level members
+    (``properties``) are allowed by RFC 7946 §6.1 and used for provenance."""
+    fc: dict[str, Any] = {"type": "FeatureCollection", "features": list(features)}
+    if properties:
+        fc["properties"] = _jsonable(properties)
+    validate_geojson(fc)
+    return write_text_atomic(path, json.dumps(fc, indent=1) + "\n")
+
+
+def read_geojson(path: str | Path) -> dict[str, Any]:
+    with open(path, encoding="utf-8") as f:
+        fc = json.load(f)
+    validate_geojson(fc)
+    return fc
+
+
+# --------------------------------------------------------------------------- CSV
+
+
+def write_csv(path: str | Path, header: Sequence[str], rows: Iterable[Sequence[Any]]) -> Path:
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(header)
+    for r in rows:
+        w.writerow([_fmt(v) for v in r])
+    return write_text_atomic(path, buf.getvalue())
+
+
+def _fmt(v: Any) -> Any:
+    if isinstance(v, (float, np.floating)):
+        return "" if not math.isfinite(float(v)) else repr(float(v))
+    if isinstance(v, np.generic):
+        return v.item()
+    return v
+
+
+def read_csv(path: str | Path) -> list[dict[str, str]]:
+    with open(path, encoding="utf-8", newline="") as f:
+        return list(csv.DictReader(f))
