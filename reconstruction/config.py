@@ -1,0 +1,52 @@
+"""Configuration of the reconstruction stage (dissertation Ch. 3-4). Frozen dataclasses.
+
+Symbols follow the dissertation: λ (motion-prior width, eq. 4.7), σ (pixel noise, eq. 3.27),
+h (camera height, eq. 3.34), α = h / d_c (metric scale).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+FeatureKind = Literal["sift", "orb", "akaze"]
+Method = Literal["proposed", "rotation_aware", "classic", "colmap", "stereo"]
+METHODS: tuple[str, ...] = ("proposed", "rotation_aware", "classic", "colmap", "stereo")
+
+
+@dataclass(frozen=True)
+class FeatureConfig:
+    """Feature detection and matching."""
+
+    kind: FeatureKind = "sift"  # detector/descriptor: sift (default) | orb | akaze
+    max_features: int = 3000  # cap on keypoints per frame (count); bounds the matching time
+    ratio: float = 0.8  # Lowe ratio test, best/second-best descriptor distance (unitless)
+    mutual: bool = True  # keep only mutual nearest neighbours (a->b and b->a agree)
+    grid_cells: int = 8  # spread keypoints over a grid_cells x grid_cells grid (count); 0 = off
+    downscale: float = 1.0  # detect on an image resized by this factor (unitless, <= 1)
+
+
+@dataclass(frozen=True)
+class ReconstructionConfig:
+    """Two-view near-planar reconstruction with metric scale."""
+
+    method: Method = "rotation_aware"  # proposed | rotation_aware | classic | colmap | stereo
+    features: FeatureConfig = field(default_factory=FeatureConfig)
+    motion_prior: bool = True  # run the motion-prior mismatch rejection before RANSAC
+    lambda_prior: float = 2.0  # λ: keep matches inside d̄ ± λ·σ_d per axis (eq. 4.7), unitless
+    h_ransac_px: float = 3.0  # homography RANSAC reprojection threshold (px)
+    h_ransac_iters: int = 2000  # homography RANSAC max iterations (count)
+    near_planar_max_outlier: float = 0.5  # pair is near-planar when H outlier ratio < this (0-1)
+    f_ransac_px: float = 1.0  # classic baseline: fundamental-matrix RANSAC threshold (px)
+    min_matches: int = 30  # fewer matches (after each filter) -> too_few_matches (count)
+    min_features: int = 50  # fewer keypoints in a frame -> too_few_features (count)
+    f_iterations: int = 10  # max iterations of the F = [e]x H rebuild loop (Fig. 3.4) (count)
+    f_tol: float = 1e-9  # convergence of the rebuild loop: change of t direction (unitless)
+    ba_iterations: int = 50  # rotation_aware: max least-squares evaluations x n_params (count)
+    pixel_sigma_px: float = 0.5  # σ: pixel noise for the first-order covariance (px)
+    max_reproj_px: float = 4.0  # drop triangulated points with a larger reprojection error (px)
+    min_parallax_deg: float = 0.0  # drop points with less triangulation angle (deg); 0 = keep
+    stereo_baseline_m: float = 0.2  # stereo baseline B (m), dissertation Fig. 3.12
+    min_overlap: float = 0.1  # matched area share of image a below this -> no_overlap (0-1)
+    overwrite: bool = False  # recompute cached RUN/pairs and RUN/features files
+    save_features: bool = True  # cache per-frame features in RUN/features/
