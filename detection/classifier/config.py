@@ -1,0 +1,61 @@
+"""Configuration of the CNN classifier, its self-labelling and the CNN/3D fusion rule."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+CLASS_NAMES: tuple[str, str] = ("non-defect", "defect")  # softmax output order
+
+
+@dataclass(frozen=True)
+class ClassifierConfig:
+    """CNN classifier (dissertation §5.2-5.3). Lengths in metres, images in pixels."""
+
+    # --- network (§5.2.3) ---
+    input_size_px: int = 64  # square network input side (px); the dissertation used 227
+    dropout: float = 0.5  # dropout probability before FC6 and FC7
+    width: int = 1  # channel multiplier of the conv layers (1 = small CPU-sized net)
+
+    # --- training (§5.3) ---
+    learning_rate: float = 5e-5  # initial learning rate (dissertation default)
+    lr_decay: float = 0.95  # learning rate multiplied by this every epoch (dissertation default)
+    batch_size: int = 64  # images per step (dissertation default)
+    epochs: int = 30  # passes over the training split
+    weight_decay: float = 1e-4  # L2 penalty of the optimiser (1)
+    val_fraction: float = 0.2  # share held out for validation (the 80/20 split)
+    balanced_sampling: bool = True  # sample classes equally per epoch (§5.3.2 imbalance)
+    class_weighting: bool = False  # weight the loss by inverse class frequency instead
+    seed: int = 0  # seeds the split, augmentation, initialisation and sampling
+    device: str = "auto"  # "auto" (CUDA when present), "cpu" or "cuda"
+    num_threads: int = 0  # torch CPU threads (0 = torch default)
+
+    # --- self-labelling (eq. 5.8-5.9) ---
+    defect_depth_m: float = 0.010  # Z^d: a point deeper than this below the road is a defect (m)
+    # α = Z^d / h on height-normalised points X̄ = X / h; when set it overrides defect_depth_m,
+    # so the threshold scales with each drive's camera height h (1)
+    defect_alpha: float | None = None
+    min_defect_area_cm2: float = 20.0  # minimum footprint deeper than Z^d for a defect frame (cm²)
+    min_defect_points: int = 5  # minimum reconstructed points deeper than Z^d (1)
+    store_size_px: int = 96  # side of the square PNG written to the dataset (px)
+    # frames whose 3D evidence is ambiguous (a few deep points, below the extent) are left out of
+    # the dataset rather than given a noisy label
+    drop_ambiguous: bool = True
+
+    # --- augmentation of defect images (§5.3.2) ---
+    augment: bool = True  # write augmented copies of the defect images
+    augment_max_copies: int = 12  # at most this many augmented copies per defect image (1)
+    augment_target_ratio: float = 1.0  # aim for defect:non-defect this close to 1:1 (1)
+    rescale_range: tuple[float, float] = (0.8, 1.25)  # zoom factor range for rescaling (1)
+
+    # --- screening and fusion (Fig. 5.6) ---
+    fusion_threshold: float = 0.95  # the CNN decision stands when max(p) >= this (1)
+    # when True a confident CNN "defect" must be confirmed by the 3D result (which runs anyway to
+    # measure the defect); False is the dissertation's rule (the confident CNN decision stands)
+    confirm_defect_with_3d: bool = False
+    screen_batch_size: int = 64  # images per inference batch (1)
+
+    def depth_threshold_m(self, camera_height_m: float) -> float:
+        """Z^d for a camera at height h (m): α·h when α is set, else ``defect_depth_m``."""
+        if self.defect_alpha is not None:
+            return float(self.defect_alpha) * float(camera_height_m)
+        return float(self.defect_depth_m)
