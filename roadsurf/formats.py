@@ -206,8 +206,11 @@ def polygon_geometry(ring_lonlat: np.ndarray) -> dict[str, Any]:
     ring = np.asarray(ring_lonlat, float)[:, :2]
     if len(ring) < 3:
         raise ValueError("a polygon ring needs at least 3 distinct points")
-    if not np.allclose(ring[0], ring[-1]):
+    # Exact comparison: lon/lat vertices a few cm apart differ only in the 6th decimal.
+    if not np.array_equal(ring[0], ring[-1]):
         ring = np.vstack([ring, ring[:1]])
+    if len(ring) < 4:
+        raise ValueError("a polygon ring needs at least 3 distinct points")
     x, y = ring[:, 0], ring[:, 1]
     signed_area = 0.5 * np.sum(x[:-1] * y[1:] - x[1:] * y[:-1])
     if signed_area < 0:

@@ -29,7 +29,7 @@ def check_shape(name: str, arr: np.ndarray, shape: tuple[int | None, ...]) -> np
     if a.ndim != len(shape) or any(
         s is not None and s != d for s, d in zip(shape, a.shape, strict=True)
     ):
-        want = "(" + ", ".join("N" if s is None else str(s) for s in shape) + ")"
+        want = str(tuple("N" if s is None else s for s in shape)).replace("'", "")
         raise ValueError(f"{name}: expected shape {want}, got {a.shape}")
     return a
 

@@ -1,0 +1,109 @@
+import json
+
+import numpy as np
+import pytest
+import rasterio
+from plyfile import PlyData
+
+from roadsurf.formats import (
+    GridSpec,
+    feature,
+    polygon_geometry,
+    read_csv,
+    read_geojson,
+    read_geotiff,
+    read_ply,
+    write_csv,
+    write_geojson,
+    write_geotiff,
+    write_ply,
+)
+from roadsurf.io import write_json_atomic
+
+
+def test_ply_round_trip_is_binary_with_contract_types(tmp_path):
+    rng = np.random.default_rng(1)
+    xyz = rng.uniform(0, 1, (100, 3)) + [630000.0, 4833000.0, 80.0]
+    rgb = rng.integers(0, 256, (100, 3)).astype(np.uint8)
+    res = rng.normal(0, 0.01, 100)
+    p = write_ply(tmp_path / "cloud.ply", xyz, rgb, {"residual_m": res})
+    ply = PlyData.read(str(p))
+    assert not ply.text
+    props = {pr.name: pr.val_dtype for pr in ply["vertex"].properties}
+    assert props["x"] == "f8" and props["red"] == "u1" and props["residual_m"] == "f4"
+    back = read_ply(p)
+    np.testing.assert_array_equal(back["xyz"], xyz)  # doubles keep UTM precision
+    np.testing.assert_array_equal(back["rgb"], rgb)
+    np.testing.assert_allclose(back["residual_m"], res, rtol=1e-6)
+
+
+def test_geotiff_round_trip_float_and_rgb(tmp_path):
+    grid = GridSpec("EPSG:32617", 630000.0, 4833010.0, 0.005, 600, 300)
+    surf = np.full((300, 600), np.nan, np.float32)
+    surf[100:120, 200:260] = -0.03
+    write_geotiff(tmp_path / "surface.tif", surf, grid, nodata=float("nan"))
+    data, g2, nodata = read_geotiff(tmp_path / "surface.tif")
+    assert g2 == grid and np.isnan(nodata)
+    np.testing.assert_array_equal(np.isnan(data), np.isnan(surf))
+    with rasterio.open(tmp_path / "surface.tif") as src:
+        assert src.crs.to_epsg() == 32617 and src.dtypes[0] == "float32"
+        # Pixel centre of (row 100, col 200) maps to the expected easting/northing.
+        x, y = src.xy(100, 200)
+    assert np.allclose(grid.xy_from_rowcol(100, 200), [[x, y]])
+    np.testing.assert_allclose(grid.rowcol_from_xy(np.array([[x, y]])), [[100, 200]])
+    rgb = np.zeros((300, 600, 3), np.uint8)
+    rgb[..., 1] = 200
+    write_geotiff(tmp_path / "mosaic.tif", rgb, grid)
+    back, _, _ = read_geotiff(tmp_path / "mosaic.tif")
+    np.testing.assert_array_equal(back, rgb)
+
+
+def test_geotiff_shape_mismatch_is_an_error(tmp_path):
+    grid = GridSpec("EPSG:32617", 0.0, 0.0, 1.0, 10, 10)
+    with pytest.raises(ValueError, match="grid is"):
+        write_geotiff(tmp_path / "x.tif", np.zeros((5, 10), np.float32), grid)
+
+
+def test_geojson_polygons_closed_ccw_and_validated(tmp_path):
+    ring = np.array([[-79.38, 43.65], [-79.38, 43.6501], [-79.3799, 43.6501]])  # clockwise
+    f = feature(
+        polygon_geometry(ring), {"id": 1, "max_depth_m": np.float32(0.03), "x": float("nan")}
+    )
+    write_geojson(tmp_path / "d.geojson", [f])
+    fc = read_geojson(tmp_path / "d.geojson")
+    coords = fc["features"][0]["geometry"]["coordinates"][0]
+    assert coords[0] == coords[-1] and len(coords) == 4
+    xs, ys = np.array(coords).T
+    assert 0.5 * np.sum(xs[:-1] * ys[1:] - xs[1:] * ys[:-1]) > 0  # counter-clockwise
+    assert fc["features"][0]["properties"]["x"] is None  # NaN is not valid JSON
+    bad = {
+        "type": "FeatureCollection",
+        "features": [
+            {
+                "type": "Feature",
+                "geometry": {"type": "Point", "coordinates": [630000.0, 4833000.0]},
+                "properties": {},
+            }
+        ],
+    }
+    write_json_atomic(tmp_path / "bad.geojson", bad)
+    with pytest.raises(ValueError, match="lon/lat"):
+        read_geojson(tmp_path / "bad.geojson")
+
+
+def test_csv_round_trip(tmp_path):
+    write_csv(tmp_path / "a.csv", ["filename", "p"], [["f1.jpg", 0.25], ["f2.jpg", float("nan")]])
+    rows = read_csv(tmp_path / "a.csv")
+    assert rows == [{"filename": "f1.jpg", "p": "0.25"}, {"filename": "f2.jpg", "p": ""}]
+
+
+def test_atomic_write_leaves_no_temp_on_failure(tmp_path):
+    from roadsurf.io import atomic_path
+
+    with pytest.raises(RuntimeError):
+        with atomic_path(tmp_path / "x.json") as tmp:
+            tmp.write_text("partial")
+            raise RuntimeError("killed")
+    assert list(tmp_path.iterdir()) == []
+    write_json_atomic(tmp_path / "y.json", {"a": np.float64(1.5)})
+    assert json.loads((tmp_path / "y.json").read_text()) == {"a": 1.5}
