@@ -57,6 +57,43 @@ def simulate(
     typer.echo(f"Wrote drive '{scenario}' to {res}")
 
 
+@app.command()
+def run(
+    drive: Annotated[Path, typer.Argument(help="Drive folder (see docs/formats.md).")],
+    out: Out,
+    config: Annotated[
+        Path | None, typer.Option(help="YAML config; top-level keys are stage names.")
+    ] = None,
+    method: Annotated[
+        str, typer.Option(help="Reconstruction method (proposed, rotation_aware, classic, ...).")
+    ] = "proposed",
+    classifier: Annotated[
+        Path | None, typer.Option(help="CNN model file: screen frames, reconstruct only unsure.")
+    ] = None,
+    rerun: Annotated[
+        bool, typer.Option("--rerun", help="Stream live to the Rerun viewer.")
+    ] = False,
+    overwrite: Annotated[
+        bool, typer.Option("--overwrite", help="Recompute finished artifacts (default: resume).")
+    ] = False,
+) -> None:
+    """Run the whole pipeline on a drive: 3D map, mosaic, trajectory and defects."""
+    from roadsurf.pipeline import run_drive
+
+    report = run_drive(
+        drive,
+        out,
+        config_path=config,
+        method=method,
+        classifier=classifier,
+        rerun=rerun,
+        overwrite=overwrite,
+    )
+    typer.echo(f"Outputs in {out}/ ({report['timings_s']['total']:.1f} s):")
+    for name in sorted(p.name for p in Path(out).iterdir() if p.is_file()):
+        typer.echo(f"  {name}")
+
+
 def main() -> None:
     try:
         app()

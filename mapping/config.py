@@ -1,0 +1,54 @@
+"""Configuration of the mapping stage (poses, global map, rasters, exports).
+
+Every field gives its unit and, where the dissertation names it, its symbol. Loaded with
+``roadsurf.config.from_dict`` / ``load_yaml_config`` (unknown keys are rejected).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+
+@dataclass(frozen=True)
+class MappingConfig:
+    # ---------------------------------------------------------------- poses (pose graph)
+    gps_sigma_m: float = 1.0  # horizontal GPS σ (m) used when the log has no HDOP
+    gps_sigma_per_hdop_m: float = 0.5  # σ = hdop × this (m) when HDOP is present (UERE-like)
+    gps_sigma_min_m: float = 0.005  # floor on the GPS σ (m), keeps weights finite for RTK logs
+    gps_vertical_sigma_factor: float = (
+        2.0  # vertical σ = factor × horizontal σ (GPS altitude is worse)
+    )
+    use_gps_altitude: bool = (
+        False  # use GPS altitude as a constraint; off: height from visual chain
+    )
+    visual_sigma_trans_m: float = 0.003  # σ of a pair's metric translation (m), per axis
+    visual_sigma_trans_rel: float = 0.01  # extra σ as a share of the pair's baseline length (−)
+    visual_sigma_rot_deg: float = 0.1  # σ of a pair's relative rotation (degrees), per axis
+    heading_sigma_deg: float = 5.0  # σ of the eq. 6.1 heading between successive fixes (degrees)
+    heading_min_baseline_m: float = 0.5  # fixes closer than this give no heading (m)
+    obd_sigma_mps: float = 0.2  # σ of OBD speed (m/s) for the optional speed constraint
+    use_obd: bool = True  # add OBD speed constraints when obd.csv exists
+    robust_loss: Literal["soft_l1", "huber", "cauchy", "arctan", "linear"] = "cauchy"
+    robust_scale: float = 3.0  # residual (in σ units) where the robust loss starts to bend (−)
+    gps_outlier_sigmas: float = 5.0  # a fix with |residual| > this × σ after fusion is an outlier
+    max_gap_interp_s: float = 2.0  # GPS fix further than this in time from any frame is unused (s)
+    max_speed_mps: float = 70.0  # implied speed above this between fixes = a jump (m/s)
+    max_nfev: int = 60  # least-squares iteration cap (function evaluations)
+    # ---------------------------------------------------------------- global map
+    voxel_m: float = 0.004  # voxel edge for fusing points seen in several pairs (m)
+    max_point_depth_m: float = 5.0  # drop points further than this from camera a (m)
+    local_fit_window_m: float = 1.5  # side of the window for the local road-surface fit (m)
+    local_fit_cell_m: float = 0.25  # cell size of the local fit's anchor grid (m)
+    local_fit_inlier_m: float = 0.008  # points further than this from the fit are not road (m)
+    local_fit_order: int = 1  # 1: plane, 2: quadric, per window
+    # ---------------------------------------------------------------- rasters / exports
+    gsd_m: float = 0.005  # ground sampling distance of surface.tif / mosaic.tif (m)
+    tile_px: int = 1024  # raster tile side (px); tiles exist only where the corridor passes
+    tiled_vrt_min_tiles: int = 2  # write per-tile files + VRT index when the grid has >= this
+    mosaic_border_px: int = 8  # image border ignored when projecting frames (px)
+    feather_px: int = 40  # feathering ramp width at image edges for mosaic blending (px)
+    surface_fill_px: int = 2  # close holes up to this many pixels in the surface raster (px)
+    max_raster_px: int = 400_000_000  # refuse a single raster larger than this (px), tile instead
+    preview_max_px: int = 2000  # longest side of the PNG previews (px)
+    colour_from_images: bool = True  # sample point colours from image a at px_a

@@ -1,0 +1,276 @@
+"""`roadsurf run`: chain the stages over one drive. No stage logic lives here.
+
+Order: load_drive -> [CNN screening, decides which pairs are reconstructed] ->
+reconstruction.stage.run -> mapping.poses.run -> mapping.globalmap.run -> detection.stage.run
+-> report.json. Each stage resumes from its own artifacts in the run folder.
+
+Live streaming (``rerun=True``) imports ``viewer.live`` here (the pipeline may import the viewer;
+stages never do). An observer is any callable ``observer(stage_name, result)`` called after each
+stage with that stage's result (``"drive"``: Drive, ``"screening"``: dict filename -> p,
+``"reconstruction"``: list[PairResult], ``"poses"``: Trajectory, ``"globalmap"``: MapProducts,
+``"detection"``: DetectionResult).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import logging
+import platform
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from roadsurf.config import from_dict, load_yaml_config, to_dict
+from roadsurf.errors import ConfigError, RoadsurfError
+from roadsurf.io import write_json_atomic
+
+log = logging.getLogger(__name__)
+
+Observer = Callable[[str, Any], None]
+
+
+@dataclass(frozen=True)
+class _MissingStageConfig:
+    """Placeholder while a stage package has not landed yet (accepts no keys)."""
+
+
+def _config_class(module: str, name: str) -> type:
+    try:
+        return getattr(importlib.import_module(module), name)
+    except (ImportError, AttributeError):
+        return _MissingStageConfig
+
+
+_ReconstructionConfig = _config_class("reconstruction.config", "ReconstructionConfig")
+_MappingConfig = _config_class("mapping.config", "MappingConfig")
+_DetectionConfig = _config_class("detection.config", "DetectionConfig")
+_ClassifierConfig = _config_class("detection.classifier.config", "ClassifierConfig")
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    """All stage configs; the YAML file's top-level keys are these field names."""
+
+    reconstruction: _ReconstructionConfig = field(default_factory=_ReconstructionConfig)  # type: ignore[valid-type]
+    mapping: _MappingConfig = field(default_factory=_MappingConfig)  # type: ignore[valid-type]
+    detection: _DetectionConfig = field(default_factory=_DetectionConfig)  # type: ignore[valid-type]
+    classifier: _ClassifierConfig = field(default_factory=_ClassifierConfig)  # type: ignore[valid-type]
+
+
+# from_dict resolves type hints by name; give it the real classes, not the aliases' strings.
+PipelineConfig.__annotations__.update(
+    reconstruction=_ReconstructionConfig,
+    mapping=_MappingConfig,
+    detection=_DetectionConfig,
+    classifier=_ClassifierConfig,
+)
+
+
+def load_pipeline_config(path: str | Path | None) -> PipelineConfig:
+    """Load a YAML config (top-level keys = stage names); defaults when ``path`` is None."""
+    if path is None:
+        return PipelineConfig()
+    return load_yaml_config(PipelineConfig, path)
+
+
+def pipeline_config_from_dict(data: dict[str, Any] | None) -> PipelineConfig:
+    return from_dict(PipelineConfig, data, "pipeline config")
+
+
+def _stage(module: str) -> Any | None:
+    """Import a stage module lazily; None (with a warning) while it has not landed."""
+    try:
+        return importlib.import_module(module)
+    except ModuleNotFoundError as e:
+        # only tolerate the stage module itself (or its package) missing, not a broken import
+        if e.name and (module == e.name or module.startswith(e.name + ".")):
+            log.warning("stage %s is not available yet (%s); skipping it", module, e)
+            return None
+        raise
+
+
+def _versions() -> dict[str, str]:
+    out = {"python": platform.python_version()}
+    for name in (
+        "roadsurf",
+        "numpy",
+        "scipy",
+        "opencv-python-headless",
+        "pycolmap",
+        "open3d",
+        "rasterio",
+        "pyproj",
+        "torch",
+        "rerun-sdk",
+    ):
+        try:
+            from importlib.metadata import version
+
+            out[name] = version(name)
+        except Exception:  # noqa: BLE001 - a missing optional package is just not listed
+            continue
+    return out
+
+
+def run_drive(
+    drive_dir: str | Path,
+    out_dir: str | Path,
+    *,
+    config_path: str | Path | None = None,
+    method: str = "proposed",
+    classifier: str | Path | None = None,
+    rerun: bool = False,
+    overwrite: bool = False,
+    observers: list[Observer] | None = None,
+) -> dict[str, Any]:
+    """Run every stage on ``drive_dir`` into ``out_dir``; returns the report (also report.json).
+
+    ``method`` picks the reconstruction estimator; ``classifier`` is a CNN model file for
+    screening (only pairs the CNN is unsure about, or calls defect, are reconstructed);
+    ``rerun`` streams results live to the Rerun viewer; ``overwrite`` recomputes finished
+    artifacts instead of resuming.
+    """
+    from roadsurf.drive import load_drive
+
+    t_start = time.perf_counter()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    cfg = load_pipeline_config(config_path)
+    obs: list[Observer] = list(observers or [])
+    if rerun:
+        live = importlib.import_module("viewer.live")
+        obs.append(live.make_observer(out))
+    timings: dict[str, float] = {}
+
+    def notify(stage: str, result: Any) -> None:
+        for o in obs:
+            try:
+                o(stage, result)
+            except Exception as e:  # noqa: BLE001 - a viewer problem must not kill the run
+                log.warning("observer failed on stage %s: %s", stage, e)
+
+    def timed(name: str, fn: Callable[[], Any]) -> Any:
+        t0 = time.perf_counter()
+        res = fn()
+        timings[name] = round(time.perf_counter() - t0, 3)
+        log.info("stage %s done in %.1f s", name, timings[name])
+        notify(name, res)
+        return res
+
+    drive = timed("drive", lambda: load_drive(drive_dir))
+
+    rec_cfg = cfg.reconstruction
+    if method != "proposed" or any(f.name == "method" for f in dataclasses.fields(rec_cfg)):
+        if not any(f.name == "method" for f in dataclasses.fields(rec_cfg)):
+            raise ConfigError(f"--method {method}: the reconstruction stage has no method option")
+        rec_cfg = dataclasses.replace(rec_cfg, method=method)
+
+    frame_probs: dict[str, float] | None = None
+    only_pairs: set[tuple[int, int]] | None = None
+    if classifier is not None:
+        screen = _stage("detection.classifier.screen")
+        if screen is None:
+            raise RoadsurfError(
+                "--classifier given but detection.classifier.screen is not installed"
+            )
+        frame_probs = timed(
+            "screening", lambda: screen.screen_drive(Path(classifier), drive, cfg.classifier)
+        )
+        only_pairs = _pairs_to_reconstruct(drive, frame_probs, cfg.classifier)
+        log.info(
+            "CNN screening: %d of %d pairs need the 3D reconstruction",
+            len(only_pairs),
+            max(0, len(drive.frames) - 1),
+        )
+
+    pairs: list[Any] = []
+    rec = _stage("reconstruction.stage")
+    if rec is not None:
+        pairs = timed(
+            "reconstruction",
+            lambda: rec.run(rec_cfg, drive, out, only_pairs=only_pairs),
+        )
+
+    traj = None
+    poses = _stage("mapping.poses")
+    if poses is not None:
+        traj = timed("poses", lambda: poses.run(cfg.mapping, drive, pairs, out))
+
+    products = None
+    gmap = _stage("mapping.globalmap")
+    if gmap is not None and traj is not None:
+        products = timed("globalmap", lambda: gmap.run(cfg.mapping, drive, pairs, traj, out))
+
+    detections = None
+    det = _stage("detection.stage")
+    if det is not None and traj is not None:
+        detections = timed(
+            "detection",
+            lambda: det.run(cfg.detection, drive, pairs, traj, out, frame_probs=frame_probs),
+        )
+
+    timings["total"] = round(time.perf_counter() - t_start, 3)
+    report = _build_report(drive, pairs, traj, products, detections, cfg, method, timings)
+    write_json_atomic(out / "report.json", report)
+    notify("report", report)
+    return report
+
+
+def _pairs_to_reconstruct(
+    drive: Any, frame_probs: dict[str, float], clf_cfg: Any
+) -> set[tuple[int, int]]:
+    """Pairs whose frames the CNN is unsure about or calls defect (Fig. 5.6)."""
+    threshold = float(getattr(clf_cfg, "confidence_threshold", 0.95))
+    frames = drive.frames
+    need = set()
+    for a, b in zip(frames[:-1], frames[1:], strict=True):
+        sure_clear = all((1.0 - frame_probs.get(f.filename, 0.5)) >= threshold for f in (a, b))
+        if not sure_clear:
+            need.add((a.index, b.index))
+    return need
+
+
+def _build_report(
+    drive: Any,
+    pairs: list[Any],
+    traj: Any,
+    products: Any,
+    detections: Any,
+    cfg: PipelineConfig,
+    method: str,
+    timings: dict[str, float],
+) -> dict[str, Any]:
+    ef = traj.export_frame if traj is not None else None
+    failed = [
+        {"frame_a": p.frame_a, "frame_b": p.frame_b, "status": p.status, "reason": p.reason}
+        for p in pairs
+        if not p.ok
+    ]
+    report: dict[str, Any] = {
+        "drive": str(Path(drive.root).resolve()),
+        "method": method,
+        "crs": ef.crs if ef is not None else None,
+        "reference": traj.reference.to_dict() if traj is not None and traj.reference else None,
+        "counts": {
+            "frames": len(drive.frames),
+            "gps_fixes": len(drive.gps) if drive.gps is not None else 0,
+            "pairs": len(pairs),
+            "pairs_ok": sum(1 for p in pairs if p.ok),
+            "pairs_failed": len(failed),
+            "posed_frames": len(traj) if traj is not None else 0,
+        },
+        "skipped_frames": [dataclasses.asdict(s) for s in drive.skipped],
+        "failed_pairs": failed,
+        "warnings": list(drive.warnings),
+        "timings_s": timings,
+        "versions": _versions(),
+        "config": {f.name: to_dict(getattr(cfg, f.name)) for f in dataclasses.fields(cfg)},
+    }
+    if products is not None and hasattr(products, "to_report"):
+        report["map"] = products.to_report()
+    if detections is not None and hasattr(detections, "to_report"):
+        report["detection"] = detections.to_report()
+    return report
