@@ -1,0 +1,97 @@
+"""Configuration of the detection stage (dissertation Ch. 4 and §5.4). Frozen dataclasses.
+
+Symbols follow the dissertation: T_d (depth threshold, eq. 4.8), m (minimum road share, eq. 4.10),
+T_b (binarisation threshold, Fig. 4.3), W (erosion/dilation window, Fig. 4.3), w (mean-shift
+window, eq. 5.11-5.12). Depth thresholds are floors: the stage raises them to a multiple of the
+measured noise of the residual surface (robust MAD of the flat road), so one setting works on
+renders and real roads with different noise.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+BinariseMode = Literal["adaptive", "fixed"]
+DEFECT_TYPES: tuple[str, ...] = ("pothole", "crack", "rut")
+SEVERITIES: tuple[str, ...] = ("low", "medium", "high")
+
+
+@dataclass(frozen=True)
+class PlaneFitConfig:
+    """Recursive plane fit per pair (eq. 4.8-4.10)."""
+
+    depth_threshold_m: float = 0.008  # T_d floor: candidate when d_i < 0 and |d_i| >= T_d (m)
+    noise_k: float = 4.0  # T_d = max(T_d floor, noise_k * σ_noise), σ from MAD of d_i (unitless)
+    min_road_share: float = 0.7  # m: refit while T_n = |X^rn| / |X| > m (0-1)
+    max_iterations: int = 10  # cap on refits (count)
+    min_points: int = 30  # a pair with fewer points is not segmented (count)
+
+
+@dataclass(frozen=True)
+class RefineConfig:
+    """2D + 3D refinement (Fig. 4.3 CORRECT_DEFECTS)."""
+
+    enabled: bool = True  # run the 2D gate; False keeps the 3D candidates as they are
+    binarise: BinariseMode = "adaptive"  # T_b policy: adaptive (per image, local road) | fixed
+    fixed_threshold: int = 90  # T_b for `fixed`: dark = grey < T_b (grey level 0-255)
+    adaptive_window_frac: float = 0.25  # local road brightness window, share of image width (0-1)
+    adaptive_dark_k: float = 1.5  # adaptive: dark = grey < local median - k * local MAD (unitless)
+    adaptive_min_drop: float = 0.06  # adaptive: and at least this share darker than local (0-1)
+    window_px: int = 5  # W: erosion then dilation window W x W (px)
+    grow_depth_frac: float = 0.5  # grow: a point joins when inside the region and d_i <= -frac*T_d
+    strong_factor: float = 2.5  # candidates deeper than strong_factor * T_d need no 2D support
+    max_iterations: int = 10  # grow until the set is stable, at most this many rounds (count)
+
+
+@dataclass(frozen=True)
+class SeverityConfig:
+    """Severity bands (ASTM D6433 pothole table; FHWA Distress Identification Manual depths)."""
+
+    depth_low_m: float = 0.025  # depth band edge low/medium (m), ASTM D6433 & FHWA DIM: 25 mm
+    depth_high_m: float = 0.050  # depth band edge medium/high (m): 50 mm
+    diameter_small_m: float = 0.200  # ASTM D6433 diameter edge 100-200 / 200-450 mm (m)
+    diameter_large_m: float = 0.450  # ASTM D6433 diameter edge 200-450 / 450-750 mm (m)
+    crack_width_low_m: float = 0.006  # FHWA DIM crack width low/moderate: 6 mm (m)
+    crack_width_high_m: float = 0.019  # FHWA DIM crack width moderate/high: 19 mm (m)
+    rut_depth_low_m: float = 0.013  # ASTM D6433 rutting: low < 13 mm (m)
+    rut_depth_high_m: float = 0.025  # ASTM D6433 rutting: high > 25 mm (m)
+
+
+@dataclass(frozen=True)
+class MapSegmentConfig:
+    """Segmentation and measurement on the global map (surface raster + refined points)."""
+
+    depth_threshold_m: float = 0.008  # T_d floor on the map: seed cells deeper than this (m)
+    noise_k: float = (
+        4.0  # seed threshold = max(floor, noise_k * σ_map), σ_map = 1.4826 MAD (unitless)
+    )
+    rim_threshold_m: float = 0.002  # outline floor: a defect extends while deeper than this (m)
+    rim_noise_k: float = 1.5  # outline threshold = max(rim floor, rim_noise_k * σ_map) (unitless)
+    smooth_px: float = 1.0  # Gaussian σ applied to the raster before thresholds (px); 0 = off
+    max_raster_cells: int = 60_000_000  # refuse to rasterise points into a larger grid (cells)
+    fallback_gsd_m: float = 0.01  # grid size when RUN/surface.tif is absent (m)
+    mean_shift_window_m: float = 0.30  # w: flat-kernel mean-shift window w x w (m), eq. 5.11
+    mean_shift_max_iter: int = 50  # iterations per window (count)
+    mean_shift_tol_m: float = 0.001  # a window has converged when it moves less (m)
+    min_area_m2: float = 0.002  # drop defects whose deep area (>= seed threshold) is smaller (m²)
+    min_depth_m: float = 0.010  # drop defects shallower than this at their deepest (m)
+    min_seen_frac: float = 0.3  # 3D veto: share of deep cells that must be confirmed by points
+    point_support_radius_m: float = 0.02  # a point confirms raster cells within this radius (m)
+    crack_max_width_m: float = 0.06  # narrower elongated defects are cracks (m)
+    rut_min_length_m: float = 1.0  # longer elongated, wider defects are ruts (m)
+    elongation_min: float = 3.0  # length / width above this = elongated (crack or rut) (unitless)
+    frame_depth_m: float = 0.010  # frame label: deeper than this counts (m); truth uses 10 mm
+    frame_min_area_m2: float = 0.002  # frame label: footprint holds at least this deep area (m²)
+
+
+@dataclass(frozen=True)
+class DetectionConfig:
+    """Defect detection: per pair (Ch. 4), on the global map (§5.4), outputs for GIS."""
+
+    plane: PlaneFitConfig = field(default_factory=PlaneFitConfig)
+    refine: RefineConfig = field(default_factory=RefineConfig)
+    map: MapSegmentConfig = field(default_factory=MapSegmentConfig)
+    severity: SeverityConfig = field(default_factory=SeverityConfig)
+    use_images: bool = True  # read frames for the 2D refinement (False: 3D only)
+    overwrite: bool = False  # recompute even when RUN/defects.geojson exists
