@@ -94,6 +94,71 @@ def run(
         typer.echo(f"  {name}")
 
 
+# --- CNN classifier (detection/classifier) -------------------------------------------------
+@app.command()
+def label(
+    drives: Annotated[list[Path], typer.Argument(help="Drive folders to label.")],
+    out: Out,
+    run_dirs: Annotated[
+        list[Path] | None,
+        typer.Option("--run", help="Finished run folder per drive (same order); else run them."),
+    ] = None,
+    runs_dir: Annotated[
+        Path | None, typer.Option(help="Where to run the physics pipeline (default OUT/runs).")
+    ] = None,
+    config: Annotated[
+        Path | None, typer.Option(help="YAML config; its `classifier:` section is used.")
+    ] = None,
+    augment: Annotated[
+        bool | None, typer.Option("--augment/--no-augment", help="Augment defect images.")
+    ] = None,
+) -> None:
+    """Self-label frames with the 3D physics pipeline into a CNN dataset (eq. 5.8-5.9)."""
+    from detection.classifier import commands
+
+    bal = commands.label(
+        drives, out, runs=run_dirs, runs_dir=runs_dir, config_path=config, augment=augment
+    )
+    typer.echo(f"Dataset in {out}/: before augmentation {bal['before_augmentation']}, ")
+    typer.echo(f"  after {bal['after_augmentation']}, dropped {bal['dropped_frames']}")
+
+
+@app.command()
+def train(
+    dataset: Annotated[Path, typer.Argument(help="Dataset folder from `roadsurf label`.")],
+    out: Out,
+    config: Annotated[
+        Path | None, typer.Option(help="YAML config; its `classifier:` section is used.")
+    ] = None,
+    epochs: Annotated[int | None, typer.Option(help="Override the number of epochs.")] = None,
+    lr: Annotated[float | None, typer.Option(help="Override the learning rate.")] = None,
+    input_size: Annotated[int | None, typer.Option(help="Network input side (px).")] = None,
+    seed: Annotated[int | None, typer.Option(help="Random seed.")] = None,
+    overwrite: Annotated[
+        bool, typer.Option("--overwrite", help="Start again instead of resuming.")
+    ] = False,
+) -> None:
+    """Train the defect CNN on a labelled dataset (resumes an interrupted training)."""
+    from detection.classifier import commands
+
+    meta = commands.train(
+        dataset,
+        out,
+        config_path=config,
+        epochs=epochs,
+        learning_rate=lr,
+        input_size_px=input_size,
+        seed=seed,
+        overwrite=overwrite,
+    )
+    m = meta.get("metrics", {})
+    typer.echo(
+        f"Model in {out}/model.safetensors (best epoch {meta.get('best_epoch')}): "
+        f"val accuracy {m.get('val_accuracy')}, precision {m.get('val_precision')}, "
+        f"recall {m.get('val_recall')}; {meta.get('train_time_s')} s"
+    )
+
+
 def main() -> None:
     try:
         app()

@@ -1,0 +1,93 @@
+"""AlexNet-inspired defect classifier in plain torch (dissertation §5.2.3).
+
+Layers, as in the dissertation: Conv1+ReLU, MaxPool+Conv2+ReLU, MaxPool+Conv3+ReLU, Conv4+ReLU,
+Conv5+ReLU, MaxPool+Dropout+FC6+ReLU, Dropout+FC7+ReLU, FC8, softmax over
+{non-defect, defect}. Channel counts and the input side are scaled down from AlexNet's 227 px so
+the net trains on a CPU in minutes; ``width`` multiplies the channel counts.
+
+The input is a greyscale uint8 batch (N, 1, S, S). Each image is standardised by its own mean and
+standard deviation inside ``forward``, so overall brightness and contrast (lighting, exposure,
+camera) do not matter; only the relative pattern does.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from roadsurf.errors import RoadsurfError
+
+
+class DefectNet(nn.Module):
+    """Binary road-defect CNN. ``forward`` returns logits (N, 2); ``predict_proba`` softmax."""
+
+    def __init__(self, input_size_px: int = 64, dropout: float = 0.5, width: int = 1) -> None:
+        super().__init__()
+        if input_size_px < 32:
+            raise RoadsurfError(f"input_size_px must be >= 32, got {input_size_px}")
+        c1, c2, c3, c4, c5 = (16 * width, 32 * width, 48 * width, 48 * width, 32 * width)
+        fc = 128 * width
+        self.input_size_px = int(input_size_px)
+        self.conv1 = nn.Conv2d(1, c1, kernel_size=5, stride=2, padding=2)
+        self.pool1 = nn.MaxPool2d(kernel_size=3, stride=2, padding=1)
+        self.conv2 = nn.Conv2d(c1, c2, kernel_size=5, padding=2)
+        self.pool2 = nn.MaxPool2d(kernel_size=3, stride=2, padding=1)
+        self.conv3 = nn.Conv2d(c2, c3, kernel_size=3, padding=1)
+        self.conv4 = nn.Conv2d(c3, c4, kernel_size=3, padding=1)
+        self.conv5 = nn.Conv2d(c4, c5, kernel_size=3, padding=1)
+        self.pool5 = nn.MaxPool2d(kernel_size=3, stride=2, padding=1)
+        side = self._side_after_features(self.input_size_px)
+        self.drop6 = nn.Dropout(dropout)
+        self.fc6 = nn.Linear(c5 * side * side, fc)
+        self.drop7 = nn.Dropout(dropout)
+        self.fc7 = nn.Linear(fc, fc)
+        self.fc8 = nn.Linear(fc, 2)
+        self.relu = nn.ReLU(inplace=True)
+
+    @staticmethod
+    def _side_after_features(s: int) -> int:
+        s = (s + 2 * 2 - 5) // 2 + 1  # conv1 stride 2
+        for _ in range(3):  # pool1, pool2, pool5 (k3 s2 p1)
+            s = (s + 2 - 3) // 2 + 1
+        return s
+
+    @staticmethod
+    def standardise(x: torch.Tensor) -> torch.Tensor:
+        """uint8 grey levels (N, 1, S, S) -> float32, zero mean and unit std per image."""
+        x = x.float() / 255.0
+        mean = x.mean(dim=(1, 2, 3), keepdim=True)
+        # the floor keeps a flat (featureless) image from blowing up sensor noise
+        std = x.std(dim=(1, 2, 3), keepdim=True).clamp_min(0.01)
+        return (x - mean) / std
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if x.ndim != 4 or x.shape[1] != 1 or x.shape[2:] != (self.input_size_px,) * 2:
+            raise RoadsurfError(
+                f"DefectNet expects (N, 1, {self.input_size_px}, {self.input_size_px}) input, "
+                f"got {tuple(x.shape)}"
+            )
+        r = self.relu
+        x = self.standardise(x)
+        x = r(self.conv1(x))
+        x = r(self.conv2(self.pool1(x)))
+        x = r(self.conv3(self.pool2(x)))
+        x = r(self.conv4(x))
+        x = r(self.conv5(x))
+        x = torch.flatten(self.pool5(x), 1)
+        x = r(self.fc6(self.drop6(x)))
+        x = r(self.fc7(self.drop7(x)))
+        return self.fc8(x)
+
+    @torch.no_grad()
+    def predict_proba(self, x: torch.Tensor) -> torch.Tensor:
+        """Softmax probabilities (N, 2) in class order (non-defect, defect)."""
+        return torch.softmax(self.forward(x), dim=1)
+
+
+def pick_device(name: str = "auto") -> torch.device:
+    """ "auto": CUDA when present, else CPU."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise RoadsurfError("device 'cuda' requested but no CUDA device is available; use 'auto'")
+    return torch.device(name)

@@ -1,0 +1,79 @@
+"""CNN screening of a drive: p_defect for every frame, in batches (dissertation Fig. 5.6)."""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from detection.classifier.config import ClassifierConfig
+from detection.classifier.dataset import thumbnail, to_input
+from detection.classifier.modelfile import load_model
+from detection.classifier.network import pick_device
+from roadsurf.drive import Drive, load_drive, read_image
+from roadsurf.errors import RoadsurfError
+
+log = logging.getLogger(__name__)
+
+
+def screen_drive(
+    model_path: str | Path,
+    drive: Drive | str | Path,
+    cfg: ClassifierConfig | None = None,
+    *,
+    progress: bool = True,
+) -> dict[str, float]:
+    """p_defect in [0, 1] for every readable frame of ``drive`` -> {filename: p_defect}.
+
+    Frames that cannot be read are left out (the loader reports them). Images go through the same
+    ``thumbnail``/``to_input`` preprocessing as the training set, at the model's own sizes.
+    Raises ``ModelFileError`` when the model file is missing, corrupt or incompatible.
+    """
+    cfg = cfg or ClassifierConfig()
+    if cfg.num_threads > 0:
+        torch.set_num_threads(cfg.num_threads)
+    device = pick_device(cfg.device)
+    net, meta = load_model(model_path, device)
+    if not isinstance(drive, Drive):
+        drive = load_drive(drive)
+    store = int(meta.get("store_size_px", cfg.store_size_px))
+    side = int(meta["input_size_px"])
+    t0 = time.perf_counter()
+    out: dict[str, float] = {}
+    names: list[str] = []
+    batch: list[np.ndarray] = []
+
+    def flush() -> None:
+        if not batch:
+            return
+        x = torch.from_numpy(np.stack(batch)).unsqueeze(1).to(device)
+        with torch.no_grad():
+            p = net.predict_proba(x)[:, 1].float().cpu().numpy()
+        out.update(zip(names, (float(v) for v in p), strict=True))
+        names.clear()
+        batch.clear()
+
+    for fr in tqdm(drive.frames, desc="CNN screening", unit="frame", disable=not progress):
+        try:
+            img = read_image(fr)
+        except RoadsurfError as e:
+            log.warning("%s: not screened (%s)", fr.path, e)
+            continue
+        batch.append(to_input(thumbnail(img, store), side))
+        names.append(fr.filename)
+        if len(batch) >= cfg.screen_batch_size:
+            flush()
+    flush()
+    dt = time.perf_counter() - t0
+    log.info(
+        "screened %d frames in %.2f s (%.1f ms/frame) with %s",
+        len(out),
+        dt,
+        1e3 * dt / max(1, len(out)),
+        model_path,
+    )
+    return out
