@@ -68,7 +68,8 @@ class MapSegmentConfig:
     )
     rim_threshold_m: float = 0.002  # outline floor: a defect extends while deeper than this (m)
     rim_noise_k: float = 1.5  # outline threshold = max(rim floor, rim_noise_k * σ_map) (unitless)
-    smooth_px: float = 1.0  # Gaussian σ applied to the raster before thresholds (px); 0 = off
+    smooth_m: float = 0.005  # Gaussian σ applied to the raster before thresholds (m); 0 = off
+    fill_px: float = 1.0  # unobserved cells are filled from neighbours within about this σ (px)
     max_raster_cells: int = 60_000_000  # refuse to rasterise points into a larger grid (cells)
     fallback_gsd_m: float = 0.01  # grid size when RUN/surface.tif is absent (m)
     mean_shift_window_m: float = 0.30  # w: flat-kernel mean-shift window w x w (m), eq. 5.11
@@ -76,8 +77,8 @@ class MapSegmentConfig:
     mean_shift_tol_m: float = 0.001  # a window has converged when it moves less (m)
     min_area_m2: float = 0.002  # drop defects whose deep area (>= seed threshold) is smaller (m²)
     min_depth_m: float = 0.010  # drop defects shallower than this at their deepest (m)
-    min_seen_frac: float = 0.3  # 3D veto: share of deep cells that must be confirmed by points
-    point_support_radius_m: float = 0.02  # a point confirms raster cells within this radius (m)
+    min_support_pairs: int = 1  # 3D veto: refined pair points from at least this many pairs (count)
+    point_support_radius_m: float = 0.02  # a point supports a region within this distance (m)
     crack_max_width_m: float = 0.06  # narrower elongated defects are cracks (m)
     rut_min_length_m: float = 1.0  # longer elongated, wider defects are ruts (m)
     elongation_min: float = 3.0  # length / width above this = elongated (crack or rut) (unitless)
@@ -94,4 +95,5 @@ class DetectionConfig:
     map: MapSegmentConfig = field(default_factory=MapSegmentConfig)
     severity: SeverityConfig = field(default_factory=SeverityConfig)
     use_images: bool = True  # read frames for the 2D refinement (False: 3D only)
+    fusion_threshold: float = 0.95  # CNN decision stands when max(p) >= this (Fig. 5.6), 0.5-1
     overwrite: bool = False  # recompute even when RUN/defects.geojson exists

@@ -1,20 +1,45 @@
 """Detection stage entry point: per-pair 3D segmentation, global-map defects, GIS outputs.
 
 ``run(cfg, drive, pairs, traj, run_dir, *, frame_probs=None) -> DetectionResult`` writes
-RUN/defects.geojson, RUN/defects.csv and RUN/frames.csv (see docs/detection.md).
+RUN/defects.geojson, RUN/defects.csv, RUN/frames.csv and RUN/detection.json (provenance and
+resume state). See docs/detection.md.
+
+Steps:
+1. per pair: recursive plane fit (eq. 4.8-4.10) and CORRECT_DEFECTS (Fig. 4.3) -> refined
+   defect points, placed in the map with the trajectory;
+2. on the map: the residual surface raster (RUN/surface.tif, else rasterised points) is segmented
+   by hysteresis thresholds relative to its measured noise, seeds and refined points are clustered
+   with flat-kernel mean shift (eq. 5.11-5.12), and each defect is vetted by its 3D evidence and
+   measured;
+3. frame labels: the deep defect area inside each frame's footprint (the simulator's rule);
+   fused with CNN probabilities when ``frame_probs`` is given.
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 import logging
+import math
 from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
 
 from detection.config import DetectionConfig
-from detection.types import DetectionResult, FrameLabel
+from detection.footprint import footprint_enu
+from detection.mapframe import MapFrame
+from detection.mapseg import Surface, choose_gsd, classify, measure, rasterise, segment, severity
+from detection.output import load_result, write_outputs
+from detection.pairs import PairDefects, analyse_pair
+from detection.types import Defect, DetectionResult, FrameLabel
 from mapping.types import Trajectory
 from reconstruction.types import PairResult
-from roadsurf.drive import Drive
-from roadsurf.formats import write_csv, write_geojson
+from roadsurf.config import to_dict
+from roadsurf.drive import Drive, read_gray
+from roadsurf.errors import FrameReadError
+from roadsurf.formats import read_geotiff
 
 log = logging.getLogger(__name__)
 
@@ -28,18 +53,323 @@ def run(
     *,
     frame_probs: dict[str, float] | None = None,
 ) -> DetectionResult:
-    """Detect and measure defects; write the three output files into ``run_dir``.
+    """Detect and measure defects; write the output files into ``run_dir``.
 
-    Preliminary version: frame labels only (no measured defects yet).
+    Resumes: when RUN/detection.json records the same inputs and config, the files are read
+    back instead of recomputed (``cfg.overwrite`` forces a recompute).
     """
     run_dir = Path(run_dir)
-    frames = [FrameLabel(f.filename, 0, 0.0, "3d") for f in drive.frames]
-    geo = traj.reference is not None
-    write_geojson(run_dir / "defects.geojson", [], {"georeferenced": geo})
-    write_csv(run_dir / "defects.csv", ["id"], [])
-    write_csv(
-        run_dir / "frames.csv",
-        ["filename", "defect", "p_defect", "source"],
-        [(f.filename, f.defect, f.p_defect, f.source) for f in frames],
+    signature = _signature(cfg, pairs, traj, run_dir, frame_probs)
+    if not cfg.overwrite:
+        cached = load_result(run_dir, signature)
+        if cached is not None:
+            log.info("detection: outputs in %s are up to date, skipping", run_dir)
+            return cached
+
+    # ---- 1. per pair
+    per_pair = analyse_pairs(cfg, drive, pairs)
+    pose_of = {fn: i for i, fn in enumerate(traj.filenames)}
+    ev_enu, ev_pair = _evidence_points(pairs, per_pair, traj, pose_of)
+
+    # ---- 2. global map
+    surface, mframe = load_surface(cfg, run_dir, pairs, per_pair, traj, pose_of)
+    defects: list[Defect] = []
+    noise = seed = float("nan")
+    footprints = _footprints(drive, traj, mframe)
+    deep_xy: list[np.ndarray] = []
+    if surface is not None:
+        ev_xy = mframe.grid_from_enu(ev_enu) if len(ev_enu) else np.zeros((0, 2))
+        seg = segment(surface, cfg.map, ev_xy, ev_pair)
+        noise, seed = seg.noise_m, seg.seed_m
+        defects, deep_xy = _measure_regions(cfg, seg, surface, footprints, bool(per_pair))
+        log.info(
+            "detection: %d defect(s) from %d region(s); map noise σ %.2f mm, T_d %.1f mm (%s)",
+            len(defects),
+            len(seg.regions),
+            1000 * noise,
+            1000 * seed,
+            surface.source,
+        )
+    else:
+        log.warning("detection: no surface raster and no points to rasterise; frame labels only")
+
+    # ---- 3. frame labels
+    cell_m2 = surface.grid.gsd_m**2 if surface is not None else 0.0
+    frames = _frame_labels(cfg, drive, footprints, deep_xy, cell_m2, per_pair, surface is not None)
+    frames = _fuse(cfg, frames, frame_probs, pairs)
+
+    result = DetectionResult(
+        defects=defects,
+        frames=frames,
+        run_dir=run_dir,
+        noise_m=noise,
+        seed_threshold_m=seed,
+        georeferenced=mframe.georeferenced,
+        crs=mframe.crs,
+        surface_source=surface.source if surface is not None else "none",
     )
-    return DetectionResult([], frames, run_dir, georeferenced=geo)
+    write_outputs(result, mframe, signature, to_dict(cfg))
+    return result
+
+
+# --------------------------------------------------------------------------- per pair
+
+
+def analyse_pairs(
+    cfg: DetectionConfig, drive: Drive, pairs: list[PairResult]
+) -> dict[int, PairDefects]:
+    """Plane fit + 2D/3D refinement of every ok pair; keyed by the pair's position in ``pairs``."""
+    frames = {f.filename: f for f in drive.frames}
+    out: dict[int, PairDefects] = {}
+    ok = [(k, p) for k, p in enumerate(pairs) if p.ok]
+    for k, p in tqdm(ok, desc="detection: pairs", unit="pair", disable=len(ok) < 20):
+        gray = None
+        if cfg.use_images and cfg.refine.enabled and p.frame_a in frames:
+            try:
+                gray = read_gray(frames[p.frame_a])
+            except FrameReadError as e:
+                log.warning("detection: %s; pair %s uses 3D only", e, p.frame_a)
+        res = analyse_pair(p, gray, cfg)
+        if res is not None:
+            out[k] = res
+    return out
+
+
+def _evidence_points(
+    pairs: list[PairResult],
+    per_pair: dict[int, PairDefects],
+    traj: Trajectory,
+    pose_of: dict[str, int],
+) -> tuple[np.ndarray, np.ndarray]:
+    """Refined defect points of all pairs in ENU (M, 3) and the pair id of each (M,)."""
+    xyz, ids = [], []
+    for k, pd in per_pair.items():
+        i = pose_of.get(pd.frame_a)
+        if i is None or not pd.refined.any():
+            continue
+        T = traj.world_from_cam[i]
+        P = np.asarray(pairs[k].points_cam_a_m, float)[pd.refined]
+        xyz.append(P @ T[:3, :3].T + T[:3, 3])
+        ids.append(np.full(len(P), k))
+    if not xyz:
+        return np.zeros((0, 3)), np.zeros(0, int)
+    return np.vstack(xyz), np.concatenate(ids)
+
+
+# --------------------------------------------------------------------------- map
+
+
+def load_surface(
+    cfg: DetectionConfig,
+    run_dir: Path,
+    pairs: list[PairResult],
+    per_pair: dict[int, PairDefects],
+    traj: Trajectory,
+    pose_of: dict[str, int],
+) -> tuple[Surface | None, MapFrame]:
+    """The residual raster: RUN/surface.tif (or .vrt), else rasterised map points or pairs."""
+    for name in ("surface.tif", "surface.vrt"):
+        path = run_dir / name
+        if path.exists():
+            data, grid, nodata = read_geotiff(path)
+            res = np.asarray(data, np.float32)
+            if res.ndim != 2:
+                raise ValueError(f"{path}: expected a single-band residual raster, got {res.shape}")
+            if nodata is not None and not (isinstance(nodata, float) and math.isnan(nodata)):
+                res = np.where(res == nodata, np.nan, res)
+            mframe = MapFrame.create(traj.reference, grid.crs if traj.reference else None)
+            return Surface(res, grid, name), mframe
+    mframe = MapFrame.create(traj.reference)
+    gsd = cfg.map.fallback_gsd_m
+    mp = run_dir / "map_points.npz"
+    if mp.exists():
+        with np.load(mp, allow_pickle=False) as z:
+            xyz = np.asarray(z["xyz"], float)
+            resid = np.asarray(z["residual_m"], float)
+        if len(xyz):
+            xy = mframe.grid_from_enu(xyz)
+            r, grid = rasterise(
+                xy, resid, choose_gsd(xy, gsd), mframe.crs, cfg.map.max_raster_cells
+            )
+            return Surface(r, grid, "map_points.npz"), mframe
+    xyz_l, res_l = [], []
+    for k, pd in per_pair.items():
+        i = pose_of.get(pd.frame_a)
+        if i is None:
+            continue
+        T = traj.world_from_cam[i]
+        P = np.asarray(pairs[k].points_cam_a_m, float)
+        xyz_l.append(P @ T[:3, :3].T + T[:3, 3])
+        res_l.append(pd.dist_m)
+    if not xyz_l:
+        return None, mframe
+    xy = mframe.grid_from_enu(np.vstack(xyz_l))
+    r, grid = rasterise(
+        xy, np.concatenate(res_l), choose_gsd(xy, gsd), mframe.crs, cfg.map.max_raster_cells
+    )
+    return Surface(r, grid, "pairs"), mframe
+
+
+def _footprints(drive: Drive, traj: Trajectory, mframe: MapFrame) -> dict[str, Any]:
+    """filename -> shapely Polygon of the frame's footprint in the grid frame."""
+    from shapely.geometry import Polygon
+
+    out: dict[str, Any] = {}
+    corners, names = [], []
+    for fn, T in zip(traj.filenames, traj.world_from_cam, strict=True):
+        fp = footprint_enu(T, drive.camera)
+        if fp is not None:
+            corners.append(fp)
+            names.append(fn)
+    if not corners:
+        return out
+    xy = mframe.grid_from_enu(np.vstack(corners))
+    for j, fn in enumerate(names):
+        out[fn] = Polygon(xy[4 * j : 4 * j + 4])
+    return out
+
+
+def _measure_regions(
+    cfg: DetectionConfig,
+    seg: Any,
+    surface: Surface,
+    footprints: dict[str, Any],
+    have_pairs: bool,
+) -> tuple[list[Defect], list[np.ndarray]]:
+    """Veto regions without 3D evidence, measure the rest; ids ordered along the drive."""
+    from shapely.geometry import Polygon
+
+    mc = cfg.map
+    gsd2 = surface.grid.gsd_m**2
+    kept: list[tuple[Defect, np.ndarray]] = []
+    for reg in seg.regions:
+        deep_area = float((reg.depth_smooth_m >= seg.seed_m).sum() * gsd2)
+        max_depth = float(np.nanmax(reg.depth_smooth_m))
+        why = None
+        if max_depth < mc.min_depth_m:
+            why = f"shallow ({1000 * max_depth:.1f} mm)"
+        elif deep_area < mc.min_area_m2:
+            why = f"small ({1e4 * deep_area:.1f} cm²)"
+        elif have_pairs and len(reg.support_pairs) < mc.min_support_pairs:
+            why = "no refined 3D points from any pair"
+        if why:
+            log.debug("detection: region at %s vetoed: %s", (reg.rows[0], reg.cols[0]), why)
+            continue
+        m = measure(reg, surface.grid, mc.frame_depth_m)
+        kind = classify(m, mc)
+        poly = Polygon(m.outline_xy_m)
+        seen = sorted(fn for fn, fp in footprints.items() if fp.intersects(poly))
+        snr = max_depth / max(seg.noise_m, 1e-6)
+        n_views = len(reg.support_pairs) if have_pairs else len(seen)
+        conf = (1.0 - math.exp(-snr / 6.0)) * (1.0 - 0.5 ** (n_views + 1))
+        d = Defect(
+            id=0,
+            type=kind,
+            severity=severity(kind, m, cfg.severity),
+            outline_xy_m=m.outline_xy_m,
+            centroid_xy_m=m.centroid_xy_m,
+            max_depth_m=m.max_depth_m,
+            mean_depth_m=m.mean_depth_m,
+            area_m2=m.area_m2,
+            volume_m3=m.volume_m3,
+            length_m=m.length_m,
+            width_m=m.width_m,
+            confidence=float(np.clip(conf, 0.0, 1.0)),
+            frames=seen,
+        )
+        kept.append((d, m.deep_xy_m))
+    order = {fn: i for i, fn in enumerate(footprints)}
+    kept.sort(
+        key=lambda t: (min((order[f] for f in t[0].frames), default=1 << 30), t[0].centroid_xy_m[0])
+    )
+    for i, (d, _) in enumerate(kept, start=1):
+        d.id = i
+    return [d for d, _ in kept], [x for _, x in kept]
+
+
+# --------------------------------------------------------------------------- frames
+
+
+def _frame_labels(
+    cfg: DetectionConfig,
+    drive: Drive,
+    footprints: dict[str, Any],
+    deep_xy: list[np.ndarray],
+    cell_m2: float,
+    per_pair: dict[int, PairDefects],
+    have_map: bool,
+) -> list[FrameLabel]:
+    """Deep defect area in each frame's footprint (map), or the pair's own estimate without a map."""
+    from matplotlib.path import Path as MplPath
+
+    a_min = cfg.map.frame_min_area_m2
+    pair_score = {pd.frame_a: pd.score for pd in per_pair.values()}
+    pts = np.vstack(deep_xy) if deep_xy else np.zeros((0, 2))
+    out: list[FrameLabel] = []
+    for f in drive.frames:
+        fp = footprints.get(f.filename)
+        if have_map and fp is not None:
+            area = 0.0
+            if len(pts):
+                x0, y0, x1, y1 = fp.bounds
+                sel = (pts[:, 0] >= x0) & (pts[:, 0] <= x1) & (pts[:, 1] >= y0) & (pts[:, 1] <= y1)
+                if sel.any():
+                    inside = MplPath(np.asarray(fp.exterior.coords)).contains_points(pts[sel])
+                    area = float(inside.sum()) * cell_m2
+            p = area / (area + a_min) if area > 0 else 0.0
+        else:
+            p = pair_score.get(f.filename, 0.0)
+        out.append(FrameLabel(f.filename, int(p >= 0.5), float(p), "3d"))
+    return out
+
+
+def _fuse(
+    cfg: DetectionConfig,
+    frames: list[FrameLabel],
+    frame_probs: dict[str, float] | None,
+    pairs: list[PairResult],
+) -> list[FrameLabel]:
+    """Fig. 5.6: a confident CNN decides, otherwise 3D (frames no ok pair covers have no 3D)."""
+    if not frame_probs:
+        return frames
+    from detection.classifier.fusion import fuse_frames
+
+    covered = {p.frame_a for p in pairs if p.ok} | {p.frame_b for p in pairs if p.ok}
+    labels_3d = {f.filename: bool(f.defect) for f in frames if f.filename in covered}
+    fused = fuse_frames(frame_probs, labels_3d, [f.filename for f in frames], cfg.fusion_threshold)
+    out = []
+    for f in frames:
+        d = fused[f.filename]
+        p = d.p_defect if d.source == "cnn" else f.p_defect if d.source == "3d" else d.p_defect
+        if not math.isfinite(p):
+            p = f.p_defect
+        out.append(FrameLabel(f.filename, int(d.defect), float(p), d.source))
+    return out
+
+
+# --------------------------------------------------------------------------- resume
+
+
+def _signature(
+    cfg: DetectionConfig,
+    pairs: list[PairResult],
+    traj: Trajectory,
+    run_dir: Path,
+    frame_probs: dict[str, float] | None,
+) -> str:
+    """Hash of everything the outputs depend on (config, pairs, poses, raster, CNN scores)."""
+    h = hashlib.sha256()
+    h.update(json.dumps(to_dict(cfg), sort_keys=True).encode())
+    for p in pairs:
+        h.update(f"{p.frame_a}|{p.frame_b}|{p.status}|{p.n_points}|{p.method}".encode())
+        if p.n_points:
+            h.update(np.ascontiguousarray(p.plane_dist_m, dtype=np.float64).tobytes()[:4096])
+    h.update(np.ascontiguousarray(traj.world_from_cam, dtype=np.float64).tobytes())
+    h.update(json.dumps(traj.reference.to_dict() if traj.reference else None).encode())
+    for name in ("surface.tif", "surface.vrt", "map_points.npz"):
+        p = Path(run_dir) / name
+        if p.exists():
+            st = p.stat()
+            h.update(f"{name}|{st.st_size}|{st.st_mtime_ns}".encode())
+    h.update(json.dumps(sorted((frame_probs or {}).items())).encode())
+    return h.hexdigest()

@@ -4,19 +4,21 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 
 @dataclass
 class Defect:
-    """One measured defect on the global map. Lengths in metres, map frame = ENU (metres)."""
+    """One measured defect on the global map. Lengths in metres; coordinates in the map's grid
+    frame (``DetectionResult.crs``: the UTM zone with GPS, local ENU without)."""
 
     id: int
     type: str  # pothole | crack | rut
     severity: str  # low | medium | high
-    outline_enu_m: np.ndarray  # (K, 2) closed-or-open outline ring, ENU east/north (m)
-    centroid_enu_m: np.ndarray  # (2,) ENU east/north (m)
+    outline_xy_m: np.ndarray  # (K, 2) outline ring (not closed), easting/northing (m)
+    centroid_xy_m: np.ndarray  # (2,) easting/northing (m)
     max_depth_m: float
     mean_depth_m: float
     area_m2: float
@@ -47,7 +49,27 @@ class DetectionResult:
     noise_m: float = float("nan")  # σ of the flat-road residual (robust MAD), m
     seed_threshold_m: float = float("nan")  # T_d used on the map, m
     georeferenced: bool = True  # False: no GPS, coordinates are local ENU metres
+    crs: str = ""  # grid frame of the outlines: "EPSG:326xx" or "local ENU"
+    surface_source: str = ""  # surface.tif | map_points.npz | pairs | none
     files: dict[str, Path] = field(default_factory=dict)
+
+    def to_report(self) -> dict[str, Any]:
+        """Summary for report.json."""
+        by_type: dict[str, int] = {}
+        for d in self.defects:
+            by_type[d.type] = by_type.get(d.type, 0) + 1
+        return {
+            "defects": len(self.defects),
+            "by_type": by_type,
+            "defect_frames": int(sum(f.defect for f in self.frames)),
+            "frames": len(self.frames),
+            "noise_m": self.noise_m,
+            "seed_threshold_m": self.seed_threshold_m,
+            "georeferenced": self.georeferenced,
+            "crs": self.crs,
+            "surface_source": self.surface_source,
+            "files": {k: str(v) for k, v in self.files.items()},
+        }
 
     def table(self) -> str:
         """Short text table of the defects (the CLI prints it)."""

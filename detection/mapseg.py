@@ -1,0 +1,337 @@
+"""Defects on the global map: segment the residual surface raster, cluster with mean shift,
+measure each defect (outline, depth, area, volume, length, width, type, severity, confidence).
+
+The raster is ``RUN/surface.tif`` (residual height, m, negative below the road) when mapping
+wrote it; otherwise the stage rasterises the points it has (``RUN/map_points.npz`` or the pairs
+placed with the trajectory). Thresholds are floors raised to multiples of the raster's measured
+noise σ (1.4826 · MAD over the observed cells, which are mostly flat road).
+
+Segmentation is hysteresis thresholding: seed cells deeper than T_d, outlines where the surface
+is deeper than a rim threshold near the noise floor, so the outline follows the defect's rim
+rather than the T_d contour (a bowl cut at T_d would lose a third of its area).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from scipy import ndimage
+
+from detection.config import MapSegmentConfig, SeverityConfig
+from detection.meanshift import mean_shift_flat
+from detection.planefit import robust_sigma
+from roadsurf.formats import GridSpec
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Surface:
+    """Residual raster in the grid frame: (H, W) float32 metres, NaN where unobserved."""
+
+    residual_m: np.ndarray
+    grid: GridSpec
+    source: str  # "surface.tif" | "map_points.npz" | "pairs"
+
+
+@dataclass
+class Region:
+    """One defect's cells before it becomes a ``Defect``."""
+
+    rows: np.ndarray  # (K,) int raster rows
+    cols: np.ndarray  # (K,) int raster cols
+    depth_m: np.ndarray  # (K,) depth (positive down) from the raw raster, NaN where unobserved
+    depth_smooth_m: np.ndarray  # (K,) depth of the smoothed raster
+    support_pairs: set[int] = field(default_factory=set)  # pairs whose refined points fall in it
+    n_support_points: int = 0
+
+
+@dataclass
+class Measured:
+    """Measurements of one region (grid frame metres)."""
+
+    outline_xy_m: np.ndarray  # (K, 2) exterior ring, not closed
+    centroid_xy_m: np.ndarray  # (2,)
+    max_depth_m: float
+    mean_depth_m: float
+    area_m2: float
+    volume_m3: float
+    length_m: float
+    width_m: float
+    deep_xy_m: np.ndarray  # (M, 2) centres of cells deeper than the frame-label depth
+
+
+def rasterise(
+    xy_m: np.ndarray, residual_m: np.ndarray, gsd_m: float, crs: str, max_cells: int
+) -> tuple[np.ndarray, GridSpec]:
+    """Mean residual per cell of a north-up grid covering the points; NaN where empty."""
+    xy = np.asarray(xy_m, float)
+    lo = np.floor(xy.min(axis=0) / gsd_m) * gsd_m - 2 * gsd_m
+    hi = np.ceil(xy.max(axis=0) / gsd_m) * gsd_m + 2 * gsd_m
+    width = int(round((hi[0] - lo[0]) / gsd_m))
+    height = int(round((hi[1] - lo[1]) / gsd_m))
+    if width * height > max_cells:
+        raise ValueError(
+            f"rasterising {len(xy)} points at {gsd_m} m needs {width}x{height} cells "
+            f"(> {max_cells}); raise detection.map.fallback_gsd_m or write RUN/surface.tif"
+        )
+    grid = GridSpec(crs, float(lo[0]), float(hi[1]), gsd_m, width, height)
+    rc = np.floor(grid.rowcol_from_xy(xy) + 0.5).astype(int)
+    ok = (rc[:, 0] >= 0) & (rc[:, 0] < height) & (rc[:, 1] >= 0) & (rc[:, 1] < width)
+    flat = rc[ok, 0] * width + rc[ok, 1]
+    s = np.bincount(flat, weights=np.asarray(residual_m, float)[ok], minlength=width * height)
+    c = np.bincount(flat, minlength=width * height)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r = (s / c).reshape(height, width).astype(np.float32)
+    r[c.reshape(height, width) == 0] = np.nan
+    return r, grid
+
+
+def smooth_nan(a: np.ndarray, sigma_px: float, min_support: float = 0.05) -> np.ndarray:
+    """Gaussian smoothing that ignores NaN cells (normalised convolution).
+
+    Unobserved cells with enough observed neighbours (kernel weight >= ``min_support``) are
+    filled, so small holes inside a defect do not read as zero depth; the rest stay NaN.
+    """
+    valid = np.isfinite(a)
+    if sigma_px <= 0:
+        return a.copy()
+    num = ndimage.gaussian_filter(np.where(valid, a, 0).astype(np.float32), sigma_px)
+    den = ndimage.gaussian_filter(valid.astype(np.float32), sigma_px)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = num / den
+    out[den < min_support] = np.nan
+    return out
+
+
+def choose_gsd(xy_m: np.ndarray, gsd_min_m: float, gsd_max_m: float = 0.1) -> float:
+    """Finest cell size at which occupied cells hold >= 2 points on average (about 80 % of the
+    covered cells then hold a point), for rasterising a sparse cloud."""
+    xy = np.asarray(xy_m, float)
+    if len(xy) < 2:
+        return gsd_min_m
+    xy = xy - xy.min(axis=0)
+    g = gsd_min_m
+    while g < gsd_max_m:
+        cells = np.floor(xy / g).astype(np.int64)
+        n_occ = len(np.unique(cells[:, 0] * (int(cells[:, 1].max()) + 1) + cells[:, 1]))
+        if len(xy) / n_occ >= 2.0:
+            break
+        g *= 1.25
+    return float(min(g, gsd_max_m))
+
+
+@dataclass
+class Segmentation:
+    noise_m: float  # σ of the residual surface (robust)
+    seed_m: float  # T_d on the map
+    rim_m: float  # outline threshold
+    regions: list[Region]
+    smoothed: np.ndarray  # (H, W) smoothed residual
+
+
+def segment(
+    surface: Surface,
+    cfg: MapSegmentConfig,
+    evidence_xy_m: np.ndarray | None = None,
+    evidence_pair: np.ndarray | None = None,
+) -> Segmentation:
+    """Hysteresis segmentation + flat-kernel mean shift on the residual raster.
+
+    evidence_xy_m: (N, 2) refined defect points from the pairs in the grid frame; evidence_pair:
+    (N,) int pair id of each. They join the mean-shift points (so defects seen in pieces by
+    several pairs are clustered together) and give each region its 3D support.
+    """
+    res = surface.residual_m.astype(np.float32)
+    grid = surface.grid
+    noise = robust_sigma(res)
+    if not np.isfinite(noise):
+        return Segmentation(float("nan"), float("nan"), float("nan"), [], res)
+    seed_t = max(cfg.depth_threshold_m, cfg.noise_k * noise)
+    rim_t = max(cfg.rim_threshold_m, cfg.rim_noise_k * noise)
+    # Fill small holes from observed neighbours, then smooth lightly (σ in metres).
+    res = np.where(np.isfinite(res), res, smooth_nan(res, cfg.fill_px))
+    sm = smooth_nan(res, cfg.smooth_m / grid.gsd_m, min_support=0.5)
+    depth_s = -np.nan_to_num(sm, nan=0.0)
+    seed = depth_s >= seed_t
+    # Outline mask: deeper than the rim threshold, with small unobserved holes closed.
+    rim = depth_s >= rim_t
+    rim = ndimage.binary_closing(rim, structure=np.ones((3, 3), bool)) | rim
+    rim_lab, _ = ndimage.label(rim, structure=np.ones((3, 3), bool))
+    seed_rc = np.argwhere(seed)
+    if len(seed_rc) == 0:
+        return Segmentation(noise, seed_t, rim_t, [], sm)
+    seed_xy = grid.xy_from_rowcol(seed_rc[:, 0], seed_rc[:, 1])
+    seed_comp = rim_lab[seed_rc[:, 0], seed_rc[:, 1]]
+
+    # Evidence points: inside the raster, with their rim component (0 = outside any).
+    ev_xy = np.zeros((0, 2)) if evidence_xy_m is None else np.asarray(evidence_xy_m, float)
+    ev_pair = np.zeros(len(ev_xy), int) if evidence_pair is None else np.asarray(evidence_pair)
+    ev_comp = np.zeros(len(ev_xy), int)
+    if len(ev_xy):
+        rc = np.floor(grid.rowcol_from_xy(ev_xy) + 0.5).astype(int)
+        inside = (
+            (rc[:, 0] >= 0) & (rc[:, 0] < grid.height) & (rc[:, 1] >= 0) & (rc[:, 1] < grid.width)
+        )
+        r_pad = max(0, int(round(cfg.point_support_radius_m / grid.gsd_m)))
+        lab_near = ndimage.grey_dilation(rim_lab, size=2 * r_pad + 1) if r_pad else rim_lab
+        ev_comp[inside] = lab_near[rc[inside, 0], rc[inside, 1]]
+
+    # Flat-kernel mean shift over seed cells and evidence points (eq. 5.11-5.12).
+    pts = np.vstack([seed_xy, ev_xy])
+    wts = np.concatenate([depth_s[seed_rc[:, 0], seed_rc[:, 1]], np.full(len(ev_xy), seed_t)])
+    labels, _ = mean_shift_flat(
+        pts,
+        cfg.mean_shift_window_m,
+        weights=wts,
+        max_iter=cfg.mean_shift_max_iter,
+        tol_m=cfg.mean_shift_tol_m,
+        merge_m=0.5 * cfg.mean_shift_window_m,
+    )
+    comps = np.concatenate([seed_comp, ev_comp])
+    # Union-find: mean-shift clusters and rim components that share points are one defect.
+    n_cl = int(labels.max()) + 1 if len(labels) else 0
+    parent = list(range(n_cl))
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    comp_first: dict[int, int] = {}
+    for lab, comp in zip(labels.tolist(), comps.tolist(), strict=True):
+        if comp <= 0:
+            continue
+        if comp in comp_first:
+            a, b = find(lab), find(comp_first[comp])
+            if a != b:
+                parent[a] = b
+        else:
+            comp_first[comp] = lab
+    groups: dict[int, set[int]] = {}
+    for comp, lab in comp_first.items():
+        groups.setdefault(find(lab), set()).add(comp)
+
+    objects = ndimage.find_objects(rim_lab)
+    regions: list[Region] = []
+    for comp_set in groups.values():
+        rr, cc = [], []
+        for comp in comp_set:
+            sl = objects[comp - 1]
+            if sl is None:
+                continue
+            sub = rim_lab[sl] == comp
+            r, c = np.nonzero(ndimage.binary_fill_holes(sub))
+            rr.append(r + sl[0].start)
+            cc.append(c + sl[1].start)
+        rows = np.concatenate(rr)
+        cols = np.concatenate(cc)
+        reg = Region(
+            rows=rows,
+            cols=cols,
+            depth_m=-res[rows, cols].astype(float),
+            depth_smooth_m=depth_s[rows, cols].astype(float),
+        )
+        in_reg = np.isin(ev_comp, list(comp_set)) if len(ev_comp) else np.zeros(0, bool)
+        reg.support_pairs = set(np.unique(ev_pair[in_reg]).tolist())
+        reg.n_support_points = int(in_reg.sum())
+        regions.append(reg)
+    return Segmentation(noise, seed_t, rim_t, regions, sm)
+
+
+def measure(region: Region, grid: GridSpec, frame_depth_m: float) -> Measured:
+    """Outline, centroid, depths, area, volume (fill), min-area-rectangle length and width."""
+    gsd = grid.gsd_m
+    depth = np.where(np.isfinite(region.depth_m), region.depth_m, region.depth_smooth_m)
+    depth = np.clip(np.nan_to_num(depth, nan=0.0), 0.0, None)
+    xy = grid.xy_from_rowcol(region.rows, region.cols)
+    area = float(len(region.rows) * gsd * gsd)
+    volume = float(depth.sum() * gsd * gsd)
+    max_depth = float(np.nanmax(region.depth_smooth_m)) if len(region.rows) else 0.0
+    mean_depth = float(depth.mean()) if len(depth) else 0.0
+    # Outline: external contour(s) of the cell mask, pushed out by half a cell.
+    r0, c0 = region.rows.min(), region.cols.min()
+    mask = np.zeros((region.rows.max() - r0 + 3, region.cols.max() - c0 + 3), np.uint8)
+    mask[region.rows - r0 + 1, region.cols - c0 + 1] = 1
+    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    ring = _outline(contours, r0 - 1, c0 - 1, grid)
+    if len(region.rows) >= 3:
+        # Centre first: float32 (what OpenCV takes) cannot hold UTM coordinates to a millimetre.
+        (_, _), (a, b), _ = cv2.minAreaRect((xy - xy.mean(axis=0)).astype(np.float32))
+        length, width = max(a, b) + gsd, min(a, b) + gsd
+    else:
+        length = width = gsd * max(1, len(region.rows))
+    deep = region.depth_smooth_m >= frame_depth_m
+    return Measured(
+        outline_xy_m=ring,
+        centroid_xy_m=xy.mean(axis=0),
+        max_depth_m=max_depth,
+        mean_depth_m=mean_depth,
+        area_m2=area,
+        volume_m3=volume,
+        length_m=float(length),
+        width_m=float(width),
+        deep_xy_m=xy[deep],
+    )
+
+
+def _outline(contours: tuple, row_off: int, col_off: int, grid: GridSpec) -> np.ndarray:
+    """Contour pixels -> one exterior ring in grid metres (union of pieces, half-cell buffer)."""
+    from shapely.geometry import MultiPoint, Polygon
+    from shapely.ops import unary_union
+
+    polys = []
+    for c in contours:
+        pc = c.reshape(-1, 2).astype(float)  # (x=col, y=row)
+        xy = grid.xy_from_rowcol(pc[:, 1] + row_off, pc[:, 0] + col_off)
+        if len(xy) >= 3:
+            p = Polygon(xy).buffer(0)
+        else:
+            p = MultiPoint(xy).convex_hull
+        polys.append(p.buffer(0.5 * grid.gsd_m, join_style="mitre"))
+    geom = unary_union(polys)
+    if geom.geom_type != "Polygon":
+        geom = geom.convex_hull
+    geom = geom.simplify(0.25 * grid.gsd_m)
+    return np.asarray(geom.exterior.coords)[:-1]
+
+
+def classify(m: Measured, cfg: MapSegmentConfig) -> str:
+    """pothole | crack | rut from shape (elongation, width, length)."""
+    elong = m.length_m / max(m.width_m, 1e-6)
+    if elong >= cfg.elongation_min and m.width_m <= cfg.crack_max_width_m:
+        return "crack"
+    if elong >= cfg.elongation_min and m.length_m >= cfg.rut_min_length_m:
+        return "rut"
+    return "pothole"
+
+
+def severity(kind: str, m: Measured, cfg: SeverityConfig) -> str:
+    """ASTM D6433 pothole table (depth x mean diameter), FHWA DIM crack widths, D6433 ruts."""
+    if kind == "crack":
+        w = m.width_m
+        return (
+            "low"
+            if w <= cfg.crack_width_low_m
+            else "medium"
+            if w <= cfg.crack_width_high_m
+            else "high"
+        )
+    d = m.max_depth_m
+    if kind == "rut":
+        return (
+            "low" if d <= cfg.rut_depth_low_m else "medium" if d <= cfg.rut_depth_high_m else "high"
+        )
+    depth_band = 0 if d <= cfg.depth_low_m else 1 if d <= cfg.depth_high_m else 2
+    diam = 0.5 * (m.length_m + m.width_m)
+    diam_band = 0 if diam <= cfg.diameter_small_m else 1 if diam <= cfg.diameter_large_m else 2
+    table = (
+        ("low", "low", "medium"),  # depth <= 25 mm
+        ("low", "medium", "high"),  # 25-50 mm
+        ("medium", "medium", "high"),  # > 50 mm
+    )
+    return table[depth_band][diam_band]

@@ -1,0 +1,172 @@
+"""Writers (and the resume reader) for the detection outputs (output contract).
+
+- ``defects.geojson``: RFC 7946 FeatureCollection in WGS84 lon/lat, one Polygon per defect with
+  properties id, type, severity, max_depth_m, mean_depth_m, area_m2, volume_m3, length_m,
+  width_m, confidence, frames (+ centroid_lon/lat, centroid_e_m/n_m). Without GPS the same
+  layout holds local ENU metres and says so in the top-level ``properties`` (not RFC 7946).
+- ``defects.csv``: the same, one row per defect, frames joined with ';'.
+- ``frames.csv``: filename,defect,p_defect,source for every frame.
+- ``detection.json``: provenance (config, noise, thresholds, crs) and the resume signature.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from detection.mapframe import MapFrame
+from detection.types import Defect, DetectionResult, FrameLabel
+from roadsurf.formats import feature, polygon_geometry, write_csv, write_geojson
+from roadsurf.io import read_json, write_json_atomic, write_text_atomic
+
+log = logging.getLogger(__name__)
+
+DEFECT_COLUMNS = (
+    "id",
+    "type",
+    "severity",
+    "max_depth_m",
+    "mean_depth_m",
+    "area_m2",
+    "volume_m3",
+    "length_m",
+    "width_m",
+    "confidence",
+    "frames",
+    "centroid_lon",
+    "centroid_lat",
+    "centroid_e_m",
+    "centroid_n_m",
+)
+FRAME_COLUMNS = ("filename", "defect", "p_defect", "source")
+
+
+def _props(d: Defect, lonlat: np.ndarray | None) -> dict[str, Any]:
+    return {
+        "id": d.id,
+        "type": d.type,
+        "severity": d.severity,
+        "max_depth_m": round(d.max_depth_m, 5),
+        "mean_depth_m": round(d.mean_depth_m, 5),
+        "area_m2": round(d.area_m2, 6),
+        "volume_m3": round(d.volume_m3, 8),
+        "length_m": round(d.length_m, 4),
+        "width_m": round(d.width_m, 4),
+        "confidence": round(d.confidence, 3),
+        "frames": list(d.frames),
+        "centroid_lon": None if lonlat is None else float(lonlat[0]),
+        "centroid_lat": None if lonlat is None else float(lonlat[1]),
+        "centroid_e_m": round(float(d.centroid_xy_m[0]), 4),
+        "centroid_n_m": round(float(d.centroid_xy_m[1]), 4),
+    }
+
+
+def write_outputs(
+    result: DetectionResult, mframe: MapFrame, signature: str, config: dict[str, Any]
+) -> None:
+    """Write defects.geojson, defects.csv, frames.csv and detection.json into result.run_dir."""
+    run_dir = Path(result.run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    feats, rows = [], []
+    for d in result.defects:
+        if mframe.georeferenced:
+            ring = mframe.lonlat_from_grid(d.outline_xy_m)
+            c = mframe.lonlat_from_grid(d.centroid_xy_m[None])[0]
+        else:
+            ring, c = np.asarray(d.outline_xy_m, float), None
+        props = _props(d, c)
+        feats.append(feature(polygon_geometry(ring), props))
+        rows.append([props[k] if k != "frames" else ";".join(d.frames) for k in DEFECT_COLUMNS])
+    meta = {
+        "crs_of_e_n": result.crs,
+        "georeferenced": result.georeferenced,
+        "noise_m": result.noise_m,
+        "seed_threshold_m": result.seed_threshold_m,
+        "surface_source": result.surface_source,
+    }
+    gj = run_dir / "defects.geojson"
+    if mframe.georeferenced:
+        write_geojson(gj, feats, {"generator": "roadsurf detection", **meta})
+    else:
+        # No GPS: the file keeps the GeoJSON layout but holds local ENU metres (not RFC 7946).
+        meta["coordinates"] = "local ENU metres (east, north); the drive had no GPS, no lon/lat"
+        fc = {"type": "FeatureCollection", "features": feats, "properties": meta}
+        write_text_atomic(gj, json.dumps(fc, indent=1) + "\n")
+        log.warning("detection: no GPS reference; defects are written in local ENU metres")
+    write_csv(run_dir / "defects.csv", DEFECT_COLUMNS, rows)
+    write_csv(
+        run_dir / "frames.csv",
+        FRAME_COLUMNS,
+        [(f.filename, f.defect, round(f.p_defect, 4), f.source) for f in result.frames],
+    )
+    write_json_atomic(
+        run_dir / "detection.json",
+        {
+            "signature": signature,
+            **meta,
+            "config": config,
+            "defects": [
+                {**_props(d, None), "outline_xy_m": np.asarray(d.outline_xy_m).tolist()}
+                for d in result.defects
+            ],
+            "frames": [[f.filename, f.defect, f.p_defect, f.source] for f in result.frames],
+        },
+    )
+    result.files = {
+        "defects.geojson": gj,
+        "defects.csv": run_dir / "defects.csv",
+        "frames.csv": run_dir / "frames.csv",
+        "detection.json": run_dir / "detection.json",
+    }
+
+
+def load_result(run_dir: Path, signature: str) -> DetectionResult | None:
+    """The saved result when detection.json matches ``signature`` and all files exist."""
+    run_dir = Path(run_dir)
+    meta_p = run_dir / "detection.json"
+    names = ("defects.geojson", "defects.csv", "frames.csv")
+    if not meta_p.exists() or not all((run_dir / n).exists() for n in names):
+        return None
+    try:
+        meta = read_json(meta_p)
+    except (OSError, ValueError):
+        return None
+    if meta.get("signature") != signature:
+        return None
+    defects = [
+        Defect(
+            id=int(d["id"]),
+            type=d["type"],
+            severity=d["severity"],
+            outline_xy_m=np.asarray(d["outline_xy_m"], float),
+            centroid_xy_m=np.array([d["centroid_e_m"], d["centroid_n_m"]], float),
+            max_depth_m=float(d["max_depth_m"]),
+            mean_depth_m=float(d["mean_depth_m"]),
+            area_m2=float(d["area_m2"]),
+            volume_m3=float(d["volume_m3"]),
+            length_m=float(d["length_m"]),
+            width_m=float(d["width_m"]),
+            confidence=float(d["confidence"]),
+            frames=list(d["frames"]),
+        )
+        for d in meta.get("defects", [])
+    ]
+    frames = [FrameLabel(str(a), int(b), float(c), str(s)) for a, b, c, s in meta["frames"]]
+    res = DetectionResult(
+        defects=defects,
+        frames=frames,
+        run_dir=run_dir,
+        noise_m=float(meta["noise_m"]) if meta.get("noise_m") is not None else float("nan"),
+        seed_threshold_m=float(meta["seed_threshold_m"])
+        if meta.get("seed_threshold_m") is not None
+        else float("nan"),
+        georeferenced=bool(meta.get("georeferenced", True)),
+        crs=str(meta.get("crs_of_e_n", "")),
+        surface_source=str(meta.get("surface_source", "")),
+    )
+    res.files = {n: run_dir / n for n in (*names, "detection.json")}
+    return res

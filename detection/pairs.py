@@ -1,0 +1,77 @@
+"""Per-pair defect points (dissertation Ch. 4): recursive plane fit, then 2D + 3D refinement."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from detection.config import DetectionConfig
+from detection.planefit import recursive_plane_fit
+from detection.refine import binarise, correct_defects
+from reconstruction.types import PairResult
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class PairDefects:
+    """Refined defect points of one pair (camera-a coordinates)."""
+
+    index_a: int
+    frame_a: str
+    candidate: np.ndarray  # (N,) bool, X^rd from the plane fit
+    refined: np.ndarray  # (N,) bool, after CORRECT_DEFECTS
+    dist_m: np.ndarray  # (N,) signed distance to the final plane (m)
+    threshold_m: float  # T_d used (m)
+    noise_m: float  # σ of the road points (m)
+    deep_area_m2: float  # footprint area covered by refined points deeper than the frame depth
+    score: float  # p_defect from this pair alone, in [0, 1]
+
+    @property
+    def label(self) -> int:
+        return int(self.score >= 0.5)
+
+
+def analyse_pair(
+    pair: PairResult, gray: np.ndarray | None, cfg: DetectionConfig
+) -> PairDefects | None:
+    """Plane fit + CORRECT_DEFECTS for one ok pair; None when the pair has no usable points."""
+    if not pair.ok or pair.n_points < max(3, cfg.plane.min_points):
+        return None
+    P = np.asarray(pair.points_cam_a_m, float)
+    fit = recursive_plane_fit(P, cfg.plane)
+    if not np.isfinite(fit.threshold_m):
+        return None
+    refined = fit.candidate.copy()
+    if cfg.refine.enabled and gray is not None and refined.any():
+        dark = binarise(gray, cfg.refine)
+        refined = correct_defects(
+            fit.dist_m, pair.px_a, fit.candidate, dark, fit.threshold_m, cfg.refine
+        )
+    area = _deep_area(P, fit.dist_m, refined, cfg.map.frame_depth_m)
+    a_min = cfg.map.frame_min_area_m2
+    return PairDefects(
+        index_a=pair.index_a,
+        frame_a=pair.frame_a,
+        candidate=fit.candidate,
+        refined=refined,
+        dist_m=fit.dist_m,
+        threshold_m=fit.threshold_m,
+        noise_m=fit.noise_m,
+        deep_area_m2=area,
+        score=float(area / (area + a_min)) if area > 0 else 0.0,
+    )
+
+
+def _deep_area(P: np.ndarray, dist_m: np.ndarray, refined: np.ndarray, depth_m: float) -> float:
+    """Area (m²) the deep refined points cover: each point stands for the mean footprint area
+    per point (points are spread over the image by the reconstruction's feature grid)."""
+    deep = refined & (-dist_m >= depth_m)
+    if deep.sum() < 3:
+        return 0.0
+    xy = P[:, :2]
+    lo, hi = np.percentile(xy, [1, 99], axis=0)
+    area_per_point = float(np.prod(np.maximum(hi - lo, 1e-6))) / len(P)
+    return float(deep.sum()) * area_per_point

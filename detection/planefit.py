@@ -1,0 +1,97 @@
+"""Recursive plane fit of one pair's points (dissertation eq. 4.8-4.10).
+
+Points are in camera-a coordinates (x right, y backward, z down, metres); the road plane is
+Z = p0 X + p1 Y + p2 and the signed distance d_i is negative below the road (further from the
+camera), matching ``PairResult.plane_dist_m``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from detection.config import PlaneFitConfig
+from roadsurf.geometry import check_shape
+
+MAD_TO_SIGMA = 1.4826  # σ of a normal distribution from its median absolute deviation
+
+
+def robust_sigma(values: np.ndarray) -> float:
+    """σ estimated as 1.4826 · MAD (robust to a minority of outliers); NaN for empty input."""
+    v = np.asarray(values, float)
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        return float("nan")
+    return float(MAD_TO_SIGMA * np.median(np.abs(v - np.median(v))))
+
+
+def fit_plane(points_m: np.ndarray) -> np.ndarray:
+    """Least-squares plane Z = p0 X + p1 Y + p2 through (N, 3) points (N >= 3); returns (3,)."""
+    P = check_shape("points_m", points_m, (None, 3))
+    if P.shape[0] < 3:
+        raise ValueError(f"fit_plane: need at least 3 points, got {P.shape[0]}")
+    A = np.column_stack([P[:, 0], P[:, 1], np.ones(len(P))])
+    p, *_ = np.linalg.lstsq(A, P[:, 2], rcond=None)
+    return p
+
+
+def signed_distance(points_m: np.ndarray, plane: np.ndarray) -> np.ndarray:
+    """d_i = (p0 X + p1 Y - Z + p2) / sqrt(p0² + p1² + 1) (eq. 3.32); negative below the road."""
+    P = check_shape("points_m", points_m, (None, 3))
+    p0, p1, p2 = check_shape("plane", plane, (3,))
+    return (p0 * P[:, 0] + p1 * P[:, 1] - P[:, 2] + p2) / np.sqrt(p0 * p0 + p1 * p1 + 1.0)
+
+
+@dataclass
+class PlaneFitResult:
+    candidate: np.ndarray  # (N,) bool: X^rd, below the road by at least T_d
+    dist_m: np.ndarray  # (N,) signed distance to the final plane (m, negative below)
+    plane: np.ndarray  # (3,) final plane (p0, p1, p2)
+    threshold_m: float  # T_d used (m)
+    noise_m: float  # σ of the road points' distances (robust), m
+    road_share: float  # T_n = |X^rn| / |X| at the end
+    iterations: int
+
+
+def recursive_plane_fit(points_m: np.ndarray, cfg: PlaneFitConfig) -> PlaneFitResult:
+    """Split points into road X^rn and candidate defect points X^rd (eq. 4.8-4.10).
+
+    Each round: distances to the current plane; candidates are d_i < 0 and |d_i| >= T_d with
+    T_d = max(cfg floor, noise_k · σ) and σ the robust spread of the road points; refit on the
+    road points. Rounds repeat while T_n > m and the split changes.
+    """
+    P = check_shape("points_m", np.asarray(points_m, float), (None, 3))
+    n = P.shape[0]
+    if n < max(3, cfg.min_points):
+        return PlaneFitResult(
+            np.zeros(n, bool), np.zeros(n), np.full(3, np.nan), np.nan, np.nan, 1.0, 0
+        )
+    plane = fit_plane(P)
+    road = np.ones(n, bool)
+    cand = np.zeros(n, bool)
+    d = signed_distance(P, plane)
+    T_d = cfg.depth_threshold_m
+    sigma = robust_sigma(d)
+    it = 0
+    for it in range(1, cfg.max_iterations + 1):
+        d = signed_distance(P, plane)
+        sigma = robust_sigma(d[road])
+        T_d = max(cfg.depth_threshold_m, cfg.noise_k * sigma)
+        new_cand = (d < 0) & (np.abs(d) >= T_d)
+        # Bumps far above the plane are not road either: keep them out of the refit.
+        new_road = ~new_cand & (d < T_d)
+        share = float(new_road.sum()) / n
+        if share <= cfg.min_road_share or new_road.sum() < 3:
+            # Too few road points left: the split is no longer a road with defects; keep the
+            # previous round's plane and stop (eq. 4.10).
+            cand = new_cand
+            break
+        if np.array_equal(new_cand, cand) and it > 1:
+            break
+        cand, road = new_cand, new_road
+        plane = fit_plane(P[road])
+    d = signed_distance(P, plane)
+    cand = (d < 0) & (np.abs(d) >= T_d)
+    share = 1.0 - float(cand.sum()) / n
+    return PlaneFitResult(cand, d, plane, float(T_d), float(sigma), share, it)

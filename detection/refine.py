@@ -1,0 +1,103 @@
+"""2D + 3D refinement of candidate defect points (dissertation Fig. 4.3, CORRECT_DEFECTS).
+
+The image is binarised (dark = 1) at T_b, opened (erode then dilate, W x W) and the 3D candidates
+are kept where they fall in the dark region; the region is grown around them and points below
+the road inside it join, until the set is stable. Beyond the dissertation, T_b can be chosen per
+pixel relative to the local road brightness (``binarise="adaptive"``) so that shadows and
+exposure changes do not turn whole image areas "dark".
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from detection.config import RefineConfig
+from roadsurf.geometry import check_shape
+
+
+def to_gray(image: np.ndarray) -> np.ndarray:
+    """(H, W) or (H, W, 3) RGB uint8 -> (H, W) uint8 greyscale."""
+    img = np.asarray(image)
+    if img.ndim == 2:
+        return img.astype(np.uint8, copy=False)
+    if img.ndim == 3 and img.shape[2] in (3, 4):
+        return cv2.cvtColor(np.ascontiguousarray(img[:, :, :3]), cv2.COLOR_RGB2GRAY)
+    raise ValueError(f"image: expected (H, W) or (H, W, 3), got {img.shape}")
+
+
+def local_road_brightness(gray: np.ndarray, window_frac: float) -> tuple[np.ndarray, np.ndarray]:
+    """Local median and local MAD of the grey level over a window of ``window_frac`` x width.
+
+    Computed on a reduced image (median filters on uint8 are O(1) per pixel in OpenCV but need
+    an odd window <= 255) and resized back. Returns two (H, W) float32 arrays.
+    """
+    h, w = gray.shape
+    win = max(3, int(round(window_frac * w)))
+    # Reduce so that the window is about 31 px on the small image.
+    f = min(1.0, 31.0 / win)
+    small = cv2.resize(gray, (max(1, int(w * f)), max(1, int(h * f))), interpolation=cv2.INTER_AREA)
+    k = max(3, int(round(win * f)) | 1)
+    k = min(k, 255)
+    med = cv2.medianBlur(small, k)
+    dev = cv2.absdiff(small, med)
+    mad = cv2.medianBlur(dev, k)
+    med_f = cv2.resize(med, (w, h), interpolation=cv2.INTER_LINEAR).astype(np.float32)
+    mad_f = cv2.resize(mad, (w, h), interpolation=cv2.INTER_LINEAR).astype(np.float32)
+    return med_f, mad_f
+
+
+def binarise(gray: np.ndarray, cfg: RefineConfig) -> np.ndarray:
+    """Dark mask (H, W) bool: fixed T_b or adaptive to the local road, then opened with W x W."""
+    g = to_gray(gray)
+    if cfg.binarise == "fixed":
+        dark = g < cfg.fixed_threshold
+    else:
+        med, mad = local_road_brightness(g, cfg.adaptive_window_frac)
+        drop = np.maximum(cfg.adaptive_dark_k * 1.4826 * mad, cfg.adaptive_min_drop * med)
+        dark = g.astype(np.float32) < med - drop
+    W = max(1, int(cfg.window_px))
+    kernel = np.ones((W, W), np.uint8)
+    opened = cv2.dilate(cv2.erode(dark.astype(np.uint8), kernel), kernel)
+    return opened.astype(bool)
+
+
+def correct_defects(
+    dist_m: np.ndarray,
+    px: np.ndarray,
+    candidate: np.ndarray,
+    dark: np.ndarray,
+    threshold_m: float,
+    cfg: RefineConfig,
+) -> np.ndarray:
+    """CORRECT_DEFECTS: refined defect mask (N,) bool for one pair.
+
+    dist_m: (N,) signed plane distances (m, negative below); px: (N, 2) pixels (u, v) in the
+    image the dark mask comes from; candidate: (N,) bool X^rd; dark: (H, W) bool opened mask;
+    threshold_m: T_d used for the candidates.
+    Candidates deeper than ``strong_factor`` · T_d are kept without 2D support (clear 3D
+    evidence is not overruled by an image that is not darker inside the defect).
+    """
+    n = check_shape("dist_m", np.asarray(dist_m, float), (None,)).shape[0]
+    px = check_shape("px", np.asarray(px, float), (n, 2))
+    cand = check_shape("candidate", np.asarray(candidate, bool), (n,))
+    h, w = dark.shape
+    u = np.clip(np.round(px[:, 0]).astype(int), 0, w - 1)
+    v = np.clip(np.round(px[:, 1]).astype(int), 0, h - 1)
+    inside = (px[:, 0] >= -0.5) & (px[:, 0] < w - 0.5) & (px[:, 1] >= -0.5) & (px[:, 1] < h - 0.5)
+    dark_at = dark[v, u] & inside
+    strong = cand & (np.abs(dist_m) >= cfg.strong_factor * threshold_m)
+    kept = (cand & dark_at) | strong
+    if not kept.any():
+        return kept
+    n_lab, labels = cv2.connectedComponents(dark.astype(np.uint8), connectivity=8)
+    below = np.asarray(dist_m) <= -cfg.grow_depth_frac * threshold_m
+    lab_at = np.where(inside, labels[v, u], 0)
+    for _ in range(cfg.max_iterations):
+        comps = np.unique(lab_at[kept & dark_at])
+        comps = comps[comps > 0]
+        grown = kept | (np.isin(lab_at, comps) & below & dark_at)
+        if np.array_equal(grown, kept):
+            break
+        kept = grown
+    return kept

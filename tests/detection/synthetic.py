@@ -1,0 +1,166 @@
+"""Seeded synthetic scenes for detection tests: a noisy road plane with bowl potholes, image-only
+distractors (lane marking, shadow), tiny rendered images, pair point clouds and poses.
+
+The vehicle drives north along the ENU y axis with the camera ``height_m`` above the road; each
+pair's points are sampled on the true surface inside frame a's footprint and expressed in
+camera-a coordinates with Gaussian noise, like a reconstruction would give them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from mapping.types import Trajectory
+from reconstruction.types import PairResult
+from roadsurf.drive import Camera, Drive, Frame
+from roadsurf.geometry import EnuReference, invert_pose, transform_points, world_from_cam
+
+REF = EnuReference(lat_deg=43.0, lon_deg=-79.5, alt_m=100.0)
+
+
+@dataclass
+class Pothole:
+    x_m: float
+    y_m: float
+    radius_m: float
+    depth_m: float
+    darker: float = 0.65  # image intensity factor inside (real potholes are darker)
+
+
+@dataclass
+class Scene:
+    potholes: list[Pothole] = field(default_factory=list)
+    lane_x_m: float | None = None  # bright lane marking: |x - lane_x| < 0.05 m, no depth
+    shadow_x_m: float | None = None  # dark shadow for x > shadow_x, no depth
+    oil_xy_m: tuple[float, float] | None = None  # dark oil stain disc r = 0.1 m, no depth
+    noise_m: float = 0.0005  # σ of the point depths
+
+    def depth(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Depth below the road (m, positive down) at ENU x, y."""
+        d = np.zeros(np.broadcast(x, y).shape)
+        for p in self.potholes:
+            r2 = ((x - p.x_m) ** 2 + (y - p.y_m) ** 2) / p.radius_m**2
+            d = np.maximum(d, p.depth_m * np.clip(1.0 - r2, 0.0, None))
+        return d
+
+    def intensity(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Grey level of the road texture at ENU x, y."""
+        g = 120.0 + 18.0 * np.sin(37.0 * x + 3.0 * np.sin(23.0 * y)) * np.cos(29.0 * y + 1.3 * x)
+        g = g + 10.0 * np.sin(91.0 * x * y + 5.0 * x)
+        for p in self.potholes:
+            inside = (x - p.x_m) ** 2 + (y - p.y_m) ** 2 < p.radius_m**2
+            g = np.where(inside, g * p.darker, g)
+        if self.lane_x_m is not None:
+            g = np.where(np.abs(x - self.lane_x_m) < 0.05, 235.0, g)
+        if self.shadow_x_m is not None:
+            g = np.where(x > self.shadow_x_m, g * 0.45, g)
+        if self.oil_xy_m is not None:
+            ox, oy = self.oil_xy_m
+            g = np.where((x - ox) ** 2 + (y - oy) ** 2 < 0.1**2, g * 0.5, g)
+        return np.clip(g, 0, 255)
+
+
+CAMERA = Camera(width=160, height=120, fx=150.0, fy=150.0, cx=79.5, cy=59.5, height_m=1.0, fps=10.0)
+
+
+def poses(n_frames: int, step_m: float = 0.4, h: float = 1.0) -> np.ndarray:
+    """(N, 4, 4) world_from_cam, driving north from y = 0."""
+    return np.stack(
+        [
+            world_from_cam(0.0, position_enu_m=np.array([0.0, k * step_m, h]))
+            for k in range(n_frames)
+        ]
+    )
+
+
+def _ground_xy(T: np.ndarray, camera: Camera, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    rays = np.linalg.solve(camera.K, np.vstack([u, v, np.ones_like(u)]))
+    rw = T[:3, :3] @ rays
+    s = -T[2, 3] / rw[2]
+    return (T[:3, 3][:, None] + rw * s)[:2].T
+
+
+def render(scene: Scene, T: np.ndarray, camera: Camera = CAMERA) -> np.ndarray:
+    """(H, W) uint8 image of the road seen from pose T (flat-ground approximation)."""
+    v, u = np.mgrid[0 : camera.height, 0 : camera.width].astype(float)
+    xy = _ground_xy(T, camera, u.ravel(), v.ravel())
+    return scene.intensity(xy[:, 0], xy[:, 1]).reshape(camera.height, camera.width).astype(np.uint8)
+
+
+def pair_points(
+    scene: Scene,
+    T_a: np.ndarray,
+    rng: np.random.Generator,
+    n_points: int = 2500,
+    camera: Camera = CAMERA,
+    keep=None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Points on the true surface inside frame a's view: (N, 3) camera-a coords, (N, 2) px."""
+    u = rng.uniform(0, camera.width - 1, n_points)
+    v = rng.uniform(0, camera.height - 1, n_points)
+    xy = _ground_xy(T_a, camera, u, v)
+    if keep is not None:
+        m = keep(xy[:, 0], xy[:, 1])
+        xy = xy[m]
+    z = -scene.depth(xy[:, 0], xy[:, 1]) + rng.normal(0, scene.noise_m, len(xy))
+    Pw = np.column_stack([xy, z])
+    Pc = transform_points(invert_pose(T_a), Pw)
+    px = (Pc @ camera.K.T)[:, :2] / Pc[:, 2:3]
+    return Pc, px
+
+
+def build(
+    scene: Scene,
+    root: Path,
+    n_frames: int = 6,
+    seed: int = 0,
+    georeferenced: bool = True,
+    keep_per_pair=None,
+    n_points: int = 2500,
+) -> tuple[Drive, list[PairResult], Trajectory]:
+    """Write tiny images under ``root/frames`` and return (drive, pairs, trajectory)."""
+    from detection.planefit import fit_plane, signed_distance
+
+    rng = np.random.default_rng(seed)
+    Ts = poses(n_frames)
+    (root / "frames").mkdir(parents=True, exist_ok=True)
+    frames = []
+    for k, T in enumerate(Ts):
+        fn = f"{k:06d}.png"
+        cv2.imwrite(str(root / "frames" / fn), render(scene, T))
+        frames.append(Frame(k, fn, root / "frames" / fn, 0.1 * k))
+    drive = Drive(root, CAMERA, frames, gps=None, obd=None)
+    pairs = []
+    for k in range(n_frames - 1):
+        keep = keep_per_pair(k) if keep_per_pair is not None else None
+        Pc, px = pair_points(scene, Ts[k], rng, n_points, keep=keep)
+        plane = fit_plane(Pc)
+        pairs.append(
+            PairResult(
+                frame_a=frames[k].filename,
+                frame_b=frames[k + 1].filename,
+                index_a=k,
+                index_b=k + 1,
+                method="proposed",
+                status="ok",
+                points_cam_a_m=Pc,
+                px_a=px,
+                px_b=px,
+                cov_m2=np.zeros((len(Pc), 3, 3)),
+                plane_dist_m=signed_distance(Pc, plane),
+                plane=plane,
+            )
+        )
+    traj = Trajectory(
+        filenames=[f.filename for f in frames],
+        frame_indices=np.arange(n_frames),
+        timestamp_s=np.arange(n_frames) * 0.1,
+        world_from_cam=Ts,
+        source=["gps"] * n_frames,
+        reference=REF if georeferenced else None,
+    )
+    return drive, pairs, traj
