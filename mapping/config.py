@@ -16,17 +16,17 @@ class MappingConfig:
     gps_sigma_m: float = 1.0  # horizontal GPS σ (m) used when the log has no HDOP
     gps_sigma_per_hdop_m: float = 0.5  # σ = hdop × this (m) when HDOP is present (UERE-like)
     gps_sigma_min_m: float = 0.005  # floor on the GPS σ (m), keeps weights finite for RTK logs
-    gps_vertical_sigma_factor: float = (
-        2.0  # vertical σ = factor × horizontal σ (GPS altitude is worse)
-    )
-    use_gps_altitude: bool = (
-        False  # use GPS altitude as a constraint; off: height from visual chain
-    )
+    gps_vertical_sigma_factor: float = 2.0  # vertical σ = this × horizontal σ (−)
+    use_gps_altitude: bool = True  # GPS altitude (when logged) as a weak vertical constraint
     visual_sigma_trans_m: float = 0.003  # σ of a pair's metric translation (m), per axis
     visual_sigma_trans_rel: float = 0.01  # extra σ as a share of the pair's baseline length (−)
     visual_sigma_rot_deg: float = 0.1  # σ of a pair's relative rotation (degrees), per axis
     heading_sigma_deg: float = 5.0  # σ of the eq. 6.1 heading between successive fixes (degrees)
     heading_min_baseline_m: float = 0.5  # fixes closer than this give no heading (m)
+    tilt_sigma_deg: float = 3.0  # σ of the road normal vs world up (road grade/cross-fall) (deg)
+    gap_sigma_m: float = 1.0  # σ of the constant-velocity guess across a failed pair (m)
+    gap_sigma_rot_deg: float = 10.0  # σ of its rotation (deg)
+    adapt_sigmas: bool = True  # rescale GPS/visual σ from the fit's own residuals (robust MAD)
     obd_sigma_mps: float = 0.2  # σ of OBD speed (m/s) for the optional speed constraint
     use_obd: bool = True  # add OBD speed constraints when obd.csv exists
     robust_loss: Literal["soft_l1", "huber", "cauchy", "arctan", "linear"] = "cauchy"

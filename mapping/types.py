@@ -27,6 +27,9 @@ class Trajectory:
     world_from_cam: np.ndarray  # (N, 4, 4) ENU from camera
     source: list[str]  # (N,) "gps" | "visual" | "fused"
     reference: EnuReference | None  # None: no GPS at all, local frame only (no lat/lon exports)
+    # (N,) int: frames in different segments are not tied by vision nor GPS (relative placement of
+    # segments is a guess). None = one segment.
+    segment: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.filenames)
@@ -55,6 +58,9 @@ def save_trajectory(run_dir: str | Path, traj: Trajectory) -> None:
         timestamp_s=np.asarray(traj.timestamp_s, dtype=float),
         world_from_cam=np.asarray(traj.world_from_cam, dtype=float),
         source=np.array(traj.source, dtype=str),
+        segment=np.zeros(len(traj), np.int64)
+        if traj.segment is None
+        else np.asarray(traj.segment, np.int64),
     )
     ref = None
     if traj.reference is not None:
@@ -78,4 +84,5 @@ def load_trajectory(run_dir: str | Path) -> Trajectory:
             world_from_cam=z["world_from_cam"],
             source=z["source"].tolist(),
             reference=ref,
+            segment=z["segment"] if "segment" in z.files else None,
         )

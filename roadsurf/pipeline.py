@@ -223,14 +223,10 @@ def _pairs_to_reconstruct(
     drive: Any, frame_probs: dict[str, float], clf_cfg: Any
 ) -> set[tuple[int, int]]:
     """Pairs whose frames the CNN is unsure about or calls defect (Fig. 5.6)."""
-    threshold = float(getattr(clf_cfg, "confidence_threshold", 0.95))
-    frames = drive.frames
-    need = set()
-    for a, b in zip(frames[:-1], frames[1:], strict=True):
-        sure_clear = all((1.0 - frame_probs.get(f.filename, 0.5)) >= threshold for f in (a, b))
-        if not sure_clear:
-            need.add((a.index, b.index))
-    return need
+    from detection.classifier.fusion import pairs_to_reconstruct
+
+    threshold = float(getattr(clf_cfg, "fusion_threshold", 0.95))
+    return pairs_to_reconstruct(frame_probs, [f.filename for f in drive.frames], threshold)
 
 
 def _build_report(

@@ -1,0 +1,191 @@
+"""Seeded synthetic drives for the mapping tests: known poses -> GPS fixes and PairResults.
+
+The road is the ENU plane z = road_z(x, y) (flat unless a bump function is given); the camera
+rides ``height_m`` above it looking down, on a gently curving path.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from reconstruction.types import PairResult
+from roadsurf.drive import Camera, Drive, Frame, GpsTrack, ObdLog
+from roadsurf.geometry import EnuReference, invert_pose, lla_from_enu, world_from_cam
+
+REF = EnuReference(43.6532, -79.3832, 100.0)  # Toronto: UTM 17N, EPSG:32617
+
+
+@dataclass
+class Synthetic:
+    drive: Drive
+    pairs: list[PairResult]
+    world_from_cam: np.ndarray  # (N, 4, 4) true poses (ENU)
+    ref: EnuReference
+    gps_enu_true: np.ndarray  # (G, 3) true camera centres at fix times
+
+
+def true_poses(
+    n: int,
+    fps: float,
+    speed_mps: float,
+    height_m: float,
+    rng: np.random.Generator,
+    curvature_per_m: float = 0.01,
+    tilt_deg: float = 0.3,
+) -> tuple[np.ndarray, np.ndarray]:
+    t = np.arange(n) / fps
+    s = speed_mps * t
+    heading = 30.0 + np.degrees(curvature_per_m * s) * np.sin(s / 15.0)  # gentle S-curve
+    W = np.empty((n, 4, 4))
+    pos = np.zeros(3)
+    for i in range(n):
+        if i:
+            ds = s[i] - s[i - 1]
+            b = np.radians(0.5 * (heading[i] + heading[i - 1]))
+            pos = pos + ds * np.array([np.sin(b), np.cos(b), 0.0])
+        roll, pitch = np.radians(rng.normal(0, tilt_deg, 2))
+        W[i] = world_from_cam(heading[i], roll, pitch, pos + [0, 0, height_m])
+    return t, W
+
+
+def camera(width: int = 160, height: int = 120, height_m: float = 1.0, fps: float = 20.0) -> Camera:
+    f = 0.9 * width
+    return Camera(width, height, f, f, width / 2 - 0.5, height / 2 - 0.5, height_m, fps)
+
+
+def make_pair(
+    i: int,
+    Wa: np.ndarray,
+    Wb: np.ndarray,
+    cam: Camera,
+    rng: np.random.Generator,
+    rot_noise_deg: float = 0.02,
+    trans_noise_m: float = 0.001,
+    n_pts: int = 200,
+    road_z: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+) -> PairResult:
+    """An ok PairResult a=i -> b=i+1 with noisy relative pose and road points seen by both."""
+    T = invert_pose(Wb) @ Wa  # cam_b_from_cam_a
+    dR = _small_rot(rng.normal(0, np.radians(rot_noise_deg), 3))
+    T_noisy = T.copy()
+    T_noisy[:3, :3] = dR @ T[:3, :3]
+    T_noisy[:3, 3] += rng.normal(0, trans_noise_m, 3)
+    # road points: sample pixels of image a, intersect rays with the road
+    u = rng.uniform(0, cam.width - 1, n_pts)
+    v = rng.uniform(0, cam.height - 1, n_pts)
+    rays = np.column_stack([(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, np.ones(n_pts)])
+    rays_w = rays @ Wa[:3, :3].T
+    c = Wa[:3, 3]
+    lam = -c[2] / rays_w[:, 2]  # flat road z = 0 first
+    pts_w = c + lam[:, None] * rays_w
+    if road_z is not None:
+        for _ in range(3):  # refine intersection with the bumpy road
+            z = road_z(pts_w[:, 0], pts_w[:, 1])
+            lam = (z - c[2]) / rays_w[:, 2]
+            pts_w = c + lam[:, None] * rays_w
+    pts_a = (pts_w - Wa[:3, 3]) @ Wa[:3, :3]
+    pts_b = pts_a @ T[:3, :3].T + T[:3, 3]
+    px_a = np.column_stack([u, v])
+    px_b = np.column_stack(
+        [cam.fx * pts_b[:, 0] / pts_b[:, 2] + cam.cx, cam.fy * pts_b[:, 1] / pts_b[:, 2] + cam.cy]
+    )
+    A = np.column_stack([pts_a[:, 0], pts_a[:, 1], np.ones(n_pts)])
+    plane, *_ = np.linalg.lstsq(A, pts_a[:, 2], rcond=None)
+    d = (plane[0] * pts_a[:, 0] + plane[1] * pts_a[:, 1] - pts_a[:, 2] + plane[2]) / np.sqrt(
+        plane[0] ** 2 + plane[1] ** 2 + 1
+    )
+    return PairResult(
+        frame_a=f"{i:06d}.png",
+        frame_b=f"{i + 1:06d}.png",
+        index_a=i,
+        index_b=i + 1,
+        method="proposed",
+        status="ok",
+        points_cam_a_m=pts_a,
+        px_a=px_a,
+        px_b=px_b,
+        cov_m2=np.tile(np.eye(3) * 1e-8, (n_pts, 1, 1)),
+        plane_dist_m=-np.abs(d) * 0 + d,
+        plane=plane,
+        R_b_from_a=T_noisy[:3, :3],
+        t_b_from_a_m=T_noisy[:3, 3],
+        n_matches=n_pts,
+        n_inliers=n_pts,
+    )
+
+
+def failed_pair(i: int, reason: str = "too_few_matches") -> PairResult:
+    return PairResult(
+        frame_a=f"{i:06d}.png",
+        frame_b=f"{i + 1:06d}.png",
+        index_a=i,
+        index_b=i + 1,
+        method="proposed",
+        status=reason,
+        reason="synthetic failure",
+    )
+
+
+def _small_rot(w: np.ndarray) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_rotvec(w).as_matrix()
+
+
+def make_synthetic(
+    n: int = 60,
+    seed: int = 0,
+    fps: float = 20.0,
+    speed_mps: float = 5.0,
+    gps_hz: float = 1.0,
+    gps_sigma_m: float = 0.02,
+    gps_time_offset_s: float = 0.37,
+    gps_gap_s: tuple[float, float] | None = None,
+    gps_outliers: dict[int, tuple[float, float]] | None = None,
+    with_gps: bool = True,
+    hdop: float | None = None,
+    failed: tuple[int, ...] = (),
+    with_obd: bool = False,
+    root: Path | None = None,
+    road_z: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+) -> Synthetic:
+    rng = np.random.default_rng(seed)
+    cam = camera(fps=fps)
+    t, W = true_poses(n, fps, speed_mps, cam.height_m, rng)
+    root = root or Path("/nonexistent-synthetic-drive")
+    frames = [
+        Frame(i, f"{i:06d}.png", root / "frames" / f"{i:06d}.png", float(t[i])) for i in range(n)
+    ]
+    pairs = [
+        failed_pair(i) if i in failed else make_pair(i, W[i], W[i + 1], cam, rng, road_z=road_z)
+        for i in range(n - 1)
+    ]
+    gps = None
+    g_true = np.zeros((0, 3))
+    if with_gps:
+        tg = np.arange(gps_time_offset_s - 1.0, t[-1] + 1.0, 1.0 / gps_hz)
+        tg = tg[(tg >= t[0]) & (tg <= t[-1])]
+        if gps_gap_s is not None:
+            tg = tg[(tg < gps_gap_s[0]) | (tg > gps_gap_s[1])]
+        # true camera centre at fix time: interpolate the true path (dense frames, tiny error)
+        g_true = np.column_stack([np.interp(tg, t, W[:, j, 3]) for j in range(3)])
+        meas = g_true + rng.normal(0, gps_sigma_m, g_true.shape) * [1, 1, 1.5]
+        for k, (de, dn) in (gps_outliers or {}).items():
+            meas[k, :2] += [de, dn]
+        lla = lla_from_enu(meas, REF)
+        gps = GpsTrack(
+            timestamp_s=tg,
+            lat_deg=lla[:, 0],
+            lon_deg=lla[:, 1],
+            alt_m=lla[:, 2],
+            hdop=np.full(len(tg), np.nan if hdop is None else hdop),
+        )
+    obd = None
+    if with_obd:
+        obd = ObdLog(timestamp_s=t.copy(), speed_mps=np.full(n, speed_mps) + rng.normal(0, 0.05, n))
+    drive = Drive(root=root, camera=cam, frames=frames, gps=gps, obd=obd)
+    return Synthetic(drive, pairs, W, REF, g_true)
