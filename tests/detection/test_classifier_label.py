@@ -1,0 +1,144 @@
+"""Fusion rule, augmentation and self-labelling (eq. 5.8-5.9) on seeded synthetic inputs."""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from detection.classifier import augment
+from detection.classifier.config import ClassifierConfig
+from detection.classifier.dataset import FrameFigures, frame_figures, label_frame
+from detection.classifier.fusion import fuse, fuse_frames, needs_3d, pairs_to_reconstruct
+from reconstruction.types import PairResult, pair_filename, save_pair
+
+
+@pytest.mark.parametrize("thr", [0.8, 0.95])
+def test_fusion_switches_at_the_threshold(thr: float) -> None:
+    eps = 1e-6
+    # confident non-defect: the CNN decision stands, no 3D needed
+    d = fuse(1 - thr, defect_3d=None, threshold=thr)
+    assert (d.defect, d.source) == (False, "cnn") and not needs_3d(1 - thr, thr)
+    # just below the threshold: 3D decides, whatever the CNN leans to
+    for p in (1 - thr + eps, 0.5, thr - eps):
+        assert needs_3d(p, thr)
+        assert fuse(p, defect_3d=True, threshold=thr).source == "3d"
+        assert fuse(p, defect_3d=True, threshold=thr).defect is True
+        assert fuse(p, defect_3d=False, threshold=thr).defect is False
+    # confident defect: the CNN decision stands; 3D runs to measure it -> "fused"
+    d = fuse(thr, defect_3d=False, threshold=thr)
+    assert (d.defect, d.source) == (True, "fused") and needs_3d(thr, thr)
+    assert fuse(thr, defect_3d=False, threshold=thr, confirm_defect_with_3d=True).defect is False
+    # no CNN: 3D as usual
+    d = fuse(None, defect_3d=True, threshold=thr)
+    assert (d.defect, d.source) == (True, "3d") and math.isnan(d.p_defect)
+
+
+def test_fuse_frames_and_pairs_to_reconstruct() -> None:
+    names = ["a", "b", "c", "d"]
+    probs = {"a": 0.001, "b": 0.6, "c": 0.001, "d": 0.999}
+    assert pairs_to_reconstruct(probs, names, 0.95) == {(1, 2), (2, 3)}
+    fused = fuse_frames(probs, {"b": True, "d": True}, names, 0.95)
+    assert [fused[n].source for n in names] == ["cnn", "3d", "cnn", "fused"]
+    assert [fused[n].defect for n in names] == [False, True, False, True]
+    # a frame the CNN could not read is reconstructed
+    assert (0, 1) in pairs_to_reconstruct({}, names, 0.95)
+
+
+def _blob(size: int = 64, cx: int = 20, cy: int = 40) -> np.ndarray:
+    img = np.full((size, size), 120, np.uint8)
+    cv2.circle(img, (cx, cy), 5, 20, -1)
+    return img
+
+
+def _dark_centre(img: np.ndarray) -> tuple[float, float]:
+    ys, xs = np.nonzero(img < 70)
+    return float(xs.mean()), float(ys.mean())
+
+
+def test_augmentations_move_rotate_and_flip_the_defect() -> None:
+    img = _blob()
+    bbox = (15.0, 35.0, 25.0, 45.0)
+    cx, cy = _dark_centre(augment.translate_to(img, bbox, "left"))
+    assert abs(cx - 16) < 1.5 and abs(cy - 32) < 1.5
+    cx, cy = _dark_centre(augment.translate_to(img, bbox, "down"))
+    assert abs(cx - 32) < 1.5 and abs(cy - 48) < 1.5
+    cx, cy = _dark_centre(augment.rotate(img, 2))
+    assert abs(cx - 43) < 1.5 and abs(cy - 23) < 1.5
+    cx, _ = _dark_centre(augment.flip(img, "h"))
+    assert abs(cx - 43) < 1.5
+    big = augment.rescale(img, bbox, 1.25)
+    assert (big < 70).sum() > 1.3 * (img < 70).sum()
+    rng = np.random.default_rng(0)
+    outs = augment.augment_image(img, bbox, 15, rng)
+    assert len(outs) == 15 and len({n for n, _ in outs}) == 15
+    assert all(o.shape == img.shape and o.dtype == np.uint8 for _, o in outs)
+    assert augment.copies_needed(10, 1000, 1.0, 12) == 12
+    assert augment.copies_needed(10, 50, 1.0, 12) == 4
+    assert augment.copies_needed(0, 50, 1.0, 12) == 0
+
+
+def _pair(i: int, depth_m: float, n_deep: int, rng: np.random.Generator) -> PairResult:
+    """Road points at 1 m (camera z down) plus n_deep points depth_m below, in a 10 cm patch."""
+    road = np.column_stack([rng.uniform(-0.5, 0.5, 300), rng.uniform(-0.4, 0.4, 300)])
+    d = rng.normal(0, 0.0008, 300)
+    if n_deep:
+        hole = rng.uniform(-0.05, 0.05, (n_deep, 2)) + [0.1, 0.0]
+        road = np.vstack([road, hole])
+        d = np.concatenate([d, -depth_m * rng.uniform(0.6, 1.0, n_deep)])
+    pts = np.column_stack([road, 1.0 - d])
+    px = 500 * pts[:, :2] + [320, 240]
+    return PairResult(
+        f"{i:04d}.png",
+        f"{i + 1:04d}.png",
+        i,
+        i + 1,
+        "proposed",
+        "ok",
+        points_cam_a_m=pts,
+        px_a=px,
+        px_b=px - [0, 40],
+        plane_dist_m=d,
+    )
+
+
+def test_frame_figures_and_labels_from_pairs(tmp_path: Path) -> None:
+    rng = np.random.default_rng(5)
+    names = [f"{i:04d}.png" for i in range(5)]
+    (tmp_path / "pairs").mkdir()
+    specs = {0: (0.0, 0), 1: (0.03, 40), 2: (0.03, 40), 3: (0.0, 0)}
+    for i, (dep, n) in specs.items():
+        save_pair(tmp_path / "pairs" / pair_filename(i, i + 1), _pair(i, dep, n, rng))
+    cfg = ClassifierConfig()
+    figs = frame_figures(tmp_path, names, 1.0, cfg)
+    assert figs["0000.png"].n_deep == 0 and figs["0000.png"].max_depth_m < 0.005
+    assert figs["0002.png"].n_deep >= 30 and 0.02 < figs["0002.png"].max_depth_m <= 0.03
+    assert 40 < figs["0002.png"].extent_cm2 <= 100  # hull inside the 10 cm x 10 cm patch
+    x0, y0, x1, y1 = figs["0002.png"].bbox_px
+    assert 320 + 500 * 0.05 - 1 <= x0 and x1 <= 320 + 500 * 0.15 + 1
+    # frame 4 is only in pair (3, 4): clear road
+    assert figs["0004.png"].n_deep == 0
+    # α = Z^d / h scales with the camera height: at h = 4 m and α = 0.01, Z^d = 40 mm > 30 mm
+    deep_cfg = ClassifierConfig(defect_alpha=0.01)
+    assert frame_figures(tmp_path, names, 4.0, deep_cfg)["0002.png"].n_deep == 0
+
+    assert label_frame(figs["0002.png"], (True, "3d"), cfg) == (1, "physics+depth+extent")
+    assert label_frame(figs["0000.png"], (False, "3d"), cfg) == (0, "physics+depth+extent")
+    assert label_frame(figs["0002.png"], (False, "3d"), cfg)[0] is None  # disagreement dropped
+    assert label_frame(figs["0002.png"], None, cfg) == (1, "depth+extent")
+    assert label_frame(None, (True, "3d"), cfg)[0] is None
+    assert label_frame(figs["0000.png"], (False, "cnn"), cfg)[0] is None
+    speck = FrameFigures(0.02, 4.0, 3, 300, None)  # a few deep points, tiny footprint: road
+    assert label_frame(speck, (False, "3d"), cfg) == (0, "physics+depth+extent")
+    some = FrameFigures(0.02, 12.0, 6, 300, None)  # some depth below the extent: not clear
+    assert label_frame(some, (False, "3d"), cfg)[0] is None
+    assert label_frame(some, (False, "3d"), ClassifierConfig(drop_ambiguous=False))[0] == 0
+
+
+def _read_labels(path: Path) -> list[dict[str, str]]:
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))

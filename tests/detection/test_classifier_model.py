@@ -1,0 +1,162 @@
+"""DefectNet, model files, training and screening on small seeded synthetic images."""
+
+from __future__ import annotations
+
+import csv
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from detection.classifier.config import ClassifierConfig
+from detection.classifier.modelfile import load_model, save_model
+from detection.classifier.network import DefectNet
+from detection.classifier.screen import screen_drive
+from detection.classifier.train import metrics, train, train_steps
+from roadsurf.drive import Camera, Drive, Frame
+from roadsurf.errors import ModelFileError
+
+
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    """CI machines are small and shared: one thread avoids oversubscription stalls."""
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(old)
+
+
+def road_image(rng: np.random.Generator, defect: bool, size: int = 96) -> np.ndarray:
+    """Grey asphalt texture; a defect is a dark blob with a darker core, at a random place."""
+    base = rng.uniform(90, 160)
+    img = base + rng.normal(0, 10, (size, size))
+    img = cv2.GaussianBlur(img, (0, 0), 0.8)
+    if rng.random() < 0.5:  # a lane marking on some frames of both classes
+        x = int(rng.integers(0, size - 8))
+        img[:, x : x + 6] += 70
+    if defect:
+        cx, cy = rng.integers(size // 4, 3 * size // 4, 2)
+        r = rng.uniform(0.10, 0.22) * size
+        yy, xx = np.mgrid[:size, :size]
+        d = np.hypot(xx - cx, yy - cy) / r
+        img -= 60 * np.clip(1.0 - d, 0, 1) ** 0.5
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def write_dataset(root: Path, n_per_class: int = 24, size: int = 96, seed: int = 0) -> Path:
+    rng = np.random.default_rng(seed)
+    (root / "images").mkdir(parents=True)
+    with open(root / "labels.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["image", "label", "group", "augmentation"])
+        for i in range(2 * n_per_class):
+            lab = i % 2
+            name = f"images/f{i:03d}.png"
+            cv2.imwrite(str(root / name), road_image(rng, bool(lab), size))
+            w.writerow([name, lab, f"g{i}", ""])
+    return root
+
+
+def test_network_overfits_a_small_batch() -> None:
+    torch.manual_seed(0)
+    rng = np.random.default_rng(1)
+    x = torch.from_numpy(np.stack([road_image(rng, i % 2 == 1, 64) for i in range(16)]))
+    y = torch.tensor([i % 2 for i in range(16)])
+    net = DefectNet(64, dropout=0.0)
+    opt = torch.optim.Adam(net.parameters(), lr=1e-3)
+    gen = torch.Generator().manual_seed(0)
+    first = train_steps(net, x, y, opt, 1, 16, gen, dihedral=False)
+    for _ in range(80):
+        last = train_steps(net, x, y, opt, 1, 16, gen, dihedral=False)
+    net.eval()
+    pred = net.predict_proba(x.unsqueeze(1)).argmax(1)
+    assert last < 0.1 * first
+    assert (pred == y).all()
+
+
+def test_forward_rejects_wrong_shape() -> None:
+    from roadsurf.errors import RoadsurfError
+
+    with pytest.raises(RoadsurfError, match="expects"):
+        DefectNet(64)(torch.zeros(2, 1, 32, 32, dtype=torch.uint8))
+
+
+def test_save_load_round_trip_gives_identical_outputs(tmp_path: Path) -> None:
+    torch.manual_seed(3)
+    net = DefectNet(64, dropout=0.3).eval()
+    save_model(tmp_path / "m", net, {"architecture": {"dropout": 0.3, "width": 1}, "note": 1.5})
+    net2, meta = load_model(tmp_path / "m")
+    x = torch.randint(0, 256, (5, 1, 64, 64), dtype=torch.uint8)
+    assert torch.equal(net(x), net2(x))
+    assert meta["class_names"] == ["non-defect", "defect"]
+    assert meta["input_size_px"] == 64 and meta["torch_version"] == torch.__version__
+    # the bare .safetensors file is self-contained
+    net3, _ = load_model(tmp_path / "m" / "model.safetensors")
+    assert torch.equal(net(x), net3(x))
+
+
+def test_corrupt_missing_and_incompatible_model_files_give_clear_errors(tmp_path: Path) -> None:
+    with pytest.raises(ModelFileError, match="not found.*roadsurf train"):
+        load_model(tmp_path / "nothing")
+    net = DefectNet(64).eval()
+    path = save_model(tmp_path / "m", net, {})
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])  # truncated
+    with pytest.raises(ModelFileError, match="corrupt"):
+        load_model(path)
+    path.write_bytes(b"\x00garbage" * 10)
+    with pytest.raises(ModelFileError, match=str(path.name)):
+        load_model(path)
+    # a pickle is refused, never executed
+    torch.save(net.state_dict(), tmp_path / "p.safetensors")
+    with pytest.raises(ModelFileError):
+        load_model(tmp_path / "p.safetensors")
+    # weights of another architecture
+    save_model(tmp_path / "w", DefectNet(64, width=2), {"architecture": {"width": 1}})
+    with pytest.raises(ModelFileError, match="incompatible"):
+        load_model(tmp_path / "w")
+
+
+def test_train_few_steps_resume_and_screen(tmp_path: Path) -> None:
+    ds = write_dataset(tmp_path / "ds", n_per_class=20)
+    cfg = ClassifierConfig(
+        input_size_px=48, epochs=2, batch_size=16, learning_rate=1e-3, num_threads=1
+    )
+    t0 = time.perf_counter()
+    meta = train(ds, tmp_path / "model", cfg, progress=False)
+    assert time.perf_counter() - t0 < 60
+    assert (tmp_path / "model" / "model.safetensors").is_file()
+    assert (tmp_path / "model" / "checkpoint.pt").is_file()
+    assert len(meta["history"]) == 2
+    assert meta["training_data"]["n_val"] == 8  # 20% of the 40 frames
+    # resume: a longer run continues from the checkpoint instead of starting again
+    cfg3 = ClassifierConfig(
+        input_size_px=48, epochs=3, batch_size=16, learning_rate=1e-3, num_threads=1
+    )
+    meta3 = train(ds, tmp_path / "model", cfg3, progress=False)
+    assert [h["epoch"] for h in meta3["history"]] == [1, 2, 3]
+    assert meta3["history"][:2] == meta["history"]
+
+    # screening: batched p_defect per frame through the same preprocessing
+    rng = np.random.default_rng(9)
+    (tmp_path / "drive" / "frames").mkdir(parents=True)
+    frames = []
+    for i in range(5):
+        p = tmp_path / "drive" / "frames" / f"{i:04d}.png"
+        cv2.imwrite(str(p), cv2.cvtColor(road_image(rng, i % 2 == 1, 120), cv2.COLOR_GRAY2BGR))
+        frames.append(Frame(i, p.name, p, i * 0.1))
+    cam = Camera(120, 120, 100.0, 100.0, 60.0, 60.0, 1.0, 10.0)
+    drive = Drive(tmp_path / "drive", cam, frames, None, None)
+    probs = screen_drive(tmp_path / "model", drive, ClassifierConfig(screen_batch_size=2))
+    assert sorted(probs) == [f.filename for f in frames]
+    assert all(0.0 <= p <= 1.0 for p in probs.values())
+
+
+def test_metrics_counts() -> None:
+    m = metrics(np.array([1, 1, 0, 0, 0]), np.array([1, 0, 1, 0, 0]))
+    assert (m["tp"], m["fn"], m["fp"], m["tn"]) == (1, 1, 1, 2)
+    assert m["accuracy"] == pytest.approx(0.6)
+    assert m["precision"] == pytest.approx(0.5) and m["recall"] == pytest.approx(0.5)
