@@ -1,0 +1,164 @@
+"""Entry points of the viewer: record a run folder to .rrd, spawn the native viewer, or serve
+the web viewer on localhost. The CLI (`roadsurf view`, `roadsurf report`) calls these."""
+
+from __future__ import annotations
+
+import logging
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+from urllib.parse import quote
+
+import rerun as rr
+
+from roadsurf.errors import RoadsurfError
+from viewer.config import ViewerConfig
+from viewer.recording import APP_ID, blueprint, log_run
+from viewer.runfolder import RunData, load_run
+
+log = logging.getLogger(__name__)
+
+Mode = Literal["spawn", "save", "serve"]
+
+
+@dataclass
+class ViewResult:
+    """What ``view`` did: the recording file (save/serve), counts logged, and the web URL."""
+
+    mode: Mode
+    rrd: Path | None
+    counts: dict[str, int]
+    url: str | None = None
+    missing: list[str] = field(default_factory=list)
+    server: subprocess.Popen[bytes] | None = None
+
+
+def record(rec: rr.RecordingStream, data: RunData, cfg: ViewerConfig) -> dict[str, int]:
+    """Log a loaded run into an open recording stream (any sink)."""
+    counts = log_run(rec, data, cfg)
+    rec.flush()
+    return counts
+
+
+def save_rrd(
+    run_dir: str | Path,
+    out: str | Path | None = None,
+    *,
+    drive_dir: str | Path | None = None,
+    cfg: ViewerConfig | None = None,
+) -> ViewResult:
+    """Write the run's recording (with its default blueprint) to ``out`` (default RUN/run.rrd).
+
+    The file is written beside its final name and renamed, so a viewer never opens half a file."""
+    cfg = cfg or ViewerConfig()
+    data = load_run(run_dir, drive_dir, max_raster_side_px=cfg.max_mosaic_side_px)
+    out = Path(out) if out is not None else Path(run_dir) / "run.rrd"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.stem}.tmp.rrd")
+    rec = rr.RecordingStream(APP_ID, recording_id=_recording_id(data))
+    rec.save(tmp, default_blueprint=blueprint(data.defects))
+    counts = record(rec, data, cfg)
+    rec.disconnect()  # closes and finishes the file sink
+    tmp.replace(out)
+    log.info("wrote %s (%s)", out, ", ".join(f"{k} {v}" for k, v in counts.items()))
+    return ViewResult("save", out, counts, missing=data.missing)
+
+
+def _recording_id(data: RunData) -> str:
+    # stable per run folder, so re-opening a refreshed .rrd replaces the old one in the viewer
+    return f"roadsurf:{data.run_dir.resolve()}"
+
+
+def spawn_viewer(
+    run_dir: str | Path,
+    *,
+    drive_dir: str | Path | None = None,
+    cfg: ViewerConfig | None = None,
+) -> ViewResult:
+    """Start the native Rerun viewer (needs a display) and stream the run into it."""
+    cfg = cfg or ViewerConfig()
+    data = load_run(run_dir, drive_dir, max_raster_side_px=cfg.max_mosaic_side_px)
+    rec = rr.RecordingStream(APP_ID, recording_id=_recording_id(data))
+    try:
+        rec.spawn(default_blueprint=blueprint(data.defects))
+    except Exception as e:  # noqa: BLE001 - rerun raises plain exceptions for spawn failures
+        raise RoadsurfError(
+            f"could not start the native Rerun viewer ({e}). On a machine without a display use "
+            f"`roadsurf view {run_dir} --save RUN.rrd` or `--serve`."
+        ) from e
+    counts = record(rec, data, cfg)
+    return ViewResult("spawn", None, counts, missing=data.missing)
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def viewer_url(web_port: int, grpc_port: int) -> str:
+    """The web viewer URL that opens the gRPC proxy of ``serve``."""
+    proxy = f"rerun+http://127.0.0.1:{grpc_port}/proxy"
+    return f"http://127.0.0.1:{web_port}/?url={quote(proxy, safe='')}"
+
+
+def serve(
+    run_dir: str | Path,
+    *,
+    rrd: str | Path | None = None,
+    drive_dir: str | Path | None = None,
+    web_port: int = 9090,
+    grpc_port: int = 9876,
+    cfg: ViewerConfig | None = None,
+    wait_ready_s: float = 30.0,
+) -> ViewResult:
+    """Record the run to ``rrd`` (default RUN/run.rrd) and serve it with the Rerun web viewer
+    bound to 127.0.0.1 only. Returns with the server running (``result.server``); the caller
+    stops it (``terminate()``)."""
+    res = save_rrd(run_dir, rrd, drive_dir=drive_dir, cfg=cfg)
+    web_port = web_port or free_port()
+    grpc_port = grpc_port or free_port()
+    cmd = [
+        sys.executable,
+        "-m",
+        "rerun",
+        "--serve-web",
+        "--bind",
+        "127.0.0.1",
+        "--web-viewer-port",
+        str(web_port),
+        "--port",
+        str(grpc_port),
+        str(res.rrd),
+    ]
+    errlog = tempfile.TemporaryFile()  # a pipe nobody reads would block the server
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=errlog)
+    deadline = time.monotonic() + wait_ready_s
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            errlog.seek(0)
+            err = errlog.read().decode(errors="replace")
+            raise RoadsurfError(
+                f"the Rerun web viewer server exited (code {proc.returncode}); ports "
+                f"{web_port}/{grpc_port} may be taken (use --web-port/--grpc-port). {err[-500:]}"
+            )
+        if _port_open(web_port) and _port_open(grpc_port):
+            break
+        time.sleep(0.2)
+    else:
+        proc.terminate()
+        raise RoadsurfError(f"the Rerun web viewer did not start within {wait_ready_s:.0f} s")
+    url = viewer_url(web_port, grpc_port)
+    log.info("web viewer at %s", url)
+    return ViewResult("serve", res.rrd, res.counts, url=url, missing=res.missing, server=proc)
+
+
+def _port_open(port: int) -> bool:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.settimeout(0.2)
+        return s.connect_ex(("127.0.0.1", port)) == 0
