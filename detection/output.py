@@ -45,23 +45,26 @@ DEFECT_COLUMNS = (
 FRAME_COLUMNS = ("filename", "defect", "p_defect", "source")
 
 
-def _props(d: Defect, lonlat: np.ndarray | None) -> dict[str, Any]:
+def _props(d: Defect, lonlat: np.ndarray | None, exact: bool = False) -> dict[str, Any]:
+    def r(v: float, n: int) -> float:
+        return float(v) if exact else round(float(v), n)
+
     return {
         "id": d.id,
         "type": d.type,
         "severity": d.severity,
-        "max_depth_m": round(d.max_depth_m, 5),
-        "mean_depth_m": round(d.mean_depth_m, 5),
-        "area_m2": round(d.area_m2, 6),
-        "volume_m3": round(d.volume_m3, 8),
-        "length_m": round(d.length_m, 4),
-        "width_m": round(d.width_m, 4),
-        "confidence": round(d.confidence, 3),
+        "max_depth_m": r(d.max_depth_m, 5),
+        "mean_depth_m": r(d.mean_depth_m, 5),
+        "area_m2": r(d.area_m2, 6),
+        "volume_m3": r(d.volume_m3, 8),
+        "length_m": r(d.length_m, 4),
+        "width_m": r(d.width_m, 4),
+        "confidence": r(d.confidence, 3),
         "frames": list(d.frames),
         "centroid_lon": None if lonlat is None else float(lonlat[0]),
         "centroid_lat": None if lonlat is None else float(lonlat[1]),
-        "centroid_e_m": round(float(d.centroid_xy_m[0]), 4),
-        "centroid_n_m": round(float(d.centroid_xy_m[1]), 4),
+        "centroid_e_m": r(d.centroid_xy_m[0], 4),
+        "centroid_n_m": r(d.centroid_xy_m[1], 4),
     }
 
 
@@ -110,7 +113,7 @@ def write_outputs(
             **meta,
             "config": config,
             "defects": [
-                {**_props(d, None), "outline_xy_m": np.asarray(d.outline_xy_m).tolist()}
+                {**_props(d, None, exact=True), "outline_xy_m": np.asarray(d.outline_xy_m).tolist()}
                 for d in result.defects
             ],
             "frames": [[f.filename, f.defect, f.p_defect, f.source] for f in result.frames],

@@ -46,7 +46,8 @@ def analyse_pair(
         return None
     refined = fit.candidate.copy()
     if cfg.refine.enabled and gray is not None and refined.any():
-        dark = binarise(gray, cfg.refine)
+        road = ~fit.candidate & (np.abs(fit.dist_m) < fit.threshold_m)
+        dark = binarise(gray, cfg.refine, road_px=np.asarray(pair.px_a)[road])
         refined = correct_defects(
             fit.dist_m, pair.px_a, fit.candidate, dark, fit.threshold_m, cfg.refine
         )

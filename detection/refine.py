@@ -47,13 +47,56 @@ def local_road_brightness(gray: np.ndarray, window_frac: float) -> tuple[np.ndar
     return med_f, mad_f
 
 
-def binarise(gray: np.ndarray, cfg: RefineConfig) -> np.ndarray:
-    """Dark mask (H, W) bool: fixed T_b or adaptive to the local road, then opened with W x W."""
+def road_brightness_from_points(
+    gray: np.ndarray, road_px: np.ndarray, k: int = 12
+) -> tuple[np.ndarray, np.ndarray]:
+    """Local road brightness from the pixels of 3D road points (X^rn).
+
+    For a coarse grid of image positions, the median (and MAD) grey level of the ``k`` nearest
+    road points, resized to full resolution. Road points are flat road by 3D evidence, so a
+    pothole never raises its own reference level, and a shadow on flat road lowers it.
+    Returns two (H, W) float32 arrays.
+    """
+    from scipy.spatial import cKDTree
+
+    h, w = gray.shape
+    blur = cv2.blur(gray, (5, 5))
+    u = np.clip(np.round(road_px[:, 0]).astype(int), 0, w - 1)
+    v = np.clip(np.round(road_px[:, 1]).astype(int), 0, h - 1)
+    vals = blur[v, u].astype(np.float32)
+    step = max(1, w // 96)
+    gv, gu = np.mgrid[0:h:step, 0:w:step]
+    kk = min(k, len(vals))
+    _, idx = cKDTree(np.column_stack([u, v])).query(np.column_stack([gu.ravel(), gv.ravel()]), k=kk)
+    idx = idx.reshape(len(idx), -1)
+    near = vals[idx]
+    med = np.median(near, axis=1)
+    mad = np.median(np.abs(near - med[:, None]), axis=1)
+    shape = gv.shape
+    med_f = cv2.resize(
+        med.reshape(shape).astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR
+    )
+    mad_f = cv2.resize(
+        mad.reshape(shape).astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR
+    )
+    return med_f, mad_f
+
+
+def binarise(gray: np.ndarray, cfg: RefineConfig, road_px: np.ndarray | None = None) -> np.ndarray:
+    """Dark mask (H, W) bool at T_b, then opened (erode, dilate) with a W x W window.
+
+    ``fixed``: dark = grey < T_b. ``adaptive``: dark = grey below the local road brightness by
+    more than max(k · 1.4826 · MAD, min_drop · level); the level comes from the 3D road points'
+    pixels when ``road_px`` (N, 2) is given (>= 20 points), else from a large median window.
+    """
     g = to_gray(gray)
     if cfg.binarise == "fixed":
         dark = g < cfg.fixed_threshold
     else:
-        med, mad = local_road_brightness(g, cfg.adaptive_window_frac)
+        if road_px is not None and len(road_px) >= 20:
+            med, mad = road_brightness_from_points(g, np.asarray(road_px, float))
+        else:
+            med, mad = local_road_brightness(g, cfg.adaptive_window_frac)
         drop = np.maximum(cfg.adaptive_dark_k * 1.4826 * mad, cfg.adaptive_min_drop * med)
         dark = g.astype(np.float32) < med - drop
     W = max(1, int(cfg.window_px))

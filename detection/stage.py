@@ -141,14 +141,17 @@ def _evidence_points(
     traj: Trajectory,
     pose_of: dict[str, int],
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Refined defect points of all pairs in ENU (M, 3) and the pair id of each (M,)."""
+    """Defect points of all pairs in ENU (M, 3) and the pair id of each (M,): the refined
+    points (2D + 3D) together with the plane fit's candidates, so that the 3D evidence of a
+    defect that is not darker in the image still counts."""
     xyz, ids = [], []
     for k, pd in per_pair.items():
         i = pose_of.get(pd.frame_a)
-        if i is None or not pd.refined.any():
+        sel = pd.refined | pd.candidate
+        if i is None or not sel.any():
             continue
         T = traj.world_from_cam[i]
-        P = np.asarray(pairs[k].points_cam_a_m, float)[pd.refined]
+        P = np.asarray(pairs[k].points_cam_a_m, float)[sel]
         xyz.append(P @ T[:3, :3].T + T[:3, 3])
         ids.append(np.full(len(P), k))
     if not xyz:

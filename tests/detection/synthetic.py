@@ -32,8 +32,21 @@ class Pothole:
 
 
 @dataclass
+class Trough:
+    """A straight crack or rut from (x0, y0) to (x1, y1) with a parabolic cross-section."""
+
+    x0_m: float
+    y0_m: float
+    x1_m: float
+    y1_m: float
+    width_m: float
+    depth_m: float
+
+
+@dataclass
 class Scene:
     potholes: list[Pothole] = field(default_factory=list)
+    troughs: list[Trough] = field(default_factory=list)
     lane_x_m: float | None = None  # bright lane marking: |x - lane_x| < 0.05 m, no depth
     shadow_x_m: float | None = None  # dark shadow for x > shadow_x, no depth
     oil_xy_m: tuple[float, float] | None = None  # dark oil stain disc r = 0.1 m, no depth
@@ -45,6 +58,15 @@ class Scene:
         for p in self.potholes:
             r2 = ((x - p.x_m) ** 2 + (y - p.y_m) ** 2) / p.radius_m**2
             d = np.maximum(d, p.depth_m * np.clip(1.0 - r2, 0.0, None))
+        for t in self.troughs:
+            a = np.array([t.x0_m, t.y0_m])
+            b = np.array([t.x1_m, t.y1_m])
+            L = float(np.linalg.norm(b - a))
+            ux, uy = (b - a) / L
+            s_ = (x - a[0]) * ux + (y - a[1]) * uy
+            n_ = -(x - a[0]) * uy + (y - a[1]) * ux
+            prof = t.depth_m * np.clip(1.0 - (2.0 * n_ / t.width_m) ** 2, 0.0, None)
+            d = np.maximum(d, np.where((s_ >= 0) & (s_ <= L), prof, 0.0))
         return d
 
     def intensity(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -164,3 +186,34 @@ def build(
         reference=REF if georeferenced else None,
     )
     return drive, pairs, traj
+
+
+def write_surface(scene: Scene, run_dir: Path, traj: Trajectory, gsd_m: float = 0.005, seed=0):
+    """RUN/surface.tif as mapping writes it: residual (m, negative below) on a UTM grid over the
+    driven corridor, with measurement noise; returns the GridSpec."""
+    from roadsurf.formats import GridSpec, write_geotiff
+    from roadsurf.geometry import ExportFrame, enu_from_lla, lla_from_utm
+
+    ef = ExportFrame.for_reference(REF)
+    pos = traj.positions_enu_m
+    corners = np.array(
+        [
+            [pos[:, 0].min() - 0.7, pos[:, 1].min() - 0.6, 0],
+            [pos[:, 0].max() + 0.7, pos[:, 1].max() + 0.6, 0],
+        ]
+    )
+    en = ef.utm_from_enu(corners)[:, :2]
+    x0, y0 = np.floor(en[:, 0].min()), np.ceil(en[:, 1].max())
+    w = int(np.ceil((en[:, 0].max() - x0) / gsd_m))
+    h = int(np.ceil((y0 - en[:, 1].min()) / gsd_m))
+    grid = GridSpec(ef.crs, float(x0), float(y0), gsd_m, w, h)
+    rr, cc = np.mgrid[0:h, 0:w]
+    xy = grid.xy_from_rowcol(rr.ravel(), cc.ravel())
+    lla = lla_from_utm(xy[:, 0], xy[:, 1], ef.epsg)
+    enu = enu_from_lla(lla[:, 0], lla[:, 1], REF.alt_m, REF)
+    rng = np.random.default_rng(seed)
+    res = -scene.depth(enu[:, 0], enu[:, 1]) + rng.normal(0, scene.noise_m, len(enu))
+    res = res.reshape(h, w).astype(np.float32)
+    res[np.abs(enu[:, 0].reshape(h, w)) > 0.55] = np.nan  # outside the imaged corridor
+    write_geotiff(run_dir / "surface.tif", res, grid, nodata=float("nan"))
+    return grid

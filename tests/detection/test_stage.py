@@ -1,0 +1,194 @@
+"""detection.stage.run end to end on seeded synthetic scenes (tiny images, real files)."""
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+import shapely.geometry
+
+from detection import stage
+from detection.config import DetectionConfig, RefineConfig
+from roadsurf.formats import read_csv, read_geojson
+from tests.detection.synthetic import REF, Pothole, Scene, Trough, build, write_surface
+
+CFG = DetectionConfig()
+
+
+def _run(tmp_path, scene, cfg=CFG, **kw):
+    drive, pairs, traj = build(scene, tmp_path / "drive", **kw)
+    run_dir = tmp_path / "run"
+    return stage.run(cfg, drive, pairs, traj, run_dir), run_dir, traj
+
+
+def test_pothole_of_known_depth_is_measured(tmp_path):
+    scene = Scene(potholes=[Pothole(0.1, 1.0, 0.15, 0.030)])
+    res, run_dir, _ = _run(tmp_path, scene)
+    assert len(res.defects) == 1
+    d = res.defects[0]
+    assert d.type == "pothole"
+    assert d.max_depth_m == pytest.approx(0.030, abs=0.003)
+    true_area = np.pi * 0.15**2
+    assert d.area_m2 == pytest.approx(true_area, rel=0.2)
+    # Paraboloid: mean depth D/2, volume π R² D / 2.
+    assert d.mean_depth_m == pytest.approx(0.015, abs=0.003)
+    assert d.volume_m3 == pytest.approx(np.pi * 0.15**2 * 0.03 / 2, rel=0.2)
+    assert d.length_m == pytest.approx(0.30, rel=0.15) and d.width_m == pytest.approx(
+        0.30, rel=0.15
+    )
+    assert d.severity == "medium"  # ASTM D6433: 25-50 mm deep, 200-450 mm across
+    assert set(d.frames) == {"000002.png", "000003.png"}
+    assert 0.5 < d.confidence <= 1.0
+    frames = {r["filename"]: r for r in read_csv(run_dir / "frames.csv")}
+    assert len(frames) == 6
+    assert [frames[f"{k:06d}.png"]["defect"] for k in range(6)] == ["0", "0", "1", "1", "0", "0"]
+    assert all(r["source"] == "3d" for r in frames.values())
+
+
+def test_lane_marking_shadow_and_oil_stain_are_not_reported(tmp_path):
+    scene = Scene(lane_x_m=-0.3, shadow_x_m=0.25, oil_xy_m=(0.0, 1.0))
+    for mode in ("adaptive", "fixed"):
+        cfg = dataclasses.replace(CFG, refine=RefineConfig(binarise=mode))
+        res, run_dir, _ = _run(tmp_path / mode, scene, cfg=cfg)
+        assert res.defects == []
+        assert all(f.defect == 0 for f in res.frames)
+        assert read_geojson(run_dir / "defects.geojson")["features"] == []
+
+
+def test_pothole_beside_distractors_is_the_only_defect(tmp_path):
+    scene = Scene(
+        potholes=[Pothole(-0.1, 1.6, 0.1, 0.025)],
+        lane_x_m=0.3,
+        shadow_x_m=0.2,
+        oil_xy_m=(0.0, 0.6),
+    )
+    res, _, _ = _run(tmp_path, scene)
+    assert len(res.defects) == 1
+    assert res.defects[0].max_depth_m == pytest.approx(0.025, abs=0.003)
+
+
+def test_pothole_split_across_two_pairs_is_one_defect(tmp_path):
+    scene = Scene(potholes=[Pothole(0.0, 1.0, 0.14, 0.03)])
+
+    def keep(k):
+        if k == 2:
+            return lambda x, y: y < 1.0  # pair 2 saw the southern half only
+        if k == 3:
+            return lambda x, y: y >= 1.0  # pair 3 the northern half
+        return None
+
+    res, _, _ = _run(tmp_path, scene, keep_per_pair=keep)
+    assert len(res.defects) == 1
+    d = res.defects[0]
+    assert d.area_m2 == pytest.approx(np.pi * 0.14**2, rel=0.25)
+    assert d.length_m == pytest.approx(0.28, rel=0.2)
+
+
+def test_two_potholes_stay_two(tmp_path):
+    scene = Scene(potholes=[Pothole(-0.25, 1.0, 0.1, 0.03), Pothole(0.25, 1.0, 0.1, 0.02)])
+    res, _, _ = _run(tmp_path, scene)
+    assert len(res.defects) == 2
+    depths = sorted(d.max_depth_m for d in res.defects)
+    assert depths == pytest.approx([0.02, 0.03], abs=0.003)
+
+
+def test_geojson_is_rfc7946_and_reads_back(tmp_path):
+    scene = Scene(potholes=[Pothole(0.1, 1.0, 0.15, 0.03), Pothole(-0.2, 1.9, 0.08, 0.02)])
+    res, run_dir, _ = _run(tmp_path, scene)
+    raw = json.loads((run_dir / "defects.geojson").read_text())
+    fc = read_geojson(run_dir / "defects.geojson")  # validates lon/lat and closed rings
+    assert fc == raw and len(fc["features"]) == 2
+    keys = {"id", "type", "severity", "max_depth_m", "mean_depth_m", "area_m2", "volume_m3"}
+    keys |= {"length_m", "width_m", "confidence", "frames"}
+    for f in fc["features"]:
+        assert keys <= set(f["properties"])
+        ring = f["geometry"]["coordinates"][0]
+        assert ring[0] == ring[-1]
+        poly = shapely.geometry.shape(f["geometry"])
+        assert poly.is_valid and poly.geom_type == "Polygon"
+        lon, lat = poly.centroid.x, poly.centroid.y
+        assert abs(lon - REF.lon_deg) < 1e-4 and abs(lat - REF.lat_deg) < 1e-4
+        assert poly.contains(
+            shapely.geometry.Point(f["properties"]["centroid_lon"], f["properties"]["centroid_lat"])
+        )
+    rows = read_csv(run_dir / "defects.csv")
+    assert [int(r["id"]) for r in rows] == [1, 2]
+    assert float(rows[0]["centroid_e_m"]) > 100000  # UTM easting
+    assert rows[0]["frames"].split(";") == res.defects[0].frames
+
+
+def test_no_gps_writes_local_coordinates(tmp_path, caplog):
+    scene = Scene(potholes=[Pothole(0.1, 1.0, 0.15, 0.03)])
+    res, run_dir, _ = _run(tmp_path, scene, georeferenced=False)
+    assert not res.georeferenced and len(res.defects) == 1
+    fc = json.loads((run_dir / "defects.geojson").read_text())
+    assert "local ENU" in fc["properties"]["coordinates"]
+    row = read_csv(run_dir / "defects.csv")[0]
+    assert row["centroid_lon"] == "" and row["centroid_lat"] == ""
+    assert float(row["centroid_e_m"]) == pytest.approx(0.1, abs=0.02)
+    assert float(row["centroid_n_m"]) == pytest.approx(1.0, abs=0.02)
+
+
+def test_surface_raster_path_measures_depth_area_and_types(tmp_path):
+    scene = Scene(
+        potholes=[Pothole(0.15, 0.9, 0.15, 0.045)],
+        troughs=[
+            Trough(-0.3, 0.2, -0.3, 1.9, 0.25, 0.018),  # rut: long, wide, shallow
+            Trough(0.2, 1.5, 0.35, 2.1, 0.03, 0.012),  # crack: narrow
+        ],
+    )
+    drive, pairs, traj = build(scene, tmp_path / "drive")
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    write_surface(scene, run_dir, traj)
+    res = stage.run(CFG, drive, pairs, traj, run_dir)
+    assert res.surface_source == "surface.tif"
+    by_type = {d.type: d for d in res.defects}
+    assert sorted(by_type) == ["crack", "pothole", "rut"], res.table()
+    p = by_type["pothole"]
+    assert p.max_depth_m == pytest.approx(0.045, abs=0.002)
+    assert p.area_m2 == pytest.approx(np.pi * 0.15**2, rel=0.12)
+    assert p.severity == "medium"  # 25-50 mm, 200-450 mm
+    r = by_type["rut"]
+    assert r.length_m == pytest.approx(1.7, rel=0.1)
+    assert r.max_depth_m == pytest.approx(0.018, abs=0.002)
+    assert r.severity == "medium"  # ASTM D6433 rutting 13-25 mm
+
+
+def test_resume_and_overwrite(tmp_path):
+    scene = Scene(potholes=[Pothole(0.1, 1.0, 0.15, 0.03)])
+    drive, pairs, traj = build(scene, tmp_path / "drive")
+    run_dir = tmp_path / "run"
+    first = stage.run(CFG, drive, pairs, traj, run_dir)
+    stamp = (run_dir / "detection.json").stat().st_mtime_ns
+    again = stage.run(CFG, drive, pairs, traj, run_dir)
+    assert (run_dir / "detection.json").stat().st_mtime_ns == stamp  # read back, not rewritten
+    assert [d.area_m2 for d in again.defects] == pytest.approx(
+        [d.area_m2 for d in first.defects], rel=1e-4
+    )
+    assert again.table() == first.table()
+    stage.run(dataclasses.replace(CFG, overwrite=True), drive, pairs, traj, run_dir)
+    assert (run_dir / "detection.json").stat().st_mtime_ns != stamp
+
+
+def test_cnn_probabilities_are_fused(tmp_path):
+    scene = Scene(potholes=[Pothole(0.1, 1.0, 0.15, 0.03)])
+    drive, pairs, traj = build(scene, tmp_path / "drive")
+    probs = {"000000.png": 0.01, "000001.png": 0.6, "000002.png": 0.99}
+    res = stage.run(CFG, drive, pairs, traj, tmp_path / "run", frame_probs=probs)
+    by = {f.filename: f for f in res.frames}
+    assert by["000000.png"].source == "cnn" and by["000000.png"].defect == 0
+    assert by["000001.png"].source == "3d" and by["000001.png"].defect == 0
+    assert by["000002.png"].source == "fused" and by["000002.png"].defect == 1
+    rows = read_csv(tmp_path / "run" / "frames.csv")
+    assert {r["source"] for r in rows} == {"cnn", "3d", "fused"}
+
+
+def test_failed_pairs_are_skipped(tmp_path):
+    scene = Scene(potholes=[Pothole(0.1, 1.0, 0.15, 0.03)])
+    drive, pairs, traj = build(scene, tmp_path / "drive")
+    pairs[0] = dataclasses.replace(
+        pairs[0], status="too_few_matches", points_cam_a_m=np.zeros((0, 3))
+    )
+    res = stage.run(CFG, drive, pairs, traj, tmp_path / "run")
+    assert len(res.defects) == 1
