@@ -94,6 +94,32 @@ def run(
         typer.echo(f"  {name}")
 
 
+@app.command("sfm-baseline")
+def sfm_baseline(
+    drive: Annotated[Path, typer.Argument(help="Drive folder (see docs/formats.md).")],
+    out: Out,
+    config: Annotated[
+        Path | None, typer.Option(help="YAML config with an `sfm_baseline:` section.")
+    ] = None,
+    overwrite: Annotated[
+        bool, typer.Option("--overwrite", help="Recompute COLMAP steps (default: resume).")
+    ] = False,
+) -> None:
+    """Baseline: pycolmap incremental SfM, scaled by camera height, aligned to GPS; writes the
+    same cloud.ply, surface.tif, trajectory.geojson and report.json as `roadsurf run`."""
+    from reconstruction.sfm_baseline import run_from_paths
+
+    res = run_from_paths(drive, out, config_path=config, overwrite=overwrite)
+    typer.echo(
+        f"{res.n_registered}/{res.n_images} images registered; scale α = {res.alpha:.5g} m/unit; "
+        f"CRS {res.crs or 'none (local frame)'}; outputs in {out}/"
+    )
+    for name, why in list(res.not_registered.items())[:20]:
+        typer.echo(f"  not registered: {name}: {why}")
+    if len(res.not_registered) > 20:
+        typer.echo(f"  ... and {len(res.not_registered) - 20} more (see report.json)")
+
+
 # --- CNN classifier (detection/classifier) -------------------------------------------------
 @app.command()
 def label(

@@ -1,0 +1,225 @@
+"""pycolmap incremental-SfM baseline on a small simulated drive, read back with real readers."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from reconstruction.sfm_baseline import (
+    SfmBaselineConfig,
+    _colmap_camera,
+    fit_plane_ransac,
+    local_surface_residuals,
+    rasterise_mean,
+    robust_fit_2d,
+    run,
+)
+from roadsurf.drive import Camera, load_drive
+from roadsurf.formats import read_csv, read_geojson, read_geotiff, read_ply
+
+N_FRAMES = 12
+BLANK = "blank"  # the frame we replace with a textureless image
+
+
+@pytest.fixture(scope="module")
+def sim_drive(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    scenarios = pytest.importorskip("simulation.scenarios")
+    root = tmp_path_factory.mktemp("sfm") / "drive"
+    scenarios.simulate(
+        "flat",
+        root,
+        n_frames=N_FRAMES,
+        progress=False,
+        width=320,
+        height=240,
+        fx=300.0,
+        speed_mps=3.0,
+    )
+    # The last frame becomes a uniform grey image: valid for the loader, but SIFT finds nothing,
+    # so COLMAP cannot register it and the report must say why.
+    last = sorted((root / "frames").iterdir())[-1]
+    cv2.imwrite(str(last), np.full((240, 320), 128, np.uint8))
+    return root
+
+
+@pytest.fixture(scope="module")
+def sfm_out(sim_drive: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("sfm_out")
+    run(SfmBaselineConfig(num_threads=2), sim_drive, out)
+    return out
+
+
+def test_registers_and_explains_the_rest(sim_drive: Path, sfm_out: Path) -> None:
+    rep = json.loads((sfm_out / "report.json").read_text())
+    names = [f.filename for f in load_drive(sim_drive).frames]
+    assert rep["n_images"] == N_FRAMES
+    assert 0 < rep["registered"] <= N_FRAMES - 1
+    blank = names[-1]
+    assert blank in rep["not_registered_reason"]
+    assert "SIFT features" in rep["not_registered_reason"][blank]
+    # every valid frame is either registered or explained
+    assert rep["registered"] + len(rep["not_registered_reason"]) == N_FRAMES
+    assert (sfm_out / "colmap" / "database.db").is_file()
+    assert any((sfm_out / "colmap" / "sparse").iterdir())
+    # the metric scale came from the camera height: cameras sit ~h above the fitted planes
+    assert rep["scale"]["alpha_m_per_unit"] > 0
+    assert rep["scale"]["d_c_rel_spread"] < 0.1
+
+
+def test_outputs_read_back_in_utm(sim_drive: Path, sfm_out: Path) -> None:
+    rep = json.loads((sfm_out / "report.json").read_text())
+    truth = json.loads((sim_drive / "truth" / "scenario.json").read_text())
+    assert rep["crs"] == truth["crs"] and rep["crs"].startswith("EPSG:326")
+
+    ply = read_ply(sfm_out / "cloud.ply")  # plyfile
+    assert ply["xyz"].dtype == np.float64 and len(ply["xyz"]) > 100
+    assert ply["rgb"].dtype == np.uint8
+    assert ply["residual_m"].dtype == np.float32
+    # a flat road: residuals are a few mm, not decimetres
+    assert float(np.percentile(np.abs(ply["residual_m"]), 90)) < 0.02
+
+    surf, grid, nodata = read_geotiff(sfm_out / "surface.tif")  # rasterio
+    assert grid.crs == rep["crs"] and surf.dtype == np.float32
+    assert nodata is not None and math.isnan(nodata)
+    assert np.isfinite(surf).sum() > 50 and np.isnan(surf).any()
+    # the raster sits on the truth raster's ground (same UTM area)
+    _, tgrid, _ = read_geotiff(sim_drive / "truth" / "residual.tif")
+    assert abs(grid.x0_m - tgrid.x0_m) < 5 and abs(grid.y0_m - tgrid.y0_m) < 5
+    # points lie inside the surface grid
+    rc = grid.rowcol_from_xy(ply["xyz"][:, :2])
+    assert (rc >= -1).all() and (rc[:, 0] <= grid.height).all() and (rc[:, 1] <= grid.width).all()
+
+
+def test_trajectory_close_to_gps_and_truth(sim_drive: Path, sfm_out: Path) -> None:
+    from roadsurf.geometry import utm_from_lla
+
+    rep = json.loads((sfm_out / "report.json").read_text())
+    epsg = int(rep["crs"].split(":")[1])
+    fc = read_geojson(sfm_out / "trajectory.geojson")
+    kinds = [f["geometry"]["type"] for f in fc["features"]]
+    assert kinds[0] == "LineString" and kinds.count("Point") == rep["registered"]
+    pts = [f for f in fc["features"] if f["geometry"]["type"] == "Point"]
+    for f in pts:
+        assert {"filename", "timestamp_s", "heading_deg", "source"} <= set(f["properties"])
+        assert f["properties"]["source"] == "visual"
+    truth = {r["filename"]: r for r in read_csv(sim_drive / "truth" / "poses.csv")}
+    lonlat = np.array([f["geometry"]["coordinates"] for f in pts])
+    est = utm_from_lla(lonlat[:, 1], lonlat[:, 0], epsg)
+    ref = np.array(
+        [
+            [float(truth[f["properties"]["filename"]][k]) for k in ("easting_m", "northing_m")]
+            for f in pts
+        ]
+    )
+    err = np.linalg.norm(est - ref, axis=1)
+    assert err.max() < 0.5, err  # RTK-grade simulated GPS: centimetres expected
+    dh = [
+        (f["properties"]["heading_deg"] - float(truth[f["properties"]["filename"]]["heading_deg"]))
+        for f in pts
+    ]
+    assert max(abs((d + 180) % 360 - 180) for d in dh) < 5.0
+    assert rep["gps_alignment"]["rms_m"] < 0.5
+    # the GPS-implied scale agrees with the camera-height scale
+    assert abs(rep["gps_alignment"]["gps_scale_over_height_scale"] - 1) < 0.1
+
+
+def test_resume_and_no_gps_local_frame(sim_drive: Path, sfm_out: Path, tmp_path: Path) -> None:
+    # A drive without GPS, resuming from the finished COLMAP folder (same images and settings).
+    d2 = tmp_path / "nogps"
+    shutil.copytree(sim_drive, d2, ignore=shutil.ignore_patterns("gps.csv", "truth"))
+    out2 = tmp_path / "out"
+    out2.mkdir()
+    shutil.copytree(sfm_out / "colmap", out2 / "colmap")
+    res = run(SfmBaselineConfig(num_threads=2), d2, out2)
+    rep = res.report
+    assert "features_s" not in rep["timings_s"] and "mapping_s" not in rep["timings_s"]
+    assert res.crs is None and rep["crs"] is None
+    assert not (out2 / "trajectory.geojson").exists()
+    ply = read_ply(out2 / "cloud.ply")
+    # local metric frame: coordinates within a few metres of the first camera
+    assert np.abs(ply["xyz"]).max() < 20
+    surf, grid, _ = read_geotiff(out2 / "surface.tif")
+    assert grid.crs in ("None", "") and np.isfinite(surf).any()
+    assert rep["registered"] == json.loads((sfm_out / "report.json").read_text())["registered"]
+
+
+def test_cli_command(sim_drive: Path, sfm_out: Path, tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from roadsurf.cli import app
+
+    out = tmp_path / "cli"
+    shutil.copytree(sfm_out / "colmap", out / "colmap")  # resume: the CLI test stays fast
+    r = CliRunner().invoke(app, ["sfm-baseline", str(sim_drive), "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    assert "images registered" in r.output and "not registered:" in r.output
+    assert (out / "report.json").is_file() and (out / "cloud.ply").is_file()
+
+
+# --------------------------------------------------------------------------- unit helpers
+
+
+def test_colmap_camera_principal_point_convention() -> None:
+    cam = Camera(320, 240, 300.0, 301.0, 159.5, 119.5, 1.1, 15.0)
+    model, params = _colmap_camera(cam)
+    assert model == "PINHOLE" and params == "300.0,301.0,160.0,120.0"
+    cam_d = Camera(320, 240, 300.0, 300.0, 159.5, 119.5, 1.1, 15.0, (-0.1, 0.01, 0.0, 0.0, 0.0))
+    assert _colmap_camera(cam_d)[0] == "OPENCV"
+    cam_k3 = Camera(320, 240, 300.0, 300.0, 159.5, 119.5, 1.1, 15.0, (-0.1, 0.0, 0.0, 0.0, 0.01))
+    assert _colmap_camera(cam_k3)[0] == "FULL_OPENCV"
+
+
+def test_plane_ransac_ignores_pothole_and_outliers() -> None:
+    rng = np.random.default_rng(1)
+    xy = rng.uniform(-1, 1, (600, 2))
+    z = 0.02 * xy[:, 0] - 0.01 * xy[:, 1] + 3.0 + rng.normal(0, 0.001, 600)
+    z[:60] -= 0.05  # a pothole
+    z[60:80] += rng.uniform(0.2, 1.0, 20)  # gross outliers
+    pts = np.column_stack([xy, z])
+    n, d, inl = fit_plane_ransac(pts, 0.01, 200, rng)
+    n_true = np.array([0.02, -0.01, -1.0])
+    n_true /= np.linalg.norm(n_true)
+    assert abs(abs(n @ n_true) - 1) < 1e-4
+    assert not inl[:80].any() and inl[80:].mean() > 0.98
+    # distance of (0, 0, 0) to the plane z = ... + 3
+    assert abs(abs(d) - 3.0 / math.sqrt(1 + 0.02**2 + 0.01**2)) < 0.005
+
+
+def test_robust_fit_2d_recovers_rotation_despite_outliers() -> None:
+    rng = np.random.default_rng(2)
+    src = np.column_stack([np.linspace(0, 20, 40), 0.3 * np.sin(np.linspace(0, 3, 40))])
+    a = math.radians(37.0)
+    R = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+    dst = src @ R.T + [100.0, -50.0] + rng.normal(0, 0.02, src.shape)
+    dst[5] += [8.0, -3.0]  # a GPS jump
+    R2, t2, s2, inl = robust_fit_2d(src, dst, False, 3.0)
+    assert not inl[5] and inl.sum() >= 35
+    assert abs(math.degrees(math.atan2(R2[1, 0], R2[0, 0])) - 37.0) < 0.2
+    assert np.allclose(t2, [100.0, -50.0], atol=0.05) and s2 == 1.0
+    _, _, s3, _ = robust_fit_2d(src * 0.5, dst, True, 3.0)
+    assert abs(s3 - 2.0) < 0.01
+
+
+def test_local_residuals_and_raster() -> None:
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(0, 4, (8000, 2))
+    z = 0.03 * xy[:, 0] + 0.2 * np.sin(xy[:, 1] / 3) + rng.normal(0, 0.0005, len(xy))
+    hole = np.linalg.norm(xy - [2.0, 2.0], axis=1) < 0.25
+    z[hole] -= 0.04
+    res, ok = local_surface_residuals(np.column_stack([xy, z]), 1.0, 0.01)
+    assert ok.mean() > 0.99
+    assert abs(np.median(res[hole]) + 0.04) < 0.006
+    assert np.percentile(np.abs(res[~hole & ok]), 90) < 0.004
+    img, grid = rasterise_mean(xy, res, 0.1, 10_000_000, "EPSG:32617")
+    assert img.shape == (grid.height, grid.width) and img.dtype == np.float32
+    rc = grid.rowcol_from_xy(np.array([[2.0, 2.0]])).round().astype(int)[0]
+    assert img[rc[0], rc[1]] < -0.03
+    # a too-large raster is coarsened, never allocated
+    _, g2 = rasterise_mean(np.array([[0.0, 0.0], [1000.0, 1000.0]]), np.zeros(2), 0.01, 10**6, None)
+    assert g2.width * g2.height <= 10**6
