@@ -217,3 +217,69 @@ def write_surface(scene: Scene, run_dir: Path, traj: Trajectory, gsd_m: float = 
     res[np.abs(enu[:, 0].reshape(h, w)) > 0.55] = np.nan  # outside the imaged corridor
     write_geotiff(run_dir / "surface.tif", res, grid, nodata=float("nan"))
     return grid
+
+
+def write_truth(scene: Scene, truth_dir: Path, traj: Trajectory, camera: Camera = CAMERA) -> None:
+    """A simulator-style truth folder for the scene: scenario.json, poses.csv, frame_labels.csv,
+    defects.geojson (pothole discs) and distractors.geojson (lane marking, oil stain)."""
+    import json
+
+    from detection.footprint import footprint_enu
+    from roadsurf.formats import feature, polygon_geometry, write_csv, write_geojson
+    from roadsurf.geometry import ExportFrame
+
+    truth_dir.mkdir(parents=True, exist_ok=True)
+    ef = ExportFrame.for_reference(REF)
+    (truth_dir / "scenario.json").write_text(
+        json.dumps({"scenario": "synthetic", "seed": 0, "crs": ef.crs, "n_frames": len(traj)})
+    )
+    en = ef.utm_from_enu(traj.positions_enu_m)
+    write_csv(
+        truth_dir / "poses.csv",
+        ["filename", "easting_m", "northing_m"],
+        [(f, e, n) for f, (e, n, _) in zip(traj.filenames, en, strict=True)],
+    )
+    rows = []
+    g = np.arange(-1.0, 3.5, 0.005)
+    gx, gy = np.meshgrid(np.arange(-0.7, 0.7, 0.005), g)
+    deep = scene.depth(gx, gy) > 0.010
+    from matplotlib.path import Path as MplPath
+
+    for f, T in zip(traj.filenames, traj.world_from_cam, strict=True):
+        fp = footprint_enu(T, camera)
+        inside = MplPath(fp).contains_points(np.column_stack([gx[deep], gy[deep]]))
+        area = inside.sum() * 0.005**2
+        rows.append((f, int(area >= 0.002), area * 1e4, 0.0))
+    write_csv(
+        truth_dir / "frame_labels.csv",
+        ["filename", "defect", "defect_area_cm2", "max_depth_m"],
+        rows,
+    )
+    feats = []
+    for i, p in enumerate(scene.potholes, start=1):
+        a = np.linspace(0, 2 * np.pi, 64, endpoint=False)
+        ring = np.column_stack([p.x_m + p.radius_m * np.cos(a), p.y_m + p.radius_m * np.sin(a)])
+        props = {
+            "id": i,
+            "type": "pothole",
+            "max_depth_m": p.depth_m,
+            "mean_depth_m": p.depth_m / 2,
+            "area_m2": np.pi * p.radius_m**2,
+            "volume_m3": np.pi * p.radius_m**2 * p.depth_m / 2,
+            "length_m": 2 * p.radius_m,
+            "width_m": 2 * p.radius_m,
+        }
+        feats.append(feature(polygon_geometry(ef.lonlat_from_enu(ring)), props))
+    write_geojson(truth_dir / "defects.geojson", feats)
+    dis = []
+    if scene.lane_x_m is not None:
+        x = scene.lane_x_m
+        ring = np.array([[x - 0.05, -1.0], [x + 0.05, -1.0], [x + 0.05, 3.0], [x - 0.05, 3.0]])
+        dis.append(feature(polygon_geometry(ef.lonlat_from_enu(ring)), {"type": "lane_marking"}))
+    if scene.oil_xy_m is not None:
+        a = np.linspace(0, 2 * np.pi, 32, endpoint=False)
+        ring = np.column_stack(
+            [scene.oil_xy_m[0] + 0.1 * np.cos(a), scene.oil_xy_m[1] + 0.1 * np.sin(a)]
+        )
+        dis.append(feature(polygon_geometry(ef.lonlat_from_enu(ring)), {"type": "oil_stain"}))
+    write_geojson(truth_dir / "distractors.geojson", dis)
