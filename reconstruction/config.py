@@ -34,7 +34,15 @@ class ReconstructionConfig:
     features: FeatureConfig = field(default_factory=FeatureConfig)
     motion_prior: bool = True  # run the motion-prior mismatch rejection before RANSAC
     lambda_prior: float = 2.0  # λ: keep matches inside d̄ ± λ·σ_d per axis (eq. 4.7), unitless
+    prior_min_halfwidth_px: float = (
+        6.0  # floor of the λ window half-width (px): keeps real parallax
+    )
+    prior_min_halfwidth_frac: float = 0.12  # floor as a share of the median displacement |d̄| (0-1)
     h_ransac_px: float = 3.0  # homography RANSAC reprojection threshold (px)
+    h_ransac_frac: float = 0.03  # ... or this share of |d̄| if larger: depth relief up to ~3% of
+    # the camera height still counts as planar (parallax scales with the displacement) (0-1)
+    planar_parallax_ratio: float = 2.0  # rotation_aware: keep the homography pose when the
+    # H transfer error² / (4 · Sampson error²) is below this (parallax ≲ noise), else refine
     h_ransac_iters: int = 2000  # homography RANSAC max iterations (count)
     near_planar_max_outlier: float = 0.5  # pair is near-planar when H outlier ratio < this (0-1)
     f_ransac_px: float = 1.0  # classic baseline: fundamental-matrix RANSAC threshold (px)
@@ -43,6 +51,9 @@ class ReconstructionConfig:
     f_iterations: int = 10  # max iterations of the F = [e]x H rebuild loop (Fig. 3.4) (count)
     f_tol: float = 1e-9  # convergence of the rebuild loop: change of t direction (unitless)
     ba_iterations: int = 50  # rotation_aware: max least-squares evaluations x n_params (count)
+    epi_inlier_px: float = 2.0  # keep matches whose Sampson distance to the final F is below (px)
+    plane_trim_k: float = 3.0  # robust plane fit: refit without points > k MAD-sigmas off (0 = LS)
+    colmap_max_error_px: float = 2.0  # pycolmap two-view RANSAC max error (px)
     pixel_sigma_px: float = 0.5  # σ: pixel noise for the first-order covariance (px)
     max_reproj_px: float = 4.0  # drop triangulated points with a larger reprojection error (px)
     min_parallax_deg: float = 0.0  # drop points with less triangulation angle (deg); 0 = keep

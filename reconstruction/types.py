@@ -83,6 +83,10 @@ class PairResult:
     )  # mismatches (for the viewer)
     rejected_px_b: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     timings_s: dict[str, float] = field(default_factory=dict)
+    match_idx: np.ndarray = field(
+        default_factory=lambda: np.zeros(0, dtype=np.int64)
+    )  # (N,) index of each point into the input match list (reconstruct_matches order)
+    config_name: str = ""  # estimator detail, e.g. pycolmap's configuration (PLANAR, CALIBRATED)
 
     @property
     def ok(self) -> bool:
@@ -126,6 +130,8 @@ def load_pair(path: str | Path) -> PairResult:
                 kw[f.name] = dict(
                     zip(z["timings_keys"].tolist(), z["timings_vals"].tolist(), strict=True)
                 )
+                continue
+            if f.name not in z.files:  # written before an additive field existed
                 continue
             v = z[f.name]
             if v.ndim == 0:

@@ -1,0 +1,110 @@
+"""Public API of the reconstruction package.
+
+- ``reconstruct_pair(frame_a, frame_b, camera, cfg)``: images (arrays) or ``Frame``s -> PairResult.
+- ``reconstruct_matches(px_a, px_b, camera, cfg)``: matched pixels -> PairResult (the study's
+  point-level path).
+- ``reconstruct_features(fa, fb, camera, cfg)``: precomputed ``Features`` -> PairResult (the stage
+  reuses each frame's features for both of its pairs).
+
+A bad pair never raises: the PairResult's ``status``/``reason`` say what went wrong.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from reconstruction import features as feat
+from reconstruction.config import ReconstructionConfig
+from reconstruction.estimators import estimate_matches
+from reconstruction.types import Features, PairResult
+from roadsurf.drive import Camera, Frame, read_gray
+from roadsurf.errors import FrameReadError
+
+
+def reconstruct_matches(
+    px_a: np.ndarray, px_b: np.ndarray, camera: Camera, cfg: ReconstructionConfig
+) -> PairResult:
+    """Matched raw pixels (N, 2) in a and b -> metric PairResult (undistorted when needed)."""
+    pa = feat.undistort_px(px_a, camera)
+    pb = feat.undistort_px(px_b, camera)
+    return estimate_matches(
+        pa, pb, camera.K, camera.height_m, cfg, image_size=(camera.width, camera.height)
+    )
+
+
+def reconstruct_features(
+    fa: Features, fb: Features, camera: Camera, cfg: ReconstructionConfig
+) -> PairResult:
+    """Match two frames' features and reconstruct. Fills counts and the matching time."""
+    na, nb = len(fa.keypoints_px), len(fb.keypoints_px)
+    if min(na, nb) < cfg.min_features:
+        res = PairResult("", "", -1, -1, cfg.method, "too_few_features")
+        res.reason = (
+            f"{na} and {nb} keypoints (< min_features={cfg.min_features}): textureless, "
+            "blurred or over/under-exposed frame"
+        )
+        res.n_features_a, res.n_features_b = na, nb
+        return res
+    t0 = time.perf_counter()
+    ia, ib = feat.match(fa, fb, cfg.features)
+    t_match = time.perf_counter() - t0
+    if len(ia) < cfg.min_matches:
+        res = PairResult("", "", -1, -1, cfg.method, "no_overlap")
+        res.reason = (
+            f"only {len(ia)} mutual ratio-test matches between {na} and {nb} keypoints "
+            f"(< min_matches={cfg.min_matches}): the views probably do not overlap"
+        )
+    else:
+        res = reconstruct_matches(fa.keypoints_px[ia], fb.keypoints_px[ib], camera, cfg)
+        if res.ok and res.n_points >= 3:
+            _check_overlap(res, camera, cfg)
+    res.n_features_a, res.n_features_b = na, nb
+    res.n_matches = int(len(ia))
+    res.timings_s["matching"] = t_match
+    return res
+
+
+def _check_overlap(res: PairResult, camera: Camera, cfg: ReconstructionConfig) -> None:
+    """Mark pairs whose points cover too small a share of image a as no_overlap."""
+    import cv2
+
+    hull = cv2.convexHull(res.px_a.astype(np.float32))
+    share = float(cv2.contourArea(hull)) / float(camera.width * camera.height)
+    if share < cfg.min_overlap:
+        res.status = "no_overlap"
+        res.reason = (
+            f"matched points cover {share:.1%} of image a (< min_overlap={cfg.min_overlap})"
+        )
+
+
+def _as_gray(x: np.ndarray | Frame) -> np.ndarray:
+    if isinstance(x, Frame):
+        return read_gray(x)
+    return feat.to_gray(np.asarray(x))
+
+
+def reconstruct_pair(
+    frame_a: np.ndarray | Frame,
+    frame_b: np.ndarray | Frame,
+    camera: Camera,
+    cfg: ReconstructionConfig,
+) -> PairResult:
+    """Two images (arrays, RGB or grey) or Frames -> PairResult. Unreadable frames -> status."""
+    names = [x.filename if isinstance(x, Frame) else "" for x in (frame_a, frame_b)]
+    idx = [x.index if isinstance(x, Frame) else -1 for x in (frame_a, frame_b)]
+    try:
+        ga, gb = _as_gray(frame_a), _as_gray(frame_b)
+    except FrameReadError as e:
+        return PairResult(
+            names[0], names[1], idx[0], idx[1], cfg.method, "unreadable_frame", str(e)
+        )
+    t0 = time.perf_counter()
+    fa = feat.detect(ga, cfg.features)
+    fb = feat.detect(gb, cfg.features)
+    t_feat = time.perf_counter() - t0
+    res = reconstruct_features(fa, fb, camera, cfg)
+    res.frame_a, res.frame_b, res.index_a, res.index_b = names[0], names[1], idx[0], idx[1]
+    res.timings_s["features"] = t_feat
+    return res

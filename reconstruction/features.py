@@ -1,0 +1,127 @@
+"""Feature detection (SIFT default, ORB, AKAZE) and mutual nearest-neighbour + ratio matching.
+
+Keypoints are stored raw (as detected); ``undistort_px`` maps them to the ideal pinhole before
+any geometry when the camera has distortion.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from reconstruction.config import FeatureConfig
+from reconstruction.types import Features
+from roadsurf.drive import Camera
+from roadsurf.io import write_npz_atomic
+
+
+def _detector(cfg: FeatureConfig, n: int) -> cv2.Feature2D:
+    if cfg.kind == "sift":
+        return cv2.SIFT_create(nfeatures=n)
+    if cfg.kind == "orb":
+        return cv2.ORB_create(nfeatures=n, fastThreshold=5)
+    if cfg.kind == "akaze":
+        return cv2.AKAZE_create(threshold=1e-4)
+    raise ValueError(f"features.kind={cfg.kind!r}: use sift, orb or akaze")
+
+
+def to_gray(image: np.ndarray) -> np.ndarray:
+    """(H, W) or (H, W, 3) RGB image -> uint8 greyscale (H, W)."""
+    img = np.asarray(image)
+    if img.ndim == 3:
+        img = cv2.cvtColor(img[..., :3], cv2.COLOR_RGB2GRAY)
+    if img.dtype != np.uint8:
+        img = np.clip(img, 0, 255).astype(np.uint8)
+    return img
+
+
+def detect(image: np.ndarray, cfg: FeatureConfig) -> Features:
+    """Detect and describe keypoints of one image, at most cfg.max_features, spread on a grid."""
+    gray = to_gray(image)
+    scale = float(cfg.downscale)
+    if 0 < scale < 1:
+        gray = cv2.resize(gray, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+    det = _detector(cfg, 2 * cfg.max_features if cfg.grid_cells > 0 else cfg.max_features)
+    kps, desc = det.detectAndCompute(gray, None)
+    if desc is None or len(kps) == 0:
+        return Features(np.zeros((0, 2), np.float32), np.zeros((0, 128), np.float32), cfg.kind)
+    pts = np.array([k.pt for k in kps], dtype=np.float32)
+    resp = np.array([k.response for k in kps], dtype=np.float32)
+    keep = _spread(pts, resp, gray.shape, cfg)
+    pts, desc = pts[keep], desc[keep]
+    if 0 < scale < 1:
+        pts = (pts + 0.5) / scale - 0.5
+    return Features(pts.astype(np.float32), desc, cfg.kind)
+
+
+def _spread(
+    pts: np.ndarray, resp: np.ndarray, shape: tuple[int, ...], cfg: FeatureConfig
+) -> np.ndarray:
+    """Indices of the strongest keypoints with an equal quota per grid cell (even coverage)."""
+    n = cfg.max_features
+    if cfg.grid_cells <= 0 or len(pts) <= n:
+        return np.argsort(-resp)[:n]
+    g = cfg.grid_cells
+    cell = (
+        np.minimum(pts[:, 1] * g // shape[0], g - 1) * g
+        + np.minimum(pts[:, 0] * g // shape[1], g - 1)
+    ).astype(int)
+    order = np.lexsort((-resp, cell))
+    rank = np.empty(len(pts), dtype=int)
+    cs = cell[order]
+    starts = np.r_[0, np.flatnonzero(np.diff(cs)) + 1]
+    counts = np.diff(np.r_[starts, len(cs)])
+    rank[order] = np.arange(len(cs)) - np.repeat(starts, counts)
+    # Smallest rank first (round-robin across cells), then by response.
+    return np.lexsort((-resp, rank))[:n]
+
+
+def match(fa: Features, fb: Features, cfg: FeatureConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Mutual nearest neighbours with Lowe's ratio test -> (idx_a, idx_b) int arrays."""
+    if len(fa.keypoints_px) < 2 or len(fb.keypoints_px) < 2:
+        return np.zeros(0, int), np.zeros(0, int)
+    binary = fa.descriptors.dtype == np.uint8
+    norm = cv2.NORM_HAMMING if binary else cv2.NORM_L2
+    bf = cv2.BFMatcher(norm)
+    da, db = fa.descriptors, fb.descriptors
+    knn = bf.knnMatch(da, db, k=2)
+    ia, ib, ratio_ok = [], [], []
+    for m in knn:
+        if len(m) < 2:
+            continue
+        ia.append(m[0].queryIdx)
+        ib.append(m[0].trainIdx)
+        ratio_ok.append(m[0].distance < cfg.ratio * m[1].distance)
+    ia_a, ib_a = np.array(ia, int), np.array(ib, int)
+    keep = np.array(ratio_ok, bool)
+    if cfg.mutual and len(ia_a):
+        back = bf.match(db, da)
+        best_a = np.full(len(db), -1, int)
+        for m in back:
+            best_a[m.queryIdx] = m.trainIdx
+        keep &= best_a[ib_a] == ia_a
+    return ia_a[keep], ib_a[keep]
+
+
+def undistort_px(px: np.ndarray, camera: Camera) -> np.ndarray:
+    """(N, 2) raw pixels -> ideal pinhole pixels (identity when the camera has no distortion)."""
+    px = np.asarray(px, dtype=np.float64).reshape(-1, 2)
+    if not camera.has_distortion or len(px) == 0:
+        return px
+    und = cv2.undistortPoints(
+        px.reshape(-1, 1, 2), camera.K, np.asarray(camera.dist, float), P=camera.K
+    )
+    return und.reshape(-1, 2)
+
+
+def save_features(path: str | Path, f: Features) -> Path:
+    return write_npz_atomic(
+        path, keypoints_px=f.keypoints_px, descriptors=f.descriptors, kind=np.asarray(f.kind)
+    )
+
+
+def load_features(path: str | Path) -> Features:
+    with np.load(path, allow_pickle=False) as z:
+        return Features(z["keypoints_px"], z["descriptors"], str(z["kind"]))

@@ -1,0 +1,178 @@
+"""Pure numpy two-view geometry helpers (dissertation eq. 3.9-3.34).
+
+Conventions: camera a is the reference, X_b = R_b_from_a @ X_a + t_b_from_a. Pixels are
+(u right, v down); "normalised" coordinates are K^-1 [u, v, 1]. Camera z points down at the road,
+so road points have Z > 0 and a point below the road surface has a larger Z than the plane.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from roadsurf.geometry import check_shape
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """(3,) -> (3, 3) cross-product matrix [v]x."""
+    v = check_shape("v", v, (3,))
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def normalised_from_px(px: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """(N, 2) pixels -> (N, 2) normalised image coordinates x/z, y/z."""
+    px = check_shape("px", px, (None, 2))
+    return np.stack(
+        [(px[:, 0] - K[0, 2]) / K[0, 0], (px[:, 1] - K[1, 2]) / K[1, 1]], axis=1
+    ).astype(float)
+
+
+def px_from_cam(X: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """(N, 3) camera-frame points -> (N, 2) pixels."""
+    X = check_shape("X", X, (None, 3))
+    z = X[:, 2]
+    return np.stack([K[0, 0] * X[:, 0] / z + K[0, 2], K[1, 1] * X[:, 1] / z + K[1, 2]], axis=1)
+
+
+def rotation_from_axis_angle(w: np.ndarray) -> np.ndarray:
+    """Rodrigues: (3,) axis*angle (rad) -> (3, 3) rotation."""
+    w = np.asarray(w, dtype=float)
+    th = float(np.linalg.norm(w))
+    if th < 1e-12:
+        return np.eye(3) + skew(w)
+    k = skew(w / th)
+    return np.eye(3) + np.sin(th) * k + (1.0 - np.cos(th)) * (k @ k)
+
+
+def rotation_from_euler_deg(theta_x: float, theta_y: float, theta_z: float) -> np.ndarray:
+    """R = Rz @ Ry @ Rx for small vibration angles in degrees."""
+    ax, ay, az = np.radians([theta_x, theta_y, theta_z])
+    rx = np.array([[1, 0, 0], [0, np.cos(ax), -np.sin(ax)], [0, np.sin(ax), np.cos(ax)]])
+    ry = np.array([[np.cos(ay), 0, np.sin(ay)], [0, 1, 0], [-np.sin(ay), 0, np.cos(ay)]])
+    rz = np.array([[np.cos(az), -np.sin(az), 0], [np.sin(az), np.cos(az), 0], [0, 0, 1]])
+    return rz @ ry @ rx
+
+
+def fundamental_from_pose(R: np.ndarray, t: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """F = K^-T [t]x R K^-1, so that x_b^T F x_a = 0 in pixels (eq. 3.9)."""
+    Ki = np.linalg.inv(K)
+    F = Ki.T @ skew(np.asarray(t, float)) @ R @ Ki
+    return F / (np.linalg.norm(F) + 1e-300)
+
+
+def sampson_px(F: np.ndarray, px_a: np.ndarray, px_b: np.ndarray) -> np.ndarray:
+    """(N,) signed Sampson distance (px) of matches to the epipolar geometry F."""
+    n = px_a.shape[0]
+    xa = np.hstack([px_a, np.ones((n, 1))])
+    xb = np.hstack([px_b, np.ones((n, 1))])
+    Fxa = xa @ F.T
+    Ftxb = xb @ F
+    num = np.sum(xb * Fxa, axis=1)
+    den = np.sqrt(Fxa[:, 0] ** 2 + Fxa[:, 1] ** 2 + Ftxb[:, 0] ** 2 + Ftxb[:, 1] ** 2) + 1e-300
+    return num / den
+
+
+def triangulate(xa: np.ndarray, xb: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Linear (inhomogeneous DLT) triangulation in normalised coordinates (eq. 3.11-3.12).
+
+    xa, xb: (N, 2) normalised coordinates in a and b; R (3, 3), t (3,) with X_b = R X_a + t.
+    Returns (N, 3) points in camera a (same length unit as t).
+    """
+    xa = check_shape("xa", xa, (None, 2))
+    xb = check_shape("xb", xb, (None, 2))
+    n = xa.shape[0]
+    A = np.zeros((n, 4, 3))
+    b = np.zeros((n, 4))
+    A[:, 0] = [1.0, 0.0, 0.0]
+    A[:, 0, 2] = -xa[:, 0]
+    A[:, 1] = [0.0, 1.0, 0.0]
+    A[:, 1, 2] = -xa[:, 1]
+    A[:, 2] = R[0] - xb[:, :1] * R[2]
+    A[:, 3] = R[1] - xb[:, 1:2] * R[2]
+    b[:, 2] = xb[:, 0] * t[2] - t[0]
+    b[:, 3] = xb[:, 1] * t[2] - t[1]
+    AtA = np.einsum("nki,nkj->nij", A, A)
+    Atb = np.einsum("nki,nk->ni", A, b)
+    return np.linalg.solve(AtA, Atb[..., None])[..., 0]
+
+
+def triangulation_jacobian_px(
+    px_a: np.ndarray, px_b: np.ndarray, R: np.ndarray, t: np.ndarray, K: np.ndarray
+) -> np.ndarray:
+    """(N, 3, 4) d X / d (u_a, v_a, u_b, v_b) by central differences, pose held fixed."""
+    h = 1e-3
+    J = np.zeros((px_a.shape[0], 3, 4))
+    for k in range(4):
+        d = np.zeros((px_a.shape[0], 4))
+        d[:, k] = h
+        Xp = triangulate(
+            normalised_from_px(px_a + d[:, :2], K), normalised_from_px(px_b + d[:, 2:], K), R, t
+        )
+        Xm = triangulate(
+            normalised_from_px(px_a - d[:, :2], K), normalised_from_px(px_b - d[:, 2:], K), R, t
+        )
+        J[:, :, k] = (Xp - Xm) / (2 * h)
+    return J
+
+
+def point_covariance(
+    px_a: np.ndarray, px_b: np.ndarray, R: np.ndarray, t: np.ndarray, K: np.ndarray, sigma_px: float
+) -> np.ndarray:
+    """(N, 3, 3) first-order covariance Σ_X = J σ² Jᵀ of triangulated points (eq. 3.27-3.30)."""
+    J = triangulation_jacobian_px(px_a, px_b, R, t, K)
+    return sigma_px**2 * np.einsum("nik,njk->nij", J, J)
+
+
+def fit_plane(
+    X: np.ndarray, trim_k: float = 0.0, iterations: int = 3
+) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares plane Z = p0 X + p1 Y + p2 (eq. 3.31).
+
+    trim_k > 0 refits without points further than trim_k robust sigmas (MAD) from the plane,
+    so potholes do not tilt the road plane. Returns (p (3,), used mask (N,)).
+    """
+    X = check_shape("X", X, (None, 3))
+    used = np.ones(X.shape[0], dtype=bool)
+    p = np.full(3, np.nan)
+    for _ in range(max(1, iterations if trim_k > 0 else 1)):
+        A = np.column_stack([X[used, 0], X[used, 1], np.ones(int(used.sum()))])
+        p = np.linalg.lstsq(A, X[used, 2], rcond=None)[0]
+        if trim_k <= 0:
+            break
+        r = X[:, 2] - (p[0] * X[:, 0] + p[1] * X[:, 1] + p[2])
+        s = 1.4826 * np.median(np.abs(r[used] - np.median(r[used]))) + 1e-12
+        new = np.abs(r - np.median(r[used])) <= trim_k * s
+        if new.sum() < 3 or np.array_equal(new, used):
+            break
+        used = new
+    return p, used
+
+
+def plane_distance(X: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """(N,) signed distance to Z = p0 X + p1 Y + p2 (eq. 3.32); negative below the road."""
+    return (p[0] * X[:, 0] + p[1] * X[:, 1] - X[:, 2] + p[2]) / np.sqrt(p[0] ** 2 + p[1] ** 2 + 1)
+
+
+def camera_plane_distance(p: np.ndarray) -> float:
+    """d_c = |p2| / sqrt(p0² + p1² + 1) (eq. 3.33)."""
+    return float(abs(p[2]) / np.sqrt(p[0] ** 2 + p[1] ** 2 + 1))
+
+
+def decompose_essential(
+    E: np.ndarray, xa: np.ndarray, xb: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """SVD of E (eq. 3.10) -> (R, unit t, n_in_front) keeping the cheirality-valid combination."""
+    U, _, Vt = np.linalg.svd(E)
+    if np.linalg.det(U) < 0:
+        U = -U
+    if np.linalg.det(Vt) < 0:
+        Vt = -Vt
+    W = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    best: tuple[np.ndarray, np.ndarray, int] = (np.eye(3), np.zeros(3), -1)
+    for R in (U @ W @ Vt, U @ W.T @ Vt):
+        for t in (U[:, 2], -U[:, 2]):
+            X = triangulate(xa, xb, R, t)
+            Xb = X @ R.T + t
+            n_front = int(np.sum((X[:, 2] > 0) & (Xb[:, 2] > 0)))
+            if n_front > best[2]:
+                best = (R, t / np.linalg.norm(t), n_front)
+    return best

@@ -1,0 +1,75 @@
+"""Point-level targets of issue 3 on a small grid (the bench runs the full sweeps)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from reconstruction.bound import epsilon_bound
+from reconstruction.config import ReconstructionConfig
+from reconstruction.estimators import estimate_matches, motion_prior_mask
+from reconstruction.study import epsilon
+from simulation.points import PointScene, simulate_points
+
+N_TRIALS = 8
+
+
+def _median_eps(method: str, scene: PointScene, n: int = N_TRIALS) -> tuple[float, float]:
+    cfg = ReconstructionConfig(method=method, plane_trim_k=0.0)
+    eps, bounds = [], []
+    for seed in range(n):
+        pp = simulate_points(scene, seed)
+        res = estimate_matches(pp.px_a, pp.px_b, pp.K, pp.h_measured_m, cfg)
+        eps.append(epsilon(res, pp))
+        bounds.append(
+            epsilon_bound(
+                pp.X_a_m,
+                pp.d_true_m,
+                pp.h_measured_m,
+                pp.R_b_from_a,
+                pp.t_b_from_a_m,
+                pp.K,
+                scene.sigma_px,
+            )
+        )
+    e = np.nan_to_num(np.asarray(eps), nan=np.inf)  # a failed trial counts as infinitely bad
+    return float(np.median(e)), float(np.median(e / np.asarray(bounds)))
+
+
+@pytest.mark.parametrize("sigma", [0.05, 0.1])
+@pytest.mark.parametrize("z_m", [0.8, 1.1])
+def test_proposed_below_1mm(sigma: float, z_m: float) -> None:
+    eps, ratio = _median_eps("proposed", PointScene(delta_m=1e-4, sigma_px=sigma, z_m=z_m))
+    assert eps < 1e-3, f"proposed ε={eps * 1e3:.3f} mm at σ={sigma}, Z_m={z_m}"
+    assert ratio < 1.2
+
+
+def test_classic_ten_times_worse() -> None:
+    scene = PointScene(delta_m=1e-4, sigma_px=0.1, z_m=1.1)
+    e_prop, _ = _median_eps("proposed", scene)
+    e_cls, _ = _median_eps("classic", scene)
+    assert e_cls >= 10 * e_prop, (e_cls, e_prop)
+
+
+def test_rotation_aware_at_bound_under_vibration() -> None:
+    scene = PointScene(delta_m=1e-4, sigma_px=0.2, z_m=1.1, theta_deg=(5.0, 5.0, 5.0))
+    _, ratio = _median_eps("rotation_aware", scene)
+    assert ratio <= 1.1, ratio
+
+
+def test_motion_prior_removes_injected_mismatches() -> None:
+    pp = simulate_points(PointScene(n_points=300, sigma_px=0.2, theta_deg=(1, 1, 2)), 3)
+    rng = np.random.default_rng(1)
+    bad = rng.choice(300, 60, replace=False)
+    px_b = pp.px_b.copy()
+    px_b[bad] = rng.uniform([0, 0], [1024, 768], (60, 2))  # mismatches anywhere in image b
+    # keep only the ones that are really wrong (a random point can land near the right place)
+    truly_bad = bad[np.linalg.norm(px_b[bad] - pp.px_b[bad], axis=1) > 30]
+    keep = motion_prior_mask(pp.px_a, px_b, ReconstructionConfig())
+    good = np.setdiff1d(np.arange(300), bad)
+    assert keep[good].mean() > 0.97
+    assert (~keep[truly_bad]).mean() > 0.9
+    res = estimate_matches(pp.px_a, px_b, pp.K, pp.h_measured_m, ReconstructionConfig())
+    assert res.ok, res.reason
+    assert not np.isin(truly_bad, res.match_idx).any()
+    assert epsilon(res, pp) < 2e-3
