@@ -169,6 +169,49 @@ def write_geotiff(
     return Path(path)
 
 
+def write_geotiff_blocks(
+    path: str | Path,
+    grid: GridSpec,
+    blocks: Iterable[tuple[int, int, np.ndarray]],
+    dtype: str = "float32",
+    nodata: float | None = None,
+    tags: dict[str, str] | None = None,
+) -> Path:
+    """Write a single-band GeoTIFF window by window, for rasters whose full array would not fit
+    in memory (e.g. the corridor of a long curved route). ``blocks`` yields (row0, col0, (h, w)
+    array); blocks never written stay unstored (sparse) and read back as nodata. Same layout as
+    ``write_geotiff`` (tiled 256, deflate, sparse), plus a floating-point predictor."""
+    import rasterio
+    from rasterio.windows import Window
+
+    profile: dict[str, Any] = {
+        "driver": "GTiff",
+        "width": grid.width,
+        "height": grid.height,
+        "count": 1,
+        "dtype": dtype,
+        "crs": grid.crs,
+        "transform": grid.transform,
+        "compress": "deflate",
+        "predictor": 3 if np.dtype(dtype).kind == "f" else 2,
+        "tiled": True,
+        "blockxsize": 256,
+        "blockysize": 256,
+        "SPARSE_OK": "TRUE",
+        "BIGTIFF": "IF_SAFER",
+    }
+    if nodata is not None:
+        profile["nodata"] = nodata
+    with atomic_path(path) as tmp:
+        with rasterio.open(tmp, "w", **profile) as dst:
+            for r0, c0, arr in blocks:
+                a = np.asarray(arr, dtype=dtype)
+                dst.write(a[None], window=Window(c0, r0, a.shape[1], a.shape[0]))
+            if tags:
+                dst.update_tags(**tags)
+    return Path(path)
+
+
 def read_geotiff(path: str | Path) -> tuple[np.ndarray, GridSpec, float | None]:
     """Read a GeoTIFF written by ``write_geotiff``: (data, grid, nodata). data is (H, W) for one
     band or (H, W, C) otherwise."""

@@ -1,0 +1,88 @@
+"""Simulator configuration: one frozen dataclass, every field with its unit and, where the
+dissertation names it (Chapter 3), its symbol. Scenarios (``simulation.scenarios``) are named sets
+of overrides of these fields; ``simulate(..., **overrides)`` accepts any field by name."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+GpsProfile = Literal["rtk", "consumer"]
+Texture = Literal["gravel", "asphalt", "brick", "grass"]
+ImageFormat = Literal["jpg", "png"]
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """Parameters of one rendered drive (image level)."""
+
+    # --- world placement -------------------------------------------------------------------
+    origin_lat_deg: float = 43.6532  # latitude of the route start (WGS84 degrees), Toronto
+    origin_lon_deg: float = -79.3832  # longitude of the route start (WGS84 degrees)
+    origin_alt_m: float = 95.0  # ellipsoidal height of the road at the start (m)
+    route_heading_deg: float | None = None  # grid heading at the start (deg); None = from seed
+    route_curve_amp_deg: float = 8.0  # amplitude of the heading oscillation (deg): gentle curve
+    route_curve_wavelength_m: float = 180.0  # wavelength of the heading oscillation (m)
+    lateral_wander_m: float = 0.04  # std of the camera's slow lateral wander in the lane (m)
+
+    # --- camera (intrinsics; camera.yaml) -------------------------------------------------
+    width: int = 640  # image width (px)
+    height: int = 480  # image height (px)
+    fx: float = 600.0  # focal length (px); fy = fx (square pixels)
+    camera_height_m: float = 1.1  # nominal camera-to-road distance Z_m = h (m)
+    fps: float = 15.0  # frame rate (Hz)
+
+    # --- motion ------------------------------------------------------------------------------
+    speed_mps: float = 6.0  # mean vehicle speed (m/s); overlap = 1 - speed/(fps * footprint)
+    speed_var: float = 0.04  # relative slow speed variation (std, fraction of speed)
+    vibration_deg: float = 0.3  # std of roll and pitch noise θx, θy (deg)
+    yaw_noise_deg: float = 0.15  # std of yaw noise θz about the road heading (deg)
+    height_noise_m: float = 0.003  # std of camera height noise δ_h (m)
+    vibration_hz: float = 3.0  # dominant frequency of the vibration (Hz)
+
+    # --- road surface ------------------------------------------------------------------------
+    unevenness_m: float = 0.0015  # road unevenness δ: height ~ N(0, δ), correlated over ~1 cm (m)
+    grade: float = 0.01  # longitudinal grade (m/m)
+    cross_slope: float = 0.02  # cross slope of the smooth road (m/m)
+    undulation_m: float = 0.01  # amplitude of long-wave (>= 8 m) smooth road undulation (m)
+    n_potholes: int = 3  # number of potholes (irregular bowls, 15-80 mm deep, 0.15-0.8 m across)
+    n_cracks: int = 1  # number of cracks (grooves 3-8 mm wide, a few mm deep)
+    n_ruts: int = 0  # number of ruts (long shallow troughs)
+    n_lane_markings: int = 1  # number of lane-marking groups (white paint, no depth)
+    n_shadows: int = 1  # number of shadows (darker radiance only, no depth)
+    n_oil_stains: int = 1  # number of oil stains (dark albedo, no depth)
+    defect_margin_m: float = 1.0  # keep defects this far from the drive's ends (m)
+
+    # --- appearance --------------------------------------------------------------------------
+    texture: Texture = "gravel"  # skimage photo texture used for the albedo
+    texel_m: float = 0.0005  # ground size of one texture pixel (m) before random scaling
+    texture_cell_m: float = 0.3  # size of the random rotation/scale cells (m)
+    sun_azimuth_deg: float = 135.0  # light direction: compass azimuth (deg)
+    sun_elevation_deg: float = 45.0  # light direction: elevation above the horizon (deg)
+    ambient: float = 0.4  # share of diffuse sky light (0..1); the rest is directional
+    exposure: float = 1.0  # global brightness gain
+    exposure_var: float = 0.03  # per-frame auto-exposure variation (std, relative)
+    vignetting: float = 0.2  # brightness fall-off at the image corner (fraction)
+    noise_sigma: float = 2.0  # sensor read noise (std, 8-bit DN)
+    shot_noise: float = 0.25  # photon noise gain (DN std = shot_noise * sqrt(DN))
+    exposure_time_s: float = 0.0005  # shutter time (s): motion blur = speed * exposure_time
+    motion_blur: bool = True  # apply motion blur when it exceeds 0.3 px
+    image_format: ImageFormat = "jpg"  # frame file format
+    jpeg_quality: int = 90  # JPEG quality (0-100)
+    greyscale: bool = False  # write 8-bit single-channel images
+
+    # --- rendering ---------------------------------------------------------------------------
+    supersample: int = 2  # rays per pixel along each axis (anti-aliasing)
+    render_gsd_m: float | None = None  # world raster resolution (m); None = pixel footprint / 1.5
+    raycast_iters: int = 4  # fixed-point iterations of the ray/height-field intersection
+    truth_gsd_m: float = 0.004  # ground-truth raster resolution (m)
+
+    # --- sensors -----------------------------------------------------------------------------
+    gps_profile: GpsProfile = "rtk"  # rtk: 5 Hz, sigma 2 cm; consumer: 1 Hz, sigma 1 m, bias
+    gps_rate_hz: float | None = None  # GPS rate (Hz); None = the profile's
+    gps_sigma_m: float | None = None  # GPS white noise per axis σ (m); None = the profile's
+    gps_bias_m: float | None = None  # std of the slow random-walk bias after 60 s (m)
+    gps_dropouts: int = 0  # number of GPS outages
+    gps_dropout_s: float = 2.0  # length of one GPS outage (s)
+    obd_rate_hz: float = 10.0  # OBD speed rate (Hz)
+    obd_quant_kmh: float = 1.0  # OBD speed quantisation (km/h), as OBD-II PID 0x0D reports

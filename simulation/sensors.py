@@ -1,0 +1,132 @@
+"""Sensor models: image formation (exposure, vignetting, motion blur, noise, 8-bit encoding),
+GPS (lower rate, white noise, slow random-walk bias, dropouts) and OBD speed."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from simulation.config import SimConfig
+from simulation.world import World
+
+# GPS profiles: rate (Hz), white noise σ per horizontal axis (m), bias std after 60 s (m), HDOP.
+GPS_PROFILES = {
+    "rtk": {"rate_hz": 5.0, "sigma_m": 0.02, "bias_m": 0.01, "hdop": 0.7},
+    "consumer": {"rate_hz": 1.0, "sigma_m": 1.0, "bias_m": 1.5, "hdop": 1.6},
+}
+
+
+def gps_params(cfg: SimConfig) -> dict[str, float]:
+    p = dict(GPS_PROFILES[cfg.gps_profile])
+    if cfg.gps_rate_hz is not None:
+        p["rate_hz"] = cfg.gps_rate_hz
+    if cfg.gps_sigma_m is not None:
+        p["sigma_m"] = cfg.gps_sigma_m
+    if cfg.gps_bias_m is not None:
+        p["bias_m"] = cfg.gps_bias_m
+    return p
+
+
+def form_image(
+    radiance: np.ndarray, cfg: SimConfig, speed_mps: float, gain: float, rng: np.random.Generator
+) -> np.ndarray:
+    """Linear radiance (H, W, 3) -> uint8 RGB (H, W, 3) or grey (H, W) as the sensor writes it."""
+    h, w = radiance.shape[:2]
+    img = radiance * np.float32(255.0 * 0.62 * cfg.exposure * gain)
+    if cfg.vignetting > 0:
+        yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+        r2 = ((xx - (w - 1) / 2) ** 2 + (yy - (h - 1) / 2) ** 2) / ((w / 2) ** 2 + (h / 2) ** 2)
+        img *= (1.0 - cfg.vignetting * r2)[..., None]
+    # Motion blur along the image vertical (the direction of travel).
+    blur_px = speed_mps * cfg.exposure_time_s * cfg.fx / cfg.camera_height_m
+    if cfg.motion_blur and blur_px > 0.3:
+        n = int(math.ceil(blur_px)) | 1
+        k = np.zeros((n, 1), np.float32)
+        centre = (n - 1) / 2
+        for i in range(n):
+            k[i, 0] = np.clip(blur_px / 2 + 0.5 - abs(i - centre), 0.0, 1.0)
+        k /= k.sum()
+        img = cv2.filter2D(img, -1, k, borderType=cv2.BORDER_REFLECT)
+    sd = np.sqrt(cfg.noise_sigma**2 + cfg.shot_noise**2 * np.clip(img, 0, None))
+    img = img + sd * rng.standard_normal(img.shape, dtype=np.float32)
+    out = np.clip(np.rint(img), 0, 255).astype(np.uint8)
+    if cfg.greyscale:
+        out = cv2.cvtColor(out, cv2.COLOR_RGB2GRAY)
+    return out
+
+
+def encode_image(img: np.ndarray, cfg: SimConfig) -> bytes:
+    """uint8 RGB or grey -> JPEG/PNG bytes (deterministic)."""
+    bgr = img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
+    if cfg.image_format == "jpg":
+        ok, buf = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, int(cfg.jpeg_quality)])
+    else:
+        ok, buf = cv2.imencode(".png", bgr, [cv2.IMWRITE_PNG_COMPRESSION, 6])
+    if not ok:
+        raise RuntimeError("OpenCV failed to encode a frame")
+    return buf.tobytes()
+
+
+@dataclass
+class GpsLog:
+    timestamp_s: np.ndarray
+    lat_deg: np.ndarray
+    lon_deg: np.ndarray
+    alt_m: np.ndarray
+    hdop: np.ndarray
+    dropped: list[tuple[float, float]]  # outage intervals (s)
+
+
+def simulate_gps(world: World, rng: np.random.Generator) -> GpsLog:
+    """GPS fixes of the camera centre: truth + random-walk bias + white noise, with outages."""
+    cfg = world.cfg
+    p = gps_params(cfg)
+    tr = world.traj
+    period = 1.0 / p["rate_hz"]
+    t = np.arange(tr.t[0] + 0.1, tr.t[-1] - 0.05, period)
+    pos = np.array([world.pose(float(ti)).C for ti in t])
+    n = len(t)
+    q = p["bias_m"] / math.sqrt(60.0)  # random-walk intensity (m / sqrt(s))
+    bias = rng.normal(0, p["bias_m"] / 2, 3) + np.cumsum(
+        rng.normal(0, q * math.sqrt(period), (n, 3)), axis=0
+    )
+    noise = rng.normal(0, p["sigma_m"], (n, 3))
+    meas = pos + bias + noise * np.array([1.0, 1.0, 1.5])
+    keep = np.ones(n, bool)
+    dropped: list[tuple[float, float]] = []
+    span = (world.frame_times[0], world.frame_times[-1])
+    for _ in range(cfg.gps_dropouts):
+        t0 = float(rng.uniform(span[0], max(span[0], span[1] - cfg.gps_dropout_s)))
+        dropped.append((t0, t0 + cfg.gps_dropout_s))
+        keep &= ~((t >= t0) & (t < t0 + cfg.gps_dropout_s))
+    if keep.sum() < 2:  # always leave a usable log
+        keep[[0, -1]] = True
+    lla_e = meas[keep, 0] + world.origin_e_m
+    lla_n = meas[keep, 1] + world.origin_n_m
+    from roadsurf.geometry import lla_from_utm
+
+    lla = lla_from_utm(lla_e, lla_n, world.epsg)
+    hdop = np.round(p["hdop"] * (1 + 0.15 * np.abs(rng.standard_normal(int(keep.sum())))), 1)
+    return GpsLog(
+        timestamp_s=np.round(t[keep], 3),
+        lat_deg=np.round(lla[:, 0], 9),
+        lon_deg=np.round(lla[:, 1], 9),
+        alt_m=np.round(meas[keep, 2] + cfg.origin_alt_m, 3),
+        hdop=hdop,
+        dropped=dropped,
+    )
+
+
+def simulate_obd(world: World, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """OBD-II speed: true speed + small noise, quantised like PID 0x0D (km/h)."""
+    cfg = world.cfg
+    tr = world.traj
+    t = np.arange(tr.t[0] + 0.05, tr.t[-1], 1.0 / cfg.obd_rate_hz)
+    v = np.interp(t, tr.t, tr.speed) + rng.normal(0, 0.03, len(t))
+    if cfg.obd_quant_kmh > 0:
+        q = cfg.obd_quant_kmh / 3.6
+        v = np.round(v / q) * q
+    return np.round(t, 3), np.round(np.clip(v, 0, None), 4)
