@@ -9,6 +9,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -162,3 +163,59 @@ def _port_open(port: int) -> bool:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.settimeout(0.2)
         return s.connect_ex(("127.0.0.1", port)) == 0
+
+
+def load_viewer_config(path: str | Path | None) -> ViewerConfig:
+    """ViewerConfig from a YAML file (keys of ViewerConfig; unknown keys are rejected)."""
+    if path is None:
+        return ViewerConfig()
+    from roadsurf.config import load_yaml_config
+
+    return load_yaml_config(ViewerConfig, path)
+
+
+def view(
+    run_dir: str | Path,
+    *,
+    save: str | Path | None = None,
+    serve_web: bool = False,
+    drive_dir: str | Path | None = None,
+    config_path: str | Path | None = None,
+    web_port: int = 9090,
+    grpc_port: int = 9876,
+    screenshot_png: str | Path | None = None,
+    screenshot_wait_s: float = 30.0,
+    on_ready: Callable[[str], None] | None = None,
+) -> ViewResult:
+    """`roadsurf view`: ``save`` writes an .rrd (headless); ``serve_web`` serves the web viewer on
+    127.0.0.1 until interrupted (or, with ``screenshot_png``, takes a headless-Chromium
+    screenshot of it and stops); neither spawns the native viewer."""
+    cfg = load_viewer_config(config_path)
+    if not serve_web:
+        if screenshot_png is not None:
+            raise RoadsurfError("--screenshot needs --serve (it photographs the web viewer)")
+        if save is not None:
+            return save_rrd(run_dir, save, drive_dir=drive_dir, cfg=cfg)
+        return spawn_viewer(run_dir, drive_dir=drive_dir, cfg=cfg)
+    res = serve(
+        run_dir, rrd=save, drive_dir=drive_dir, web_port=web_port, grpc_port=grpc_port, cfg=cfg
+    )
+    if res.server is None or res.url is None:  # serve() always sets both
+        raise RoadsurfError("internal: the web viewer server did not report its URL")
+    try:
+        if on_ready is not None:
+            on_ready(res.url)
+        if screenshot_png is not None:
+            from viewer.browser import is_blank, screenshot
+
+            shot = screenshot(res.url, screenshot_png, size=(1600, 1000), wait_s=screenshot_wait_s)
+            if "Wasm loaded" not in shot.console or is_blank(shot.path):
+                log.warning("the web viewer may not have rendered in %s", shot.path)
+        else:
+            res.server.wait()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        res.server.terminate()
+        res.server.wait(timeout=10)
+    return res
