@@ -61,3 +61,18 @@ def train(
         seed=seed,
     )
     return _train(dataset, out, cfg, resume=not overwrite)
+
+
+def bench(
+    work: Path,
+    *,
+    quick: bool = False,
+    config_path: Path | None = None,
+    epochs: int | None = None,
+    learning_rate: float | None = None,
+) -> dict[str, Any]:
+    from detection.classifier.bench import bench_classifier, require_simulator
+
+    require_simulator()
+    cfg = make_config(config_path, epochs=epochs, learning_rate=learning_rate)
+    return bench_classifier(work, cfg, quick=quick, config_path=config_path)

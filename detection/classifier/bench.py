@@ -1,0 +1,368 @@
+"""`roadsurf bench classifier`: the dissertation's Table 5.2 / Fig. 5.5 on simulator drives.
+
+Trains the CNN on self-labelled simulator drives and tests on OTHER drives (other seeds,
+texture, lighting, greyscale images, more lane markings and shadows). For every test drive it
+scores, against the simulator's truth (truth/frame_labels.csv):
+
+- image-only CNN (p_defect >= 0.5),
+- fused CNN + 3D (``roadsurf run --classifier``, Fig. 5.6),
+- 3D-only physics pipeline (``roadsurf run``),
+
+with the average processing time per image of each, measured in the same session on the same
+machine. A longer drive with few defect frames (~5%) gives the time ratio fused / physics.
+False positives are broken down by the distractors (lane marking, shadow, oil stain) in view.
+Every step caches in the work folder; timings are only taken from runs computed from scratch.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import shutil
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from detection.classifier.config import ClassifierConfig
+from roadsurf.errors import RoadsurfError
+from roadsurf.io import read_json, write_json_atomic, write_text_atomic
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class DriveSpec:
+    """One simulated drive of the benchmark."""
+
+    name: str
+    scenario: str
+    seed: int
+    n_frames: int
+    overrides: dict[str, Any] = field(default_factory=dict)
+
+
+# Training: the default gravel texture and lighting, several seeds and layouts.
+TRAIN_DRIVES = (
+    DriveSpec("train_a", "potholes", 1101, 60),
+    DriveSpec("train_b", "potholes", 1102, 60, {"sun_azimuth_deg": 60.0, "n_lane_markings": 2}),
+    DriveSpec("train_c", "flat", 1103, 40, {"n_shadows": 2, "n_lane_markings": 2}),
+)
+# Testing: unseen seeds, another texture, other light, greyscale JPEG, more distractors.
+TEST_DRIVES = (
+    DriveSpec(
+        "test_asphalt",
+        "potholes",
+        2101,
+        60,
+        {
+            "texture": "asphalt",
+            "sun_azimuth_deg": 300.0,
+            "sun_elevation_deg": 35.0,
+            "n_lane_markings": 2,
+            "n_shadows": 3,
+        },
+    ),
+    DriveSpec(
+        "test_grey",
+        "potholes",
+        2102,
+        60,
+        {
+            "greyscale": True,
+            "ambient": 0.7,
+            "exposure": 0.85,
+            "n_lane_markings": 2,
+            "n_shadows": 2,
+            "n_oil_stains": 2,
+        },
+    ),
+)
+# Long drive with few defects (~5% of frames) for the time ratio.
+LONG_DRIVE = DriveSpec(
+    "long_few_defects",
+    "long",
+    2103,
+    200,
+    {"n_potholes": 3, "n_cracks": 1, "n_ruts": 0, "n_lane_markings": 2, "n_shadows": 2},
+)
+
+
+def _quick(spec: DriveSpec, n: int) -> DriveSpec:
+    return dataclasses.replace(spec, n_frames=min(spec.n_frames, n))
+
+
+def _simulate(spec: DriveSpec, root: Path) -> Path:
+    out = root / "drives" / spec.name
+    if (out / "truth" / "frame_labels.csv").is_file():
+        return out
+    from simulation.scenarios import simulate
+
+    if out.exists():
+        shutil.rmtree(out)
+    simulate(spec.scenario, out, seed=spec.seed, n_frames=spec.n_frames, **spec.overrides)
+    return out
+
+
+def _timed_run(
+    drive: Path, run_dir: Path, classifier: Path | None = None, cfg_path: Path | None = None
+) -> dict[str, Any]:
+    """Run the pipeline from scratch (timed) unless a finished, timed run is cached."""
+    tpath = run_dir / "bench_timing.json"
+    if tpath.is_file() and (run_dir / "frames.csv").is_file():
+        return read_json(tpath)
+    from roadsurf.pipeline import run_drive
+
+    if run_dir.exists():
+        shutil.rmtree(run_dir)  # a timing must come from a clean run, not a resumed one
+    t0 = time.perf_counter()
+    report = run_drive(drive, run_dir, classifier=classifier, config_path=cfg_path)
+    wall = time.perf_counter() - t0
+    n = int(report.get("counts", {}).get("frames", 0)) or 1
+    rec = {
+        "wall_s": round(wall, 3),
+        "frames": n,
+        "s_per_frame": wall / n,
+        "stage_timings_s": report.get("timings_s", {}),
+        "pairs_reconstructed": report.get("counts", {}).get("pairs", 0),
+    }
+    write_json_atomic(tpath, rec)
+    return rec
+
+
+def _frame_labels(path: Path) -> dict[str, int]:
+    from roadsurf.formats import read_csv
+
+    return {r["filename"]: int(float(r["defect"])) for r in read_csv(path)}
+
+
+def _frame_sources(path: Path) -> dict[str, str]:
+    from roadsurf.formats import read_csv
+
+    return {r["filename"]: r.get("source", "") for r in read_csv(path)}
+
+
+def distractors_in_view(drive: Path) -> dict[str, set[str]]:
+    """{filename: distractor types whose outline meets the frame's ground footprint}.
+
+    The footprint is the image rectangle cast onto the plane ``h`` below the camera, using the
+    true poses (truth/poses.csv, UTM) and the camera model; distractors come from
+    truth/distractors.geojson (WGS84), projected to the scenario's CRS.
+    """
+    import yaml
+    from pyproj import Transformer
+    from scipy.spatial.transform import Rotation
+    from shapely.geometry import Polygon, shape
+
+    from roadsurf.formats import read_csv, read_geojson
+
+    truth = drive / "truth"
+    dpath = truth / "distractors.geojson"
+    if not dpath.is_file():
+        return {}
+    crs = read_json(truth / "scenario.json")["crs"]
+    tf = Transformer.from_crs("EPSG:4326", crs, always_xy=True)
+    dis = []
+    for f in read_geojson(dpath)["features"]:
+        g = shape(f["geometry"])
+        ring = np.asarray(g.exterior.coords)
+        x, y = tf.transform(ring[:, 0], ring[:, 1])
+        dis.append((f["properties"].get("type", "distractor"), Polygon(np.column_stack([x, y]))))
+    cam = yaml.safe_load((drive / "camera.yaml").read_text())
+    w, h = float(cam["width"]), float(cam["height"])
+    fx, fy, cx, cy, hm = (float(cam[k]) for k in ("fx", "fy", "cx", "cy", "height_m"))
+    corners = np.array([[0, 0], [w, 0], [w, h], [0, h]], float)
+    cam_pts = np.column_stack([(corners[:, 0] - cx) / fx * hm, (corners[:, 1] - cy) / fy * hm])
+    cam_pts = np.column_stack([cam_pts, np.full(4, hm)])
+    out: dict[str, set[str]] = {}
+    for r in read_csv(truth / "poses.csv"):
+        q = [float(r[k]) for k in ("qx", "qy", "qz", "qw")]
+        world = Rotation.from_quat(q).apply(cam_pts)
+        e = world[:, 0] + float(r["easting_m"])
+        n = world[:, 1] + float(r["northing_m"])
+        fp = Polygon(np.column_stack([e, n]))
+        out[r["filename"]] = {t for t, g in dis if fp.intersects(g)}
+    return out
+
+
+def score(
+    pred: dict[str, int], truth: dict[str, int], distractors: dict[str, set[str]]
+) -> dict[str, Any]:
+    """Frame metrics plus false positives broken down by the distractor types in view."""
+    from detection.evaluate import frame_metrics
+
+    m = frame_metrics(pred, truth)
+    fp_by: dict[str, int] = {}
+    clean_fp = 0
+    for f, p in pred.items():
+        if p and not truth.get(f, 0):
+            kinds = distractors.get(f, set())
+            for k in kinds:
+                fp_by[k] = fp_by.get(k, 0) + 1
+            clean_fp += not kinds
+    m["fp_with_distractor"] = fp_by
+    m["fp_on_plain_road"] = clean_fp
+    return m
+
+
+def bench_classifier(
+    work: str | Path,
+    cfg: ClassifierConfig | None = None,
+    *,
+    quick: bool = False,
+    config_path: str | Path | None = None,
+) -> dict[str, Any]:
+    """Run the whole benchmark in ``work``; returns the results (also work/results.json/.md)."""
+    from detection.classifier.dataset import label_drives
+    from detection.classifier.screen import screen_drive
+    from detection.classifier.train import train
+
+    cfg = cfg or ClassifierConfig()
+    work = Path(work)
+    work.mkdir(parents=True, exist_ok=True)
+    t_all = time.perf_counter()
+    train_specs = [(_quick(s, 30) if quick else s) for s in TRAIN_DRIVES]
+    test_specs = [(_quick(s, 30) if quick else s) for s in TEST_DRIVES]
+    long_spec = _quick(LONG_DRIVE, 80) if quick else LONG_DRIVE
+    cfg_path = Path(config_path) if config_path else None
+
+    log.info("bench classifier: simulating %d drives", len(train_specs) + len(test_specs) + 1)
+    train_drives = [_simulate(s, work) for s in train_specs]
+    test_drives = [_simulate(s, work) for s in test_specs + [long_spec]]
+
+    log.info("bench classifier: physics pipeline on the training drives (self-labelling)")
+    train_runs = []
+    for s, d in zip(train_specs, train_drives, strict=True):
+        run_dir = work / "runs" / s.name / "physics"
+        _timed_run(d, run_dir, cfg_path=cfg_path)
+        train_runs.append(run_dir)
+    ds_dir = work / "dataset"
+    if ds_dir.exists():
+        shutil.rmtree(ds_dir)
+    balance = label_drives(train_drives, ds_dir, cfg, runs=train_runs)
+    # how good are the self-labels? (the CNN can be no better than its teacher)
+    self_labels = {}
+    from roadsurf.formats import read_csv
+
+    rows = [r for r in read_csv(ds_dir / "labels.csv") if not r.get("augmentation")]
+    for s, d in zip(train_specs, train_drives, strict=True):
+        truth = _frame_labels(d / "truth" / "frame_labels.csv")
+        pred = {r["frame"]: int(r["label"]) for r in rows if Path(r["drive"]) == d}
+        self_labels[s.name] = score(pred, truth, {})
+        self_labels[s.name]["frames_labelled"] = len(pred)
+        self_labels[s.name]["frames_total"] = len(truth)
+
+    model_dir = work / "model"
+    meta = train(ds_dir, model_dir, cfg, resume=False)
+
+    results: dict[str, Any] = {}
+    for s, d in zip(test_specs + [long_spec], test_drives, strict=True):
+        truth = _frame_labels(d / "truth" / "frame_labels.csv")
+        dis = distractors_in_view(d)
+        phys = _timed_run(d, work / "runs" / s.name / "physics", cfg_path=cfg_path)
+        t0 = time.perf_counter()
+        probs = screen_drive(model_dir, d, cfg, progress=False)
+        t_cnn = time.perf_counter() - t0
+        fused = _timed_run(d, work / "runs" / s.name / "fused", model_dir, cfg_path)
+        phys_pred = _frame_labels(work / "runs" / s.name / "physics" / "frames.csv")
+        fused_pred = _frame_labels(work / "runs" / s.name / "fused" / "frames.csv")
+        sources = _frame_sources(work / "runs" / s.name / "fused" / "frames.csv")
+        cnn_pred = {f: int(p >= 0.5) for f, p in probs.items()}
+        n = len(truth)
+        results[s.name] = {
+            "spec": dataclasses.asdict(s),
+            "frames": n,
+            "defect_frames": int(sum(truth.values())),
+            "frames_with_distractor": sum(1 for v in dis.values() if v),
+            "cnn": {**score(cnn_pred, truth, dis), "s_per_frame": t_cnn / max(1, len(probs))},
+            "fused": {**score(fused_pred, truth, dis), "s_per_frame": fused["s_per_frame"]},
+            "physics": {**score(phys_pred, truth, dis), "s_per_frame": phys["s_per_frame"]},
+            "fused_sources": {k: list(sources.values()).count(k) for k in ("cnn", "3d", "fused")},
+            "pairs_reconstructed": {
+                "physics": phys["pairs_reconstructed"],
+                "fused": fused["pairs_reconstructed"],
+            },
+            "time_ratio_fused_over_physics": fused["s_per_frame"] / phys["s_per_frame"],
+        }
+    out = {
+        "machine_note": "see docs/benchmarks.md",
+        "quick": quick,
+        "config": dataclasses.asdict(cfg),
+        "balance": balance,
+        "self_labels_vs_truth": self_labels,
+        "model": {
+            "best_epoch": meta.get("best_epoch"),
+            "val_metrics": meta.get("metrics"),
+            "train_time_s": meta.get("train_time_s"),
+            "train_balance": meta.get("training_data", {}).get("train_balance"),
+        },
+        "tests": results,
+        "total_s": round(time.perf_counter() - t_all, 1),
+    }
+    write_json_atomic(work / "results.json", out)
+    write_text_atomic(work / "results.md", to_markdown(out))
+    return out
+
+
+def _pct(v: Any) -> str:
+    try:
+        return f"{100 * float(v):.1f}" if v == v else "n/a"
+    except (TypeError, ValueError):
+        return "n/a"
+
+
+def to_markdown(res: dict[str, Any]) -> str:
+    """Table 5.2-style markdown of ``bench_classifier`` results."""
+    lines = [
+        "| test drive | method | acc % | prec % | rec % | TP/TN/FP/FN | FP with lane/shadow/oil "
+        "| s per image |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for name, r in res["tests"].items():
+        for key, label in (
+            ("cnn", "image-only CNN"),
+            ("fused", "fused CNN+3D"),
+            ("physics", "3D only"),
+        ):
+            m = r[key]
+            fpd = m.get("fp_with_distractor", {})
+            lines.append(
+                f"| {name} ({r['defect_frames']}/{r['frames']} defect) | {label} | "
+                f"{_pct(m['accuracy'])} | {_pct(m['precision'])} | {_pct(m['recall'])} | "
+                f"{m['TP']}/{m['TN']}/{m['FP']}/{m['FN']} | "
+                f"{fpd.get('lane_marking', 0)}/{fpd.get('shadow', 0)}/{fpd.get('oil_stain', 0)} | "
+                f"{m['s_per_frame']:.3f} |"
+            )
+    lines.append("")
+    for name, r in res["tests"].items():
+        lines.append(
+            f"- {name}: fused/physics time = {r['time_ratio_fused_over_physics']:.2f}; fused "
+            f"sources {r['fused_sources']}; pairs reconstructed {r['pairs_reconstructed']}"
+        )
+    b = res["balance"]
+    lines.append(
+        f"- training set: before augmentation {b['before_augmentation']}, after "
+        f"{b['after_augmentation']}, dropped {b['dropped_frames']}"
+    )
+    for name, m in res["self_labels_vs_truth"].items():
+        lines.append(
+            f"- self-labels {name}: {m['frames_labelled']}/{m['frames_total']} frames labelled, "
+            f"accuracy {_pct(m['accuracy'])} %, precision {_pct(m['precision'])} %, "
+            f"recall {_pct(m['recall'])} % vs truth"
+        )
+    mm = res["model"]
+    lines.append(
+        f"- CNN: best epoch {mm['best_epoch']}, training {mm['train_time_s']} s, validation "
+        f"{json.dumps({k: v for k, v in (mm['val_metrics'] or {}).items() if k.startswith('val_') and k[4:] in ('accuracy', 'precision', 'recall')})}"
+    )
+    return "\n".join(lines) + "\n"
+
+
+def require_simulator() -> None:
+    try:
+        import simulation.scenarios  # noqa: F401
+    except ImportError as e:
+        raise RoadsurfError(f"bench classifier needs the simulator package ({e})") from e
