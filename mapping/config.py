@@ -12,6 +12,7 @@ from typing import Literal
 
 @dataclass(frozen=True)
 class MappingConfig:
+    overwrite: bool = False  # recompute even when the stage's artifacts exist (default: resume)
     # ---------------------------------------------------------------- poses (pose graph)
     gps_sigma_m: float = 1.0  # horizontal GPS σ (m) used when the log has no HDOP
     gps_sigma_per_hdop_m: float = 0.5  # σ = hdop × this (m) when HDOP is present (UERE-like)
@@ -51,4 +52,8 @@ class MappingConfig:
     surface_fill_px: int = 2  # close holes up to this many pixels in the surface raster (px)
     max_raster_px: int = 400_000_000  # refuse a single raster larger than this (px), tile instead
     preview_max_px: int = 2000  # longest side of the PNG previews (px)
+    surface_max_edge_m: float = (
+        0.10  # never interpolate the surface across a gap wider than this (m)
+    )
+    surface_edge_factor: float = 4.0  # ... nor wider than this × the median point spacing (−)
     colour_from_images: bool = True  # sample point colours from image a at px_a

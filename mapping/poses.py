@@ -82,8 +82,6 @@ def run(
     drive: Drive,
     pairs: list[Any],
     run_dir: str | Path,
-    *,
-    overwrite: bool = False,
 ) -> Trajectory:
     """Fuse GPS and pairs into the trajectory; writes RUN/poses.npz, reference.json,
     trajectory.geojson and poses_report.json. Resumes when the inputs did not change."""
@@ -92,7 +90,7 @@ def run(
     run_dir = Path(run_dir)
     key = _fingerprint(cfg, drive, pairs)
     rep_path = run_dir / POSES_REPORT
-    if not overwrite and (run_dir / "poses.npz").is_file() and rep_path.is_file():
+    if not cfg.overwrite and (run_dir / "poses.npz").is_file() and rep_path.is_file():
         try:
             if read_json(rep_path).get("fingerprint") == key:
                 log.info("poses: inputs unchanged, reusing %s", run_dir / "poses.npz")
@@ -111,7 +109,8 @@ def run(
 
 def _fingerprint(cfg: MappingConfig, drive: Drive, pairs: list[Any]) -> str:
     h = hashlib.sha256()
-    h.update(json.dumps(to_dict(cfg), sort_keys=True, default=str).encode())
+    c = {k: v for k, v in to_dict(cfg).items() if k != "overwrite"}
+    h.update(json.dumps(c, sort_keys=True, default=str).encode())
     h.update(json.dumps([(f.filename, f.timestamp_s) for f in drive.frames]).encode())
     if drive.gps is not None:
         for a in (drive.gps.timestamp_s, drive.gps.lat_deg, drive.gps.lon_deg, drive.gps.hdop):

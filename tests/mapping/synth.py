@@ -189,3 +189,40 @@ def make_synthetic(
         obd = ObdLog(timestamp_s=t.copy(), speed_mps=np.full(n, speed_mps) + rng.normal(0, 0.05, n))
     drive = Drive(root=root, camera=cam, frames=frames, gps=gps, obd=obd)
     return Synthetic(drive, pairs, W, REF, g_true)
+
+
+def texture(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Procedural asphalt-like RGB texture of ENU coordinates (metres) -> (..., 3) uint8."""
+    v = (
+        0.5
+        + 0.18 * np.sin(x * 37.0) * np.cos(y * 23.0)
+        + 0.12 * np.sin(x * 91.0 + y * 57.0)
+        + 0.1 * np.sign(np.sin(x * 7.0 + 1.3)) * np.sign(np.sin(y * 5.0))
+    )
+    v = np.clip(v, 0.02, 0.98)
+    return np.stack([v * 230, v * 220, v * 200], axis=-1).astype(np.uint8)
+
+
+def write_images(syn: Synthetic, root: Path, broken: tuple[int, ...] = ()) -> Synthetic:
+    """Render every frame (flat road z = 0, procedural texture) as PNG under root/frames; frames
+    in ``broken`` get a truncated file. Returns a Synthetic whose frames point there."""
+    import cv2
+
+    cam = syn.drive.camera
+    (root / "frames").mkdir(parents=True, exist_ok=True)
+    u, v = np.meshgrid(np.arange(cam.width, dtype=float), np.arange(cam.height, dtype=float))
+    rays = np.stack([(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, np.ones_like(u)], -1)
+    frames = []
+    for f, W in zip(syn.drive.frames, syn.world_from_cam, strict=True):
+        rw = rays @ W[:3, :3].T
+        lam = -W[2, 3] / rw[..., 2]
+        p = W[:3, 3] + lam[..., None] * rw
+        img = texture(p[..., 0], p[..., 1])
+        path = root / "frames" / f.filename
+        cv2.imwrite(str(path), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+        if f.index in broken:
+            path.write_bytes(path.read_bytes()[:60])
+        frames.append(Frame(f.index, f.filename, path, f.timestamp_s))
+    syn.drive.frames = frames
+    syn.drive.root = root
+    return syn

@@ -1,0 +1,347 @@
+"""Corridor rasters: a global tile lattice, per-tile ENU<->grid mapping, point gridding, windowed
+sparse GeoTIFF writing and a GDAL VRT index. Reusable outside the mapping stage (e.g. the SfM
+baseline): see ``corridor_tiles``, ``interpolate_to_grid``, ``grid_mean`` and ``TiledWriter``.
+
+The grid lives in the export CRS (the drive's UTM zone) or, without GPS, in the local ENU frame.
+Only tiles the corridor passes through exist; memory is bounded by one tile at a time.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+from xml.sax.saxutils import escape
+
+import numpy as np
+
+from roadsurf.formats import GridSpec
+from roadsurf.geometry import EnuReference, ExportFrame, enu_from_lla, lla_from_utm
+from roadsurf.io import atomic_path, write_text_atomic
+
+LOCAL_CRS = "LOCAL_ENU"  # grid CRS name without GPS (GeoTIFFs are then written without a CRS)
+
+
+@dataclass(frozen=True)
+class TileLattice:
+    """Fixed-size tiles on a global lattice: tile (r, c) has its top-left corner at
+    (x0 + c * tile_m, y0 - r * tile_m) in the grid CRS."""
+
+    crs: str
+    x0_m: float
+    y0_m: float
+    gsd_m: float
+    tile_px: int
+    n_rows: int  # tiles
+    n_cols: int
+
+    @property
+    def tile_m(self) -> float:
+        return self.tile_px * self.gsd_m
+
+    @property
+    def full_grid(self) -> GridSpec:
+        """The bounding grid of all tiles (only used as a sparse file layout, never allocated)."""
+        return GridSpec(
+            self.crs,
+            self.x0_m,
+            self.y0_m,
+            self.gsd_m,
+            self.n_cols * self.tile_px,
+            self.n_rows * self.tile_px,
+        )
+
+    def tile_grid(self, r: int, c: int) -> GridSpec:
+        return GridSpec(
+            self.crs,
+            self.x0_m + c * self.tile_m,
+            self.y0_m - r * self.tile_m,
+            self.gsd_m,
+            self.tile_px,
+            self.tile_px,
+        )
+
+    def tiles_of_xy(self, xy: np.ndarray) -> np.ndarray:
+        """(N, 2) grid-CRS points -> (N, 2) int tile (row, col)."""
+        xy = np.atleast_2d(xy)
+        col = np.floor((xy[:, 0] - self.x0_m) / self.tile_m).astype(int)
+        row = np.floor((self.y0_m - xy[:, 1]) / self.tile_m).astype(int)
+        return np.column_stack([row, col])
+
+
+def corridor_tiles(
+    xy_grid_m: np.ndarray, crs: str, gsd_m: float, tile_px: int
+) -> tuple[TileLattice, list[tuple[int, int]]]:
+    """Lattice aligned to multiples of the tile size, and the sorted tiles holding any of the
+    (N, 2) sample points (footprint samples, map points)."""
+    xy = np.asarray(xy_grid_m, float).reshape(-1, 2)
+    tile_m = tile_px * gsd_m
+    x0 = math.floor(xy[:, 0].min() / tile_m) * tile_m
+    y0 = math.ceil(xy[:, 1].max() / tile_m) * tile_m
+    n_cols = int(math.floor((xy[:, 0].max() - x0) / tile_m)) + 1
+    n_rows = int(math.floor((y0 - xy[:, 1].min()) / tile_m)) + 1
+    lat = TileLattice(crs, x0, y0, gsd_m, tile_px, n_rows, n_cols)
+    rc = lat.tiles_of_xy(xy)
+    tiles = sorted({(int(r), int(c)) for r, c in rc})
+    return lat, tiles
+
+
+class GridToEnu:
+    """Grid-CRS <-> ENU for one small area, as an affine fit to the exact pyproj transform
+    (sub-millimetre over a tile; the ENU frame is tangent, UTM is conformal)."""
+
+    def __init__(self, ref: EnuReference | None, epsg: int | None) -> None:
+        self.ref, self.epsg = ref, epsg
+
+    def affine_for(self, grid: GridSpec) -> np.ndarray:
+        """(2, 3) A with [e, n] = A @ [x, y, 1] over the tile's extent."""
+        if self.ref is None or self.epsg is None:
+            return np.array([[1.0, 0, 0], [0, 1.0, 0]])
+        xs = grid.x0_m + np.linspace(0, grid.width * grid.gsd_m, 3)
+        ys = grid.y0_m - np.linspace(0, grid.height * grid.gsd_m, 3)
+        X, Y = np.meshgrid(xs, ys)
+        lla = lla_from_utm(X.ravel(), Y.ravel(), self.epsg)
+        enu = enu_from_lla(lla[:, 0], lla[:, 1], 0.0, self.ref)
+        M = np.column_stack([X.ravel(), Y.ravel(), np.ones(X.size)])
+        A, *_ = np.linalg.lstsq(M - [grid.x0_m, grid.y0_m, 0], enu[:, :2], rcond=None)
+        # express relative to the tile corner for numerical safety
+        out = A.T.copy()
+        out[:, 2] -= out[:, 0] * grid.x0_m + out[:, 1] * grid.y0_m
+        return out
+
+    def pixel_enu(self, grid: GridSpec, rows: slice, cols: slice) -> tuple[np.ndarray, np.ndarray]:
+        """ENU east, north (H, W) of the pixel centres of a window of ``grid``."""
+        A = self.affine_for(grid)
+        r = np.arange(rows.start, rows.stop)
+        c = np.arange(cols.start, cols.stop)
+        x = grid.x0_m + (c + 0.5) * grid.gsd_m
+        y = grid.y0_m - (r + 0.5) * grid.gsd_m
+        X, Y = np.meshgrid(x, y)
+        e = A[0, 0] * X + A[0, 1] * Y + A[0, 2]
+        n = A[1, 0] * X + A[1, 1] * Y + A[1, 2]
+        return e, n
+
+
+def export_epsg(ef: ExportFrame | None) -> int | None:
+    return None if ef is None else ef.epsg
+
+
+# --------------------------------------------------------------------------- gridding
+
+
+def grid_mean(xy_grid_m: np.ndarray, values: np.ndarray, grid: GridSpec) -> np.ndarray:
+    """Mean of ``values`` per pixel of ``grid`` ((H, W) float32, NaN where empty). values may be
+    (N,) or (N, C) (then (H, W, C))."""
+    xy = np.atleast_2d(np.asarray(xy_grid_m, float))
+    v = np.asarray(values, float)
+    rc = np.floor(grid.rowcol_from_xy(xy) + 0.5).astype(np.int64)
+    ok = (rc[:, 0] >= 0) & (rc[:, 0] < grid.height) & (rc[:, 1] >= 0) & (rc[:, 1] < grid.width)
+    flat = rc[ok, 0] * grid.width + rc[ok, 1]
+    cnt = np.bincount(flat, minlength=grid.width * grid.height).astype(float)
+    v2 = v[ok].reshape(int(ok.sum()), -1)
+    out = np.full((grid.height * grid.width, v2.shape[1]), np.nan, np.float32)
+    has = cnt > 0
+    for ch in range(v2.shape[1]):
+        s = np.bincount(flat, weights=v2[:, ch], minlength=grid.width * grid.height)
+        out[has, ch] = s[has] / cnt[has]
+    out = out.reshape(grid.height, grid.width, v2.shape[1])
+    return out[..., 0] if v.ndim == 1 else out
+
+
+def interpolate_to_grid(
+    xy_grid_m: np.ndarray,
+    values: np.ndarray,
+    grid: GridSpec,
+    max_edge_m: float,
+    edge_factor: float = 4.0,
+    min_edge_m: float = 0.02,
+) -> np.ndarray:
+    """Piecewise-linear (Delaunay) interpolation of scattered (N,) values onto ``grid`` pixel
+    centres; triangles with an edge longer than min(max_edge_m, max(min_edge_m, edge_factor ×
+    median edge)) are holes. Returns (H, W) float32 with NaN where not interpolated."""
+    xy = np.atleast_2d(np.asarray(xy_grid_m, float))
+    v = np.asarray(values, float)
+    out = np.full((grid.height, grid.width), np.nan, np.float32)
+    if len(xy) < 3:
+        return out
+    # pixel coordinates (col, row) keep the triangulation well conditioned
+    rc = grid.rowcol_from_xy(xy)
+    pts = np.column_stack([rc[:, 1], rc[:, 0]])
+    pts, uniq = np.unique(np.round(pts, 3), axis=0, return_index=True)
+    v = v[uniq]
+    if len(pts) < 3 or np.ptp(pts[:, 0]) < 1 or np.ptp(pts[:, 1]) < 1:
+        return out
+    import matplotlib.tri as mtri
+
+    try:
+        tri = mtri.Triangulation(pts[:, 0], pts[:, 1])
+    except (ValueError, RuntimeError):  # degenerate (collinear) input: nothing to interpolate
+        return out
+    s = tri.triangles
+    e = np.stack(
+        [
+            np.linalg.norm(pts[s[:, 0]] - pts[s[:, 1]], axis=1),
+            np.linalg.norm(pts[s[:, 1]] - pts[s[:, 2]], axis=1),
+            np.linalg.norm(pts[s[:, 2]] - pts[s[:, 0]], axis=1),
+        ],
+        axis=1,
+    ).max(1)
+    thr_m = min(max_edge_m, max(min_edge_m, edge_factor * float(np.median(e)) * grid.gsd_m))
+    tri.set_mask(e * grid.gsd_m > thr_m)
+    # only pixels inside the triangulation's bounding box
+    c0, r0 = np.floor(pts.min(0)).astype(int)
+    c1, r1 = np.ceil(pts.max(0)).astype(int)
+    c0, r0 = max(c0, 0), max(r0, 0)
+    c1, r1 = min(c1, grid.width - 1), min(r1, grid.height - 1)
+    if c1 < c0 or r1 < r0:
+        return out
+    C, R = np.meshgrid(np.arange(c0, c1 + 1, dtype=float), np.arange(r0, r1 + 1, dtype=float))
+    z = mtri.LinearTriInterpolator(tri, v)(C, R)
+    out[r0 : r1 + 1, c0 : c1 + 1] = np.ma.filled(z.astype(np.float32), np.nan)
+    return out
+
+
+# --------------------------------------------------------------------------- writing
+
+
+def _profile(grid: GridSpec, count: int, dtype: str, nodata: float | None) -> dict[str, Any]:
+    prof: dict[str, Any] = {
+        "driver": "GTiff",
+        "width": grid.width,
+        "height": grid.height,
+        "count": count,
+        "dtype": dtype,
+        "crs": None if grid.crs == LOCAL_CRS else grid.crs,
+        "transform": grid.transform,
+        "compress": "deflate",
+        "tiled": True,
+        "blockxsize": 256,
+        "blockysize": 256,
+        "SPARSE_OK": "TRUE",
+        "BIGTIFF": "IF_SAFER",
+    }
+    if count >= 3 and dtype == "uint8":
+        prof["photometric"] = "RGB"
+    if nodata is not None:
+        prof["nodata"] = nodata
+    return prof
+
+
+class TiledWriter:
+    """Writes one raster product (e.g. surface) tile by tile: per-tile GeoTIFFs under
+    ``tiles/`` plus, when the bounding grid is small enough, one sparse ``<name>.tif`` written
+    window by window (empty tiles are never stored). ``close`` writes ``<name>.vrt``."""
+
+    def __init__(
+        self,
+        run_dir: Path,
+        name: str,
+        lattice: TileLattice,
+        count: int,
+        dtype: str,
+        nodata: float | None,
+        write_tiles: bool,
+        write_full: bool,
+        tags: dict[str, str] | None = None,
+    ) -> None:
+        import rasterio
+
+        self.run_dir, self.name, self.lat = run_dir, name, lattice
+        self.count, self.dtype, self.nodata = count, dtype, nodata
+        self.write_tiles, self.tags = write_tiles, tags or {}
+        self.tile_files: list[tuple[int, int, str]] = []
+        self._stack = contextlib.ExitStack()
+        self._full = None
+        if write_full:
+            tmp = self._stack.enter_context(atomic_path(run_dir / f"{name}.tif"))
+            self._full = self._stack.enter_context(
+                rasterio.open(tmp, "w", **_profile(lattice.full_grid, count, dtype, nodata))
+            )
+            if self.tags:
+                self._full.update_tags(**self.tags)
+
+    def write(self, r: int, c: int, data: np.ndarray) -> None:
+        """data: (H, W) or (H, W, C) for tile (r, c)."""
+        import rasterio
+        from rasterio.windows import Window
+
+        bands = data[None] if data.ndim == 2 else np.moveaxis(data, 2, 0)
+        if self._full is not None:
+            tp = self.lat.tile_px
+            self._full.write(bands, window=Window(c * tp, r * tp, tp, tp))
+        if self.write_tiles:
+            rel = f"tiles/{self.name}_{r:04d}_{c:04d}.tif"
+            grid = self.lat.tile_grid(r, c)
+            with atomic_path(self.run_dir / rel) as tmp:
+                with rasterio.open(
+                    tmp, "w", **_profile(grid, self.count, self.dtype, self.nodata)
+                ) as d:
+                    d.write(bands)
+            self.tile_files.append((r, c, rel))
+
+    def close(self) -> None:
+        self._stack.close()
+        if self.write_tiles:
+            write_vrt(
+                self.run_dir / f"{self.name}.vrt",
+                self.lat,
+                self.tile_files,
+                self.count,
+                self.dtype,
+                self.nodata,
+            )
+
+    def abort(self) -> None:
+        with contextlib.suppress(Exception):
+            self._stack.__exit__(RuntimeError, RuntimeError("aborted"), None)
+
+
+_GDAL_TYPES = {"float32": "Float32", "uint8": "Byte", "float64": "Float64", "int16": "Int16"}
+
+
+def write_vrt(
+    path: Path,
+    lat: TileLattice,
+    tiles: list[tuple[int, int, str]],
+    count: int,
+    dtype: str,
+    nodata: float | None,
+) -> Path:
+    """A GDAL VRT mosaic of the tile files (paths relative to the VRT)."""
+    from rasterio.crs import CRS
+
+    g = lat.full_grid
+    srs = "" if g.crs == LOCAL_CRS else f"  <SRS>{escape(CRS.from_string(g.crs).to_wkt())}</SRS>\n"
+    lines = [
+        f'<VRTDataset rasterXSize="{g.width}" rasterYSize="{g.height}">',
+        srs.rstrip("\n") if srs else "",
+        f"  <GeoTransform>{g.x0_m!r}, {g.gsd_m!r}, 0.0, {g.y0_m!r}, 0.0, {-g.gsd_m!r}</GeoTransform>",
+    ]
+    colour = ["Red", "Green", "Blue", "Alpha"]
+    for b in range(1, count + 1):
+        lines.append(f'  <VRTRasterBand dataType="{_GDAL_TYPES[dtype]}" band="{b}">')
+        if nodata is not None:
+            nd = "nan" if isinstance(nodata, float) and math.isnan(nodata) else repr(nodata)
+            lines.append(f"    <NoDataValue>{nd}</NoDataValue>")
+        if count >= 3:
+            lines.append(f"    <ColorInterp>{colour[b - 1]}</ColorInterp>")
+        for r, c, rel in tiles:
+            tp = lat.tile_px
+            lines += [
+                "    <SimpleSource>",
+                f'      <SourceFilename relativeToVRT="1">{escape(rel)}</SourceFilename>',
+                f"      <SourceBand>{b}</SourceBand>",
+                f'      <SrcRect xOff="0" yOff="0" xSize="{tp}" ySize="{tp}"/>',
+                f'      <DstRect xOff="{c * tp}" yOff="{r * tp}" xSize="{tp}" ySize="{tp}"/>',
+                "    </SimpleSource>",
+            ]
+        lines.append("  </VRTRasterBand>")
+    lines.append("</VRTDataset>")
+    return write_text_atomic(path, "\n".join(x for x in lines if x) + "\n")
+
+
+def file_size_mb(path: Path) -> float:
+    return os.path.getsize(path) / 1e6 if path.exists() else 0.0
