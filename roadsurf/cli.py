@@ -34,7 +34,7 @@ def _main(
 
 @app.command()
 def simulate(
-    out: Out,
+    out: Annotated[Path | None, typer.Option("--out", "-o", help="Output folder.")] = None,
     scenario: Annotated[
         str, typer.Option(help="Named scenario (see `roadsurf simulate --list`).")
     ] = "potholes",
@@ -42,19 +42,53 @@ def simulate(
         int | None, typer.Option(help="Random seed (default: the scenario's own).")
     ] = None,
     frames: Annotated[int | None, typer.Option(help="Override the number of frames.")] = None,
+    set_: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--set",
+            help="Override a simulator parameter, e.g. --set texture=brick --set greyscale=true "
+            "(see docs/simulator.md; values are parsed as YAML).",
+        ),
+    ] = None,
     list_scenarios: Annotated[
         bool, typer.Option("--list", help="List scenarios and exit.")
     ] = False,
 ) -> None:
     """Render a photo-textured drive with ground truth in the drive format."""
+    import yaml
+
     from simulation import scenarios
 
     if list_scenarios:
         for name, desc in scenarios.describe().items():
             typer.echo(f"{name:12s} {desc}")
         return
-    res = scenarios.simulate(scenario, out, seed=seed, n_frames=frames)
+    if out is None:
+        raise typer.BadParameter("--out is required (the folder to write the drive to)")
+    overrides = {}
+    for item in set_ or []:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise typer.BadParameter(f"--set expects key=value, got {item!r}")
+        overrides[key.strip()] = yaml.safe_load(value)
+    res = scenarios.simulate(scenario, out, seed=seed, n_frames=frames, **overrides)
     typer.echo(f"Wrote drive '{scenario}' to {res}")
+
+
+@bench_app.command("render")
+def bench_render(
+    scenario: Annotated[str, typer.Option(help="Scenario to render.")] = "sample",
+    frames: Annotated[int, typer.Option(help="Frames to render (in memory).")] = 20,
+    width: Annotated[int, typer.Option(help="Image width (px).")] = 640,
+    height: Annotated[int, typer.Option(help="Image height (px).")] = 480,
+) -> None:
+    """Simulator render time per frame (world tiles, ray casting, sensor, encoding)."""
+    from simulation.bench import bench_render as _bench
+
+    fx = 600.0 * width / 640.0
+    res = _bench(scenario, frames, width=width, height=height, fx=fx)
+    for k, v in res.items():
+        typer.echo(f"{k:22s} {v:.3f}" if isinstance(v, float) else f"{k:22s} {v}")
 
 
 @app.command()

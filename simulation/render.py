@@ -13,6 +13,7 @@ times the ray's tangent stays below 1, which holds for the bowls and grooves ren
 from __future__ import annotations
 
 import math
+import time
 from collections import OrderedDict
 from dataclasses import dataclass
 
@@ -42,6 +43,8 @@ class Renderer:
         self.ss = max(1, int(c.supersample))
         self.cache: OrderedDict[tuple[int, int], tuple[np.ndarray, ...]] = OrderedDict()
         self.cache_tiles = cache_tiles
+        self.tile_seconds = 0.0  # time spent evaluating world tiles (for benchmarks)
+        self.tiles_made = 0
         W, H = c.width * self.ss, c.height * self.ss
         u = (np.arange(W, dtype=np.float64) + 0.5) / self.ss - 0.5
         v = (np.arange(H, dtype=np.float64) + 0.5) / self.ss - 0.5
@@ -59,6 +62,7 @@ class Renderer:
         if key in self.cache:
             self.cache.move_to_end(key)
             return self.cache[key]
+        t_start = time.perf_counter()
         g, n = self.g, TILE
         x0 = a * n * g - g
         y_top = -b * n * g + g
@@ -79,6 +83,8 @@ class Renderer:
             np.ascontiguousarray(f["depth"][1:-1, 1:-1], dtype=np.float32),
         )
         self.cache[key] = tile
+        self.tiles_made += 1
+        self.tile_seconds += time.perf_counter() - t_start
         while len(self.cache) > self.cache_tiles:
             self.cache.popitem(last=False)
         return tile

@@ -10,6 +10,7 @@ block, and memory scales with the road corridor, never with the bounding box of 
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from dataclasses import dataclass, field
@@ -464,16 +465,24 @@ def _place_features(world: World, rng: np.random.Generator) -> None:
         _, _, x, y = sp
         b = _blob(rng, x, y, r, irregular)
         occupied.append((x, y, b.r_max))
+        pot = Pothole(
+            shape=b,
+            depth_m=float(depths[i]),
+            power=float(rng.uniform(2.5, 5.0)),
+            tilt=(float(rng.uniform(-0.15, 0.15)), float(rng.uniform(-0.15, 0.15))),
+            rough_m=float(0.06 * depths[i] + 0.001),
+            darken=float(rng.uniform(0.55, 0.8)),
+            seed=int(rng.integers(0, 2**31)),
+        )
+        # Tilt and roughness add to the nominal depth: rescale so the true maximum is the drawn
+        # depth (the profile is linear in depth_m and rough_m, so the maximum scales exactly).
+        x0b, y0b, x1b, y1b = b.bbox(0.002)
+        gx, gy = np.meshgrid(
+            np.arange(x0b, x1b, 0.001) + 0.0005, np.arange(y0b, y1b, 0.001) + 0.0005
+        )
+        f = float(depths[i]) / max(float(pot.depth(gx, gy).max()), 1e-6)
         world.potholes.append(
-            Pothole(
-                shape=b,
-                depth_m=float(depths[i]),
-                power=float(rng.uniform(2.5, 5.0)),
-                tilt=(float(rng.uniform(-0.15, 0.15)), float(rng.uniform(-0.15, 0.15))),
-                rough_m=float(0.06 * depths[i] + 0.001),
-                darken=float(rng.uniform(0.55, 0.8)),
-                seed=int(rng.integers(0, 2**31)),
-            )
+            dataclasses.replace(pot, depth_m=pot.depth_m * f, rough_m=pot.rough_m * f)
         )
 
     for i in range(cfg.n_cracks):

@@ -1,0 +1,179 @@
+"""Image-level simulator: determinism, truth/pixel agreement, drive format, truth files."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import rasterio
+from pyproj import Transformer
+
+from roadsurf.drive import load_drive, read_gray
+from roadsurf.errors import ConfigError
+from roadsurf.formats import read_csv, read_geojson, read_geotiff
+from simulation.scenarios import describe, simulate
+
+# Tiny drives: 240x180 px with the default footprint (fx scaled), 6 frames.
+TINY = {"width": 240, "height": 180, "fx": 225.0, "progress": False}
+
+
+@pytest.fixture(scope="module")
+def tiny_drive(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("sim") / "drive"
+    return simulate("potholes", out, seed=11, n_frames=6, **TINY)
+
+
+def _files(root: Path) -> dict[str, bytes]:
+    return {
+        str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()
+    }
+
+
+def test_same_seed_same_bytes(tiny_drive: Path, tmp_path: Path) -> None:
+    again = simulate("potholes", tmp_path / "again", seed=11, n_frames=6, **TINY)
+    a, b = _files(tiny_drive), _files(again)
+    assert sorted(a) == sorted(b)
+    different = [k for k in a if a[k] != b[k]]
+    assert different == []
+    other = simulate("potholes", tmp_path / "other", seed=12, n_frames=6, **TINY)
+    assert _files(other)["frames/frame_000000.jpg"] != a["frames/frame_000000.jpg"]
+
+
+def test_drive_passes_loader(tiny_drive: Path) -> None:
+    drive = load_drive(tiny_drive)
+    assert len(drive.frames) == 6
+    assert drive.skipped == []
+    assert drive.camera.width == 240 and drive.camera.height_m == pytest.approx(1.1)
+    assert drive.gps is not None and drive.obd is not None
+    # GPS at a lower rate than the camera, covering the frame times.
+    fps = drive.camera.fps
+    gps_rate = (len(drive.gps) - 1) / (drive.gps.timestamp_s[-1] - drive.gps.timestamp_s[0])
+    assert gps_rate < fps
+    assert drive.gps.timestamp_s[0] < drive.frames[0].timestamp_s
+    assert drive.gps.timestamp_s[-1] > drive.frames[-1].timestamp_s
+    assert read_gray(drive.frames[0]).shape == (180, 240)
+
+
+def test_truth_files_georeferenced(tiny_drive: Path) -> None:
+    truth = tiny_drive / "truth"
+    sc = json.loads((truth / "scenario.json").read_text())
+    assert sc["crs"].startswith("EPSG:326") and sc["seed"] == 11 and sc["n_frames"] == 6
+    with rasterio.open(truth / "height.tif") as src:
+        assert str(src.crs) == sc["crs"]
+        assert src.dtypes[0] == "float32"
+    height, grid, nodata = read_geotiff(truth / "height.tif")
+    resid, grid_r, _ = read_geotiff(truth / "residual.tif")
+    assert grid == grid_r and nodata is not None and math.isnan(nodata)
+    assert 0.002 <= grid.gsd_m <= 0.005
+    valid = np.isfinite(height)
+    assert 0.05 < valid.mean() < 1.0  # corridor only, nodata outside
+    assert np.array_equal(valid, np.isfinite(resid))
+    assert abs(float(np.nanmedian(resid))) < 0.003  # the road itself sits at residual ~0
+
+    # poses.csv: lat/lon agree with easting/northing through pyproj.
+    rows = read_csv(truth / "poses.csv")
+    assert [r["filename"] for r in rows] == [f"frame_{k:06d}.jpg" for k in range(6)]
+    tr = Transformer.from_crs(sc["crs"], "EPSG:4326", always_xy=True)
+    for r in rows:
+        lon, lat = tr.transform(float(r["easting_m"]), float(r["northing_m"]))
+        assert lon == pytest.approx(float(r["lon_deg"]), abs=1e-8)
+        assert lat == pytest.approx(float(r["lat_deg"]), abs=1e-8)
+        q = np.array([float(r[k]) for k in ("qw", "qx", "qy", "qz")])
+        assert np.linalg.norm(q) == pytest.approx(1.0, abs=1e-6)
+        # Camera about 1.1 m above the smooth road (height - residual) below it.
+        rc = grid.rowcol_from_xy(np.array([[float(r["easting_m"]), float(r["northing_m"])]]))[0]
+        ij = int(round(rc[0])), int(round(rc[1]))
+        assert float(r["up_m"]) - (height[ij] - resid[ij]) == pytest.approx(1.1, abs=0.02)
+
+    # Defects: RFC 7946 polygons whose residual really is deep inside.
+    fc = read_geojson(truth / "defects.geojson")
+    pots = [f for f in fc["features"] if f["properties"]["type"] == "pothole"]
+    assert pots, "the potholes scenario must place at least one pothole in 6 frames"
+    for f in pots:
+        p = f["properties"]
+        assert 0.015 <= p["max_depth_m"] <= 0.08 + 1e-9
+        assert p["area_m2"] > 0 and p["volume_m3"] > 0 and p["length_m"] >= p["width_m"]
+        lon, lat = tr.transform(p["centroid_e_m"], p["centroid_n_m"])
+        assert lon == pytest.approx(p["centroid_lon"], abs=1e-8)
+        rc = grid.rowcol_from_xy(np.array([[p["centroid_e_m"], p["centroid_n_m"]]]))[0]
+        r0, c0 = int(round(rc[0])), int(round(rc[1]))
+        win = resid[max(0, r0 - 5) : r0 + 6, max(0, c0 - 5) : c0 + 6]
+        if np.isfinite(win).any():
+            assert np.nanmin(win) < -0.3 * p["max_depth_m"]
+    dist = read_geojson(truth / "distractors.geojson")
+    assert all(f["properties"]["max_depth_m"] == 0 for f in dist["features"])
+
+    labels = read_csv(truth / "frame_labels.csv")
+    assert len(labels) == 6 and set(labels[0]) == {
+        "filename", "defect", "defect_area_cm2", "max_depth_m"
+    }  # fmt: skip
+    for lab in labels:
+        assert int(lab["defect"]) == int(float(lab["defect_area_cm2"]) >= 20.0)
+
+
+def _project(row: dict[str, str], e: float, n: float, up: float, cam) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    q = [float(row[k]) for k in ("qx", "qy", "qz", "qw")]
+    R = Rotation.from_quat(q).as_matrix()  # world (E, N, U grid axes) from camera
+    C = np.array([float(row["easting_m"]), float(row["northing_m"]), float(row["up_m"])])
+    Xc = R.T @ (np.array([e, n, up]) - C)
+    return np.array([cam.fx * Xc[0] / Xc[2] + cam.cx, cam.fy * Xc[1] / Xc[2] + cam.cy])
+
+
+def test_rendered_pothole_appears_where_truth_says(tmp_path: Path) -> None:
+    """Render with one pothole and without it (same seed, nothing else placed): the pixels that
+    change must sit where the true pose projects the truth centroid, and be darker there."""
+    kw = dict(
+        TINY, n_potholes=1, n_cracks=0, n_ruts=0, n_lane_markings=0, n_shadows=0, n_oil_stains=0
+    )
+    with_p = simulate("potholes", tmp_path / "p", seed=5, n_frames=6, **kw)
+    kw["n_potholes"] = 0
+    without = simulate("potholes", tmp_path / "n", seed=5, n_frames=6, **kw)
+    drive = load_drive(with_p)
+    cam = drive.camera
+    pot = read_geojson(with_p / "truth" / "defects.geojson")["features"][0]["properties"]
+    height, grid, _ = read_geotiff(with_p / "truth" / "height.tif")
+    poses = read_csv(with_p / "truth" / "poses.csv")
+    rc = grid.rowcol_from_xy(np.array([[pot["centroid_e_m"], pot["centroid_n_m"]]]))[0]
+    up = float(height[int(round(rc[0])), int(round(rc[1]))])
+    # The frame that sees the pothole centroid closest to the image centre.
+    uv = [_project(r, pot["centroid_e_m"], pot["centroid_n_m"], up, cam) for r in poses]
+    k = int(np.argmin([np.hypot(u - cam.cx, v - cam.cy) for u, v in uv]))
+    u, v = uv[k]
+    assert 0 <= u < cam.width and 0 <= v < cam.height
+    a = cv2.imread(str(with_p / "frames" / poses[k]["filename"]), cv2.IMREAD_GRAYSCALE)
+    b = cv2.imread(str(without / "frames" / poses[k]["filename"]), cv2.IMREAD_GRAYSCALE)
+    diff = np.abs(a.astype(np.float32) - b.astype(np.float32))
+    diff = cv2.GaussianBlur(diff, (0, 0), 2.0)
+    changed = diff > 0.5 * diff.max()
+    ys, xs = np.nonzero(changed)
+    # Centre of the changed region vs the projected truth centroid (px; the outline is irregular).
+    radius_px = math.sqrt(pot["area_m2"] / math.pi) * cam.fx / cam.height_m
+    assert math.hypot(xs.mean() - u, ys.mean() - v) < max(6.0, 0.5 * radius_px)
+    r = max(2, int(0.4 * radius_px))
+    ui, vi = int(round(u)), int(round(v))
+    inside = a[max(0, vi - r) : vi + r + 1, max(0, ui - r) : ui + r + 1].astype(float).mean()
+    same_place = b[max(0, vi - r) : vi + r + 1, max(0, ui - r) : ui + r + 1].astype(float).mean()
+    assert inside < same_place - 10  # darker inside the pothole than the intact road
+    labels = {x["filename"]: x for x in read_csv(with_p / "truth" / "frame_labels.csv")}
+    if pot["max_depth_m"] > 0.02 and pot["area_m2"] > 0.01:
+        assert labels[poses[k]["filename"]]["defect"] == "1"
+    assert all(x["defect"] == "0" for x in read_csv(without / "truth" / "frame_labels.csv"))
+
+
+def test_greyscale_png_and_unknown_override(tmp_path: Path) -> None:
+    out = simulate("flat", tmp_path / "g", n_frames=2, greyscale=True, image_format="png", **TINY)
+    img = cv2.imread(str(out / "frames" / "frame_000000.png"), cv2.IMREAD_UNCHANGED)
+    assert img.ndim == 2 and img.dtype == np.uint8
+    with pytest.raises(ConfigError):
+        simulate("flat", tmp_path / "x", n_frames=2, no_such_param=1)
+    with pytest.raises(ConfigError):
+        simulate("no-such-scenario", tmp_path / "y")
+    assert {"flat", "potholes", "vibration", "rough-gps", "highway", "long", "sample"} <= set(
+        describe()
+    )
