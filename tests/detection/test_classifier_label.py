@@ -142,3 +142,48 @@ def test_frame_figures_and_labels_from_pairs(tmp_path: Path) -> None:
 def _read_labels(path: Path) -> list[dict[str, str]]:
     with open(path, newline="") as f:
         return list(csv.DictReader(f))
+
+
+def test_labelling_a_rendered_drive_agrees_with_truth_on_clear_cases(tmp_path: Path) -> None:
+    """Simulate a tiny drive, let `label` run the physics pipeline, compare with truth."""
+    scenarios = pytest.importorskip("simulation.scenarios")
+    from detection.classifier.dataset import label_drives
+
+    drive = scenarios.simulate(
+        "potholes",
+        tmp_path / "drive",
+        seed=5,
+        n_frames=10,
+        width=320,
+        height=240,
+        fx=300.0,
+        progress=False,
+    )
+    bal = label_drives(
+        [drive], tmp_path / "ds", ClassifierConfig(store_size_px=64, augment_target_ratio=4.0)
+    )
+    truth = {r["filename"]: r for r in _read_labels(drive / "truth" / "frame_labels.csv")}
+    rows = _read_labels(tmp_path / "ds" / "labels.csv")
+    orig = [r for r in rows if not r["augmentation"]]
+    assert len(orig) >= 6  # most frames get a confident label
+    agree = clear = 0
+    for r in orig:
+        t = truth[r["frame"]]
+        area, depth = float(t["defect_area_cm2"]), float(t["max_depth_m"])
+        want = 1 if area >= 200 and depth >= 0.02 else 0 if area == 0 and depth < 0.008 else None
+        if want is not None:  # a clear case in the truth
+            clear += 1
+            agree += int(r["label"]) == want
+        assert r["rule"] == "physics+depth+extent" and Path(r["run"]).is_dir()
+    # the labels can be no better than the 3D teacher; it may miss a frame, not most of them
+    assert clear >= 5 and agree >= 0.8 * clear, (agree, clear)
+    assert (
+        bal["before_augmentation"]["defect"] >= 3 and bal["before_augmentation"]["non-defect"] >= 1
+    )
+    # augmentation copies point back to their source image and exist on disk
+    aug = [r for r in rows if r["augmentation"]]
+    assert aug and all((tmp_path / "ds" / r["image"]).is_file() for r in aug)
+    assert all(r["source_image"] in {o["image"] for o in orig} for r in aug)
+    assert bal["after_augmentation"]["defect"] == bal["before_augmentation"]["defect"] + len(aug)
+    img = cv2.imread(str(tmp_path / "ds" / orig[0]["image"]), cv2.IMREAD_UNCHANGED)
+    assert img.shape == (64, 64) and img.dtype == np.uint8
