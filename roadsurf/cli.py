@@ -99,8 +99,9 @@ def run(
         Path | None, typer.Option(help="YAML config; top-level keys are stage names.")
     ] = None,
     method: Annotated[
-        str, typer.Option(help="Reconstruction method (proposed, rotation_aware, classic, ...).")
-    ] = "proposed",
+        str | None,
+        typer.Option(help="Reconstruction method: proposed, rotation_aware (default), classic."),
+    ] = None,
     classifier: Annotated[
         Path | None, typer.Option(help="CNN model file: screen frames, reconstruct only unsure.")
     ] = None,
@@ -217,6 +218,26 @@ def train(
         f"val accuracy {m.get('val_accuracy')}, precision {m.get('val_precision')}, "
         f"recall {m.get('val_recall')}; {meta.get('train_time_s')} s"
     )
+
+
+@bench_app.command("classifier")
+def bench_classifier(
+    work: Annotated[
+        Path, typer.Option(help="Work folder (drives, runs, dataset, model, results).")
+    ] = Path("out/bench_classifier"),
+    quick: Annotated[bool, typer.Option("--quick", help="Shorter drives (smoke run).")] = False,
+    config: Annotated[
+        Path | None, typer.Option(help="YAML config for the pipeline and the classifier.")
+    ] = None,
+    epochs: Annotated[int | None, typer.Option(help="Training epochs.")] = None,
+    lr: Annotated[float | None, typer.Option(help="Learning rate.")] = None,
+) -> None:
+    """CNN vs fused CNN+3D vs 3D-only on unseen simulator drives (Table 5.2, Fig. 5.5)."""
+    from detection.classifier import commands
+
+    res = commands.bench(work, quick=quick, config_path=config, epochs=epochs, learning_rate=lr)
+    typer.echo((Path(work) / "results.md").read_text(encoding="utf-8"))
+    typer.echo(f"Total {res['total_s']} s; details in {work}/results.json")
 
 
 RunDir = Annotated[Path, typer.Argument(help="Run folder written by `roadsurf run --out`.")]
