@@ -101,24 +101,24 @@ def pose_proposed(
     the current R and t (t re-solved from the epipolar constraint with R fixed) until t settles.
     Returns (R, unit t, iterations used).
     """
-    Ki = np.linalg.inv(K)
     xa, xb = g.normalised_from_px(px_a, K), g.normalised_from_px(px_b, K)
     e_px = np.append(px_b.mean(axis=0) - px_a.mean(axis=0), 0.0)  # homogeneous difference
     F = g.skew(e_px) @ H
+    E = K.T @ F @ K
+    R, t, n_front = g.decompose_essential(E, xa, xb)
+    if n_front <= 0:
+        raise PairFailure("geometry_failed", "no cheirality-valid pose from E = K^T F K")
     n_it = 0
-    t_prev = None
-    R, t = np.eye(3), Ki @ e_px
-    for it in range(1, max(1, cfg.f_iterations) + 1):
+    for it in range(1, cfg.f_iterations + 1):  # f_iterations = 0: the single pass (R ≈ I)
         n_it = it
-        E = K.T @ F @ K
-        R, t, n_front = g.decompose_essential(E, xa, xb)
+        t_new = _t_from_rotation(xa, xb, R, t)
+        converged = np.linalg.norm(t_new - t) < cfg.f_tol
+        F = g.skew(K @ t_new) @ H  # F = [e']x H with the epipole e' = K t
+        R, t, n_front = g.decompose_essential(K.T @ F @ K, xa, xb)
         if n_front <= 0:
-            raise PairFailure("geometry_failed", "no cheirality-valid pose from E = K^T F K")
-        t = _t_from_rotation(xa, xb, R, t)
-        if t_prev is not None and np.linalg.norm(t - t_prev) < cfg.f_tol:
+            raise PairFailure("geometry_failed", "no cheirality-valid pose in the F rebuild loop")
+        if converged:
             break
-        t_prev = t
-        F = g.skew(K @ t) @ H  # F = [e']x H with the epipole e' = K t
     return R, t / np.linalg.norm(t), n_it
 
 

@@ -83,19 +83,23 @@ def match(fa: Features, fb: Features, cfg: FeatureConfig) -> tuple[np.ndarray, n
     if len(fa.keypoints_px) < 2 or len(fb.keypoints_px) < 2:
         return np.zeros(0, int), np.zeros(0, int)
     binary = fa.descriptors.dtype == np.uint8
-    norm = cv2.NORM_HAMMING if binary else cv2.NORM_L2
-    bf = cv2.BFMatcher(norm)
     da, db = fa.descriptors, fb.descriptors
+    if binary or cfg.matcher == "bf":
+        bf = cv2.BFMatcher(cv2.NORM_HAMMING if binary else cv2.NORM_L2)
+    else:
+        cv2.setRNGSeed(0)  # FLANN's randomised trees: same matches on every run
+        bf = cv2.FlannBasedMatcher({"algorithm": 1, "trees": 4}, {"checks": int(cfg.flann_checks)})
+        da = np.ascontiguousarray(da, dtype=np.float32)
+        db = np.ascontiguousarray(db, dtype=np.float32)
     knn = bf.knnMatch(da, db, k=2)
-    ia, ib, ratio_ok = [], [], []
-    for m in knn:
-        if len(m) < 2:
-            continue
-        ia.append(m[0].queryIdx)
-        ib.append(m[0].trainIdx)
-        ratio_ok.append(m[0].distance < cfg.ratio * m[1].distance)
-    ia_a, ib_a = np.array(ia, int), np.array(ib, int)
-    keep = np.array(ratio_ok, bool)
+    pairs = [
+        (m[0].queryIdx, m[0].trainIdx, m[0].distance, m[1].distance) for m in knn if len(m) >= 2
+    ]
+    if not pairs:
+        return np.zeros(0, int), np.zeros(0, int)
+    arr = np.array(pairs, dtype=np.float64)
+    ia_a, ib_a = arr[:, 0].astype(int), arr[:, 1].astype(int)
+    keep = arr[:, 2] < cfg.ratio * arr[:, 3]
     if cfg.mutual and len(ia_a):
         back = bf.match(db, da)
         best_a = np.full(len(db), -1, int)

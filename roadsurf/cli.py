@@ -91,6 +91,45 @@ def bench_render(
         typer.echo(f"{k:22s} {v:.3f}" if isinstance(v, float) else f"{k:22s} {v}")
 
 
+@bench_app.command("reconstruction")
+def bench_reconstruction(
+    out: Annotated[
+        Path, typer.Option("--out", "-o", help="Folder for CSV, figures, summary.md.")
+    ] = Path("docs/img/reconstruction"),
+    quick: Annotated[bool, typer.Option(help="Fewer cells, trials and frames.")] = False,
+    trials: Annotated[int | None, typer.Option(help="Monte-Carlo trials per cell.")] = None,
+    workers: Annotated[int, typer.Option(help="Worker processes.")] = 2,
+    images: Annotated[bool, typer.Option(help="Also evaluate rendered drives.")] = True,
+    frames: Annotated[int | None, typer.Option(help="Frames per rendered drive.")] = None,
+) -> None:
+    """Parametric study (Figs. 3.6-3.12, bound, targets) and rendered-drive accuracy."""
+    from reconstruction.bench import bench_reconstruction as _bench
+
+    typer.echo(
+        _bench(out, quick=quick, trials=trials, workers=workers, images=images, frames=frames)
+    )
+
+
+@bench_app.command("speed")
+def bench_speed(
+    out: Annotated[Path, typer.Option("--out", "-o", help="Work/output folder.")] = Path(
+        "out/bench_speed"
+    ),
+    frames: Annotated[int, typer.Option(help="Frames of the timed drive.")] = 60,
+    repeats: Annotated[int, typer.Option(help="Repeats of the single-pair timing.")] = 5,
+    max_features: Annotated[int, typer.Option(help="Keypoints per frame.")] = 3000,
+    features: Annotated[str, typer.Option(help="sift | orb | akaze")] = "sift",
+) -> None:
+    """Reconstruction speed: one 1024x768 pair (breakdown) and pairs/s over a drive."""
+    from reconstruction.bench import bench_speed_report
+
+    typer.echo(
+        bench_speed_report(
+            out, frames=frames, repeats=repeats, max_features=max_features, kind=features
+        )
+    )
+
+
 @app.command()
 def run(
     drive: Annotated[Path, typer.Argument(help="Drive folder (see docs/formats.md).")],
@@ -238,6 +277,31 @@ def bench_classifier(
     res = commands.bench(work, quick=quick, config_path=config, epochs=epochs, learning_rate=lr)
     typer.echo((Path(work) / "results.md").read_text(encoding="utf-8"))
     typer.echo(f"Total {res['total_s']} s; details in {work}/results.json")
+
+
+@bench_app.command("detection")
+def bench_detection(
+    work: Annotated[
+        Path, typer.Option(help="Work folder (simulated drives, runs, results).")
+    ] = Path("out/bench_detection"),
+    quick: Annotated[
+        bool, typer.Option("--quick", help="Two short drives; docs are not touched.")
+    ] = False,
+    methods: Annotated[
+        str, typer.Option(help="Comma-separated reconstruction methods (first = product).")
+    ] = "rotation_aware,classic,colmap",
+    docs: Annotated[
+        Path | None, typer.Option(help="Markdown file whose detection section is rewritten.")
+    ] = Path("docs/benchmarks.md"),
+) -> None:
+    """Table 4.2: the detector on proposed, classic and colmap reconstructions of sim drives."""
+    from detection.bench import run_benchmark
+
+    res = run_benchmark(
+        work, quick=quick, methods=tuple(m.strip() for m in methods.split(",")), docs=docs
+    )
+    typer.echo(res["markdown"])
+    typer.echo(f"Total {res['wall_s']:.0f} s; details in {work}/bench_detection.json")
 
 
 RunDir = Annotated[Path, typer.Argument(help="Run folder written by `roadsurf run --out`.")]
