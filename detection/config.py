@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 BinariseMode = Literal["adaptive", "fixed"]
+FrameLabelMode = Literal["map", "pair"]
 DEFECT_TYPES: tuple[str, ...] = ("pothole", "crack", "rut")
 SEVERITIES: tuple[str, ...] = ("low", "medium", "high")
 
@@ -95,5 +96,8 @@ class DetectionConfig:
     map: MapSegmentConfig = field(default_factory=MapSegmentConfig)
     severity: SeverityConfig = field(default_factory=SeverityConfig)
     use_images: bool = True  # read frames for the 2D refinement (False: 3D only)
+    # Frame labels: "map" = deep area of vetted map defects in the frame's footprint (default);
+    # "pair" = the dissertation's per-pair decision from the refined points alone.
+    frame_label: FrameLabelMode = "map"
     fusion_threshold: float = 0.95  # CNN decision stands when max(p) >= this (Fig. 5.6), 0.5-1
     overwrite: bool = False  # recompute even when RUN/defects.geojson exists

@@ -174,7 +174,7 @@ def _defect_metrics(preds, truths, distractors) -> dict[str, Any]:
         and float(p.get("max_depth_m", 0)) >= TARGET_DEPTH_M
         and float(p.get("width_m", 0)) >= TARGET_WIDTH_M
     ]
-    depth_err, rel_depth, area_err, type_ok = [], [], [], []
+    depth_err, rel_depth, area_err, type_ok, details = [], [], [], [], []
     for i, j in matches:
         pp, tp = preds[i][1], truths[j][1]
         dt = float(tp["max_depth_m"])
@@ -186,6 +186,17 @@ def _defect_metrics(preds, truths, distractors) -> dict[str, Any]:
         if at > 0:
             area_err.append(abs(float(pp["area_m2"]) - at) / at)
         type_ok.append(pp.get("type") == tp.get("type"))
+        details.append(
+            {
+                "truth_id": tp.get("id"),
+                "pred_id": pp.get("id"),
+                "truth_type": tp.get("type"),
+                "pred_type": pp.get("type"),
+                "truth_depth_m": dt,
+                "depth_err_m": err,
+                "area_rel_err": abs(float(pp["area_m2"]) - at) / at if at > 0 else float("nan"),
+            }
+        )
     matched_p = {i for i, _ in matches}
     on_distractor = 0
     for i, (gp, _) in enumerate(preds):
@@ -209,6 +220,8 @@ def _defect_metrics(preds, truths, distractors) -> dict[str, Any]:
         "type_accuracy": float(np.mean(type_ok)) if type_ok else float("nan"),
         "distractor_false_alarms": on_distractor,
         "distractors": len(distractors),
+        "matches": details,
+        "missed": [truths[j][1].get("id") for j in range(n_t) if j not in matched_t],
     }
 
 

@@ -124,6 +124,26 @@ def choose_gsd(xy_m: np.ndarray, gsd_min_m: float, gsd_max_m: float = 0.1) -> fl
     return float(min(g, gsd_max_m))
 
 
+def crop_to_data(res: np.ndarray, grid: GridSpec, pad: int = 4) -> tuple[np.ndarray, GridSpec]:
+    """Crop a raster to the bounding box of its observed cells (plus ``pad`` cells)."""
+    valid = np.isfinite(res)
+    if not valid.any():
+        return res, grid
+    rows = np.flatnonzero(valid.any(axis=1))
+    cols = np.flatnonzero(valid.any(axis=0))
+    r0, r1 = max(0, rows[0] - pad), min(res.shape[0], rows[-1] + pad + 1)
+    c0, c1 = max(0, cols[0] - pad), min(res.shape[1], cols[-1] + pad + 1)
+    g = GridSpec(
+        grid.crs,
+        grid.x0_m + c0 * grid.gsd_m,
+        grid.y0_m - r0 * grid.gsd_m,
+        grid.gsd_m,
+        c1 - c0,
+        r1 - r0,
+    )
+    return res[r0:r1, c0:c1], g
+
+
 @dataclass
 class Segmentation:
     noise_m: float  # σ of the residual surface (robust)
@@ -131,6 +151,7 @@ class Segmentation:
     rim_m: float  # outline threshold
     regions: list[Region]
     smoothed: np.ndarray  # (H, W) smoothed residual
+    grid: GridSpec  # grid of ``smoothed`` and of the regions' rows/cols (cropped to the data)
 
 
 def segment(
@@ -145,11 +166,10 @@ def segment(
     (N,) int pair id of each. They join the mean-shift points (so defects seen in pieces by
     several pairs are clustered together) and give each region its 3D support.
     """
-    res = surface.residual_m.astype(np.float32)
-    grid = surface.grid
+    res, grid = crop_to_data(surface.residual_m.astype(np.float32), surface.grid)
     noise = robust_sigma(res)
     if not np.isfinite(noise):
-        return Segmentation(float("nan"), float("nan"), float("nan"), [], res)
+        return Segmentation(float("nan"), float("nan"), float("nan"), [], res, grid)
     seed_t = max(cfg.depth_threshold_m, cfg.noise_k * noise)
     rim_t = max(cfg.rim_threshold_m, cfg.rim_noise_k * noise)
     # Fill small holes from observed neighbours, then smooth lightly (σ in metres).
@@ -163,7 +183,7 @@ def segment(
     rim_lab, _ = ndimage.label(rim, structure=np.ones((3, 3), bool))
     seed_rc = np.argwhere(seed)
     if len(seed_rc) == 0:
-        return Segmentation(noise, seed_t, rim_t, [], sm)
+        return Segmentation(noise, seed_t, rim_t, [], sm, grid)
     seed_xy = grid.xy_from_rowcol(seed_rc[:, 0], seed_rc[:, 1])
     seed_comp = rim_lab[seed_rc[:, 0], seed_rc[:, 1]]
 
@@ -240,7 +260,7 @@ def segment(
         reg.support_pairs = set(np.unique(ev_pair[in_reg]).tolist())
         reg.n_support_points = int(in_reg.sum())
         regions.append(reg)
-    return Segmentation(noise, seed_t, rim_t, regions, sm)
+    return Segmentation(noise, seed_t, rim_t, regions, sm, grid)
 
 
 def measure(region: Region, grid: GridSpec, frame_depth_m: float) -> Measured:

@@ -81,7 +81,7 @@ def run(
         ev_xy = mframe.grid_from_enu(ev_enu) if len(ev_enu) else np.zeros((0, 2))
         seg = segment(surface, cfg.map, ev_xy, ev_pair)
         noise, seed = seg.noise_m, seg.seed_m
-        defects, deep_xy = _measure_regions(cfg, seg, surface, footprints, bool(per_pair))
+        defects, deep_xy = _measure_regions(cfg, seg, footprints, bool(per_pair))
         log.info(
             "detection: %d defect(s) from %d region(s); map noise σ %.2f mm, T_d %.1f mm (%s)",
             len(defects),
@@ -95,7 +95,8 @@ def run(
 
     # ---- 3. frame labels
     cell_m2 = surface.grid.gsd_m**2 if surface is not None else 0.0
-    frames = _frame_labels(cfg, drive, footprints, deep_xy, cell_m2, per_pair, surface is not None)
+    use_map = surface is not None and cfg.frame_label == "map"
+    frames = _frame_labels(cfg, drive, footprints, deep_xy, cell_m2, per_pair, use_map)
     frames = _fuse(cfg, frames, frame_probs, pairs)
 
     result = DetectionResult(
@@ -235,7 +236,6 @@ def _footprints(drive: Drive, traj: Trajectory, mframe: MapFrame) -> dict[str, A
 def _measure_regions(
     cfg: DetectionConfig,
     seg: Any,
-    surface: Surface,
     footprints: dict[str, Any],
     have_pairs: bool,
 ) -> tuple[list[Defect], list[np.ndarray]]:
@@ -243,7 +243,7 @@ def _measure_regions(
     from shapely.geometry import Polygon
 
     mc = cfg.map
-    gsd2 = surface.grid.gsd_m**2
+    gsd2 = seg.grid.gsd_m**2
     kept: list[tuple[Defect, np.ndarray]] = []
     for reg in seg.regions:
         deep_area = float((reg.depth_smooth_m >= seg.seed_m).sum() * gsd2)
@@ -258,7 +258,7 @@ def _measure_regions(
         if why:
             log.debug("detection: region at %s vetoed: %s", (reg.rows[0], reg.cols[0]), why)
             continue
-        m = measure(reg, surface.grid, mc.frame_depth_m)
+        m = measure(reg, seg.grid, mc.frame_depth_m)
         kind = classify(m, mc)
         poly = Polygon(m.outline_xy_m)
         seen = sorted(fn for fn, fp in footprints.items() if fp.intersects(poly))
