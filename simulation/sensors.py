@@ -35,7 +35,7 @@ def form_image(
 ) -> np.ndarray:
     """Linear radiance (H, W, 3) -> uint8 RGB (H, W, 3) or grey (H, W) as the sensor writes it."""
     h, w = radiance.shape[:2]
-    img = radiance * np.float32(255.0 * 0.62 * cfg.exposure * gain)
+    img = radiance * np.float32(255.0 * 0.95 * cfg.exposure * gain)
     if cfg.vignetting > 0:
         yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
         r2 = ((xx - (w - 1) / 2) ** 2 + (yy - (h - 1) / 2) ** 2) / ((w / 2) ** 2 + (h / 2) ** 2)

@@ -143,8 +143,13 @@ def write_rasters(world: World, corridor, out: Path) -> GridSpec:
     return grid
 
 
-def _measure_grid(fn, bbox, gsd: float = 0.001) -> tuple[float, float, float, float]:
-    """Max depth, mean depth over the outline (depth > 0), area (m^2), volume (m^3) on a grid."""
+def _measure_grid(
+    fn, bbox, gsd: float = 0.001
+) -> tuple[float, float, float, float, Polygon | None]:
+    """Measure a defect from its depth function on a fine grid: max depth, mean depth over the
+    outline (depth > 0), area (m^2), volume (m^3) and the outline polygon (the rim contour)."""
+    from skimage.measure import find_contours
+
     x0, y0, x1, y1 = bbox
     xs = np.arange(x0, x1, gsd) + gsd / 2
     ys = np.arange(y0, y1, gsd) + gsd / 2
@@ -152,12 +157,19 @@ def _measure_grid(fn, bbox, gsd: float = 0.001) -> tuple[float, float, float, fl
     d = fn(X, Y)
     inside = d > 0
     if not inside.any():
-        return 0.0, 0.0, 0.0, 0.0
+        return 0.0, 0.0, 0.0, 0.0, None
+    padded = np.pad(inside.astype(np.float32), 1)
+    best = max(find_contours(padded, 0.5), key=len)
+    ring = np.column_stack([x0 + (best[:, 1] - 1 + 0.5) * gsd, y0 + (best[:, 0] - 1 + 0.5) * gsd])
+    poly = Polygon(ring).buffer(0).simplify(0.5 * gsd)
+    if isinstance(poly, MultiPolygon):
+        poly = max(poly.geoms, key=lambda g: g.area)
     return (
         float(d.max()),
         float(d[inside].mean()),
         float(inside.sum() * gsd * gsd),
         float(d.sum() * gsd * gsd),
+        poly,
     )
 
 
@@ -205,9 +217,10 @@ def defect_features(world: World) -> list[dict[str, Any]]:
     items: list[Pothole | Trough] = [*world.potholes, *world.troughs]
     for i, d in enumerate(items):
         if isinstance(d, Pothole):
-            poly = Polygon(d.shape.outline(128))
-            mx, mean, area, vol = _measure_grid(d.depth, d.shape.bbox(0.002))
-            props = _props(world, f"D{i + 1:03d}", "pothole", poly, mx, mean, poly.area, vol)
+            mx, mean, area, vol, poly = _measure_grid(d.depth, d.bbox(0.002))
+            if poly is None:
+                continue
+            props = _props(world, f"D{i + 1:03d}", "pothole", poly, mx, mean, area, vol)
         else:
             line = shapely.LineString(d.line.array)
             cap = "round" if d.kind == "crack" else "flat"

@@ -81,8 +81,19 @@ class Pothole:
     darken: float  # albedo factor inside (< 1)
     seed: int
 
-    def depth(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    ragged: float = 0.05  # relative amplitude of the broken, ragged rim (fraction of ρ)
+
+    def rho(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Normalised radius with a ragged rim: ρ (1 + ragged n(x, y)), n ~ clipped noise."""
         rho, _ = self.shape.rho_and_r(x, y)
+        n = np.clip(value_noise(x, y, 0.02, self.seed + 17), -3.0, 3.0)
+        return rho * (1.0 + self.ragged * n)
+
+    def bbox(self, pad: float = 0.0) -> tuple[float, float, float, float]:
+        return self.shape.bbox(pad + self.shape.r_max * (1.0 / (1.0 - 3 * self.ragged) - 1.0))
+
+    def depth(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        rho = self.rho(x, y)
         prof = np.clip(1.0 - rho**self.power, 0.0, None)
         r = self.shape.radius
         lin = 1.0 + self.tilt[0] * (x - self.shape.cx) / r + self.tilt[1] * (y - self.shape.cy) / r
@@ -262,7 +273,7 @@ class World:
 
         pot_masks = []
         for p in self.potholes:
-            sl = sub(p.shape.bbox(0.01))
+            sl = sub(p.bbox(0.01))
             if sl is None:
                 continue
             d = p.depth(X[sl], Y[sl]).astype(np.float32)
@@ -296,7 +307,7 @@ class World:
         shadow = np.zeros((rows, cols), np.float32)
 
         for p, sl in pot_masks:
-            rho, _ = p.shape.rho_and_r(X[sl], Y[sl])
+            rho = p.rho(X[sl], Y[sl])
             w = np.clip((1.0 - rho) / 0.15, 0.0, 1.0).astype(np.float32)
             w = w * w * (3 - 2 * w)
             r0, c0 = sl[0].start, sl[1].start
@@ -325,13 +336,12 @@ class World:
                 continue
             m = dd.shape.soft_mask(X[sl], Y[sl], dd.edge_m).astype(np.float32)
             if dd.kind == "lane_marking":
+                # Worn paint: mostly covering, with a few worn-through specks.
                 wear = np.clip(
-                    0.85 + 0.4 * value_noise(X[sl], Y[sl], 0.02, self.seed * 13 + 4), 0.0, 1.0
+                    1.3 + 0.5 * value_noise(X[sl], Y[sl], 0.012, self.seed * 13 + 4), 0.0, 1.0
                 )
                 m = m * wear.astype(np.float32) * dd.strength
-                paint = (0.78 + 0.12 * grey[sl])[..., None] * np.array(
-                    [0.97, 0.97, 0.93], np.float32
-                )
+                paint = (0.8 + 0.1 * grey[sl])[..., None] * np.array([0.97, 0.97, 0.93], np.float32)
                 rgb[sl] = rgb[sl] * (1 - m[..., None]) + paint * m[..., None]
             elif dd.kind == "oil_stain":
                 k = (m * dd.strength)[..., None]
@@ -476,7 +486,7 @@ def _place_features(world: World, rng: np.random.Generator) -> None:
         )
         # Tilt and roughness add to the nominal depth: rescale so the true maximum is the drawn
         # depth (the profile is linear in depth_m and rough_m, so the maximum scales exactly).
-        x0b, y0b, x1b, y1b = b.bbox(0.002)
+        x0b, y0b, x1b, y1b = pot.bbox(0.002)
         gx, gy = np.meshgrid(
             np.arange(x0b, x1b, 0.001) + 0.0005, np.arange(y0b, y1b, 0.001) + 0.0005
         )
