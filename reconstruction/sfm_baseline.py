@@ -44,6 +44,7 @@ from roadsurf.geometry import (
     EnuReference,
     check_shape,
     enu_from_lla,
+    heading_deg_from_world_rotation,
 )
 from roadsurf.io import read_json, write_json_atomic
 
@@ -57,7 +58,7 @@ log = logging.getLogger(__name__)
 class SfmBaselineConfig:
     """pycolmap incremental-SfM baseline. Units in the comments; α = h / d_c (eq. 3.34)."""
 
-    max_num_features: int = 4096  # SIFT keypoints per image (count)
+    max_num_features: int = 3000  # SIFT keypoints per image (count); = roadsurf FeatureConfig
     max_image_size: int = 1600  # longer image side for SIFT extraction (px); larger are resized
     overlap: int = 5  # sequential matching: each frame is matched to this many successors (count)
     min_num_inliers: int = 15  # two-view verification: fewer inliers -> pair rejected (count)
@@ -72,6 +73,11 @@ class SfmBaselineConfig:
     gps_fit: Literal["rigid", "similarity"] = "rigid"  # 2D fit of camera centres to GPS ENU:
     # rigid keeps the metric scale α from the camera height; similarity takes the scale from GPS
     gps_outlier_k: float = 3.0  # drop GPS fits with residual > k robust sigmas (unitless)
+    gps_pose_outlier_min_m: float = 0.3  # a frame the robust GPS fit rejects is dropped as a bad
+    # pose only when its residual also exceeds this (m): below it GPS noise can explain it
+    gps_tilt_correction: bool = True  # tilt each model so its cameras follow the GPS altitude
+    # when that explains the altitudes clearly better than a constant offset (RTK-grade logs)
+    gps_tilt_max_deg: float = 5.0  # never tilt a model by more than this (degrees)
     max_gps_gap_s: float = 2.0  # frames further than this from a GPS fix get no GPS position (s)
     local_fit_cell_m: float = 1.0  # cell of the local road-surface fit for residual_m (m)
     local_fit_inlier_m: float = 0.01  # points further than this from the local fit are not road (m)
@@ -248,23 +254,22 @@ def _run_colmap(
 
 def _not_registered_reasons(
     db_path: Path,
-    names: list[str],
+    missing: list[str],
     models: dict[int, Any],
-    main: int | None,
+    model_notes: dict[int, str],
     cfg: SfmBaselineConfig,
 ) -> dict[str, str]:
-    """A reason for every valid frame that is not in the main model."""
+    """A reason for every valid frame in ``missing`` (not in the outputs). ``model_notes`` says
+    why a model's images were not used (e.g. it could not be aligned to GPS)."""
     import pycolmap
 
+    if not missing:
+        return {}
     in_model: dict[str, list[int]] = {}
     for k, rec in models.items():
         for im in rec.images.values():
             if im.has_pose:
                 in_model.setdefault(im.name, []).append(k)
-    main_names = set() if main is None else {n for n, ks in in_model.items() if main in ks}
-    missing = [n for n in names if n not in main_names]
-    if not missing:
-        return {}
     with pycolmap.Database.open(db_path) as db:
         ids = {im.name: im.image_id for im in db.read_all_images()}
         id2name = {v: k for k, v in ids.items()}
@@ -287,10 +292,8 @@ def _not_registered_reasons(
         elif n in in_model:
             k = in_model[n][0]
             size = models[k].num_reg_images()
-            reasons[n] = (
-                f"registered only in a second model (sparse/{k}, {size} images), which is "
-                f"smaller than the model used"
-            )
+            note = model_notes.get(k, "it was not used")
+            reasons[n] = f"registered only in a second model (sparse/{k}, {size} images); {note}"
         elif best.get(n, (0, ""))[0] < cfg.min_num_matches:
             m, other = best.get(n, (0, ""))
             reasons[n] = (
@@ -521,6 +524,259 @@ def _interp_gps_enu(drive: Drive, times: np.ndarray, ref: EnuReference, max_gap_
     return out
 
 
+class _ModelRejected(Exception):
+    """A COLMAP model that cannot be scaled or placed (the reason goes to the report)."""
+
+
+@dataclass
+class _ModelGeo:
+    """One COLMAP model, scaled and placed in the ENU (or local) frame."""
+
+    index: int
+    frames: list[Any]  # Frames this model provides to the outputs (capture order)
+    R_wc: np.ndarray  # (M, 3, 3) world_from_cam rotations
+    c_w: np.ndarray  # (M, 3) camera centres (m)
+    p_w: np.ndarray  # (K, 3) points (m)
+    rgb: np.ndarray  # (K, 3) uint8
+    scale: dict[str, Any]
+    align: dict[str, Any]
+    outliers: dict[str, str]  # filename -> why its pose was rejected
+
+
+def _fit_vertical_tilt(
+    c_h: np.ndarray, gps_enu: np.ndarray, ok: np.ndarray, cfg: SfmBaselineConfig
+) -> tuple[np.ndarray, np.ndarray, float] | None:
+    """Small rotation about the horizontal cross-track axis that makes the camera heights follow
+    the GPS altitude along the track: dz = a + g·s (s = along-track metres), fitted robustly.
+    (The cross-track tilt is unobservable from a near-straight track; it stays from the road
+    normal.) Used only when it explains the altitudes clearly better than a constant offset
+    and stays under ``gps_tilt_max_deg``; consumer GPS altitude is too noisy to pass.
+    Returns (R (3, 3), pivot (3,), tilt degrees) or None."""
+    if not cfg.gps_tilt_correction or ok.sum() < 5:
+        return None
+    xy = c_h[ok, :2]
+    dz = gps_enu[ok, 2] - c_h[ok, 2]
+    pivot = np.array([*xy.mean(axis=0), float(c_h[ok, 2].mean())])
+    _, _, vt = np.linalg.svd(xy - pivot[:2], full_matrices=False)
+    u = vt[0]  # along-track direction
+    s_m = (xy - pivot[:2]) @ u
+    if np.ptp(s_m) < 2.0:
+        return None
+    A = np.column_stack([np.ones_like(s_m), s_m])
+    w = np.ones(len(s_m), bool)
+    coef = np.zeros(2)
+    for _ in range(4):
+        coef, *_ = np.linalg.lstsq(A[w], dz[w], rcond=None)
+        r = dz - A @ coef
+        sig = 1.4826 * float(np.median(np.abs(r[w]))) + 1e-6
+        new = np.abs(r) <= 3 * sig
+        if new.sum() < 5 or np.array_equal(new, w):
+            break
+        w = new
+    rms_tilt = float(np.sqrt(np.mean((dz - A @ coef)[w] ** 2)))
+    rms_flat = float(np.sqrt(np.mean((dz - np.median(dz))[w] ** 2)))
+    b, c = float(coef[1] * u[0]), float(coef[1] * u[1])
+    tilt_deg = math.degrees(math.atan(abs(float(coef[1]))))
+    if tilt_deg > cfg.gps_tilt_max_deg or rms_tilt > 0.5 * rms_flat:
+        return None
+    n_new = np.array([-b, -c, 1.0])
+    R = _rotation_a_to_b(np.array([0.0, 0.0, 1.0]), n_new / np.linalg.norm(n_new))
+    return R, pivot, tilt_deg
+
+
+def _neighbour_heading_dev(head_deg: np.ndarray, k: int = 3) -> np.ndarray:
+    """|heading - median heading of the k neighbours on each side| (degrees, (N,))."""
+    n = len(head_deg)
+    dev = np.zeros(n)
+    for i in range(n):
+        nb = [j for j in range(max(0, i - k), min(n, i + k + 1)) if j != i]
+        if not nb:
+            continue
+        d = (head_deg[nb] - head_deg[i] + 180.0) % 360.0 - 180.0
+        dev[i] = abs(float(np.median(d)))
+    return dev
+
+
+def _georeference_model(
+    k: int,
+    rec: Any,
+    drive: Drive,
+    cfg: SfmBaselineConfig,
+    ref: EnuReference | None,
+    claimed: set[str],
+) -> _ModelGeo:
+    """Scale one COLMAP model by the camera height (α = h / d_c), level it with the road
+    normal, drop inconsistent poses, and place it on the GPS (2D fit) or in a local frame."""
+    by_name = {im.name: im for im in rec.images.values() if im.has_pose}
+    reg = [f for f in drive.frames if f.filename in by_name]
+    # COLMAP camera axes = ours (x right, y down the image, z along the optical axis)
+    cam_from_world = np.stack([by_name[f.filename].cam_from_world().matrix() for f in reg])
+    R_cw = cam_from_world[:, :, :3]
+    centres = np.einsum("nji,nj->ni", R_cw, -cam_from_world[:, :, 3])
+
+    pids = np.array(list(rec.points3D.keys()), dtype=np.int64)
+    pts = np.array([rec.points3D[p].xyz for p in pids]).reshape(-1, 3)
+    rgb = np.array([rec.points3D[p].color for p in pids], dtype=np.uint8).reshape(-1, 3)
+    pid_row = {int(p): i for i, p in enumerate(pids)}
+    img_id_name = {im.image_id: im.name for im in by_name.values()}
+
+    # ---- per-image robust plane: d_c (model units) and the up direction (eq. 3.31-3.33)
+    rng = np.random.default_rng(cfg.seed)
+    d_c = np.full(len(reg), np.nan)
+    normals = np.full((len(reg), 3), np.nan)
+    plane_inl = []
+    for i, f in enumerate(reg):
+        rows = [pid_row[int(p.point3D_id)] for p in by_name[f.filename].points2D if p.has_point3D()]
+        if len(rows) < cfg.min_plane_points:
+            continue
+        P = pts[rows]
+        thr = cfg.plane_inlier_rel * float(np.median(np.linalg.norm(P - centres[i], axis=1)))
+        n, d, inl = fit_plane_ransac(P, thr, cfg.plane_iterations, rng)
+        dist = float(n @ centres[i] + d)
+        if dist < 0:  # orient the normal from the road towards the camera (= up)
+            n, dist = -n, -dist
+        d_c[i], normals[i] = dist, n
+        plane_inl.append(float(inl.mean()))
+    has = np.isfinite(d_c)
+    if not has.any():
+        raise _ModelRejected(f"no image sees {cfg.min_plane_points} 3D points: no road plane")
+    d_c_med = float(np.median(d_c[has]))
+    alpha = drive.camera.height_m / d_c_med  # eq. 3.34
+    up = np.nanmean(normals[has], axis=0)
+    up /= np.linalg.norm(up)
+    R_level = _rotation_a_to_b(up, np.array([0.0, 0.0, 1.0]))
+    origin = centres[0]
+    c_lv = alpha * (centres - origin) @ R_level.T
+    p_lv = alpha * (pts - origin) @ R_level.T
+    R_wc_lv = np.einsum("ij,nkj->nik", R_level, R_cw)  # R_level @ R_cw.T
+
+    # ---- pose outliers: a flipped/ambiguous planar pose shows as a heading jump against its
+    # neighbours or a camera-to-road distance far from the others
+    head = np.array([heading_deg_from_world_rotation(R) for R in R_wc_lv])
+    bad = _neighbour_heading_dev(head) > 20.0
+    bad |= has & (np.abs(d_c / d_c_med - 1.0) > 0.25)
+    outliers = {
+        f.filename: (
+            f"registered by COLMAP (sparse/{k}) but its pose is inconsistent: heading "
+            f"{_neighbour_heading_dev(head)[i]:.0f}° off its neighbours, camera-to-road "
+            f"distance {alpha * d_c[i]:.2f} m vs h = {drive.camera.height_m} m; dropped"
+        )
+        for i, f in enumerate(reg)
+        if bad[i]
+    }
+    good = ~bad
+    if good.sum() < 2:
+        raise _ModelRejected("fewer than 2 consistent poses")
+
+    scale = {
+        "height_m": drive.camera.height_m,
+        "d_c_model_median": d_c_med,
+        "d_c_rel_spread": float(np.std(d_c[has]) / d_c_med),
+        "alpha_m_per_unit": alpha,
+        "planes_fitted": int(has.sum()),
+        "plane_inlier_ratio_median": float(np.median(plane_inl)),
+        "up_in_model": up.tolist(),
+        "pose_outliers": int(bad.sum()),
+    }
+
+    # ---- placement
+    align: dict[str, Any] = {"kind": "none"}
+    gps_enu = None
+    if ref is not None:
+        times = np.array([f.timestamp_s for f in reg])
+        gps_enu = _interp_gps_enu(drive, times, ref, cfg.max_gps_gap_s)
+        ok = np.isfinite(gps_enu).all(axis=1) & good
+        if ok.sum() < 2:
+            if claimed:  # a secondary model that the GPS cannot place is not used
+                raise _ModelRejected(f"only {int(ok.sum())} of its frames have GPS; cannot align")
+            log.warning("GPS overlaps fewer than 2 registered frames; using a local frame")
+            gps_enu = None
+    if gps_enu is not None:
+        ok = np.isfinite(gps_enu).all(axis=1) & good
+        sim = cfg.gps_fit == "similarity"
+        R2, t2, s2, inl2 = robust_fit_2d(c_lv[ok, :2], gps_enu[ok, :2], sim, cfg.gps_outlier_k)
+        _, _, s_sim, _ = robust_fit_2d(c_lv[ok, :2], gps_enu[ok, :2], True, cfg.gps_outlier_k)
+        if sim:  # the GPS scale replaces α
+            c_lv, p_lv = c_lv * s2, p_lv * s2
+            scale["alpha_m_per_unit"] = alpha * s2
+        R3 = np.eye(3)
+        R3[:2, :2] = R2
+        c_h = c_lv @ R3.T + np.array([*t2, 0.0])  # horizontally placed, not yet vertically
+        p_h = p_lv @ R3.T + np.array([*t2, 0.0])
+        tilt = _fit_vertical_tilt(c_h, gps_enu, ok & np.isfinite(gps_enu[:, 2]), cfg)
+        if tilt is not None:
+            R_t, pivot, tilt_deg = tilt
+            c_h = (c_h - pivot) @ R_t.T + pivot
+            p_h = (p_h - pivot) @ R_t.T + pivot
+            R3 = R_t @ R3
+        dz = float(np.median(gps_enu[ok, 2] - c_h[ok, 2]))
+        c_w = c_h + [0.0, 0.0, dz]
+        p_w = p_h + [0.0, 0.0, dz]
+        z_res = gps_enu[ok, 2] - c_w[ok, 2]
+        resid = np.linalg.norm(c_w[ok, :2] - gps_enu[ok, :2], axis=1)
+        spread = float(np.ptp(gps_enu[ok, :2], axis=0).max())
+        align = {
+            "kind": f"2d_{cfg.gps_fit}",
+            "n_frames_with_gps": int(ok.sum()),
+            "n_inliers": int(inl2.sum()),
+            "rms_m": float(np.sqrt(np.mean(resid[inl2] ** 2))),
+            "max_m": float(resid.max()),
+            "rotation_deg": float(math.degrees(math.atan2(R2[1, 0], R2[0, 0]))),
+            "gps_scale_over_height_scale": float(s_sim) if not sim else 1.0,
+            "gps_extent_m": spread,
+            "vertical_offset_m": dz,
+            "vertical_tilt_deg": tilt[2] if tilt is not None else 0.0,
+            "vertical_rms_m": float(np.sqrt(np.mean(z_res**2))),
+        }
+        if spread < 2.0:
+            log.warning("model %d: GPS positions span only %.1f m: weak 2D alignment", k, spread)
+        # A pose far off a good GPS fit is a bad registration (e.g. the planar two-fold
+        # ambiguity), not GPS noise: drop it like the heading/distance outliers above.
+        rms_in = align["rms_m"]
+        far = ~inl2 & (resid > max(3.0 * rms_in, cfg.gps_pose_outlier_min_m))
+        for j, r_j in zip(np.flatnonzero(ok)[far], resid[far], strict=True):
+            good[j] = False
+            outliers[reg[j].filename] = (
+                f"registered by COLMAP (sparse/{k}) but {r_j:.2f} m off the GPS fit of its "
+                f"model (rms {rms_in:.3f} m); dropped as a bad pose"
+            )
+        align["pose_outliers_dropped"] = int(far.sum())
+    else:
+        # Local frame: first camera at the origin, its forward (-y camera axis) along +y.
+        fwd = -R_wc_lv[0][:, 1]
+        ang = math.atan2(fwd[0], fwd[1])  # rotate the forward azimuth onto north
+        c, s_ = math.cos(ang), math.sin(ang)
+        R3 = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
+        c_w, p_w = c_lv @ R3.T, p_lv @ R3.T
+    R_wc = np.einsum("ij,njk->nik", R3, R_wc_lv)
+
+    # ---- what this model contributes: consistent frames no larger model already gave, and
+    # the points those frames observe
+    use = np.array([good[i] and f.filename not in claimed for i, f in enumerate(reg)])
+    if not use.any():
+        raise _ModelRejected("all its consistent frames are already in a larger model")
+    use_ids = {
+        im_id
+        for im_id, nm in img_id_name.items()
+        if nm in {reg[i].filename for i in np.flatnonzero(use)}
+    }
+    keep = np.array(
+        [any(el.image_id in use_ids for el in rec.points3D[int(p)].track.elements) for p in pids],
+        dtype=bool,
+    )
+    return _ModelGeo(
+        index=k,
+        frames=[reg[i] for i in np.flatnonzero(use)],
+        R_wc=R_wc[use],
+        c_w=c_w[use],
+        p_w=p_w[keep],
+        rgb=rgb[keep],
+        scale=scale,
+        align=align,
+        outliers=outliers,
+    )
+
+
 def _software_versions() -> dict[str, str]:
     import platform
 
@@ -554,139 +810,87 @@ def run(
 
     models, colmap_t = _run_colmap(cfg, drive, out / "colmap", overwrite)
     timings.update(colmap_t)
-    sizes = {k: m.num_reg_images() for k, m in models.items()}
-    main = max(sizes, key=lambda k: (sizes[k], -k)) if sizes else None
-    reasons = _not_registered_reasons(out / "colmap" / "database.db", names, models, main, cfg)
-    if main is None or sizes[main] < 2:
-        raise RoadsurfError(
-            f"{drive.root}: pycolmap registered no model ({len(models)} models, sizes "
-            f"{sizes}). Reasons per image are in the log; check overlap between frames "
-            f"(speed vs fps) and image texture. Reasons: "
-            + "; ".join(f"{n}: {r}" for n, r in list(reasons.items())[:5])
-        )
-    rec = models[main]
     t0 = time.perf_counter()
+    sizes = {k: m.num_reg_images() for k, m in models.items()}
+    order = sorted(sizes, key=lambda k: (-sizes[k], k))  # largest model first
 
-    # ---------------------------------------------------------------- registered cameras
-    by_name = {im.name: im for im in rec.images.values() if im.has_pose}
-    reg = [f for f in drive.frames if f.filename in by_name]
-    cam_from_world = np.stack(
-        [by_name[f.filename].cam_from_world().matrix() for f in reg]
-    )  # (M, 3, 4); COLMAP camera axes = ours (x right, y down the image, z optical axis)
-    R_cw = cam_from_world[:, :, :3]
-    centres = np.stack([-R_cw[i].T @ cam_from_world[i, :, 3] for i in range(len(reg))])
-
-    # ---------------------------------------------------------------- points
-    pids = np.array(list(rec.points3D.keys()), dtype=np.int64)
-    pts = np.array([rec.points3D[p].xyz for p in pids]).reshape(-1, 3)
-    rgb = np.array([rec.points3D[p].color for p in pids], dtype=np.uint8).reshape(-1, 3)
-    pid_row = {int(p): i for i, p in enumerate(pids)}
-
-    # ---------------------------------------------------------------- per-camera plane, d_c
-    rng = np.random.default_rng(cfg.seed)
-    d_c, normals, plane_inl = [], [], []
-    for i, f in enumerate(reg):
-        im = by_name[f.filename]
-        rows = [pid_row[int(p.point3D_id)] for p in im.points2D if p.has_point3D()]
-        if len(rows) < cfg.min_plane_points:
-            continue
-        P = pts[rows]
-        thr = cfg.plane_inlier_rel * float(np.median(np.linalg.norm(P - centres[i], axis=1)))
-        n, d, inl = fit_plane_ransac(P, thr, cfg.plane_iterations, rng)
-        dist = float(n @ centres[i] + d)
-        if dist < 0:  # orient the normal from the road towards the camera (= up)
-            n, dist = -n, -dist
-        d_c.append(dist)
-        normals.append(n)
-        plane_inl.append(float(inl.mean()))
-    if not d_c:
-        raise RoadsurfError(
-            f"{drive.root}: no registered image sees {cfg.min_plane_points} 3D points; "
-            f"cannot fit the road plane for the metric scale."
-        )
-    d_c_arr = np.asarray(d_c)
-    d_c_med = float(np.median(d_c_arr))
-    alpha = drive.camera.height_m / d_c_med  # eq. 3.34
-    up = np.mean(normals, axis=0)
-    up /= np.linalg.norm(up)
-    R_level = _rotation_a_to_b(up, np.array([0.0, 0.0, 1.0]))
-    origin = centres[0]
-
-    def level(x: np.ndarray) -> np.ndarray:
-        """model -> levelled, scaled, origin at the first camera (metres, z up)."""
-        return alpha * (x - origin) @ R_level.T
-
-    c_lv = level(centres)
-    p_lv = level(pts)
-    R_wc_lv = np.einsum("ij,njk->nik", R_level, np.transpose(R_cw, (0, 2, 1)))  # world_from_cam
-
-    # ---------------------------------------------------------------- GPS alignment (2D)
-    align: dict[str, Any] = {"kind": "none"}
     ref: EnuReference | None = None
-    times = np.array([f.timestamp_s for f in reg])
-    gps_enu = None
     if drive.gps is not None and len(drive.gps) >= 2:
         g = drive.gps
         alt0 = float(g.alt_m[np.isfinite(g.alt_m)][0]) if np.isfinite(g.alt_m).any() else 0.0
         ref = EnuReference(float(g.lat_deg[0]), float(g.lon_deg[0]), alt0)
-        gps_enu = _interp_gps_enu(drive, times, ref, cfg.max_gps_gap_s)
-        ok = np.isfinite(gps_enu).all(axis=1)
-        if ok.sum() < 2:
-            log.warning("GPS overlaps fewer than 2 registered frames; using a local frame")
-            ref = None
-    if ref is not None and gps_enu is not None:
-        ok = np.isfinite(gps_enu).all(axis=1)
-        R2, t2, s2, inl2 = robust_fit_2d(
-            c_lv[ok, :2], gps_enu[ok, :2], cfg.gps_fit == "similarity", cfg.gps_outlier_k
+    elif drive.gps is None:
+        drive.warnings.append("no GPS: outputs are in a local metric frame (crs null)")
+
+    claimed: set[str] = set()
+    parts: list[_ModelGeo] = []
+    notes: dict[int, str] = {}
+    outlier_reasons: dict[str, str] = {}
+    for k in order:
+        if sizes[k] < 2:
+            notes[k] = "the model has fewer than 2 images"
+            continue
+        if parts and ref is None:
+            notes[k] = "without GPS only the largest model can be placed (local frame)"
+            continue
+        try:
+            geo = _georeference_model(k, models[k], drive, cfg, ref, claimed)
+        except _ModelRejected as e:
+            notes[k] = str(e)
+            log.info("model %d (%d images) not used: %s", k, sizes[k], e)
+            continue
+        if ref is not None and not parts and geo.align.get("kind") == "none":
+            ref = None  # GPS does not overlap the main model: local frame for everything
+        outlier_reasons.update(geo.outliers)
+        claimed.update(f.filename for f in geo.frames)
+        parts.append(geo)
+        if ref is None:
+            break
+    names_out = {f.filename for g2 in parts for f in g2.frames}
+    missing = [n for n in names if n not in names_out]
+    reasons = _not_registered_reasons(
+        out / "colmap" / "database.db",
+        [n for n in missing if n not in outlier_reasons],
+        models,
+        notes,
+        cfg,
+    )
+    reasons.update({n: r for n, r in outlier_reasons.items() if n not in names_out})
+    reasons = {n: reasons[n] for n in names if n in reasons}  # capture order
+    if not parts:
+        raise RoadsurfError(
+            f"{drive.root}: pycolmap produced no usable model ({len(models)} models, sizes "
+            f"{sizes}). Check the overlap between frames (speed vs fps) and the image texture. "
+            + "; ".join(f"{n}: {r}" for n, r in list(reasons.items())[:5])
         )
-        _, _, s_sim, _ = robust_fit_2d(c_lv[ok, :2], gps_enu[ok, :2], True, cfg.gps_outlier_k)
-        if cfg.gps_fit == "similarity":  # the GPS scale replaces α
-            c_lv, p_lv = c_lv * s2, p_lv * s2
-            alpha *= s2
-        R3 = np.eye(3)
-        R3[:2, :2] = R2
-        xy_c = c_lv[:, :2] @ R2.T + t2
-        dz = float(np.median(gps_enu[ok, 2] - c_lv[ok, 2]))
-        shift = np.array([*t2, dz])
-        c_w = np.column_stack([xy_c, c_lv[:, 2] + dz])
-        p_w = p_lv @ R3.T + shift
-        R_wc = np.einsum("ij,njk->nik", R3, R_wc_lv)
-        resid = np.linalg.norm(c_w[ok, :2] - gps_enu[ok, :2], axis=1)
-        spread = float(np.ptp(gps_enu[ok, :2], axis=0).max())
-        align = {
-            "kind": f"2d_{cfg.gps_fit}",
-            "n_frames_with_gps": int(ok.sum()),
-            "n_inliers": int(inl2.sum()),
-            "rms_m": float(np.sqrt(np.mean(resid[inl2] ** 2))),
-            "max_m": float(resid.max()),
-            "rotation_deg": float(math.degrees(math.atan2(R2[1, 0], R2[0, 0]))),
-            "gps_scale_over_height_scale": float(s_sim) if cfg.gps_fit == "rigid" else 1.0,
-            "gps_extent_m": spread,
-            "vertical_offset_m": dz,
-        }
-        if spread < 2.0:
-            log.warning("GPS positions span only %.1f m: the 2D alignment is weak", spread)
-    else:
-        # Local frame: first camera at the origin, its forward (-y camera axis) along +y.
-        fwd = -R_wc_lv[0][:, 1]
-        ang = math.atan2(fwd[0], fwd[1])  # rotate the forward azimuth onto north
-        c, s = math.cos(ang), math.sin(ang)
-        R3 = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-        c_w, p_w = c_lv @ R3.T, p_lv @ R3.T
-        R_wc = np.einsum("ij,njk->nik", R3, R_wc_lv)
-        if drive.gps is None:
-            drive.warnings.append("no GPS: outputs are in a local metric frame (crs null)")
+    main = parts[0]
+
+    # ---------------------------------------------------------------- merge the models
+    frames_all = [f for g2 in parts for f in g2.frames]
+    idx = np.argsort([f.index for f in frames_all], kind="stable")
+    reg = [frames_all[i] for i in idx]
+    R_wc = np.concatenate([g2.R_wc for g2 in parts])[idx]
+    c_w = np.concatenate([g2.c_w for g2 in parts])[idx]
+    times = np.array([f.timestamp_s for f in reg])
 
     # ---------------------------------------------------------------- points: clean, residual
-    near = np.zeros(len(p_w), bool)
-    for i in range(0, len(c_w), 64):  # chunked distance check against every camera
-        dd = np.linalg.norm(p_w[:, None, :] - c_w[None, i : i + 64, :], axis=2).min(axis=1)
-        near |= dd <= cfg.max_point_dist_m
-    p_w, rgb = p_w[near], rgb[near]
-    residual, fitted = local_surface_residuals(
-        p_w, cfg.local_fit_cell_m, cfg.local_fit_inlier_m, cfg.local_fit_order
-    )
-    p_w, rgb, residual = p_w[fitted], rgb[fitted], residual[fitted]
+    # Per model: each model has its own small vertical tilt/offset error, so the local road
+    # surface is fitted to one model's points at a time (mixing layers would corrupt it).
+    pw_l, rgb_l, res_l = [], [], []
+    for g2 in parts:
+        near = np.zeros(len(g2.p_w), bool)
+        for i in range(0, len(g2.c_w), 64):  # chunked distance check against the cameras
+            dd = np.linalg.norm(g2.p_w[:, None, :] - g2.c_w[None, i : i + 64, :], axis=2)
+            near |= dd.min(axis=1) <= cfg.max_point_dist_m
+        res_k, fitted = local_surface_residuals(
+            g2.p_w[near], cfg.local_fit_cell_m, cfg.local_fit_inlier_m, cfg.local_fit_order
+        )
+        pw_l.append(g2.p_w[near][fitted])
+        rgb_l.append(g2.rgb[near][fitted])
+        res_l.append(res_k[fitted])
+    p_w = np.concatenate(pw_l)
+    rgb = np.concatenate(rgb_l)
+    residual = np.concatenate(res_l)
     timings["scale_align_s"] = time.perf_counter() - t0
 
     # ---------------------------------------------------------------- write outputs
@@ -732,7 +936,8 @@ def run(
             "n_images": len(names),
             "registered": len(reg),
             "models": {str(k): v for k, v in sorted(sizes.items())},
-            "model_used": main,
+            "model_used": main.index,
+            "models_used": [g2.index for g2 in parts],
             "points": int(len(p_w)),
             "surface_px_observed": int(np.isfinite(raster).sum()),
         },
@@ -741,20 +946,25 @@ def run(
         "not_registered_reason": reasons,
         "skipped": [{"file": s.file, "line": s.line, "reason": s.reason} for s in drive.skipped],
         "warnings": list(drive.warnings),
-        "scale": {
-            "height_m": drive.camera.height_m,
-            "d_c_model_median": d_c_med,
-            "d_c_rel_spread": float(np.std(d_c_arr) / d_c_med),
-            "alpha_m_per_unit": alpha,
-            "planes_fitted": len(d_c),
-            "plane_inlier_ratio_median": float(np.median(plane_inl)),
-            "up_in_model": up.tolist(),
-        },
-        "gps_alignment": align,
+        "scale": main.scale,
+        "gps_alignment": main.align,
+        "models": [
+            {
+                "index": g2.index,
+                "registered": int(sizes[g2.index]),
+                "used_frames": len(g2.frames),
+                "scale": g2.scale,
+                "gps_alignment": g2.align,
+            }
+            for g2 in parts
+        ],
+        "models_not_used": {str(k): v for k, v in notes.items()},
         "surface": {"gsd_m": grid.gsd_m, "width": grid.width, "height": grid.height},
         "colmap": {
-            "mean_reprojection_error_px": float(rec.compute_mean_reprojection_error()),
-            "mean_track_length": float(rec.compute_mean_track_length()),
+            "mean_reprojection_error_px": float(
+                models[main.index].compute_mean_reprojection_error()
+            ),
+            "mean_track_length": float(models[main.index].compute_mean_track_length()),
             "camera_model": _colmap_camera(drive.camera)[0],
         },
         "config": to_dict(cfg),
@@ -763,18 +973,20 @@ def run(
     }
     write_json_atomic(out / "report.json", report)
     log.info(
-        "sfm-baseline: %d/%d images registered (model %s of %d), α = %.4f m/unit, %d points, "
-        "GPS fit rms %s m -> %s",
+        "sfm-baseline: %d/%d images in the outputs (models used %s of %d), α = %.4f m/unit, "
+        "%d points, GPS fit rms %s m -> %s",
         len(reg),
         len(names),
-        main,
+        [g2.index for g2 in parts],
         len(models),
-        alpha,
+        main.scale["alpha_m_per_unit"],
         len(p_w),
-        f"{align['rms_m']:.3f}" if "rms_m" in align else "n/a",
+        f"{main.align['rms_m']:.3f}" if "rms_m" in main.align else "n/a",
         out,
     )
-    return SfmBaselineResult(out, len(names), len(reg), reasons, alpha, crs, report)
+    return SfmBaselineResult(
+        out, len(names), len(reg), reasons, main.scale["alpha_m_per_unit"], crs, report
+    )
 
 
 def run_from_paths(

@@ -223,3 +223,31 @@ def test_local_residuals_and_raster() -> None:
     # a too-large raster is coarsened, never allocated
     _, g2 = rasterise_mean(np.array([[0.0, 0.0], [1000.0, 1000.0]]), np.zeros(2), 0.01, 10**6, None)
     assert g2.width * g2.height <= 10**6
+
+
+def test_vertical_tilt_follows_good_gps_altitude_only() -> None:
+    from reconstruction.sfm_baseline import _fit_vertical_tilt
+
+    rng = np.random.default_rng(4)
+    s = np.linspace(0, 20, 40)
+    c_h = np.column_stack([0.6 * s, 0.8 * s, np.zeros_like(s)])  # heading ~37°, flat in z
+    gps = c_h.copy()
+    gps[:, 2] = 5.0 + 0.03 * s + rng.normal(0, 0.01, len(s))  # 3% climb, RTK-grade altitude
+    ok = np.ones(len(s), bool)
+    cfg = SfmBaselineConfig()
+    R, pivot, tilt = _fit_vertical_tilt(c_h, gps, ok, cfg)
+    assert abs(tilt - math.degrees(math.atan(0.03))) < 0.1
+    moved = (c_h - pivot) @ R.T + pivot
+    dz = gps[:, 2] - moved[:, 2]
+    assert np.std(dz) < 0.02  # the climb is followed
+    noisy = gps.copy()
+    noisy[:, 2] = 5.0 + rng.normal(0, 2.0, len(s))  # consumer altitude: no tilt from noise
+    assert _fit_vertical_tilt(c_h, noisy, ok, cfg) is None
+
+
+def test_neighbour_heading_deviation_flags_a_flipped_pose() -> None:
+    from reconstruction.sfm_baseline import _neighbour_heading_dev
+
+    h = np.array([10.0, 11.0, 9.5, 190.0, 10.5, 359.0 + 12.0 - 360.0, 10.0])
+    dev = _neighbour_heading_dev(h)
+    assert dev[3] > 170 and np.all(np.delete(dev, 3) < 5)
