@@ -69,6 +69,7 @@ class DetectionResult:
             "crs": self.crs,
             "surface_source": self.surface_source,
             "files": {k: str(v) for k, v in self.files.items()},
+            "table": self.table(),  # printable summary (the CLI shows it after `roadsurf run`)
         }
 
     def table(self) -> str:
