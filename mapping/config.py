@@ -43,6 +43,7 @@ class MappingConfig:
     local_fit_cell_m: float = 0.25  # cell size of the local fit's anchor grid (m)
     local_fit_inlier_m: float = 0.008  # points further than this from the fit are not road (m)
     local_fit_order: int = 1  # 1: plane, 2: quadric, per window
+    align_patches: bool = True  # remove per-pair height offset/tilt against the fused surface
     # ---------------------------------------------------------------- rasters / exports
     gsd_m: float = 0.005  # ground sampling distance of surface.tif / mosaic.tif (m)
     tile_px: int = 1024  # raster tile side (px); tiles exist only where the corridor passes
@@ -55,5 +56,6 @@ class MappingConfig:
     surface_max_edge_m: float = (
         0.10  # never interpolate the surface across a gap wider than this (m)
     )
+    surface_smooth_m: float = 0.01  # σ of the masked Gaussian that averages point noise (m)
     surface_edge_factor: float = 4.0  # ... nor wider than this × the median point spacing (−)
     colour_from_images: bool = True  # sample point colours from image a at px_a

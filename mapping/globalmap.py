@@ -64,6 +64,7 @@ class MapProducts:
     residual_stats_m: dict[str, float] = field(default_factory=dict)
     surface_px: int = 0  # observed pixels in surface.tif
     mosaic_px: int = 0  # imaged pixels in mosaic.tif
+    patch_alignment: dict[str, float] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
     timings_s: dict[str, float] = field(default_factory=dict)
 
@@ -132,6 +133,8 @@ def build_map(
     # ---------------------------------------------------------------- 1-2 points, fused
     xyz, rgb, frame_idx, n_raw = _collect_points(cfg, drive, pairs, traj, frames_by_index, pose_of)
     prod.n_points_raw = n_raw
+    if cfg.align_patches and len(xyz):
+        xyz, prod.patch_alignment = align_patches(cfg, xyz, frame_idx)
     xyz, rgb, frame_idx, nobs = voxel_fuse(xyz, rgb, frame_idx, cfg.voxel_m)
     prod.timings_s["points"] = round(time.perf_counter() - t0, 3)
 
@@ -219,6 +222,69 @@ def _collect_points(
         return np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0, np.int64), 0
     xyz = np.concatenate(xs)
     return xyz, np.concatenate(cs), np.concatenate(fs), len(xyz)
+
+
+def align_patches(
+    cfg: MappingConfig, xyz: np.ndarray, patch: np.ndarray, iterations: int = 4
+) -> tuple[np.ndarray, dict[str, float]]:
+    """Remove height seams between pair patches (a strip adjustment).
+
+    Each point is compared with its nearest neighbours (within 2 cm) from OTHER patches, using
+    residuals to the local road surface so that the road slope cancels. Each patch then gets a
+    robust planar correction (offset + tilt; defect mismatches trimmed by MAD) of half the
+    disagreement, so neighbouring patches meet in the middle (Jacobi iterations).
+    Returns the corrected (N, 3) points and statistics of the applied offsets (m)."""
+    from scipy.spatial import cKDTree
+
+    xyz = xyz.copy()
+    ids, inv = np.unique(patch, return_inverse=True)
+    applied = np.zeros(len(ids))
+    order = np.argsort(inv, kind="stable")
+    bounds = np.searchsorted(inv[order], np.arange(len(ids) + 1))
+    tree = cKDTree(xyz[:, :2])
+    dist, nb = tree.query(xyz[:, :2], k=8, distance_upper_bound=0.02)
+    valid_nb = np.isfinite(dist)
+    nb = np.where(valid_nb, nb, 0)
+    other = valid_nb & (inv[nb] != inv[:, None])
+    for _ in range(iterations):
+        surf = LocalSurface(cfg, xyz, progress=False)
+        r = surf.residual(xyz)
+        rn = np.where(other, r[nb], np.nan)
+        with np.errstate(all="ignore"):
+            cnt = np.sum(np.isfinite(rn), axis=1)
+            ref = np.where(cnt > 0, np.nansum(rn, axis=1) / np.maximum(cnt, 1), np.nan)
+        d = r - ref  # this point's height minus its neighbours' from other patches
+        corr_all = np.zeros(len(xyz))
+        for j in range(len(ids)):
+            sel = order[bounds[j] : bounds[j + 1]]
+            dd = d[sel]
+            ok = np.isfinite(dd)
+            if ok.sum() < 15:
+                continue
+            P = xyz[sel]
+            c = P[ok, :2].mean(0)
+            A = np.column_stack([np.ones(len(P)), P[:, 0] - c[0], P[:, 1] - c[1]])
+            inl = ok.copy()
+            coef = np.zeros(3)
+            for _k in range(4):
+                coef, *_ = np.linalg.lstsq(A[inl], dd[inl], rcond=None)
+                e = np.where(ok, dd - A @ coef, np.inf)
+                s = 1.4826 * np.median(np.abs(e[inl])) + 1e-6
+                new = np.abs(e) < max(3 * s, 0.5 * cfg.local_fit_inlier_m)
+                if new.sum() < 10 or np.array_equal(new, inl):
+                    break
+                inl = new
+            if inl.sum() < 30:
+                coef[1:] = 0.0  # too little overlap to estimate a tilt
+            corr_all[sel] = 0.5 * (A @ coef)
+            applied[j] += 0.5 * coef[0]
+        xyz[:, 2] -= corr_all
+    stats = {
+        "patches": int(len(ids)),
+        "offset_abs_median_m": float(np.median(np.abs(applied))) if len(ids) else 0.0,
+        "offset_abs_max_m": float(np.max(np.abs(applied))) if len(ids) else 0.0,
+    }
+    return xyz, stats
 
 
 def voxel_fuse(
@@ -413,9 +479,7 @@ def _rasters(
         for t in tqdm(tiles, desc="rasters", unit="tile", leave=False):
             grid = lat.tile_grid(*t)
             sel = _points_in(pts_grid, grid, margin)
-            res_t = interpolate_to_grid(
-                pts_grid[sel], resid[sel], grid, cfg.surface_max_edge_m, cfg.surface_edge_factor
-            )
+            res_t = _surface_tile(cfg, pts_grid[sel], resid[sel], grid)
             mos_t, wsum = _mosaic_tile(
                 cfg,
                 cam,
@@ -458,6 +522,32 @@ def _rasters(
     prev.write(prod.run_dir)
     prod.files["mosaic_preview"] = "mosaic_preview.png"
     prod.files["surface_preview"] = "surface_preview.png"
+
+
+def _surface_tile(
+    cfg: MappingConfig, xy: np.ndarray, resid: np.ndarray, grid: GridSpec
+) -> np.ndarray:
+    """Residual raster of one tile: Delaunay interpolation of the fused points on a padded
+    grid, then a masked (normalised) Gaussian smoothing of σ = surface_smooth_m that averages
+    point noise without spreading values into holes; the padding keeps tile borders seamless."""
+    sig_px = cfg.surface_smooth_m / grid.gsd_m
+    pad = int(math.ceil(3 * sig_px)) if sig_px > 0 else 0
+    big = GridSpec(
+        grid.crs,
+        grid.x0_m - pad * grid.gsd_m,
+        grid.y0_m + pad * grid.gsd_m,
+        grid.gsd_m,
+        grid.width + 2 * pad,
+        grid.height + 2 * pad,
+    )
+    r = interpolate_to_grid(xy, resid, big, cfg.surface_max_edge_m, cfg.surface_edge_factor)
+    if pad:
+        m = np.isfinite(r)
+        num = cv2.GaussianBlur(np.where(m, r, 0).astype(np.float32), (0, 0), sig_px)
+        den = cv2.GaussianBlur(m.astype(np.float32), (0, 0), sig_px)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            r = np.where(m & (den > 1e-3), num / den, np.nan).astype(np.float32)
+    return r[pad : pad + grid.height, pad : pad + grid.width]
 
 
 def _points_in(xy: np.ndarray, grid: GridSpec, margin: float) -> np.ndarray:
@@ -559,17 +649,16 @@ class _Previews:
 
     def add(self, t: tuple[int, int], lat: Any, res_t: np.ndarray, mos_t: np.ndarray) -> None:
         tp, f = lat.tile_px, self.f
-        s = tp // f
-        if s < 1:
-            return
+        # exact integer bounds so neighbouring tiles meet without a gap
         r0, c0 = t[0] * tp // f, t[1] * tp // f
-        hh, ww = min(s, self.h - r0), min(s, self.w - c0)
+        sh, sw = (t[0] + 1) * tp // f - r0, (t[1] + 1) * tp // f - c0
+        hh, ww = min(sh, self.h - r0), min(sw, self.w - c0)
         if hh <= 0 or ww <= 0:
             return
-        m = cv2.resize(mos_t, (s, s), interpolation=cv2.INTER_AREA)
+        m = cv2.resize(mos_t, (sw, sh), interpolation=cv2.INTER_AREA)
         valid = np.isfinite(res_t).astype(np.float32)
-        num = cv2.resize(np.nan_to_num(res_t), (s, s), interpolation=cv2.INTER_AREA)
-        den = cv2.resize(valid, (s, s), interpolation=cv2.INTER_AREA)
+        num = cv2.resize(np.nan_to_num(res_t), (sw, sh), interpolation=cv2.INTER_AREA)
+        den = cv2.resize(valid, (sw, sh), interpolation=cv2.INTER_AREA)
         with np.errstate(invalid="ignore", divide="ignore"):
             r = np.where(den > 0.25, num / den, np.nan)
         mm = m[:hh, :ww]

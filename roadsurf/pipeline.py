@@ -25,7 +25,7 @@ from typing import Any
 
 from roadsurf.config import from_dict, load_yaml_config, to_dict
 from roadsurf.errors import ConfigError, RoadsurfError
-from roadsurf.io import write_json_atomic
+from roadsurf.io import read_json, write_json_atomic
 
 log = logging.getLogger(__name__)
 
@@ -120,7 +120,7 @@ def run_drive(
     out_dir: str | Path,
     *,
     config_path: str | Path | None = None,
-    method: str = "proposed",
+    method: str | None = None,
     classifier: str | Path | None = None,
     rerun: bool = False,
     overwrite: bool = False,
@@ -128,7 +128,8 @@ def run_drive(
 ) -> dict[str, Any]:
     """Run every stage on ``drive_dir`` into ``out_dir``; returns the report (also report.json).
 
-    ``method`` picks the reconstruction estimator; ``classifier`` is a CNN model file for
+    ``method`` picks the reconstruction estimator (None: the config's, by default the
+    rotation-aware variant of the proposed method); ``classifier`` is a CNN model file for
     screening (only pairs the CNN is unsure about, or calls defect, are reconstructed);
     ``rerun`` streams results live to the Rerun viewer; ``overwrite`` recomputes finished
     artifacts instead of resuming.
@@ -162,12 +163,13 @@ def run_drive(
 
     drive = timed("drive", lambda: load_drive(drive_dir))
 
+    if overwrite:
+        cfg = _with_overwrite(cfg)
     rec_cfg = cfg.reconstruction
-    if method != "proposed" or any(f.name == "method" for f in dataclasses.fields(rec_cfg)):
+    if method is not None:
         if not any(f.name == "method" for f in dataclasses.fields(rec_cfg)):
             raise ConfigError(f"--method {method}: the reconstruction stage has no method option")
-        rec_cfg = dataclasses.replace(rec_cfg, method=method)
-
+        rec_cfg = from_dict(type(rec_cfg), {**to_dict(rec_cfg), "method": method}, "--method")
     frame_probs: dict[str, float] | None = None
     only_pairs: set[tuple[int, int]] | None = None
     if classifier is not None:
@@ -213,10 +215,30 @@ def run_drive(
         )
 
     timings["total"] = round(time.perf_counter() - t_start, 3)
-    report = _build_report(drive, pairs, traj, products, detections, cfg, method, timings)
+    report = _build_report(
+        drive,
+        pairs,
+        traj,
+        products,
+        detections,
+        cfg,
+        getattr(rec_cfg, "method", method),
+        timings,
+        out,
+    )
     write_json_atomic(out / "report.json", report)
     notify("report", report)
     return report
+
+
+def _with_overwrite(cfg: PipelineConfig) -> PipelineConfig:
+    """Set ``overwrite=True`` in every stage config that has that field."""
+    repl = {}
+    for f in dataclasses.fields(cfg):
+        sub = getattr(cfg, f.name)
+        if any(g.name == "overwrite" for g in dataclasses.fields(sub)):
+            repl[f.name] = dataclasses.replace(sub, overwrite=True)
+    return dataclasses.replace(cfg, **repl)
 
 
 def _pairs_to_reconstruct(
@@ -236,8 +258,9 @@ def _build_report(
     products: Any,
     detections: Any,
     cfg: PipelineConfig,
-    method: str,
+    method: str | None,
     timings: dict[str, float],
+    out: Path,
 ) -> dict[str, Any]:
     ef = traj.export_frame if traj is not None else None
     failed = [
@@ -265,6 +288,12 @@ def _build_report(
         "versions": _versions(),
         "config": {f.name: to_dict(getattr(cfg, f.name)) for f in dataclasses.fields(cfg)},
     }
+    pose_rep = out / "poses_report.json"
+    if traj is not None and pose_rep.is_file():
+        report["poses"] = read_json(pose_rep)
+        report["warnings"] += report["poses"].get("warnings", [])
+        report["counts"]["segments"] = report["poses"].get("n_segments", 1)
+        report["counts"]["gps_outliers"] = len(report["poses"].get("gps_outliers", []))
     if products is not None and hasattr(products, "to_report"):
         report["map"] = products.to_report()
     if detections is not None and hasattr(detections, "to_report"):
