@@ -168,6 +168,38 @@ def run(
         typer.echo(f"  {name}")
 
 
+@app.command()
+def evaluate(
+    runs: Annotated[list[Path], typer.Argument(help="Run folder(s), side by side.")],
+    truth: Annotated[Path, typer.Option(help="Simulator truth folder (DRIVE/truth).")],
+) -> None:
+    """Score run folders against simulator truth (trajectory, surface, coverage, seams,
+    detection); writes RUN/evaluation.json and .md and prints a markdown table."""
+    from mapping.evaluate import evaluate_run, markdown_table
+
+    results = [evaluate_run(r, truth) for r in runs]
+    typer.echo(markdown_table(results, [str(r) for r in runs]))
+    for r in runs:
+        typer.echo(f"Wrote {r}/evaluation.json and {r}/evaluation.md")
+
+
+@bench_app.command("mapping")
+def bench_mapping(
+    work: Annotated[Path, typer.Option(help="Work folder (drives, runs).")] = Path(
+        "out/bench_mapping"
+    ),
+    frames: Annotated[str, typer.Option(help="Comma-separated drive lengths.")] = "60,600",
+    full: Annotated[
+        bool, typer.Option("--full/--mapping-only", help="Also time the full `roadsurf run`.")
+    ] = True,
+) -> None:
+    """Peak RSS of `roadsurf run` and of the mapping stages on simulated drives of each length."""
+    from mapping.bench import run_benchmark
+
+    res = run_benchmark(work, tuple(int(f) for f in frames.split(",")), full=full)
+    typer.echo(res["markdown"])
+
+
 @app.command("sfm-baseline")
 def sfm_baseline(
     drive: Annotated[Path, typer.Argument(help="Drive folder (see docs/formats.md).")],

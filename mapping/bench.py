@@ -1,0 +1,103 @@
+"""`roadsurf bench mapping`: peak RSS and time of `roadsurf run` on simulated drives of
+different lengths (memory must grow with the corridor area, not frames × image size), plus the
+mapping stages alone (poses + global map) on the same drives.
+
+Each run is a separate Python process, so its peak RSS (``ru_maxrss``) is its own.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+_CHILD = r"""
+import json, resource, sys, time, logging
+logging.basicConfig(level=logging.WARNING)
+from pathlib import Path
+mode, drive, out = sys.argv[1], sys.argv[2], sys.argv[3]
+t0 = time.perf_counter()
+if mode == "run":
+    from roadsurf.pipeline import run_drive
+    rep = run_drive(drive, out)
+    extra = {"timings_s": rep["timings_s"], "n_tiles": rep.get("map", {}).get("n_tiles")}
+else:  # mapping stages only, on the pairs cached by a previous full run
+    from roadsurf.drive import load_drive
+    from reconstruction.types import load_pair
+    from mapping.config import MappingConfig
+    from mapping import poses, globalmap
+    drive_ = load_drive(drive)
+    pairs = [load_pair(p) for p in sorted((Path(out) / "pairs").glob("*.npz"))]
+    cfg = MappingConfig(overwrite=True)
+    t1 = time.perf_counter()
+    traj = poses.run(cfg, drive_, pairs, out)
+    t2 = time.perf_counter()
+    prod = globalmap.run(cfg, drive_, pairs, traj, out)
+    extra = {"poses_s": t2 - t1, "globalmap_s": time.perf_counter() - t2,
+             "n_tiles": prod.n_tiles, "n_points": prod.n_points,
+             "corridor_px": prod.mosaic_px}
+extra["wall_s"] = time.perf_counter() - t0
+extra["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+print("BENCH " + json.dumps(extra))
+"""
+
+
+def _child(mode: str, drive: Path, out: Path) -> dict[str, Any]:
+    proc = subprocess.run(
+        [sys.executable, "-c", _CHILD, mode, str(drive), str(out)],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    for line in proc.stdout.splitlines():
+        if line.startswith("BENCH "):
+            return json.loads(line[6:])
+    raise RuntimeError(f"bench child failed ({mode} {drive}):\n{proc.stderr[-3000:]}")
+
+
+def run_benchmark(
+    work: Path, frames: tuple[int, ...] = (60, 600), scenario: str = "long", full: bool = True
+) -> dict[str, Any]:
+    """Simulate ``scenario`` drives of each length (reused when present), run them, and return
+    per-length figures plus a markdown table."""
+    from simulation.scenarios import simulate
+
+    work = Path(work)
+    rows = []
+    for n in frames:
+        drive = work / f"{scenario}{n}"
+        if not (drive / "frames.csv").is_file():
+            log.info("simulating %s with %d frames into %s", scenario, n, drive)
+            simulate(scenario, drive, n_frames=n)
+        out = work / f"run_{scenario}{n}"
+        row: dict[str, Any] = {"frames": n}
+        if full or not (out / "pairs").is_dir():
+            t0 = time.perf_counter()
+            row["run"] = _child("run", drive, out)
+            row["run"]["bench_wall_s"] = time.perf_counter() - t0
+        row["mapping"] = _child("mapping", drive, out)
+        rows.append(row)
+    lines = [
+        "| frames | `roadsurf run` peak RSS | run wall time | mapping-only peak RSS | "
+        "poses | global map | tiles | corridor (imaged px) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        run = r.get("run", {})
+        m = r["mapping"]
+        lines.append(
+            f"| {r['frames']} | {run.get('peak_rss_mb', float('nan')):.0f} MB | "
+            f"{run.get('wall_s', float('nan')):.0f} s | {m['peak_rss_mb']:.0f} MB | "
+            f"{m['poses_s']:.1f} s | {m['globalmap_s']:.1f} s | {m['n_tiles']} | "
+            f"{m['corridor_px'] / 1e6:.1f} Mpx |"
+        )
+    md = "\n".join(lines) + "\n"
+    res = {"rows": rows, "markdown": md}
+    (work / "bench_mapping.json").write_text(json.dumps(res, indent=2))
+    return res
