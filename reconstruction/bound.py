@@ -18,6 +18,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import erf
 
+from reconstruction.geometry import point_covariance
 from roadsurf.geometry import check_shape
 
 
@@ -35,23 +36,7 @@ def point_crb(
     X: np.ndarray, R: np.ndarray, t: np.ndarray, K: np.ndarray, sigma_px: float
 ) -> np.ndarray:
     """(N, 3, 3) Cramér–Rao covariance of each point given the pose (X_b = R X + t)."""
-    X = check_shape("X", X, (None, 3))
-    fx, fy = K[0, 0], K[1, 1]
-
-    def proj_jac(P: np.ndarray) -> np.ndarray:  # d(u, v)/dP for P in the camera frame, (N, 2, 3)
-        x, y, z = P[:, 0], P[:, 1], P[:, 2]
-        J = np.zeros((P.shape[0], 2, 3))
-        J[:, 0, 0] = fx / z
-        J[:, 0, 2] = -fx * x / z**2
-        J[:, 1, 1] = fy / z
-        J[:, 1, 2] = -fy * y / z**2
-        return J
-
-    Ga = proj_jac(X)
-    Gb = proj_jac(X @ R.T + t) @ R
-    G = np.concatenate([Ga, Gb], axis=1)  # (N, 4, 3)
-    info = np.einsum("nki,nkj->nij", G, G) / sigma_px**2
-    return np.linalg.inv(info)
+    return point_covariance(X, R, t, K, sigma_px)
 
 
 def epsilon_bound(

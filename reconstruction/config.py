@@ -58,6 +58,8 @@ class ReconstructionConfig:
     plane_trim_k: float = 3.0  # robust plane fit: refit without points > k MAD-sigmas off (0 = LS)
     colmap_max_error_px: float = 2.0  # pycolmap two-view RANSAC max error (px)
     pixel_sigma_px: float = 0.5  # σ: pixel noise for the first-order covariance (px)
+    estimate_sigma: bool = True  # use σ̂ = 1.4826·MAD of the pair's Sampson residuals instead
+    # (adaptive to each camera/texture; pixel_sigma_px is then the fallback for < 8 points)
     max_reproj_px: float = 4.0  # drop triangulated points with a larger reprojection error (px)
     min_parallax_deg: float = 0.0  # drop points with less triangulation angle (deg); 0 = keep
     stereo_baseline_m: float = 0.2  # stereo baseline B (m), dissertation Fig. 3.12

@@ -414,7 +414,11 @@ def _estimate(
     res.px_a, res.px_b, res.match_idx = pa, pb, idx.astype(np.int64)
     res.plane = np.array([p[0], p[1], alpha * p[2]])
     res.plane_dist_m = g.plane_distance(Xm, res.plane)
-    res.cov_m2 = alpha**2 * g.point_covariance(pa, pb, R, t, K, cfg.pixel_sigma_px)
+    sigma = cfg.pixel_sigma_px
+    if cfg.estimate_sigma and method != "stereo" and len(pa) >= 8:
+        s = g.sampson_px(g.fundamental_from_pose(R, t, K), pa, pb)
+        sigma = float(1.4826 * np.median(np.abs(s))) or sigma
+    res.cov_m2 = alpha**2 * g.point_covariance(X, R, t, K, sigma)
     res.R_b_from_a, res.t_b_from_a_m = R, alpha * t
     if method != "stereo" and res.F is not None:
         res.F = g.fundamental_from_pose(R, t, K)

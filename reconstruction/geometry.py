@@ -115,11 +115,27 @@ def triangulation_jacobian_px(
 
 
 def point_covariance(
-    px_a: np.ndarray, px_b: np.ndarray, R: np.ndarray, t: np.ndarray, K: np.ndarray, sigma_px: float
+    X: np.ndarray, R: np.ndarray, t: np.ndarray, K: np.ndarray, sigma_px: float
 ) -> np.ndarray:
-    """(N, 3, 3) first-order covariance Σ_X = J σ² Jᵀ of triangulated points (eq. 3.27-3.30)."""
-    J = triangulation_jacobian_px(px_a, px_b, R, t, K)
-    return sigma_px**2 * np.einsum("nik,njk->nij", J, J)
+    """(N, 3, 3) first-order covariance of triangulated points (eq. 3.27-3.30), pose fixed.
+
+    Σ_X = σ² (Gᵀ G)⁻¹ with G = ∂(u_a, v_a, u_b, v_b)/∂X (4x3), i.e. the P⁺ Σ_x P⁺ᵀ of the
+    dissertation for the optimal (reprojection-error) triangulation; analytic, so cheap.
+    """
+    X = check_shape("X", X, (None, 3))
+    fx, fy = K[0, 0], K[1, 1]
+
+    def proj_jac(P: np.ndarray) -> np.ndarray:
+        x, y, z = P[:, 0], P[:, 1], P[:, 2]
+        J = np.zeros((P.shape[0], 2, 3))
+        J[:, 0, 0] = fx / z
+        J[:, 0, 2] = -fx * x / z**2
+        J[:, 1, 1] = fy / z
+        J[:, 1, 2] = -fy * y / z**2
+        return J
+
+    G = np.concatenate([proj_jac(X), proj_jac(X @ R.T + t) @ R], axis=1)
+    return sigma_px**2 * np.linalg.inv(np.einsum("nki,nkj->nij", G, G))
 
 
 def fit_plane(
@@ -168,6 +184,9 @@ def decompose_essential(
         Vt = -Vt
     W = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
     best: tuple[np.ndarray, np.ndarray, int] = (np.eye(3), np.zeros(3), -1)
+    if len(xa) > 200:  # cheirality is decided by any sizeable subset; keeps the loop cheap
+        sel = np.linspace(0, len(xa) - 1, 200).astype(int)
+        xa, xb = xa[sel], xb[sel]
     for R in (U @ W @ Vt, U @ W.T @ Vt):
         for t in (U[:, 2], -U[:, 2]):
             X = triangulate(xa, xb, R, t)

@@ -483,7 +483,7 @@ def run_study(
     targets = evaluate_targets(agg)
     out_dir.mkdir(parents=True, exist_ok=True)
     write_rows_csv(out_dir / "study_cells.csv", agg)
-    write_rows_csv(out_dir / "study_trials.csv", rows)
+    _write_trials_gz(out_dir / "study_trials.csv.gz", rows)
     plots = make_plots(agg, out_dir)
     meta = {
         "command": "roadsurf bench reconstruction" + (" --quick" if quick else ""),
@@ -498,3 +498,17 @@ def run_study(
     write_text_atomic(out_dir / "summary.md", md)
     log.info("study: %d cells in %.0f s -> %s", len(cells), seconds, out_dir)
     return {"targets": targets, "cells": agg, "plots": plots, "summary": md, "seconds": seconds}
+
+
+def _write_trials_gz(path: Path, rows: list[dict[str, Any]]) -> None:
+    """Every trial, gzip-compressed CSV (the raw data behind study_cells.csv)."""
+    import csv
+    import gzip
+    import io
+
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=list(rows[0].keys()))
+    w.writeheader()
+    w.writerows(rows)
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(gzip.compress(buf.getvalue().encode("utf-8"), mtime=0))

@@ -73,3 +73,28 @@ def test_motion_prior_removes_injected_mismatches() -> None:
     assert res.ok, res.reason
     assert not np.isin(truly_bad, res.match_idx).any()
     assert epsilon(res, pp) < 2e-3
+
+
+def test_point_covariance_matches_monte_carlo() -> None:
+    from reconstruction import geometry as g
+
+    pp = simulate_points(PointScene(n_points=5, sigma_px=0.3, theta_deg=(1, 2, 3)), 0)
+    rng = np.random.default_rng(0)
+    draws = []
+    for _ in range(4000):
+        na = pp.px_a_true + rng.normal(0, 0.3, pp.px_a_true.shape)
+        nb = pp.px_b_true + rng.normal(0, 0.3, pp.px_b_true.shape)
+        draws.append(
+            g.triangulate(
+                g.normalised_from_px(na, pp.K),
+                g.normalised_from_px(nb, pp.K),
+                pp.R_b_from_a,
+                pp.t_b_from_a_m,
+            )
+        )
+    emp = np.array(draws)  # (draws, N, 3)
+    pred = g.point_covariance(pp.X_a_m, pp.R_b_from_a, pp.t_b_from_a_m, pp.K, 0.3)
+    for i in range(5):
+        c = np.cov(emp[:, i, :].T)
+        # depth variance (the one that matters) within Monte-Carlo error
+        assert abs(c[2, 2] / pred[i, 2, 2] - 1) < 0.15
