@@ -101,6 +101,7 @@ def _truth_poses(truth_dir: Path) -> dict[str, Any]:
         "xy": np.array([[float(r["easting_m"]), float(r["northing_m"])] for r in rows]),
         "up": np.array([float(r["up_m"]) for r in rows]),
         "q": np.array([[float(r[k]) for k in ("qw", "qx", "qy", "qz")] for r in rows]),
+        "heading_deg": np.array([float(r["heading_deg"]) for r in rows]),
     }
 
 
@@ -111,16 +112,17 @@ def _run_trajectory(run_dir: Path, crs: str | None) -> dict[str, Any] | None:
     from pyproj import Transformer
 
     fc = read_geojson(path)
-    names, ll = [], []
+    names, ll, hd = [], [], []
     for f in fc["features"]:
         if f["geometry"]["type"] == "Point" and "filename" in f["properties"]:
             names.append(f["properties"]["filename"])
             ll.append(f["geometry"]["coordinates"][:2])
+            hd.append(float(f["properties"].get("heading_deg", float("nan"))))
     if not names:
         return None
     ll_a = np.array(ll, float)
     x, y = Transformer.from_crs("EPSG:4326", crs, always_xy=True).transform(ll_a[:, 0], ll_a[:, 1])
-    return {"filename": names, "xy": np.column_stack([x, y])}
+    return {"filename": names, "xy": np.column_stack([x, y]), "heading_deg": np.array(hd)}
 
 
 def rigid_2d(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -141,15 +143,21 @@ def _trajectory_metrics(est: dict[str, Any], truth: dict[str, Any]) -> dict[str,
     R, tr = rigid_2d(e, t)
     ea = e @ R.T + tr
     err_a = np.linalg.norm(ea - t, axis=1)
-    # relative drift: displacement error over windows of 5 m of true travel
+    # relative drift (relative pose error): the displacement over windows of 5 m of true travel,
+    # each expressed in its own vehicle frame (heading), so a global heading offset does not
+    # count; UTM grid north vs true north is the same for both and cancels too.
+    he = np.radians(est["heading_deg"][[a for a, _ in pairs]])
+    ht = np.radians(truth["heading_deg"][[b for _, b in pairs]])
+    if not np.all(np.isfinite(he)):
+        he = ht  # a producer without headings: world-frame displacements
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(t, axis=0), axis=1))])
     drift = []
     for i in range(len(s)):
         j = int(np.searchsorted(s, s[i] + 5.0))
         if j >= len(s):
             break
-        d_true = t[j] - t[i]
-        d_est = e[j] - e[i]
+        d_true = _body(t[j] - t[i], ht[i])
+        d_est = _body(e[j] - e[i], he[i])
         drift.append(np.linalg.norm(d_est - d_true) / max(s[j] - s[i], 1e-9) * 100.0)
     drift_a = np.array(drift) if drift else np.array([np.nan])
     metrics = {
@@ -165,6 +173,12 @@ def _trajectory_metrics(est: dict[str, Any], truth: dict[str, Any]) -> dict[str,
         "distance_m": float(s[-1]),
     }
     return {"metrics": metrics, "align": (R, tr)}
+
+
+def _body(d: np.ndarray, heading_rad: float) -> np.ndarray:
+    """World (E, N) displacement -> vehicle frame (right, forward) for a compass heading."""
+    c, s = math.cos(heading_rad), math.sin(heading_rad)
+    return np.array([d[0] * c - d[1] * s, d[0] * s + d[1] * c])
 
 
 def _gps_noise_m(truth_dir: Path, scen: dict[str, Any]) -> float | None:

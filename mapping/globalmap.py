@@ -440,7 +440,6 @@ def _rasters(
         )
         log.warning("globalmap: %s", msg)
         prod.warnings.append(msg)
-    prod.n_tiles = len(tiles)
     prod.grid = {
         "crs": crs,
         "x0_m": fg.x0_m,
@@ -502,6 +501,7 @@ def _rasters(
             has_m = bool((wsum > 0).any())
             if not (has_s or has_m):
                 continue
+            prod.n_tiles += 1
             prod.surface_px += int(np.isfinite(res_t).sum())
             prod.mosaic_px += int((wsum > 0).sum())
             sw.write(*t, res_t)

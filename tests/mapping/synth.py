@@ -226,3 +226,36 @@ def write_images(syn: Synthetic, root: Path, broken: tuple[int, ...] = ()) -> Sy
     syn.drive.frames = frames
     syn.drive.root = root
     return syn
+
+
+def write_drive(syn: Synthetic, root: Path, broken: tuple[int, ...] = ()) -> Path:
+    """Write a complete drive folder (camera.yaml, frames/, frames.csv, gps.csv) for load_drive."""
+    import yaml
+
+    write_images(syn, root, broken=broken)
+    cam = syn.drive.camera
+    (root / "camera.yaml").write_text(
+        yaml.safe_dump(
+            {
+                "model": "pinhole",
+                "width": cam.width,
+                "height": cam.height,
+                "fx": cam.fx,
+                "fy": cam.fy,
+                "cx": cam.cx,
+                "cy": cam.cy,
+                "height_m": cam.height_m,
+                "fps": cam.fps,
+            }
+        )
+    )
+    lines = ["filename,timestamp_s"] + [f"{f.filename},{f.timestamp_s!r}" for f in syn.drive.frames]
+    (root / "frames.csv").write_text("\n".join(lines) + "\n")
+    g = syn.drive.gps
+    if g is not None:
+        rows = ["timestamp_s,lat,lon,alt_m"] + [
+            f"{t!r},{la:.10f},{lo:.10f},{al:.4f}"
+            for t, la, lo, al in zip(g.timestamp_s, g.lat_deg, g.lon_deg, g.alt_m, strict=True)
+        ]
+        (root / "gps.csv").write_text("\n".join(rows) + "\n")
+    return root

@@ -1,0 +1,191 @@
+"""Global map on a rendered synthetic drive with a known pothole: outputs read back with real
+readers (plyfile, rasterio, json) and checked against the known geometry and texture."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rasterio
+from plyfile import PlyData
+
+from mapping import globalmap, poses
+from mapping.config import MappingConfig
+from mapping.raster import grid_mean, interpolate_to_grid
+from reconstruction.types import PairResult
+from roadsurf.drive import load_drive
+from roadsurf.formats import GridSpec
+from roadsurf.geometry import ExportFrame, enu_from_lla, lla_from_utm
+from tests.mapping.synth import REF, make_pair, make_synthetic, texture, write_drive, write_images
+
+POT_ENU = np.array([2.0, 3.3])  # pothole centre in the synthetic REF ENU frame (m)
+POT_DEPTH = 0.03
+POT_SIGMA = 0.08
+
+
+def road(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    return -POT_DEPTH * np.exp(
+        -((x - POT_ENU[0]) ** 2 + (y - POT_ENU[1]) ** 2) / (2 * POT_SIGMA**2)
+    )
+
+
+CFG = MappingConfig(gps_sigma_m=0.02, tile_px=256)
+
+
+@pytest.fixture(scope="module")
+def mapped(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, object, object]:
+    root = tmp_path_factory.mktemp("map")
+    syn = make_synthetic(n=50, seed=21, gps_hz=5.0, road_z=road)
+    syn = write_images(syn, root / "drive")
+    run = root / "run"
+    traj = poses.run(CFG, syn.drive, syn.pairs, run)
+    prod = globalmap.run(CFG, syn.drive, syn.pairs, traj, run)
+    return run, syn, prod
+
+
+def _ref_enu_from_utm(xy: np.ndarray, epsg: int = 32617) -> np.ndarray:
+    lla = lla_from_utm(xy[:, 0], xy[:, 1], epsg)
+    return enu_from_lla(lla[:, 0], lla[:, 1], 0.0, REF)[:, :2]
+
+
+def test_cloud_ply_is_georeferenced_with_residuals(mapped) -> None:
+    run, syn, prod = mapped
+    v = PlyData.read(str(run / "cloud.ply"))["vertex"].data
+    names = v.dtype.names
+    assert {"x", "y", "z", "red", "green", "blue", "residual_m"} <= set(names)
+    assert v.dtype["x"] == np.float64 and v.dtype["red"] == np.uint8
+    assert v.dtype["residual_m"] == np.float32
+    assert len(v) == prod.n_points > 1000
+    crs = json.loads((run / "reference.json").read_text())["reference"]["crs"]
+    assert crs == "EPSG:32617"
+    enu = _ref_enu_from_utm(np.column_stack([v["x"], v["y"]]))
+    # every point lies on the road under the true path, within the footprint width
+    path = syn.world_from_cam[:, :2, 3]
+    d = np.min(np.linalg.norm(enu[:, None] - path[None], axis=2), axis=1)
+    assert np.percentile(d, 99) < 0.9
+    r = np.asarray(v["residual_m"], float)
+    inside = np.linalg.norm(enu - POT_ENU, axis=1) < 0.05
+    flat = np.linalg.norm(enu - POT_ENU, axis=1) > 0.5
+    assert inside.sum() > 5
+    assert np.median(np.abs(r[inside] - road(enu[inside, 0], enu[inside, 1]))) < 0.003
+    assert np.min(r[inside]) < -0.02
+    assert np.median(np.abs(r[flat])) < 0.001
+    # colours come from the images (texture at the point's position)
+    rgb = np.column_stack([v["red"], v["green"], v["blue"]]).astype(float)
+    exp = texture(enu[:, 0], enu[:, 1]).astype(float)
+    assert np.median(np.abs(rgb - exp)) < 25
+
+
+def test_surface_and_mosaic_share_a_grid_and_match_truth(mapped) -> None:
+    run, syn, prod = mapped
+    with rasterio.open(run / "surface.tif") as s, rasterio.open(run / "mosaic.tif") as m:
+        assert s.crs.to_epsg() == 32617 and m.crs == s.crs
+        assert s.transform == m.transform and s.shape == m.shape
+        assert abs(s.transform.a - 0.005) < 1e-12
+        assert s.dtypes[0] == "float32" and m.count == 3 and m.dtypes[0] == "uint8"
+        assert np.isnan(s.nodata)
+        res = s.read(1)
+        mos = np.moveaxis(m.read(), 0, 2)
+        T = s.transform
+    fin = np.isfinite(res)
+    assert 0.05 < fin.mean() < 0.9  # the corridor, not the bounding box
+    rows, cols = np.nonzero(fin)
+    xy = np.column_stack([T.c + (cols + 0.5) * T.a, T.f + (rows + 0.5) * T.e])
+    enu = _ref_enu_from_utm(xy)
+    truth = road(enu[:, 0], enu[:, 1])
+    flat = np.abs(truth) < 1e-4
+    assert np.mean(np.abs(res[fin][flat] - truth[flat])) < 0.0015
+    deep = truth < -0.02
+    assert deep.sum() > 50
+    assert np.mean(np.abs(res[fin][deep] - truth[deep])) < 0.005
+    # mosaic georeferencing: colours at imaged pixels equal the texture at their position
+    has = mos.any(axis=2)
+    r2, c2 = np.nonzero(has)
+    pick = np.linspace(0, len(r2) - 1, 4000).astype(int)
+    xy2 = np.column_stack([T.c + (c2[pick] + 0.5) * T.a, T.f + (r2[pick] + 0.5) * T.e])
+    enu2 = _ref_enu_from_utm(xy2)
+    exp = texture(enu2[:, 0], enu2[:, 1]).astype(float)
+    got = mos[r2[pick], c2[pick]].astype(float)
+    assert np.median(np.abs(got - exp)) < 20
+    assert has.sum() >= fin.sum()
+
+
+def test_vrt_and_tiles_cover_the_same_data(mapped) -> None:
+    run, _, prod = mapped
+    assert prod.n_tiles > 2
+    tiles = sorted((run / "tiles").glob("surface_*.tif"))
+    assert len(tiles) == prod.n_tiles
+    with rasterio.open(run / "surface.vrt") as v, rasterio.open(run / "surface.tif") as s:
+        assert v.shape == s.shape and v.transform == s.transform and v.crs == s.crs
+        a, b = v.read(1), s.read(1)
+    np.testing.assert_array_equal(np.isfinite(a), np.isfinite(b))
+    np.testing.assert_allclose(a[np.isfinite(a)], b[np.isfinite(b)])
+    for name in ("mosaic_preview.png", "surface_preview.png", "map_points.npz"):
+        assert (run / name).stat().st_size > 0
+    with np.load(run / "map_points.npz") as z:
+        assert {"xyz", "rgb", "residual_m", "frame_index"} <= set(z.files)
+
+
+def test_seams_between_tiles_do_not_show(mapped) -> None:
+    run, _, _ = mapped
+    with rasterio.open(run / "surface.tif") as s:
+        res = s.read(1)
+    tp = CFG.tile_px
+    steps = []
+    for k in range(tp, res.shape[1] - 1, tp):  # vertical tile borders
+        a, b = res[:, k - 1], res[:, k]
+        ok = np.isfinite(a) & np.isfinite(b)
+        if ok.sum() > 20:
+            steps.append(np.median(np.abs(a[ok] - b[ok])))
+    assert steps and max(steps) < 0.0005
+
+
+def test_resume_skips_and_overwrite_rebuilds(mapped) -> None:
+    run, syn, _ = mapped
+    from mapping.types import load_trajectory
+
+    traj = load_trajectory(run)
+    m0 = os.stat(run / "surface.tif").st_mtime_ns
+    globalmap.run(CFG, syn.drive, syn.pairs, traj, run)
+    assert os.stat(run / "surface.tif").st_mtime_ns == m0
+
+
+def test_broken_frame_mid_drive_is_skipped(tmp_path: Path) -> None:
+    syn = make_synthetic(n=24, seed=31, gps_hz=5.0)
+    write_drive(syn, tmp_path / "drive", broken=(12,))
+    drive = load_drive(tmp_path / "drive")
+    assert len(drive.frames) == 23
+    assert any("000012" in s.file for s in drive.skipped)
+    # the reconstruction stage pairs consecutive VALID frames: (11, 13) spans the broken one
+    true_of = {f"{i:06d}.png": syn.world_from_cam[i] for i in range(24)}
+    rng = np.random.default_rng(0)
+    pairs: list[PairResult] = []
+    for a, b in zip(drive.frames[:-1], drive.frames[1:], strict=True):
+        p = make_pair(a.index, true_of[a.filename], true_of[b.filename], drive.camera, rng)
+        p.frame_a, p.frame_b, p.index_b = a.filename, b.filename, b.index
+        pairs.append(p)
+    run = tmp_path / "run"
+    traj = poses.run(CFG, drive, pairs, run)
+    assert len(traj) == 23 and "000012.png" not in traj.filenames
+    prod = globalmap.run(CFG, drive, pairs, traj, run)
+    with rasterio.open(run / "mosaic.tif") as m:
+        assert m.read(1).any()
+    assert prod.n_points > 500
+
+
+def test_gridding_helpers() -> None:
+    grid = GridSpec("EPSG:32617", 0.0, 1.0, 0.01, 100, 100)
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(0.05, 0.95, (3000, 2))
+    v = 0.1 * xy[:, 0] - 0.05 * xy[:, 1]
+    out = interpolate_to_grid(xy, v, grid, max_edge_m=0.1)
+    rr, cc = np.nonzero(np.isfinite(out))
+    cen = grid.xy_from_rowcol(rr, cc)
+    np.testing.assert_allclose(out[rr, cc], 0.1 * cen[:, 0] - 0.05 * cen[:, 1], atol=1e-5)
+    assert np.isnan(out[0, 0])  # outside the points: a hole, not extrapolation
+    m = grid_mean(xy, v, grid)
+    assert np.isfinite(m).sum() > 0.8 * 90 * 90 * (1 - np.exp(-0.33))
+    assert ExportFrame.for_reference(REF).crs == "EPSG:32617"

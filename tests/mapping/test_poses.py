@@ -1,0 +1,171 @@
+"""Pose fusion on seeded synthetic drives with known poses (GPS gaps, outliers, no GPS, failed
+pairs, consumer GPS), plus the trajectory artifacts and resume."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+
+import numpy as np
+import pytest
+
+from mapping import poses
+from mapping.config import MappingConfig
+from mapping.types import load_trajectory
+from roadsurf.formats import read_geojson
+from roadsurf.geometry import enu_from_lla, lla_from_enu
+from tests.mapping.synth import REF, make_synthetic
+
+RTK = MappingConfig(gps_sigma_m=0.02)
+
+
+def _true_frame_positions(traj, syn) -> tuple[np.ndarray, np.ndarray]:
+    """Estimated and true camera centres, both in the synthetic REF ENU frame."""
+    p = traj.positions_enu_m
+    if traj.reference is not None:
+        lla = lla_from_enu(p, traj.reference)
+        p = enu_from_lla(lla[:, 0], lla[:, 1], lla[:, 2], REF)
+    return p, syn.world_from_cam[:, :3, 3]
+
+
+def _h_rmse(traj, syn, sel=slice(None)) -> float:
+    e, t = _true_frame_positions(traj, syn)
+    d = (e - t)[sel, :2]
+    return float(np.sqrt(np.mean(np.sum(d**2, axis=1))))
+
+
+def test_rtk_gps_and_pairs_fuse_to_cm_accuracy() -> None:
+    syn = make_synthetic(n=100, seed=1, gps_hz=5.0)
+    traj, rep = poses.estimate_trajectory(RTK, syn.drive, syn.pairs)
+    assert traj.reference is not None
+    assert set(traj.source) == {"fused"}
+    assert rep.n_gps_used == rep.n_gps_fixes
+    assert _h_rmse(traj, syn) < 0.02
+    # heading follows the true path (eq. 6.1 convention: compass, clockwise from north)
+    true_h = np.array(
+        [np.degrees(np.arctan2(-W[0, 1], -W[1, 1])) % 360 for W in syn.world_from_cam]
+    )
+    dh = (traj.heading_deg - true_h + 180) % 360 - 180
+    assert np.max(np.abs(dh)) < 0.5
+
+
+def test_frames_in_a_gps_gap_are_carried_by_vision() -> None:
+    syn = make_synthetic(n=120, seed=2, gps_hz=5.0, gps_gap_s=(1.5, 4.5))
+    traj, _ = poses.estimate_trajectory(RTK, syn.drive, syn.pairs)
+    t = traj.timestamp_s
+    gap = (t > 1.5) & (t < 4.5)
+    assert gap.sum() > 50
+    assert _h_rmse(traj, syn, gap) < 0.04
+
+
+def test_gps_outliers_and_jumps_are_rejected() -> None:
+    syn = make_synthetic(n=160, seed=3, gps_hz=2.0, gps_outliers={3: (25.0, -4.0), 9: (0.0, 8.0)})
+    traj, rep = poses.estimate_trajectory(RTK, syn.drive, syn.pairs)
+    rejected = {o["gps_index"] for o in rep.gps_outliers}
+    assert {3, 9} <= rejected
+    assert len(rejected) <= 3
+    assert _h_rmse(traj, syn) < 0.03
+
+
+def test_no_gps_gives_a_local_frame_with_the_right_shape(caplog: pytest.LogCaptureFixture) -> None:
+    syn = make_synthetic(n=80, seed=4, with_gps=False)
+    with caplog.at_level(logging.WARNING):
+        traj, rep = poses.estimate_trajectory(RTK, syn.drive, syn.pairs)
+    assert traj.reference is None and traj.export_frame is None
+    assert any("no GPS" in w for w in rep.warnings)
+    assert "no GPS" in caplog.text
+    # same shape as the truth up to a rigid motion: compare distances between frames
+    e, t = _true_frame_positions(traj, syn)
+    de = np.linalg.norm(e[:, None] - e[None], axis=2)
+    dt = np.linalg.norm(t[:, None] - t[None], axis=2)
+    assert np.max(np.abs(de - dt)) < 0.03
+
+
+def test_failed_pair_is_bridged_by_gps() -> None:
+    syn = make_synthetic(n=100, seed=5, gps_hz=5.0, failed=(50,))
+    traj, rep = poses.estimate_trajectory(RTK, syn.drive, syn.pairs)
+    assert rep.n_segments == 1 and rep.n_pairs_failed == 1
+    assert _h_rmse(traj, syn) < 0.03
+
+
+def test_failed_pair_without_gps_starts_a_new_segment() -> None:
+    syn = make_synthetic(n=60, seed=6, with_gps=False, failed=(30,))
+    traj, rep = poses.estimate_trajectory(RTK, syn.drive, syn.pairs)
+    assert rep.n_segments == 2
+    assert traj.segment is not None and traj.segment[29] == 0 and traj.segment[31] == 1
+    assert any("segment" in w for w in rep.warnings)
+    # the constant-velocity guess keeps the second segment close to where it belongs
+    e, t = _true_frame_positions(traj, syn)
+    step_e = np.linalg.norm(e[31] - e[30])
+    step_t = np.linalg.norm(t[31] - t[30])
+    assert abs(step_e - step_t) < 0.1
+
+
+def test_consumer_gps_keeps_relative_drift_below_one_percent() -> None:
+    syn = make_synthetic(n=300, seed=7, gps_hz=1.0, gps_sigma_m=1.0, gps_gap_s=(5.0, 8.0))
+    traj, _ = poses.estimate_trajectory(MappingConfig(gps_sigma_m=1.0), syn.drive, syn.pairs)
+    e, t = _true_frame_positions(traj, syn)
+    he = np.radians(traj.heading_deg)
+    ht = np.radians([np.degrees(np.arctan2(-W[0, 1], -W[1, 1])) for W in syn.world_from_cam])
+
+    def body(d: np.ndarray, h: float) -> np.ndarray:  # displacement in the vehicle frame
+        return np.array([d[0] * np.cos(h) - d[1] * np.sin(h), d[0] * np.sin(h) + d[1] * np.cos(h)])
+
+    s = np.concatenate([[0], np.cumsum(np.linalg.norm(np.diff(t[:, :2], axis=0), axis=1))])
+    drift = []
+    for i in range(len(s)):
+        j = np.searchsorted(s, s[i] + 5.0)
+        if j >= len(s):
+            break
+        de, dt = body((e[j] - e[i])[:2], he[i]), body((t[j] - t[i])[:2], ht[i])
+        drift.append(np.linalg.norm(de - dt) / (s[j] - s[i]))
+    assert np.percentile(drift, 95) < 0.01
+    assert _h_rmse(traj, syn) < 1.0  # no worse than the GPS noise
+
+
+def test_hdop_sigma_mismatch_is_adapted() -> None:
+    # an RTK receiver (2 cm) that reports HDOP 1.0: σ from HDOP would be 0.5 m
+    syn = make_synthetic(n=200, seed=8, gps_hz=5.0, hdop=1.0)
+    traj, rep = poses.estimate_trajectory(MappingConfig(), syn.drive, syn.pairs)
+    assert rep.gps_sigma_scale < 0.3
+    assert _h_rmse(traj, syn) < 0.03
+
+
+def test_obd_speed_constraint_runs() -> None:
+    syn = make_synthetic(n=60, seed=9, with_gps=False, with_obd=True)
+    traj, _ = poses.estimate_trajectory(RTK, syn.drive, syn.pairs)
+    e, t = _true_frame_positions(traj, syn)
+    assert abs(np.linalg.norm(e[-1] - e[0]) - np.linalg.norm(t[-1] - t[0])) < 0.05
+
+
+def test_run_writes_artifacts_and_resumes(tmp_path) -> None:
+    syn = make_synthetic(n=40, seed=10, gps_hz=5.0)
+    traj = poses.run(RTK, syn.drive, syn.pairs, tmp_path)
+    for name in ("poses.npz", "reference.json", "trajectory.geojson", "poses_report.json"):
+        assert (tmp_path / name).is_file(), name
+    back = load_trajectory(tmp_path)
+    np.testing.assert_allclose(back.world_from_cam, traj.world_from_cam)
+    ref = json.loads((tmp_path / "reference.json").read_text())["reference"]
+    assert ref["crs"] == "EPSG:32617"
+    fc = read_geojson(tmp_path / "trajectory.geojson")
+    kinds = [f["geometry"]["type"] for f in fc["features"]]
+    assert kinds.count("LineString") == 1 and kinds.count("Point") == 40
+    props = fc["features"][1]["properties"]
+    assert {"filename", "timestamp_s", "heading_deg", "source"} <= set(props)
+    lon, lat = fc["features"][1]["geometry"]["coordinates"]
+    assert abs(lon - REF.lon_deg) < 0.01 and abs(lat - REF.lat_deg) < 0.01
+    # resume: unchanged inputs reuse poses.npz; overwrite recomputes
+    m0 = os.stat(tmp_path / "poses.npz").st_mtime_ns
+    poses.run(RTK, syn.drive, syn.pairs, tmp_path)
+    assert os.stat(tmp_path / "poses.npz").st_mtime_ns == m0
+    poses.run(MappingConfig(gps_sigma_m=0.02, overwrite=True), syn.drive, syn.pairs, tmp_path)
+    assert os.stat(tmp_path / "poses.npz").st_mtime_ns != m0
+
+
+def test_no_gps_run_writes_no_lonlat(tmp_path) -> None:
+    syn = make_synthetic(n=20, seed=11, with_gps=False)
+    poses.run(RTK, syn.drive, syn.pairs, tmp_path)
+    assert (tmp_path / "poses.npz").is_file()
+    assert not (tmp_path / "trajectory.geojson").exists()
+    assert json.loads((tmp_path / "reference.json").read_text())["reference"] is None
