@@ -64,5 +64,6 @@ class ReconstructionConfig:
     min_parallax_deg: float = 0.0  # drop points with less triangulation angle (deg); 0 = keep
     stereo_baseline_m: float = 0.2  # stereo baseline B (m), dissertation Fig. 3.12
     min_overlap: float = 0.1  # matched area share of image a below this -> no_overlap (0-1)
+    workers: int = 2  # threads extracting features ahead of the pair being solved (count)
     overwrite: bool = False  # recompute cached RUN/pairs and RUN/features files
     save_features: bool = True  # cache per-frame features in RUN/features/

@@ -13,6 +13,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import Counter
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 from tqdm import tqdm
@@ -34,36 +35,69 @@ def _feature_path(run_dir: Path, frame: Frame, cfg: ReconstructionConfig) -> Pat
 
 
 class _FeatureCache:
-    """Per-frame features: memory (last few frames) -> RUN/features -> detect."""
+    """Per-frame features: memory -> RUN/features -> detect, computed ahead in worker threads.
 
-    def __init__(self, cfg: ReconstructionConfig, run_dir: Path) -> None:
+    OpenCV releases the GIL, so while the main thread matches and solves pair (i, i+1) the
+    workers already extract the features of the next frames (2 cores used).
+    """
+
+    def __init__(self, cfg: ReconstructionConfig, run_dir: Path, frames: list[Frame]) -> None:
         self.cfg = cfg
         self.run_dir = run_dir
-        self.mem: dict[int, Features] = {}
-        self.seconds = 0.0
+        self.order = frames  # frames in the order they will be asked for
+        self.pos = 0
+        self.pos_of = {f.index: i for i, f in enumerate(frames)}
+        self.charged: set[int] = set()
+        self.futures: dict[int, Future[tuple[Features, float]]] = {}
+        self.pool = ThreadPoolExecutor(max_workers=cfg.workers) if cfg.workers > 1 else None
+        self.ahead = 2 * max(1, cfg.workers)
 
-    def get(self, frame: Frame) -> Features:
-        if frame.index in self.mem:
-            return self.mem[frame.index]
+    def close(self) -> None:
+        if self.pool is not None:
+            self.pool.shutdown(wait=True, cancel_futures=True)
+
+    def _compute(self, frame: Frame) -> tuple[Features, float]:
         path = _feature_path(self.run_dir, frame, self.cfg)
-        f = None
         if path.is_file() and not self.cfg.overwrite:
             try:
-                f = feat.load_features(path)
+                return feat.load_features(path), 0.0
             except (OSError, ValueError, KeyError) as e:
                 log.warning("%s: unreadable feature cache (%s); recomputing", path, e)
-        if f is None:
-            t0 = time.perf_counter()
-            f = feat.detect(read_gray(frame), self.cfg.features)  # FrameReadError propagates
-            self.seconds = time.perf_counter() - t0
-            if self.cfg.save_features:
-                feat.save_features(path, f)
+        t0 = time.perf_counter()
+        f = feat.detect(read_gray(frame), self.cfg.features)  # FrameReadError propagates
+        seconds = time.perf_counter() - t0
+        if self.cfg.save_features:
+            feat.save_features(path, f)
+        return f, seconds
+
+    def _submit(self, frame: Frame) -> None:
+        if frame.index in self.futures:
+            return
+        fut: Future[tuple[Features, float]] = Future()
+        if self.pool is None:
+            try:
+                fut.set_result(self._compute(frame))
+            except Exception as e:  # noqa: BLE001 - re-raised by get()
+                fut.set_exception(e)
         else:
-            self.seconds = 0.0
-        if len(self.mem) >= 4:  # consecutive pairs only need the previous frame
-            self.mem.pop(min(self.mem))
-        self.mem[frame.index] = f
-        return f
+            fut = self.pool.submit(self._compute, frame)
+        self.futures[frame.index] = fut
+
+    def get(self, frame: Frame) -> tuple[Features, float]:
+        """(features, extraction seconds, charged to the first pair only). Raises
+        FrameReadError."""
+        self._submit(frame)
+        p = self.pos_of.get(frame.index, self.pos)
+        while self.pos < len(self.order) and self.pos <= p + self.ahead:
+            self._submit(self.order[self.pos])
+            self.pos += 1
+        for k in [k for k in self.futures if k < frame.index - 1]:  # consecutive pairs only
+            self.futures.pop(k)
+        f, seconds = self.futures[frame.index].result()
+        if frame.index in self.charged:
+            seconds = 0.0
+        self.charged.add(frame.index)
+        return f, seconds
 
 
 def run(
@@ -85,26 +119,40 @@ def run(
     todo = [(frames[i], frames[i + 1]) for i in range(len(frames) - 1)]
     if only_pairs is not None:
         todo = [(a, b) for a, b in todo if (a.index, b.index) in only_pairs]
-    cache = _FeatureCache(cfg, run_dir)
-    results: list[PairResult] = []
-    n_cached = 0
-    for fa_frame, fb_frame in tqdm(todo, desc="reconstruction", unit="pair", leave=False):
-        path = pairs_dir / pair_filename(fa_frame.index, fb_frame.index)
-        if path.is_file() and not cfg.overwrite:
-            try:
-                res = load_pair(path)
-                if res.method == cfg.method:
-                    results.append(res)
-                    n_cached += 1
+    cached: dict[tuple[int, int], PairResult] = {}
+    if not cfg.overwrite:
+        for a, b in todo:
+            path = pairs_dir / pair_filename(a.index, b.index)
+            if path.is_file():
+                try:
+                    res = load_pair(path)
+                except (OSError, ValueError, KeyError) as e:
+                    log.warning("%s: unreadable cached pair (%s); recomputing", path, e)
                     continue
-            except (OSError, ValueError, KeyError) as e:
-                log.warning("%s: unreadable cached pair (%s); recomputing", path, e)
-        res = _one_pair(cfg, drive, cache, fa_frame, fb_frame)
-        save_pair(path, res)
-        results.append(res)
+                if res.method == cfg.method:
+                    cached[(a.index, b.index)] = res
+    need: list[Frame] = []
+    for a, b in todo:
+        if (a.index, b.index) not in cached:
+            for f in (a, b):
+                if not need or need[-1].index != f.index:
+                    need.append(f)
+    cache = _FeatureCache(cfg, run_dir, need)
+    results: list[PairResult] = []
+    try:
+        for fa_frame, fb_frame in tqdm(todo, desc="reconstruction", unit="pair", leave=False):
+            key = (fa_frame.index, fb_frame.index)
+            if key in cached:
+                results.append(cached[key])
+                continue
+            res = _one_pair(cfg, drive, cache, fa_frame, fb_frame)
+            save_pair(pairs_dir / pair_filename(*key), res)
+            results.append(res)
+    finally:
+        cache.close()
     counts = Counter(r.status for r in results)
     log.info(
-        "reconstruction: %d pairs (%d cached), status %s", len(results), n_cached, dict(counts)
+        "reconstruction: %d pairs (%d cached), status %s", len(results), len(cached), dict(counts)
     )
     return results
 
@@ -113,11 +161,9 @@ def _one_pair(
     cfg: ReconstructionConfig, drive: Drive, cache: _FeatureCache, a: Frame, b: Frame
 ) -> PairResult:
     try:
-        t_feat = 0.0
-        fa = cache.get(a)
-        t_feat += cache.seconds
-        fb = cache.get(b)
-        t_feat += cache.seconds
+        fa, sa = cache.get(a)
+        fb, sb = cache.get(b)
+        t_feat = sa + sb
         res = reconstruct_features(fa, fb, drive.camera, cfg)
         res.timings_s["features"] = t_feat
     except FrameReadError as e:
