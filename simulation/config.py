@@ -60,6 +60,7 @@ class SimConfig:
     sun_azimuth_deg: float = 135.0  # light direction: compass azimuth (deg)
     sun_elevation_deg: float = 45.0  # light direction: elevation above the horizon (deg)
     ambient: float = 0.4  # share of diffuse sky light (0..1); the rest is directional
+    cloud_shadow: float = 0.0  # max share of direct light blocked by soft cloud shadows (0..1)
     exposure: float = 1.0  # global brightness gain
     exposure_var: float = 0.03  # per-frame auto-exposure variation (std, relative)
     vignetting: float = 0.2  # brightness fall-off at the image corner (fraction)

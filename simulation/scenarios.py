@@ -83,6 +83,7 @@ SCENARIOS: dict[str, Scenario] = {
             "n_potholes": 4,
             "texture": "asphalt",
             "sun_azimuth_deg": 250.0,
+            "cloud_shadow": 0.4,
         },
     ),
     "highway": Scenario(

@@ -348,8 +348,12 @@ class World:
                 rgb[sl] = rgb[sl] * (1 - k * np.array([1.0, 0.97, 0.9], np.float32))
             elif dd.kind == "shadow":
                 shadow[sl] = np.maximum(shadow[sl], m * dd.strength)
+        if c.cloud_shadow > 0:
+            # Soft cloud shadows drifting over metres: part of the direct light is blocked.
+            cloud = np.clip(0.5 + 0.6 * value_noise(X, Y, 4.0, self.seed * 13 + 5), 0.0, 1.0)
+            shadow = 1.0 - (1.0 - shadow) * (1.0 - np.float32(c.cloud_shadow) * cloud)
         out["rgb"] = np.clip(rgb, 0.0, 1.5).astype(np.float32)
-        out["shadow"] = shadow
+        out["shadow"] = shadow.astype(np.float32)
         return out
 
 

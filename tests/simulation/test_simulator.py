@@ -177,3 +177,32 @@ def test_greyscale_png_and_unknown_override(tmp_path: Path) -> None:
     assert {"flat", "potholes", "vibration", "rough-gps", "highway", "long", "sample"} <= set(
         describe()
     )
+
+
+def _gps_errors(drive_dir: Path) -> tuple[np.ndarray, float]:
+    """Horizontal GPS error (m) against the true camera centre, and the GPS rate (Hz)."""
+    sc = json.loads((drive_dir / "truth" / "scenario.json").read_text())
+    poses = read_csv(drive_dir / "truth" / "poses.csv")
+    t = np.array([float(r["timestamp_s"]) for r in poses])
+    e = np.array([float(r["easting_m"]) for r in poses])
+    n = np.array([float(r["northing_m"]) for r in poses])
+    gps = read_csv(drive_dir / "gps.csv")
+    tg = np.array([float(r["timestamp_s"]) for r in gps])
+    tr = Transformer.from_crs("EPSG:4326", sc["crs"], always_xy=True)
+    eg, ng = tr.transform([float(r["lon"]) for r in gps], [float(r["lat"]) for r in gps])
+    inside = (tg >= t[0]) & (tg <= t[-1])
+    err = np.hypot(np.asarray(eg)[inside] - np.interp(tg[inside], t, e),
+                   np.asarray(ng)[inside] - np.interp(tg[inside], t, n))  # fmt: skip
+    return err, 1.0 / float(np.median(np.diff(tg)))
+
+
+def test_gps_profiles(tmp_path: Path) -> None:
+    kw = dict(TINY, fps=2.0, speed_mps=0.8, n_potholes=0, n_cracks=0)
+    rtk = simulate("flat", tmp_path / "rtk", seed=3, n_frames=10, **kw)
+    cons = simulate("flat", tmp_path / "cons", seed=3, n_frames=10, gps_profile="consumer", **kw)
+    err_rtk, rate_rtk = _gps_errors(rtk)
+    err_cons, rate_cons = _gps_errors(cons)
+    assert rate_rtk == pytest.approx(5.0) and rate_cons == pytest.approx(1.0)
+    assert len(err_rtk) >= 10 and len(err_cons) >= 3
+    assert np.median(err_rtk) < 0.1
+    assert np.median(err_cons) > 0.3
