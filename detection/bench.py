@@ -79,6 +79,42 @@ def _variant(run_dir: Path, drive_dir: Path, name: str, **cfg_changes: Any) -> P
     return out
 
 
+def binarisation_stats(run_dir: Path, drive_dir: Path, mode: str) -> dict[str, int]:
+    """How T_b splits the 3D classes: dark pixels at 3D road points (false dark: shadows,
+    exposure) and at 3D defect points deeper than 2 T_d (hits), summed over a run's pairs."""
+    from detection.config import DetectionConfig, RefineConfig
+    from detection.planefit import recursive_plane_fit
+    from detection.refine import binarise
+    from reconstruction.types import load_pair
+    from roadsurf.drive import load_drive, read_gray
+
+    cfg = DetectionConfig()
+    rcfg = RefineConfig(binarise=mode)  # type: ignore[arg-type]
+    drive = load_drive(drive_dir)
+    frames = {f.filename: f for f in drive.frames}
+    out = {"road": 0, "road_dark": 0, "defect": 0, "defect_dark": 0}
+    for path in sorted((run_dir / "pairs").glob("*.npz")):
+        p = load_pair(path)
+        if not p.ok or p.n_points < cfg.plane.min_points or p.frame_a not in frames:
+            continue
+        fit = recursive_plane_fit(np.asarray(p.points_cam_a_m, float), cfg.plane)
+        if not np.isfinite(fit.threshold_m):
+            continue
+        road = ~fit.candidate & (np.abs(fit.dist_m) < fit.threshold_m)
+        deep = fit.dist_m <= -2 * fit.threshold_m
+        dark = binarise(read_gray(frames[p.frame_a]), rcfg, road_px=np.asarray(p.px_a)[road])
+        h, w = dark.shape
+        uv = np.round(np.asarray(p.px_a, float)).astype(int)
+        uv[:, 0] = np.clip(uv[:, 0], 0, w - 1)
+        uv[:, 1] = np.clip(uv[:, 1], 0, h - 1)
+        at = dark[uv[:, 1], uv[:, 0]]
+        out["road"] += int(road.sum())
+        out["road_dark"] += int((at & road).sum())
+        out["defect"] += int(deep.sum())
+        out["defect_dark"] += int((at & deep).sum())
+    return out
+
+
 def _pool(results: list[dict[str, Any]]) -> dict[str, Any]:
     """Pool per-drive evaluations: sums of counts, errors over all matched defects."""
     tp = sum(r["frames"]["TP"] for r in results)
@@ -157,7 +193,11 @@ def _met(v: Any, kind: str, thr: Any) -> bool:
     return v >= thr if kind == "ge" else v <= thr
 
 
-def table_markdown(pooled: dict[str, dict[str, Any]], tb: dict[str, dict[str, Any]]) -> str:
+def table_markdown(
+    pooled: dict[str, dict[str, Any]],
+    tb: dict[str, dict[str, Any]],
+    bstats: dict[str, dict[str, int]] | None = None,
+) -> str:
     """The Table 4.2-style comparison, the T_b comparison and the targets, as markdown."""
     methods = list(pooled)
     rows = [
@@ -200,6 +240,22 @@ def table_markdown(pooled: dict[str, dict[str, Any]], tb: dict[str, dict[str, An
                 f"| {name} | {p['TP']}/{p['TN']}/{p['FP']}/{p['FN']} | "
                 f"{_fmt(p['accuracy'], pct=True)} | {_fmt(p['precision'], pct=True)} | "
                 f"{_fmt(p['recall'], pct=True)} |"
+            )
+    if bstats:
+        out += [
+            "",
+            "Binarisation alone (pixels of the 3D classes that T_b calls dark; ideal: 0% of road, "
+            "100% of defects deeper than 2 T_d):",
+            "",
+            "| T_b | road points dark (false) | defect points dark (hits) |",
+            "|---|---|---|",
+        ]
+        for mode, st in bstats.items():
+            fr = st["road_dark"] / st["road"] if st["road"] else float("nan")
+            hr = st["defect_dark"] / st["defect"] if st["defect"] else float("nan")
+            out.append(
+                f"| {mode} | {_fmt(fr, pct=True)} of {st['road']} | "
+                f"{_fmt(hr, pct=True)} of {st['defect']} |"
             )
     if methods:
         p = pooled[methods[0]]
@@ -274,6 +330,7 @@ def run_benchmark(
         "pair, fixed T_b": [],
     }
     failures: list[str] = []
+    bstats: dict[str, dict[str, int]] = {}
     for scenario, seed, n in drives:
         drive_dir = _drive(out, scenario, seed, n)
         for m in methods:
@@ -298,15 +355,21 @@ def run_benchmark(
                         refine=RefineConfig(binarise=mode),
                     )  # fmt: skip
                     tb[name].append(evaluate_detection(v, drive_dir / "truth"))
+                for mode in ("adaptive", "fixed"):
+                    st = binarisation_stats(run_dir, drive_dir, mode)
+                    acc = bstats.setdefault(mode, dict.fromkeys(st, 0))
+                    for k, v in st.items():
+                        acc[k] += v
     pooled = {m: _pool(r) for m, r in per.items() if r}
     tb_pooled = {k: _pool(v) for k, v in tb.items() if v}
-    body = table_markdown(pooled, tb_pooled)
+    body = table_markdown(pooled, tb_pooled, bstats)
     if failures:
         body += "\n\nFailed runs: " + "; ".join(failures)
     wall = time.perf_counter() - t0
     summary = {
         "pooled": pooled,
         "t_b": tb_pooled,
+        "binarisation": bstats,
         "failures": failures,
         "drives": [list(d) for d in drives],
         "machine": platform.platform(),

@@ -39,6 +39,9 @@ class RefineConfig:
     adaptive_window_frac: float = 0.25  # local road brightness window, share of image width (0-1)
     adaptive_dark_k: float = 1.5  # adaptive: dark = grey < local median - k * local MAD (unitless)
     adaptive_min_drop: float = 0.06  # adaptive: and at least this share darker than local (0-1)
+    adaptive_blur_frac: float = (
+        0.02  # adaptive: compare grey levels box-averaged over this share of the width
+    )
     window_px: int = 5  # W: erosion then dilation window W x W (px)
     grow_depth_frac: float = 0.5  # grow: a point joins when inside the region and d_i <= -frac*T_d
     strong_factor: float = 2.5  # candidates deeper than strong_factor * T_d need no 2D support

@@ -28,6 +28,7 @@ class PairDefects:
     noise_m: float  # σ of the road points (m)
     deep_area_m2: float  # footprint area covered by refined points deeper than the frame depth
     score: float  # p_defect from this pair alone, in [0, 1]
+    area_per_point_m2: float = float("nan")  # road area one point stands for (m²)
 
     @property
     def label(self) -> int:
@@ -51,7 +52,9 @@ def analyse_pair(
         refined = correct_defects(
             fit.dist_m, pair.px_a, fit.candidate, dark, fit.threshold_m, cfg.refine
         )
-    area = _deep_area(P, fit.dist_m, refined, cfg.map.frame_depth_m)
+    app = _area_per_point(P)
+    deep = refined & (-fit.dist_m >= cfg.map.frame_depth_m)
+    area = float(deep.sum()) * app if deep.sum() >= 3 else 0.0
     a_min = cfg.map.frame_min_area_m2
     return PairDefects(
         index_a=pair.index_a,
@@ -63,16 +66,12 @@ def analyse_pair(
         noise_m=fit.noise_m,
         deep_area_m2=area,
         score=float(area / (area + a_min)) if area > 0 else 0.0,
+        area_per_point_m2=app,
     )
 
 
-def _deep_area(P: np.ndarray, dist_m: np.ndarray, refined: np.ndarray, depth_m: float) -> float:
-    """Area (m²) the deep refined points cover: each point stands for the mean footprint area
-    per point (points are spread over the image by the reconstruction's feature grid)."""
-    deep = refined & (-dist_m >= depth_m)
-    if deep.sum() < 3:
-        return 0.0
-    xy = P[:, :2]
-    lo, hi = np.percentile(xy, [1, 99], axis=0)
-    area_per_point = float(np.prod(np.maximum(hi - lo, 1e-6))) / len(P)
-    return float(deep.sum()) * area_per_point
+def _area_per_point(P: np.ndarray) -> float:
+    """Road area (m²) one point stands for: the area the points span (1-99 % box in camera X, Y)
+    over their count (the reconstruction spreads points over the image with a feature grid)."""
+    lo, hi = np.percentile(P[:, :2], [1, 99], axis=0)
+    return float(np.prod(np.maximum(hi - lo, 1e-6))) / len(P)

@@ -48,7 +48,7 @@ def local_road_brightness(gray: np.ndarray, window_frac: float) -> tuple[np.ndar
 
 
 def road_brightness_from_points(
-    gray: np.ndarray, road_px: np.ndarray, k: int = 12
+    gray: np.ndarray, road_px: np.ndarray, k: int = 12, blur_px: int = 5
 ) -> tuple[np.ndarray, np.ndarray]:
     """Local road brightness from the pixels of 3D road points (X^rn).
 
@@ -60,7 +60,7 @@ def road_brightness_from_points(
     from scipy.spatial import cKDTree
 
     h, w = gray.shape
-    blur = cv2.blur(gray, (5, 5))
+    blur = cv2.blur(gray, (blur_px, blur_px))
     u = np.clip(np.round(road_px[:, 0]).astype(int), 0, w - 1)
     v = np.clip(np.round(road_px[:, 1]).astype(int), 0, h - 1)
     vals = blur[v, u].astype(np.float32)
@@ -93,12 +93,16 @@ def binarise(gray: np.ndarray, cfg: RefineConfig, road_px: np.ndarray | None = N
     if cfg.binarise == "fixed":
         dark = g < cfg.fixed_threshold
     else:
+        # Compare texture-averaged brightness: the road texture's spread would otherwise hide a
+        # pothole that is 20-40 % darker.
+        b = max(1, int(round(cfg.adaptive_blur_frac * g.shape[1]))) | 1
+        gs = cv2.blur(g, (b, b)) if b > 1 else g
         if road_px is not None and len(road_px) >= 20:
-            med, mad = road_brightness_from_points(g, np.asarray(road_px, float))
+            med, mad = road_brightness_from_points(g, np.asarray(road_px, float), blur_px=b)
         else:
-            med, mad = local_road_brightness(g, cfg.adaptive_window_frac)
+            med, mad = local_road_brightness(gs, cfg.adaptive_window_frac)
         drop = np.maximum(cfg.adaptive_dark_k * 1.4826 * mad, cfg.adaptive_min_drop * med)
-        dark = g.astype(np.float32) < med - drop
+        dark = gs.astype(np.float32) < med - drop
     W = max(1, int(cfg.window_px))
     kernel = np.ones((W, W), np.uint8)
     opened = cv2.dilate(cv2.erode(dark.astype(np.uint8), kernel), kernel)

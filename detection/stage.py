@@ -96,7 +96,8 @@ def run(
     # ---- 3. frame labels
     cell_m2 = surface.grid.gsd_m**2 if surface is not None else 0.0
     use_map = surface is not None and cfg.frame_label == "map"
-    frames = _frame_labels(cfg, drive, footprints, deep_xy, cell_m2, per_pair, use_map)
+    pair_scores = _pair_frame_scores(cfg, drive, pairs, per_pair)
+    frames = _frame_labels(cfg, drive, footprints, deep_xy, cell_m2, pair_scores, use_map)
     frames = _fuse(cfg, frames, frame_probs, pairs)
 
     result = DetectionResult(
@@ -299,14 +300,13 @@ def _frame_labels(
     footprints: dict[str, Any],
     deep_xy: list[np.ndarray],
     cell_m2: float,
-    per_pair: dict[int, PairDefects],
+    pair_score: dict[str, float],
     have_map: bool,
 ) -> list[FrameLabel]:
-    """Deep defect area in each frame's footprint (map), or the pair's own estimate without a map."""
+    """Deep defect area in each frame's footprint (map), or the pairs' estimate without a map."""
     from matplotlib.path import Path as MplPath
 
     a_min = cfg.map.frame_min_area_m2
-    pair_score = {pd.frame_a: pd.score for pd in per_pair.values()}
     pts = np.vstack(deep_xy) if deep_xy else np.zeros((0, 2))
     out: list[FrameLabel] = []
     for f in drive.frames:
@@ -324,6 +324,42 @@ def _frame_labels(
             p = pair_score.get(f.filename, 0.0)
         out.append(FrameLabel(f.filename, int(p >= 0.5), float(p), "3d"))
     return out
+
+
+def _pair_frame_scores(
+    cfg: DetectionConfig,
+    drive: Drive,
+    pairs: list[PairResult],
+    per_pair: dict[int, PairDefects],
+) -> dict[str, float]:
+    """The dissertation's per-frame decision from refined points alone.
+
+    Frame k is seen by pair (k-1, k) (its pixels px_b) and pair (k, k+1) (px_a), which together
+    cover its whole image. The deep refined points of both are binned on an image grid whose
+    cells are one point spacing wide, and the occupied cells give the deep area.
+    """
+    m_per_px = drive.camera.height_m / drive.camera.fx
+    items: dict[str, list[tuple[np.ndarray, float]]] = {}
+    for k, pd in per_pair.items():
+        p = pairs[k]
+        deep = pd.refined & (-pd.dist_m >= cfg.map.frame_depth_m)
+        for fn, px in ((p.frame_a, p.px_a), (p.frame_b, p.px_b)):
+            lst = items.setdefault(fn, [])
+            if deep.any():
+                lst.append((np.asarray(px, float)[deep], pd.area_per_point_m2))
+    a_min = cfg.map.frame_min_area_m2
+    scores: dict[str, float] = {}
+    for fn, lst in items.items():
+        n = sum(len(px) for px, _ in lst)
+        if n < 3:
+            scores[fn] = 0.0
+            continue
+        app = float(np.median([a for _, a in lst]))
+        s_px = max(1.0, math.sqrt(app) / m_per_px)
+        cells = np.unique(np.floor(np.vstack([px for px, _ in lst]) / s_px).astype(int), axis=0)
+        area = len(cells) * (s_px * m_per_px) ** 2
+        scores[fn] = area / (area + a_min)
+    return scores
 
 
 def _fuse(

@@ -192,3 +192,13 @@ def test_failed_pairs_are_skipped(tmp_path):
     )
     res = stage.run(CFG, drive, pairs, traj, tmp_path / "run")
     assert len(res.defects) == 1
+
+
+def test_pair_level_frame_decision(tmp_path):
+    """The dissertation's per-pair decision (frame_label: pair) sees the pothole in frames 2, 3."""
+    scene = Scene(potholes=[Pothole(0.1, 1.0, 0.15, 0.03)], shadow_x_m=0.3, lane_x_m=-0.3)
+    cfg = dataclasses.replace(CFG, frame_label="pair")
+    res, _, _ = _run(tmp_path, scene, cfg=cfg)
+    labels = [f.defect for f in res.frames]
+    assert labels[2] == labels[3] == 1
+    assert labels[0] == 0 and labels[5] == 0
