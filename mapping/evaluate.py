@@ -67,7 +67,9 @@ def evaluate_run(run_dir: str | Path, truth_dir: str | Path) -> dict[str, Any]:
         if gps_noise:
             out["gps_sigma_m"] = gps_noise
             out["trajectory_rmse_vs_gps_noise"] = out["trajectory_rmse_m"] / gps_noise
-    surf = _surface_metrics(run_dir, truth_dir, truth, align, crs, scen)
+    # the imaged corridor is that of the frames the run placed (all frames without a trajectory)
+    seen = set(est["filename"]) if est is not None else set(truth["filename"])
+    surf = _surface_metrics(run_dir, truth_dir, truth, align, crs, scen, seen)
     out["surface"] = surf.pop("metrics")
     out.update(surf)
     out["seam_step_max_m"], out["seam_step_p95_m"], out["seam_pairs"] = _seam_steps(run_dir)
@@ -159,7 +161,14 @@ def _trajectory_metrics(est: dict[str, Any], truth: dict[str, Any]) -> dict[str,
         d_true = _body(t[j] - t[i], ht[i])
         d_est = _body(e[j] - e[i], he[i])
         drift.append(np.linalg.norm(d_est - d_true) / max(s[j] - s[i], 1e-9) * 100.0)
-    drift_a = np.array(drift) if drift else np.array([np.nan])
+    drift_a = np.array(drift)
+    if not drift:
+        log.info("drive shorter than 5 m: no relative drift figure")
+    dstat = (
+        (float(np.median(drift_a)), float(np.percentile(drift_a, 95)), float(np.max(drift_a)))
+        if drift
+        else (float("nan"),) * 3
+    )
     metrics = {
         "n_frames_matched": len(pairs),
         "trajectory_rmse_m": float(np.sqrt(np.mean(err**2))),
@@ -167,9 +176,9 @@ def _trajectory_metrics(est: dict[str, Any], truth: dict[str, Any]) -> dict[str,
         "trajectory_rmse_aligned_m": float(np.sqrt(np.mean(err_a**2))),
         "alignment_offset_m": float(np.linalg.norm(tr + (R - np.eye(2)) @ e.mean(0))),
         "alignment_rotation_deg": float(math.degrees(math.atan2(R[1, 0], R[0, 0]))),
-        "drift_5m_median_pct": float(np.nanmedian(drift_a)),
-        "drift_5m_p95_pct": float(np.nanpercentile(drift_a, 95)),
-        "drift_5m_max_pct": float(np.nanmax(drift_a)),
+        "drift_5m_median_pct": dstat[0],
+        "drift_5m_p95_pct": dstat[1],
+        "drift_5m_max_pct": dstat[2],
         "distance_m": float(s[-1]),
     }
     return {"metrics": metrics, "align": (R, tr)}
@@ -202,7 +211,7 @@ def _open_surface(run_dir: Path) -> Path | None:
     return None
 
 
-def _corridor_polygon(truth_dir: Path, truth: dict[str, Any]) -> Any:
+def _corridor_polygon(truth_dir: Path, truth: dict[str, Any], seen: set[str]) -> Any:
     """Union of the true camera footprints on the road (truth CRS), or None."""
     import shapely
     import yaml
@@ -226,6 +235,8 @@ def _corridor_polygon(truth_dir: Path, truth: dict[str, Any]) -> Any:
     Rs = Rotation.from_quat(np.column_stack([q[:, 1], q[:, 2], q[:, 3], q[:, 0]])).as_matrix()
     polys = []
     for k in range(len(q)):
+        if truth["filename"][k] not in seen:
+            continue
         rw = rays @ Rs[k].T
         if np.any(rw[:, 2] >= -1e-6):
             continue
@@ -242,6 +253,7 @@ def _surface_metrics(
     align: tuple[np.ndarray, np.ndarray] | None,
     crs: str | None,
     scen: dict[str, Any],
+    seen: set[str],
 ) -> dict[str, Any]:
     import rasterio
     import shapely
@@ -276,7 +288,7 @@ def _surface_metrics(
             dmask = rasterize(
                 shapes, out_shape=tshape, transform=tT, fill=0, default_value=1
             ).astype(bool)
-    corridor = _corridor_polygon(truth_dir, truth)
+    corridor = _corridor_polygon(truth_dir, truth, seen)
     cmask = None
     if corridor is not None:
         cmask = rasterize(

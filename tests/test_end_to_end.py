@@ -1,0 +1,126 @@
+"""End to end: `roadsurf run` (roadsurf.pipeline.run_drive) on the first frames of the committed
+sample drive, outputs read back with real readers and scored against the simulator's truth."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rasterio
+from plyfile import PlyData
+
+from roadsurf.formats import read_csv, read_geojson
+
+SAMPLE = Path(__file__).resolve().parents[1] / "data_samples" / "drive"
+N_FRAMES = 10
+
+
+@pytest.fixture(scope="module")
+def sample_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, dict]:
+    if not (SAMPLE / "frames.csv").is_file():
+        pytest.skip(f"{SAMPLE} is missing (regenerate it with `make sample`)")
+    root = tmp_path_factory.mktemp("e2e")
+    drive = root / "drive"
+    (drive / "frames").mkdir(parents=True)
+    lines = (SAMPLE / "frames.csv").read_text().splitlines()
+    (drive / "frames.csv").write_text("\n".join(lines[: N_FRAMES + 1]) + "\n")
+    for line in lines[1 : N_FRAMES + 1]:
+        name = line.split(",")[0]
+        shutil.copy(SAMPLE / "frames" / name, drive / "frames" / name)
+    for name in ("camera.yaml", "gps.csv", "obd.csv"):
+        if (SAMPLE / name).is_file():
+            shutil.copy(SAMPLE / name, drive / name)
+    shutil.copytree(SAMPLE / "truth", drive / "truth")
+    from roadsurf.pipeline import run_drive
+
+    out = root / "out"
+    report = run_drive(drive, out)
+    return drive, out, report
+
+
+@pytest.mark.slow
+def test_run_writes_the_output_contract(sample_run) -> None:
+    drive, out, report = sample_run
+    for name in (
+        "cloud.ply",
+        "surface.tif",
+        "mosaic.tif",
+        "trajectory.geojson",
+        "report.json",
+        "mosaic_preview.png",
+        "surface_preview.png",
+        "map_points.npz",
+    ):
+        assert (out / name).is_file() and (out / name).stat().st_size > 0, name
+    rep = json.loads((out / "report.json").read_text())
+    truth_crs = json.loads((drive / "truth" / "scenario.json").read_text())["crs"]
+    assert rep["crs"] == truth_crs
+    assert rep["counts"]["frames"] == N_FRAMES
+    assert rep["counts"]["pairs_ok"] >= N_FRAMES - 2
+    assert {"drive", "reconstruction", "poses", "globalmap", "total"} <= set(rep["timings_s"])
+    assert "numpy" in rep["versions"] and rep["reference"]["lat_deg"] > 0
+    assert isinstance(rep["skipped_frames"], list) and isinstance(rep["failed_pairs"], list)
+
+
+@pytest.mark.slow
+def test_outputs_are_georeferenced_against_truth(sample_run) -> None:
+    drive, out, _ = sample_run
+    truth = read_csv(drive / "truth" / "poses.csv")[:N_FRAMES]
+    txy = np.array([[float(r["easting_m"]), float(r["northing_m"])] for r in truth])
+    # trajectory: RFC 7946 points per frame, close to the true camera centres
+    from pyproj import Transformer
+
+    fc = read_geojson(out / "trajectory.geojson")
+    pts = [f for f in fc["features"] if f["geometry"]["type"] == "Point"]
+    assert [p["properties"]["filename"] for p in pts] == [r["filename"] for r in truth]
+    ll = np.array([p["geometry"]["coordinates"] for p in pts])
+    x, y = Transformer.from_crs("EPSG:4326", "EPSG:32617", always_xy=True).transform(
+        ll[:, 0], ll[:, 1]
+    )
+    err = np.linalg.norm(np.column_stack([x, y]) - txy, axis=1)
+    assert np.sqrt(np.mean(err**2)) < 0.1
+    # cloud: UTM doubles under the driven path, residuals in a sane range
+    v = PlyData.read(str(out / "cloud.ply"))["vertex"].data
+    xy = np.column_stack([v["x"], v["y"]])
+    d = np.min(np.linalg.norm(xy[:, None] - txy[None], axis=2), axis=1)
+    assert np.percentile(d, 99) < 1.0
+    r = np.asarray(v["residual_m"], float)
+    assert -0.15 < np.percentile(r, 0.5) and np.percentile(r, 99.5) < 0.05
+    assert np.median(np.abs(r)) < 0.003
+    # surface and mosaic on one grid in the truth CRS, overlapping the truth raster
+    with rasterio.open(out / "surface.tif") as s, rasterio.open(out / "mosaic.tif") as m:
+        assert s.crs == m.crs and s.crs.to_string() == "EPSG:32617"
+        assert s.transform == m.transform
+        sb = s.bounds
+        res = s.read(1)
+    with rasterio.open(drive / "truth" / "residual.tif") as t:
+        tb = t.bounds
+    assert sb.left < tb.right and sb.right > tb.left and sb.bottom < tb.top and sb.top > tb.bottom
+    fin = np.isfinite(res)
+    assert fin.sum() > 10000 and np.nanmedian(np.abs(res)) < 0.003
+
+
+@pytest.mark.slow
+def test_evaluate_scores_the_run(sample_run) -> None:
+    drive, out, _ = sample_run
+    from mapping.evaluate import evaluate_run
+
+    ev = evaluate_run(out, drive / "truth")
+    assert ev["trajectory_rmse_m"] < 0.1
+    assert ev["surface"]["aligned"]["flat_mae_m"] < 0.004
+    assert 0.3 < ev["coverage"] <= 1.0
+    assert (out / "evaluation.json").is_file() and (out / "evaluation.md").is_file()
+
+
+@pytest.mark.slow
+def test_rerun_resumes_without_recomputing(sample_run) -> None:
+    drive, out, _ = sample_run
+    from roadsurf.pipeline import run_drive
+
+    m0 = (out / "surface.tif").stat().st_mtime_ns
+    rep = run_drive(drive, out)
+    assert (out / "surface.tif").stat().st_mtime_ns == m0
+    assert rep["timings_s"]["globalmap"] < 5.0
