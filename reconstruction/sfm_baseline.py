@@ -81,6 +81,8 @@ class SfmBaselineConfig:
     max_gps_gap_s: float = 2.0  # frames further than this from a GPS fix get no GPS position (s)
     local_fit_cell_m: float = 1.0  # cell of the local road-surface fit for residual_m (m)
     local_fit_inlier_m: float = 0.01  # points further than this from the local fit are not road (m)
+    max_abs_residual_m: float = 0.25  # points further than this above/below the local road surface
+    # are triangulation outliers or off-road objects (deep potholes are ~0.1-0.2 m) (m)
     local_fit_order: int = 2  # 1: plane, 2: quadric (follows camber/undulation), per 3x3 cells
     max_point_dist_m: float = 5.0  # drop 3D points further than this from every camera (m)
     gsd_m: float = 0.02  # surface.tif pixel (m); SfM points are sparse, so coarser than `run`
@@ -885,6 +887,7 @@ def run(
         res_k, fitted = local_surface_residuals(
             g2.p_w[near], cfg.local_fit_cell_m, cfg.local_fit_inlier_m, cfg.local_fit_order
         )
+        fitted &= np.abs(np.nan_to_num(res_k, nan=np.inf)) <= cfg.max_abs_residual_m
         pw_l.append(g2.p_w[near][fitted])
         rgb_l.append(g2.rgb[near][fitted])
         res_l.append(res_k[fitted])
