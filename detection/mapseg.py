@@ -271,7 +271,9 @@ def measure(region: Region, grid: GridSpec, frame_depth_m: float) -> Measured:
     xy = grid.xy_from_rowcol(region.rows, region.cols)
     area = float(len(region.rows) * gsd * gsd)
     volume = float(depth.sum() * gsd * gsd)
-    max_depth = float(np.nanmax(region.depth_smooth_m)) if len(region.rows) else 0.0
+    # Deepest cell of the (hole-filled, unsmoothed) surface: the smoothing used for the
+    # thresholds would shave a few millimetres off the bottom of a small pothole.
+    max_depth = float(depth.max()) if len(depth) else 0.0
     mean_depth = float(depth.mean()) if len(depth) else 0.0
     # Outline: external contour(s) of the cell mask, pushed out by half a cell.
     r0, c0 = region.rows.min(), region.cols.min()
