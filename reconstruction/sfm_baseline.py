@@ -7,20 +7,26 @@
    SIFT feature extraction on the drive's valid frames with the camera intrinsics of
    camera.yaml (PINHOLE, or OPENCV/FULL_OPENCV when ``dist`` is non-zero), sequential matching
    (``overlap`` neighbours), incremental mapping with the intrinsics held fixed. Every model
-   the mapper makes is kept in ``OUT/colmap/sparse/<k>/``; the largest is used.
-2. Scale (dissertation eq. 3.31-3.34, applied per camera): for every registered image, a
-   robust plane is fitted to the 3D points it sees; d_c is the median camera-to-plane distance
-   and α = h / d_c with h = camera.yaml ``height_m``. The vertical is the mean plane normal.
-3. Georeferencing: with GPS, a robust 2D rigid (or similarity) fit of the levelled, scaled
-   camera centres to the GPS ENU positions interpolated at the frame times; the vertical offset
-   from the GPS altitude when logged. Without GPS: a local metric frame (first camera at the
+   the mapper makes is kept in ``OUT/colmap/sparse/<k>/``.
+2. Scale, per model (dissertation eq. 3.31-3.34, applied per camera): for every registered
+   image a robust plane is fitted to the 3D points it sees; d_c is the median camera-to-plane
+   distance and α = h / d_c with h = camera.yaml ``height_m``. The vertical is the mean plane
+   normal. Poses that disagree with their neighbours (heading jump > 20°, camera-to-road
+   distance > 25% off) are dropped with a reason (the planar two-fold ambiguity shows up so).
+3. Georeferencing, per model: with GPS, a robust 2D rigid (or similarity) fit of the levelled,
+   scaled camera centres to the GPS ENU positions interpolated at the frame times (frames far
+   off a good fit are dropped as bad poses); the vertical offset, and an along-track tilt when
+   the GPS altitude is good enough to show one, from the GPS altitude. The largest model is
+   used first, then every smaller model that the GPS can place adds the frames the larger ones
+   lack. Without GPS: only the largest model, in a local metric frame (first camera at the
    origin, its forward direction along +y), ``crs`` null and no lat/lon exports.
 4. Outputs in OUT, in the run-folder format of ``roadsurf run`` (docs/formats.md): cloud.ply,
    surface.tif, trajectory.geojson, report.json, plus poses.npz/reference.json (the mapping
-   ``Trajectory`` artifact) so the evaluation tools read both runs the same way.
+   ``Trajectory`` artifact) so the evaluation tools read both runs the same way. residual_m is
+   relative to a local robust quadric road surface fitted per model (3 x 3 cells of 1 m).
 
-The residual rasteriser and local surface fit here are small local versions; the mapping stage
-has its own (denser) ones.
+The residual rasteriser and local surface fit here are small local versions (a sparse cloud on
+one grid); the mapping stage has its own dense, tiled ones (mapping/raster.py, surface.py).
 """
 
 from __future__ import annotations
