@@ -33,8 +33,6 @@ class MappingConfig:
     robust_loss: Literal["soft_l1", "huber", "cauchy", "arctan", "linear"] = "cauchy"
     robust_scale: float = 3.0  # residual (in σ units) where the robust loss starts to bend (−)
     gps_outlier_sigmas: float = 5.0  # a fix with |residual| > this × σ after fusion is an outlier
-    max_gap_interp_s: float = 2.0  # GPS fix further than this in time from any frame is unused (s)
-    max_speed_mps: float = 70.0  # implied speed above this between fixes = a jump (m/s)
     max_nfev: int = 60  # least-squares iteration cap (function evaluations)
     # ---------------------------------------------------------------- global map
     voxel_m: float = 0.004  # voxel edge for fusing points seen in several pairs (m)
@@ -50,7 +48,6 @@ class MappingConfig:
     tiled_vrt_min_tiles: int = 2  # write per-tile files + VRT index when the grid has >= this
     mosaic_border_px: int = 8  # image border ignored when projecting frames (px)
     feather_px: int = 40  # feathering ramp width at image edges for mosaic blending (px)
-    surface_fill_px: int = 2  # close holes up to this many pixels in the surface raster (px)
     max_raster_px: int = 400_000_000  # refuse a single raster larger than this (px), tile instead
     preview_max_px: int = 2000  # longest side of the PNG previews (px)
     surface_max_edge_m: float = (

@@ -23,6 +23,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from detection.classifier.config import ClassifierConfig
+from detection.config import DetectionConfig
+from mapping.config import MappingConfig
+from reconstruction.config import ReconstructionConfig
 from roadsurf.config import from_dict, load_yaml_config, to_dict
 from roadsurf.errors import ConfigError, RoadsurfError
 from roadsurf.io import read_json, write_json_atomic
@@ -33,40 +37,13 @@ Observer = Callable[[str, Any], None]
 
 
 @dataclass(frozen=True)
-class _MissingStageConfig:
-    """Placeholder while a stage package has not landed yet (accepts no keys)."""
-
-
-def _config_class(module: str, name: str) -> type:
-    try:
-        return getattr(importlib.import_module(module), name)
-    except (ImportError, AttributeError):
-        return _MissingStageConfig
-
-
-_ReconstructionConfig = _config_class("reconstruction.config", "ReconstructionConfig")
-_MappingConfig = _config_class("mapping.config", "MappingConfig")
-_DetectionConfig = _config_class("detection.config", "DetectionConfig")
-_ClassifierConfig = _config_class("detection.classifier.config", "ClassifierConfig")
-
-
-@dataclass(frozen=True)
 class PipelineConfig:
     """All stage configs; the YAML file's top-level keys are these field names."""
 
-    reconstruction: _ReconstructionConfig = field(default_factory=_ReconstructionConfig)  # type: ignore[valid-type]
-    mapping: _MappingConfig = field(default_factory=_MappingConfig)  # type: ignore[valid-type]
-    detection: _DetectionConfig = field(default_factory=_DetectionConfig)  # type: ignore[valid-type]
-    classifier: _ClassifierConfig = field(default_factory=_ClassifierConfig)  # type: ignore[valid-type]
-
-
-# from_dict resolves type hints by name; give it the real classes, not the aliases' strings.
-PipelineConfig.__annotations__.update(
-    reconstruction=_ReconstructionConfig,
-    mapping=_MappingConfig,
-    detection=_DetectionConfig,
-    classifier=_ClassifierConfig,
-)
+    reconstruction: ReconstructionConfig = field(default_factory=ReconstructionConfig)
+    mapping: MappingConfig = field(default_factory=MappingConfig)
+    detection: DetectionConfig = field(default_factory=DetectionConfig)
+    classifier: ClassifierConfig = field(default_factory=ClassifierConfig)
 
 
 def load_pipeline_config(path: str | Path | None) -> PipelineConfig:
@@ -80,16 +57,9 @@ def pipeline_config_from_dict(data: dict[str, Any] | None) -> PipelineConfig:
     return from_dict(PipelineConfig, data, "pipeline config")
 
 
-def _stage(module: str) -> Any | None:
-    """Import a stage module lazily; None (with a warning) while it has not landed."""
-    try:
-        return importlib.import_module(module)
-    except ModuleNotFoundError as e:
-        # only tolerate the stage module itself (or its package) missing, not a broken import
-        if e.name and (module == e.name or module.startswith(e.name + ".")):
-            log.warning("stage %s is not available yet (%s); skipping it", module, e)
-            return None
-        raise
+def _stage(module: str) -> Any:
+    """Import a stage module lazily (keeps `roadsurf --help` and light commands fast)."""
+    return importlib.import_module(module)
 
 
 def _versions() -> dict[str, str]:
@@ -142,7 +112,13 @@ def run_drive(
     cfg = load_pipeline_config(config_path)
     obs: list[Observer] = list(observers or [])
     if rerun:
-        live = importlib.import_module("viewer.live")
+        try:
+            live = importlib.import_module("viewer.live")
+        except ModuleNotFoundError as e:
+            raise RoadsurfError(
+                "--rerun needs the live viewer (viewer/live.py with make_observer(run_dir)); "
+                f"it is not installed ({e}). Run without --rerun and use `roadsurf view OUT`."
+            ) from e
         obs.append(live.make_observer(out))
     timings: dict[str, float] = {}
 
@@ -174,10 +150,6 @@ def run_drive(
     only_pairs: set[tuple[int, int]] | None = None
     if classifier is not None:
         screen = _stage("detection.classifier.screen")
-        if screen is None:
-            raise RoadsurfError(
-                "--classifier given but detection.classifier.screen is not installed"
-            )
         frame_probs = timed(
             "screening", lambda: screen.screen_drive(Path(classifier), drive, cfg.classifier)
         )
@@ -188,31 +160,17 @@ def run_drive(
             max(0, len(drive.frames) - 1),
         )
 
-    pairs: list[Any] = []
     rec = _stage("reconstruction.stage")
-    if rec is not None:
-        pairs = timed(
-            "reconstruction",
-            lambda: rec.run(rec_cfg, drive, out, only_pairs=only_pairs),
-        )
-
-    traj = None
+    pairs = timed("reconstruction", lambda: rec.run(rec_cfg, drive, out, only_pairs=only_pairs))
     poses = _stage("mapping.poses")
-    if poses is not None:
-        traj = timed("poses", lambda: poses.run(cfg.mapping, drive, pairs, out))
-
-    products = None
+    traj = timed("poses", lambda: poses.run(cfg.mapping, drive, pairs, out))
     gmap = _stage("mapping.globalmap")
-    if gmap is not None and traj is not None:
-        products = timed("globalmap", lambda: gmap.run(cfg.mapping, drive, pairs, traj, out))
-
-    detections = None
+    products = timed("globalmap", lambda: gmap.run(cfg.mapping, drive, pairs, traj, out))
     det = _stage("detection.stage")
-    if det is not None and traj is not None:
-        detections = timed(
-            "detection",
-            lambda: det.run(cfg.detection, drive, pairs, traj, out, frame_probs=frame_probs),
-        )
+    detections = timed(
+        "detection",
+        lambda: det.run(cfg.detection, drive, pairs, traj, out, frame_probs=frame_probs),
+    )
 
     timings["total"] = round(time.perf_counter() - t_start, 3)
     report = _build_report(
