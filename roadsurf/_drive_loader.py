@@ -299,7 +299,8 @@ def _decode(path: Path, flags: int) -> np.ndarray:
 
 def read_image(frame: Frame) -> np.ndarray:
     """RGB uint8 (H, W, 3); greyscale files are replicated to 3 channels."""
-    img = _decode(Path(frame.path), cv2.IMREAD_COLOR)
+    # EXIF orientation is ignored: pixels must stay in the calibrated sensor frame.
+    img = _decode(Path(frame.path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
     if img.ndim == 2:
         return np.repeat(img[:, :, None], 3, axis=2)
     return cv2.cvtColor(img[:, :, :3], cv2.COLOR_BGR2RGB)
@@ -307,7 +308,7 @@ def read_image(frame: Frame) -> np.ndarray:
 
 def read_gray(frame: Frame) -> np.ndarray:
     """Greyscale uint8 (H, W)."""
-    img = _decode(Path(frame.path), cv2.IMREAD_GRAYSCALE)
+    img = _decode(Path(frame.path), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION)
     return img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
 
 
