@@ -31,6 +31,8 @@ class SimConfig:
     fx: float = 600.0  # focal length (px); fy = fx (square pixels)
     camera_height_m: float = 1.1  # nominal camera-to-road distance Z_m = h (m)
     fps: float = 15.0  # frame rate (Hz)
+    distortion: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)  # OpenCV
+    # k1, k2, p1, p2, k3 of the rendered lens (written to camera.yaml `dist`)
 
     # --- motion ------------------------------------------------------------------------------
     speed_mps: float = 6.0  # mean vehicle speed (m/s); overlap = 1 - speed/(fps * footprint)

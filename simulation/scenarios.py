@@ -248,7 +248,7 @@ def _write_drive_files(world, out: Path, names: list[str]) -> None:
         "model: pinhole\n"
         f"width: {cfg.width}\nheight: {cfg.height}\n"
         f"fx: {cfg.fx!r}\nfy: {cfg.fx!r}\ncx: {cx!r}\ncy: {cy!r}\n"
-        "dist: [0.0, 0.0, 0.0, 0.0, 0.0]\n"
+        f"dist: [{', '.join(repr(float(k)) for k in cfg.distortion)}]\n"
         f"height_m: {cfg.camera_height_m!r}\n"
         f"fps: {cfg.fps!r}\n",
     )

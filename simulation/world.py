@@ -44,7 +44,7 @@ class Route:
     def make(cls, length_m: float, heading0: float, amp: float, wavelength: float, phase: float):
         ds = 0.05
         s = np.arange(0.0, length_m + ds, ds)
-        hd = heading0 + amp * (np.sin(2 * np.pi * s / wavelength + phase) - math.sin(phase))
+        hd = heading0 + amp * np.sin(2 * np.pi * s / wavelength + phase)
         dx = np.sin(hd) * ds
         dy = np.cos(hd) * ds
         xy = np.column_stack(
@@ -395,7 +395,7 @@ def build_world(cfg: SimConfig, seed: int, n_frames: int) -> World:
     heading0 = (
         math.radians(cfg.route_heading_deg)
         if cfg.route_heading_deg is not None
-        else math.radians(90.0 * int(rng.integers(0, 4)) + rng.uniform(-12.0, 12.0))
+        else math.radians(90.0 * int(rng.integers(0, 4)) + rng.uniform(-5.0, 5.0))
     )
     route = Route.make(
         float(s[-1]) + 5.0,

@@ -122,15 +122,19 @@ def _project(row: dict[str, str], e: float, n: float, up: float, cam) -> np.ndar
     R = Rotation.from_quat(q).as_matrix()  # world (E, N, U grid axes) from camera
     C = np.array([float(row["easting_m"]), float(row["northing_m"]), float(row["up_m"])])
     Xc = R.T @ (np.array([e, n, up]) - C)
-    return np.array([cam.fx * Xc[0] / Xc[2] + cam.cx, cam.fy * Xc[1] / Xc[2] + cam.cy])
+    uv, _ = cv2.projectPoints(Xc[None], np.zeros(3), np.zeros(3), cam.K, np.asarray(cam.dist))
+    return uv.reshape(2)
 
 
-def test_rendered_pothole_appears_where_truth_says(tmp_path: Path) -> None:
+@pytest.mark.parametrize("distortion", [(0.0,) * 5, (-0.25, 0.08, 0.001, -0.001, 0.0)])
+def test_rendered_pothole_appears_where_truth_says(tmp_path: Path, distortion) -> None:
     """Render with one pothole and without it (same seed, nothing else placed): the pixels that
-    change must sit where the true pose projects the truth centroid, and be darker there."""
+    change must sit where the true pose (and camera.yaml's lens) projects the truth centroid,
+    and be darker there."""
     kw = dict(
-        TINY, n_potholes=1, n_cracks=0, n_ruts=0, n_lane_markings=0, n_shadows=0, n_oil_stains=0
-    )
+        TINY, n_potholes=1, n_cracks=0, n_ruts=0, n_lane_markings=0, n_shadows=0, n_oil_stains=0,
+        distortion=distortion,
+    )  # fmt: skip
     with_p = simulate("potholes", tmp_path / "p", seed=5, n_frames=6, **kw)
     kw["n_potholes"] = 0
     without = simulate("potholes", tmp_path / "n", seed=5, n_frames=6, **kw)
