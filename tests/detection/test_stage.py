@@ -202,3 +202,27 @@ def test_pair_level_frame_decision(tmp_path):
     labels = [f.defect for f in res.frames]
     assert labels[2] == labels[3] == 1
     assert labels[0] == 0 and labels[5] == 0
+
+
+def test_map_points_fallback_when_no_raster(tmp_path):
+    """Without surface.tif the stage rasterises RUN/map_points.npz (mapping's fused points)."""
+    from roadsurf.io import write_npz_atomic
+
+    scene = Scene(potholes=[Pothole(0.0, 1.2, 0.12, 0.035)], shadow_x_m=0.2)
+    drive, pairs, traj = build(scene, tmp_path / "drive")
+    rng = np.random.default_rng(5)
+    xy = np.column_stack([rng.uniform(-0.5, 0.5, 40000), rng.uniform(-0.4, 2.4, 40000)])
+    res_m = -scene.depth(xy[:, 0], xy[:, 1]) + rng.normal(0, 0.0007, len(xy))
+    run_dir = tmp_path / "run"
+    write_npz_atomic(
+        run_dir / "map_points.npz",
+        xyz=np.column_stack([xy, res_m]),
+        rgb=np.zeros((len(xy), 3), np.uint8),
+        residual_m=res_m,
+        frame_index=np.zeros(len(xy), int),
+    )
+    res = stage.run(CFG, drive, pairs, traj, run_dir)
+    assert res.surface_source == "map_points.npz"
+    assert len(res.defects) == 1
+    assert res.defects[0].max_depth_m == pytest.approx(0.035, abs=0.004)
+    assert res.defects[0].area_m2 == pytest.approx(np.pi * 0.12**2, rel=0.2)
