@@ -10,7 +10,9 @@
 
 The run's map is first brought onto the truth's UTM grid by a 2D rigid fit of its trajectory
 (RUN/poses.npz) to truth/poses.csv, which removes the absolute GPS offset (as the mapping
-evaluation does); the raw, unaligned matching is reported too.
+evaluation does). The fit is local: each defect is moved by the fit of the frames within 3 m of
+it, since a map from consumer GPS is consistent only locally. The raw, unaligned matching is
+reported too.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ from roadsurf.formats import read_csv, read_geojson
 log = logging.getLogger(__name__)
 
 MATCH_TOL_M = 0.05  # outlines closer than this count as overlapping (m)
+LOCAL_RADIUS_M = 3.0  # defects are aligned by the trajectory within this distance (m)
 TARGET_DEPTH_M = 0.025  # issue 5 target class: potholes at least this deep ...
 TARGET_WIDTH_M = 0.150  # ... and this wide
 
@@ -133,7 +136,23 @@ def _trajectory_alignment(run_dir: Path, truth_dir: Path, crs: str, georef: bool
     R, t = rigid_2d(src, dst)
     before = float(np.sqrt(np.mean(np.sum((src - dst) ** 2, axis=1))))
     after = float(np.sqrt(np.mean(np.sum((src @ R.T + t - dst) ** 2, axis=1))))
-    return {"R": R, "t": t, "rmse_before_m": before, "rmse_after_m": after, "n": len(idx)}
+    return {
+        "R": R,
+        "t": t,
+        "src": src,
+        "dst": dst,
+        "rmse_before_m": before,
+        "rmse_after_m": after,
+        "n": len(idx),
+    }
+
+
+def _local_transform(al: dict[str, Any], centre: np.ndarray) -> list[float]:
+    """Affine parameters of the rigid fit of the trajectory within LOCAL_RADIUS_M of ``centre``
+    (the map is only locally consistent under consumer GPS); the global fit when too few frames."""
+    near = np.linalg.norm(al["src"] - centre, axis=1) <= LOCAL_RADIUS_M
+    R, t = (al["R"], al["t"]) if near.sum() < 4 else rigid_2d(al["src"][near], al["dst"][near])
+    return [R[0, 0], R[0, 1], R[1, 0], R[1, 1], t[0], t[1]]
 
 
 def _match(
@@ -251,8 +270,10 @@ def evaluate_detection(run_dir: str | Path, truth_dir: str | Path) -> dict[str, 
         al = None
     if al is not None:
         R, t = al["R"], al["t"]
-        m = [R[0, 0], R[0, 1], R[1, 0], R[1, 1], t[0], t[1]]
-        preds = [(affinity.affine_transform(g, m), p) for g, p in preds]
+        preds = [
+            (affinity.affine_transform(g, _local_transform(al, np.array(g.centroid.coords[0]))), p)
+            for g, p in preds
+        ]
         out["alignment"] = {
             "rmse_before_m": al["rmse_before_m"],
             "rmse_after_m": al["rmse_after_m"],
