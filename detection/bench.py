@@ -134,6 +134,14 @@ def _pool(results: list[dict[str, Any]]) -> dict[str, Any]:
     )
     aerr = np.array([mm["area_rel_err"] for mm in m if np.isfinite(mm["area_rel_err"])])
 
+    by_type_t: dict[str, int] = {}
+    by_type_m: dict[str, int] = {}
+    for x in d:
+        for k, v in x.get("truth_by_type", {}).items():
+            by_type_t[k] = by_type_t.get(k, 0) + v
+        for k, v in x.get("matched_by_type", {}).items():
+            by_type_m[k] = by_type_m.get(k, 0) + v
+
     def div(a: float, b: float) -> float:
         return a / b if b else float("nan")
 
@@ -159,6 +167,7 @@ def _pool(results: list[dict[str, Any]]) -> dict[str, Any]:
         "depth_bias_m": float(np.mean(derr)) if len(derr) else float("nan"),
         "depth_rel_err": float(np.mean(rel)) if len(rel) else float("nan"),
         "area_median_rel_err": float(np.median(aerr)) if len(aerr) else float("nan"),
+        "recall_by_type": {k: f"{by_type_m.get(k, 0)}/{v}" for k, v in sorted(by_type_t.items())},
         "distractor_false_alarms": sum(x["distractor_false_alarms"] for x in d),
         "distractors": sum(x["distractors"] for x in d),
     }
@@ -211,6 +220,10 @@ def table_markdown(
         ),
         ("defect precision", lambda p: _fmt(p["defect_precision"], pct=True)),
         ("defect recall (all types)", lambda p: _fmt(p["defect_recall"], pct=True)),
+        (
+            "found per type",
+            lambda p: ", ".join(f"{k} {v}" for k, v in p.get("recall_by_type", {}).items()),
+        ),
         ("defect F1", lambda p: _fmt(p["defect_f1"], pct=True)),
         ("pothole recall (>= 25 mm, >= 150 mm)", lambda p: _fmt(p["target_recall"], pct=True)),
         ("depth MAE (mm)", lambda p: _fmt(p["depth_mae_m"], mm=True)),

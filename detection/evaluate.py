@@ -176,6 +176,14 @@ def _match(
     return out
 
 
+def _count_types(props: Any) -> dict[str, int]:
+    out: dict[str, int] = {}
+    for p in props:
+        t = str(p.get("type", "?"))
+        out[t] = out.get(t, 0) + 1
+    return out
+
+
 def _defect_metrics(preds, truths, distractors) -> dict[str, Any]:
     matches = _match(preds, truths)
     n_p, n_t, n_m = len(preds), len(truths), len(matches)
@@ -239,6 +247,8 @@ def _defect_metrics(preds, truths, distractors) -> dict[str, Any]:
         "type_accuracy": float(np.mean(type_ok)) if type_ok else float("nan"),
         "distractor_false_alarms": on_distractor,
         "distractors": len(distractors),
+        "truth_by_type": _count_types(p for _, p in truths),
+        "matched_by_type": _count_types(truths[j][1] for j in matched_t),
         "matches": details,
         "missed": [truths[j][1].get("id") for j in range(n_t) if j not in matched_t],
     }
