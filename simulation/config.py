@@ -51,6 +51,8 @@ class SimConfig:
     n_cracks: int = 1  # number of cracks (grooves 3-8 mm wide, a few mm deep)
     n_ruts: int = 0  # number of ruts (long shallow troughs)
     n_lane_markings: int = 1  # number of lane-marking groups (white paint, no depth)
+    marking_style: Literal["mixed", "dashed", "stop_bar"] = "mixed"  # lane-marking groups are
+    # dashed longitudinal lines, transverse stop bars, or a mix (70% dashed)
     n_shadows: int = 1  # number of shadows (darker radiance only, no depth)
     n_oil_stains: int = 1  # number of oil stains (dark albedo, no depth)
     defect_margin_m: float = 1.0  # keep defects this far from the drive's ends (m)

@@ -95,6 +95,7 @@ SCENARIOS: dict[str, Scenario] = {
             "fps": 60.0,
             "exposure_time_s": 0.0002,
             "n_lane_markings": 3,
+            "marking_style": "dashed",
             "n_potholes": 3,
             "n_cracks": 2,
             "n_ruts": 1,

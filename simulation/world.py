@@ -455,6 +455,18 @@ def _place_features(world: World, rng: np.random.Generator) -> None:
     def free(x: float, y: float, r: float) -> bool:
         return all(math.hypot(x - ox, y - oy) > r + orad + 0.08 for ox, oy, orad in occupied)
 
+    def occupy_rect(rect: Rect) -> None:
+        # Circles of the rectangle's half width along its long axis.
+        n = max(2, int(rect.length / max(rect.width / 2, 0.02)) + 1)
+        for a in np.linspace(-rect.length / 2, rect.length / 2, n):
+            occupied.append(
+                (
+                    rect.cx + a * math.cos(rect.angle),
+                    rect.cy + a * math.sin(rect.angle),
+                    rect.width / 2,
+                )
+            )
+
     def spot(r: float, lat_max: float | None = None, tries: int = 300):
         lm = max(0.03, 0.5 * fw - r - 0.08) if lat_max is None else lat_max
         for _ in range(tries):
@@ -464,6 +476,67 @@ def _place_features(world: World, rng: np.random.Generator) -> None:
             if free(x, y, r):
                 return s, lat, float(x), float(y)
         return None
+
+    # Long features first (markings, ruts), then potholes and cracks fit around them.
+    for _ in range(cfg.n_lane_markings):
+        u = rng.uniform()
+        dashed = cfg.marking_style == "dashed" or (cfg.marking_style == "mixed" and u < 0.7)
+        if dashed:  # dashed longitudinal line near the image edge
+            side = rng.choice([-1.0, 1.0])
+            off = side * rng.uniform(0.25, 0.42)
+            width = rng.uniform(0.10, 0.15)
+            dash, gap = rng.uniform(1.0, 3.0), rng.uniform(1.0, 2.5)
+            sec = min(rng.uniform(4.0, 9.0), hi - lo)
+            s = rng.uniform(lo, max(lo, hi - sec))
+            end = s + sec
+            while s < end:
+                sc = s + dash / 2
+                ss = np.linspace(s, s + dash, max(7, int(dash / 0.1) | 1))
+                pts = world.route.point(ss, np.full_like(ss, off))
+                if all(free(px, py, width / 2) for px, py in pts):
+                    cx, cy = pts[len(pts) // 2]
+                    ang = math.pi / 2 - float(heading(np.array([sc]))[0])
+                    world.distractors.append(
+                        Distractor(
+                            "lane_marking",
+                            Rect(float(cx), float(cy), ang, dash, width),
+                            float(rng.uniform(0.85, 1.0)),
+                            0.003,
+                        )
+                    )
+                    occupied.extend((float(px), float(py), width / 2) for px, py in pts)
+                s += dash + gap
+        else:  # transverse stop bar across the whole footprint
+            width = rng.uniform(0.3, 0.45)
+            sp = spot(width / 2, lat_max=0.05)
+            if sp is None:
+                continue
+            s, _, x, y = sp
+            ang = -float(heading(np.array([s]))[0])  # perpendicular to travel
+            rect = Rect(x, y, ang, fw + 0.6, width)
+            occupy_rect(rect)
+            world.distractors.append(
+                Distractor("lane_marking", rect, float(rng.uniform(0.85, 1.0)), 0.003)
+            )
+
+    for i in range(cfg.n_ruts):
+        placed = False
+        for _ in range(60):
+            length = min(rng.uniform(3.0, 7.0), 0.8 * (hi - lo))
+            s0 = rng.uniform(lo, max(lo, hi - length))
+            width = rng.uniform(0.35, 0.6)
+            off = rng.uniform(-0.25, 0.25)
+            ss = np.arange(s0, s0 + length + 1e-9, 0.25)
+            pts = world.route.point(ss, world.camera_path_lateral(ss) + off)
+            if all(free(px, py, width / 2) for px, py in pts):
+                placed = True
+                break
+        if not placed:
+            log.warning("could not place rut %d without overlap; skipped", i)
+            continue
+        occupied.extend((float(px), float(py), width / 2) for px, py in pts)
+        line = Polyline(tuple(map(tuple, pts.tolist())), float(width))
+        world.troughs.append(Trough("rut", line, float(rng.uniform(0.008, 0.02)), 0.8))
 
     # Potholes: stratified sizes and depths so a drive holds small/large, shallow/deep ones.
     n = cfg.n_potholes
@@ -518,59 +591,6 @@ def _place_features(world: World, rng: np.random.Generator) -> None:
         occupied.append((x, y, length / 2 + 0.02))
         world.troughs.append(Trough("crack", line, float(rng.uniform(0.002, 0.006)), 0.0))
 
-    for i in range(cfg.n_ruts):
-        length = min(rng.uniform(3.0, 7.0), 0.8 * (hi - lo))
-        s0 = rng.uniform(lo, max(lo, hi - length))
-        width = rng.uniform(0.35, 0.6)
-        off = rng.uniform(-0.2, 0.2)
-        ss = np.arange(s0, s0 + length + 1e-9, 0.25)
-        pts = world.route.point(ss, world.camera_path_lateral(ss) + off)
-        if not all(free(px, py, width / 2) for px, py in pts):
-            log.warning("could not place rut %d without overlap; skipped", i)
-            continue
-        occupied.extend((float(px), float(py), width / 2) for px, py in pts)
-        line = Polyline(tuple(map(tuple, pts.tolist())), float(width))
-        world.troughs.append(Trough("rut", line, float(rng.uniform(0.008, 0.02)), 0.8))
-
-    for _ in range(cfg.n_lane_markings):
-        if rng.uniform() < 0.7:  # dashed longitudinal line near the image edge
-            side = rng.choice([-1.0, 1.0])
-            off = side * rng.uniform(0.25, 0.42)
-            width = rng.uniform(0.10, 0.15)
-            dash, gap = rng.uniform(1.0, 3.0), rng.uniform(1.0, 2.5)
-            sec = min(rng.uniform(4.0, 9.0), hi - lo)
-            s = rng.uniform(lo, max(lo, hi - sec))
-            end = s + sec
-            while s < end:
-                sc = s + dash / 2
-                ss = np.linspace(s, s + dash, max(7, int(dash / 0.1) | 1))
-                pts = world.route.point(ss, np.full_like(ss, off))
-                if all(free(px, py, width / 2) for px, py in pts):
-                    cx, cy = pts[len(pts) // 2]
-                    ang = math.pi / 2 - float(heading(np.array([sc]))[0])
-                    world.distractors.append(
-                        Distractor(
-                            "lane_marking",
-                            Rect(float(cx), float(cy), ang, dash, width),
-                            float(rng.uniform(0.85, 1.0)),
-                            0.003,
-                        )
-                    )
-                    occupied.extend((float(px), float(py), width / 2) for px, py in pts)
-                s += dash + gap
-        else:  # transverse stop bar across the whole footprint
-            width = rng.uniform(0.3, 0.45)
-            sp = spot(width / 2, lat_max=0.05)
-            if sp is None:
-                continue
-            s, _, x, y = sp
-            ang = -float(heading(np.array([s]))[0])  # perpendicular to travel
-            rect = Rect(x, y, ang, fw + 0.6, width)
-            occupied.append((x, y, width / 2))
-            world.distractors.append(
-                Distractor("lane_marking", rect, float(rng.uniform(0.85, 1.0)), 0.003)
-            )
-
     for i in range(cfg.n_shadows):
         if rng.uniform() < 0.5:  # pole shadow: a long soft strip across the road
             width = rng.uniform(0.12, 0.25)
@@ -581,7 +601,7 @@ def _place_features(world: World, rng: np.random.Generator) -> None:
             s, _, x, y = sp
             ang = -float(heading(np.array([s]))[0]) + rng.uniform(-0.6, 0.6)
             shape: Blob | Rect = Rect(x, y, ang, fw + 1.0, width)
-            occupied.append((x, y, width / 2 + 0.1))
+            occupy_rect(shape)
         else:  # tree / sign shadow blob
             r = rng.uniform(0.2, 0.4)
             sp = spot(r * 1.4)
