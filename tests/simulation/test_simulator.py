@@ -210,3 +210,35 @@ def test_gps_profiles(tmp_path: Path) -> None:
     assert len(err_rtk) >= 10 and len(err_cons) >= 3
     assert np.median(err_rtk) < 0.1
     assert np.median(err_cons) > 0.3
+
+
+def test_frame_labels_agree_with_truth_raster(tiny_drive: Path) -> None:
+    """The per-frame label (from the rendered rays) agrees with an independent count on
+    residual.tif inside the frame footprint (image corners projected with the true pose)."""
+    from scipy.spatial.transform import Rotation
+
+    cam = load_drive(tiny_drive).camera
+    resid, grid, _ = read_geotiff(tiny_drive / "truth" / "residual.tif")
+    labels = read_csv(tiny_drive / "truth" / "frame_labels.csv")
+    corners = np.array([[0, 0], [cam.width, 0], [cam.width, cam.height], [0, cam.height]]) - 0.5
+    n_defect = 0
+    for lab, pose in zip(labels, read_csv(tiny_drive / "truth" / "poses.csv"), strict=True):
+        R = Rotation.from_quat([float(pose[k]) for k in ("qx", "qy", "qz", "qw")]).as_matrix()
+        C = np.array([float(pose[k]) for k in ("easting_m", "northing_m", "up_m")])
+        rays = (
+            np.column_stack(
+                [(corners[:, 0] - cam.cx) / cam.fx, (corners[:, 1] - cam.cy) / cam.fy, np.ones(4)]
+            )
+            @ R.T
+        )
+        t = -cam.height_m / rays[:, 2]
+        en = C[:2] + t[:, None] * rays[:, :2]
+        rc = grid.rowcol_from_xy(en)
+        mask = np.zeros(resid.shape, np.uint8)
+        cv2.fillPoly(mask, [np.round(rc[:, ::-1]).astype(np.int32)], 1)
+        deep = (mask > 0) & (resid < -0.010)
+        area_cm2 = deep.sum() * grid.gsd_m**2 * 1e4
+        ray_cm2 = float(lab["defect_area_cm2"])
+        assert abs(area_cm2 - ray_cm2) <= 0.15 * max(area_cm2, ray_cm2) + 15.0
+        n_defect += int(lab["defect"])
+    assert n_defect >= 1
