@@ -4,6 +4,8 @@ the web viewer on localhost. The CLI (`roadsurf view`, `roadsurf report`) calls 
 from __future__ import annotations
 
 import logging
+import os
+import shutil
 import socket
 import subprocess
 import sys
@@ -12,7 +14,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 from urllib.parse import quote
 
 import rerun as rr
@@ -83,17 +85,46 @@ def spawn_viewer(
 ) -> ViewResult:
     """Start the native Rerun viewer (needs a display) and stream the run into it."""
     cfg = cfg or ViewerConfig()
+    require_display(f"roadsurf view {run_dir}")
     data = load_run(run_dir, drive_dir, max_raster_side_px=cfg.max_mosaic_side_px)
     rec = rr.RecordingStream(APP_ID, recording_id=_recording_id(data))
-    try:
-        rec.spawn(default_blueprint=blueprint(data.defects))
-    except Exception as e:  # noqa: BLE001 - rerun raises plain exceptions for spawn failures
-        raise RoadsurfError(
-            f"could not start the native Rerun viewer ({e}). On a machine without a display use "
-            f"`roadsurf view {run_dir} --save RUN.rrd` or `--serve`."
-        ) from e
+    spawn_native(rec, blueprint(data.defects), hint=f"roadsurf view {run_dir}")
     counts = record(rec, data, cfg)
     return ViewResult("spawn", None, counts, missing=data.missing)
+
+
+def has_display() -> bool:
+    """Whether a native window can open (always assumed on macOS/Windows)."""
+    if not sys.platform.startswith("linux"):
+        return True
+    return any(os.environ.get(k) for k in ("DISPLAY", "WAYLAND_DISPLAY", "WAYLAND_SOCKET"))
+
+
+def rerun_executable() -> str | None:
+    """The `rerun` viewer shipped with rerun-sdk in this environment (even if not on PATH)."""
+    exe = Path(sys.executable).parent / ("rerun.exe" if os.name == "nt" else "rerun")
+    return str(exe) if exe.exists() else shutil.which("rerun")
+
+
+def spawn_native(rec: rr.RecordingStream, bp: Any, hint: str = "roadsurf view RUN") -> None:
+    """Spawn the native viewer and connect ``rec`` to it; RoadsurfError when impossible."""
+    require_display(hint)
+    try:
+        rr.spawn(recording=rec, default_blueprint=bp, executable_path=rerun_executable())
+    except RuntimeError as e:
+        raise RoadsurfError(
+            f"could not start the native Rerun viewer ({str(e).splitlines()[0]}). "
+            f"Use `{hint} --save RUN.rrd` or `--serve`."
+        ) from e
+
+
+def require_display(hint: str = "roadsurf view RUN") -> None:
+    if not has_display():
+        raise RoadsurfError(
+            "no display (DISPLAY/WAYLAND_DISPLAY unset), so the native Rerun viewer cannot open. "
+            f"Use `{hint} --save RUN.rrd` and open the file elsewhere, or `{hint} --serve` and "
+            "open the printed URL in a browser."
+        )
 
 
 def free_port() -> int:
@@ -117,11 +148,15 @@ def serve(
     grpc_port: int = 9876,
     cfg: ViewerConfig | None = None,
     wait_ready_s: float = 30.0,
+    record: bool = True,
 ) -> ViewResult:
     """Record the run to ``rrd`` (default RUN/run.rrd) and serve it with the Rerun web viewer
     bound to 127.0.0.1 only. Returns with the server running (``result.server``); the caller
-    stops it (``terminate()``)."""
-    res = save_rrd(run_dir, rrd, drive_dir=drive_dir, cfg=cfg)
+    stops it (``terminate()``). ``record=False`` serves an existing ``rrd`` unchanged."""
+    if record or rrd is None or not Path(rrd).exists():
+        res = save_rrd(run_dir, rrd, drive_dir=drive_dir, cfg=cfg)
+    else:  # serve an existing recording as it is
+        res = ViewResult("serve", Path(rrd), {})
     web_port = web_port or free_port()
     grpc_port = grpc_port or free_port()
     cmd = [
@@ -184,7 +219,7 @@ def view(
     web_port: int = 9090,
     grpc_port: int = 9876,
     screenshot_png: str | Path | None = None,
-    screenshot_wait_s: float = 30.0,
+    screenshot_wait_s: float = 20.0,  # after the app started, for data to stream in
     on_ready: Callable[[str], None] | None = None,
 ) -> ViewResult:
     """`roadsurf view`: ``save`` writes an .rrd (headless); ``serve_web`` serves the web viewer on
@@ -208,7 +243,14 @@ def view(
         if screenshot_png is not None:
             from viewer.browser import is_blank, screenshot
 
-            shot = screenshot(res.url, screenshot_png, size=(1600, 1000), wait_s=screenshot_wait_s)
+            shot = screenshot(
+                res.url,
+                screenshot_png,
+                size=(1600, 1000),
+                wait_s=screenshot_wait_s + 120.0,
+                wait_for="Wasm loaded",
+                settle_s=screenshot_wait_s,
+            )
             if "Wasm loaded" not in shot.console or is_blank(shot.path):
                 log.warning("the web viewer may not have rendered in %s", shot.path)
         else:

@@ -58,13 +58,17 @@ def screenshot(
     *,
     size: tuple[int, int] = (1400, 900),
     wait_s: float = 0.0,
-    timeout_s: float = 120.0,
+    wait_for: str | None = None,
+    settle_s: float = 3.0,
+    timeout_s: float = 180.0,
 ) -> ShotResult:
     """Screenshot ``url`` with headless Chromium into ``out_png``.
 
-    ``wait_s`` > 0 keeps the page loading that long before the shot (for apps that draw after
-    the load event, like the Rerun web viewer): the URL is shown in a full-window iframe of a
-    local page whose load event is held back by a delayed resource.
+    ``wait_s`` > 0 keeps the page loading up to that long before the shot (for apps that draw
+    after the load event, like the Rerun web viewer): the URL is shown in a full-window iframe
+    of a local page whose load event is held back by a delayed resource. With ``wait_for``, the
+    hold ends ``settle_s`` after that text appears in the browser console (adaptive on a busy
+    machine), and at the latest after ``wait_s``.
     """
     exe = find_chromium()
     if exe is None:
@@ -74,7 +78,12 @@ def screenshot(
         )
     out_png = Path(out_png)
     out_png.parent.mkdir(parents=True, exist_ok=True)
-    with _delayed_page(url, wait_s) as page_url, tempfile.TemporaryDirectory() as profile:
+    release = threading.Event()
+    lines: list[str] = []
+    with (
+        _delayed_page(url, wait_s, release) as page_url,
+        tempfile.TemporaryDirectory() as profile,
+    ):
         cmd = [
             exe,
             *CHROMIUM_FLAGS,
@@ -85,21 +94,37 @@ def screenshot(
             f"--screenshot={out_png}",
             page_url,
         ]
+        proc = subprocess.Popen(
+            cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, errors="replace"
+        )
+
+        def pump() -> None:  # read the console as it comes, to release the hold early
+            for line in proc.stderr or ():
+                lines.append(line)
+                if wait_for and wait_for in line and not release.is_set():
+                    threading.Timer(settle_s, release.set).start()
+
+        reader = threading.Thread(target=pump, daemon=True)
+        reader.start()
         try:
-            proc = subprocess.run(
-                cmd, capture_output=True, text=True, timeout=timeout_s, check=False
-            )
+            proc.wait(timeout=timeout_s)
         except subprocess.TimeoutExpired as e:
+            proc.kill()
+            proc.wait()
             raise RoadsurfError(f"Chromium did not finish within {timeout_s:.0f} s on {url}") from e
+        finally:
+            release.set()
+        reader.join(timeout=5)
+    console = "".join(lines)
     if not out_png.exists():
         raise RoadsurfError(
-            f"Chromium wrote no screenshot of {url} (exit {proc.returncode}): " + proc.stderr[-800:]
+            f"Chromium wrote no screenshot of {url} (exit {proc.returncode}): " + console[-800:]
         )
-    return ShotResult(out_png, proc.stderr)
+    return ShotResult(out_png, console)
 
 
 @contextmanager
-def _delayed_page(url: str, wait_s: float) -> Iterator[str]:
+def _delayed_page(url: str, wait_s: float, release: threading.Event) -> Iterator[str]:
     if wait_s <= 0:
         yield url
         return
@@ -110,7 +135,7 @@ def _delayed_page(url: str, wait_s: float) -> Iterator[str]:
         f'<iframe src="{src}" style="border:0;width:100vw;height:100vh"></iframe>'
         '<img src="/delay" style="display:none"></body></html>'
     ).encode()
-    done = threading.Event()
+    done = release
 
     class Handler(http.server.BaseHTTPRequestHandler):
         def do_GET(self) -> None:  # noqa: N802 - http.server API

@@ -63,3 +63,18 @@ def summarize_rrd(path: str | Path) -> RrdSummary:
                 cc.instances += len(col) - col.null_count
     out.entities = dict(ents)
     return out
+
+
+def component_values(path: str | Path, entity: str, component: str) -> list[object]:
+    """Every non-null value of ``entity``'s ``component`` column, one Python list per row
+    (e.g. the positions of each Points3D log call), in file order."""
+    from rerun.chunk import RrdReader
+
+    rows: list[object] = []
+    for chunk in RrdReader(path).stream():
+        if chunk.entity_path != entity:
+            continue
+        rb = chunk.to_record_batch()
+        if component in rb.schema.names:
+            rows += [v for v in rb.column(component).to_pylist() if v is not None]
+    return rows

@@ -305,8 +305,13 @@ def _log_raster_outlines(rec: rr.RecordingStream, path: str, data: RunData, grid
     )
 
 
-def log_frames(rec: rr.RecordingStream, data: RunData, cfg: ViewerConfig) -> int:
-    """The frame timeline: image, overlays, mask, pose, per-frame scalars; returns frames logged."""
+def log_frames(
+    rec: rr.RecordingStream, data: RunData, cfg: ViewerConfig, *, with_poses: bool = True
+) -> int:
+    """The frame timeline: image, overlays, mask, pose, per-frame scalars; returns frames logged.
+
+    ``with_poses=False`` leaves the camera pose out (live mode logs it once the poses exist,
+    with ``log_camera_poses``)."""
     drive = data.drive
     traj = data.trajectory
     pose_of = {}
@@ -338,7 +343,7 @@ def log_frames(rec: rr.RecordingStream, data: RunData, cfg: ViewerConfig) -> int
         if k % stride:
             continue
         set_frame_time(rec, index, ts)
-        if index in pose_of:
+        if with_poses and index in pose_of:
             _log_pose(rec, "world/camera", traj.world_from_cam[pose_of[index]])
         if path is not None and path.exists():
             rec.log("world/camera/image", rr.EncodedImage(path=path))
@@ -377,6 +382,19 @@ def _float_or_nan(v: Any) -> float:
         return float(v)
     except (TypeError, ValueError):
         return math.nan
+
+
+def log_camera_poses(rec: rr.RecordingStream, data: RunData, cfg: ViewerConfig) -> int:
+    """The current-camera pose on the frame timeline (every ``frame_stride``-th posed frame)."""
+    t = data.trajectory
+    if t is None:
+        return 0
+    n = 0
+    for k in range(0, len(t), max(1, cfg.frame_stride)):
+        set_frame_time(rec, int(t.frame_indices[k]), float(t.timestamp_s[k]))
+        _log_pose(rec, "world/camera", t.world_from_cam[k])
+        n += 1
+    return n
 
 
 def log_frame_overlays(rec: rr.RecordingStream, pair: Any, side: str, cfg: ViewerConfig) -> None:

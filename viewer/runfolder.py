@@ -224,7 +224,11 @@ def enu_from_crs(xyz: np.ndarray, crs: str | None, reference: EnuReference | Non
         return xyz
     epsg = int(str(crs).split(":")[-1])
     latlon = lla_from_utm(xyz[:, 0], xyz[:, 1], epsg)
-    return enu_from_lla(latlon[:, 0], latlon[:, 1], xyz[:, 2], reference)
+    enu = enu_from_lla(latlon[:, 0], latlon[:, 1], xyz[:, 2], reference)
+    # exports write height = ENU up + reference altitude (ExportFrame.utm_from_enu), not the
+    # ellipsoidal height, so undo exactly that instead of Earth curvature (mm over 100 m)
+    enu[:, 2] = xyz[:, 2] - reference.alt_m
+    return enu
 
 
 def _load_cloud(

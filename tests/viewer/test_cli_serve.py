@@ -1,0 +1,78 @@
+"""`roadsurf view --save`, `roadsurf report` and the `--serve` web viewer in headless Chromium."""
+
+from __future__ import annotations
+
+import socket
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from roadsurf.cli import app
+from tests.viewer.synthetic_run import SyntheticRun
+from viewer.api import free_port, serve
+from viewer.browser import is_blank, screenshot
+from viewer.inspect import summarize_rrd
+
+
+def test_cli_view_save_and_report(synthetic_run: SyntheticRun, tmp_path: Path) -> None:
+    runner = CliRunner()
+    rrd = tmp_path / "cli.rrd"
+    res = runner.invoke(app, ["view", str(synthetic_run.run), "--save", str(rrd)])
+    assert res.exit_code == 0, res.output
+    assert f"Recording: {rrd}" in res.output
+    assert summarize_rrd(rrd).has("/world/cloud")
+    html = tmp_path / "r.html"
+    res = runner.invoke(app, ["report", str(synthetic_run.run), "--html", str(html)])
+    assert res.exit_code == 0, res.output
+    assert html.exists() and "<table id='defects'>" in html.read_text()
+
+
+def test_cli_view_missing_run_folder_is_a_clear_error(tmp_path: Path) -> None:
+    res = CliRunner().invoke(app, ["view", str(tmp_path / "nope"), "--save", "x.rrd"])
+    assert res.exit_code != 0
+    assert "run folder not found" in str(res.exception)
+
+
+def _non_loopback_ip() -> str | None:
+    try:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            s.connect(("10.255.255.255", 1))  # no packet is sent for UDP connect
+            ip = s.getsockname()[0]
+    except OSError:
+        return None
+    return None if ip.startswith("127.") else ip
+
+
+@pytest.mark.slow
+def test_serve_loads_in_headless_chromium(
+    synthetic_run: SyntheticRun, saved_rrd: Path, tmp_path: Path, chromium: str
+) -> None:
+    res = serve(
+        synthetic_run.run,
+        rrd=saved_rrd,
+        record=False,
+        web_port=free_port(),
+        grpc_port=free_port(),
+    )
+    try:
+        assert res.url is not None and res.url.startswith("http://127.0.0.1:")
+        ip = _non_loopback_ip()
+        if ip is not None:  # bound to localhost only
+            port = int(res.url.split(":")[2].split("/")[0])
+            with socket.socket() as s:
+                s.settimeout(1.0)
+                assert s.connect_ex((ip, port)) != 0
+        shot = screenshot(
+            res.url,
+            tmp_path / "web.png",
+            size=(1200, 800),
+            wait_s=90.0,
+            wait_for="Wasm loaded",
+            settle_s=1.0,
+        )
+        assert "Wasm loaded" in shot.console, shot.console[-2000:]
+        assert not is_blank(shot.path)
+    finally:
+        res.server.terminate()
+        res.server.wait(timeout=10)

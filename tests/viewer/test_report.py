@@ -1,0 +1,53 @@
+"""report.html is self-contained, complete, and renders in a real browser."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+
+from tests.viewer.synthetic_run import SyntheticRun, make_synthetic_run
+from viewer.browser import is_blank, screenshot
+from viewer.report import write_report
+
+
+@pytest.fixture(scope="module")
+def report_html(synthetic_run: SyntheticRun, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return write_report(synthetic_run.run, tmp_path_factory.mktemp("report") / "report.html")
+
+
+def test_report_contents(synthetic_run: SyntheticRun, report_html: Path) -> None:
+    text = report_html.read_text()
+    # self-contained: images are embedded, nothing is fetched from elsewhere
+    assert len(re.findall(r"src='data:image/png;base64,", text)) >= 4
+    assert not re.search(r"(src|href)=['\"]?(https?:)?//", text)
+    # defect table sorted by severity (medium pothole id 1 before low crack id 2)
+    table = text[text.index("id='defects'") :]
+    ids = re.findall(r"<tr><td class='num'>\d+</td><td>([^<]+)</td>", table)
+    assert ids[: len(synthetic_run.defect_ids_by_severity)] == (
+        synthetic_run.defect_ids_by_severity
+    )
+    assert "30.0" in table and "12.0" in table  # depths in mm
+    # skipped frames, failed pairs, timings from report.json
+    assert "frames/broken.jpg" in text and "truncated JPEG" in text
+    assert "too_few_matches" in text
+    assert "reconstruction" in text[text.index("id='timings'") :]
+
+
+def test_report_without_gps_or_defects(tmp_path: Path) -> None:
+    syn = make_synthetic_run(tmp_path, gps=False, defects=False, n_frames=4)
+    (syn.run / "mosaic.tif").unlink()
+    text = write_report(syn.run).read_text()
+    assert "no defects were found" in text
+    assert "No mosaic.tif" in text
+    assert "local ENU" in text
+
+
+def test_report_renders_in_headless_chromium(
+    report_html: Path, tmp_path: Path, chromium: str
+) -> None:
+    out = report_html
+    shot = screenshot(out.resolve().as_uri(), tmp_path / "report.png", size=(1200, 1600))
+    assert shot.path.stat().st_size > 10_000
+    assert not is_blank(shot.path)
