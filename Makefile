@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 DEMO_OUT ?= out/demo
 
-.PHONY: demo test lint format sysdeps venv clean sample
+.PHONY: demo test lint format sysdeps venv clean sample browser-deps screenshots
 
 # open3d 0.20 links libusb-1.0; install it with apt-get when the loader cannot find it.
 sysdeps:
@@ -14,6 +14,15 @@ sysdeps:
 	  echo "Installing system library libusb-1.0-0 (needed by open3d)"; \
 	  if [ "$$(id -u)" = "0" ]; then apt-get update -qq && apt-get install -y -qq libusb-1.0-0; \
 	  else sudo apt-get update -qq && sudo apt-get install -y -qq libusb-1.0-0; fi; \
+	fi
+
+# Headless Chromium for the viewer's browser checks (report.html, --serve); tests skip those
+# checks with a message when it is missing. Debian/Ubuntu package name: chromium.
+browser-deps:
+	@if ! command -v chromium >/dev/null 2>&1 && ! command -v chromium-browser >/dev/null 2>&1; then \
+	  echo "Installing chromium (headless browser checks of the viewer)"; \
+	  if [ "$$(id -u)" = "0" ]; then apt-get update -qq && apt-get install -y -qq chromium; \
+	  else sudo apt-get update -qq && sudo apt-get install -y -qq chromium; fi; \
 	fi
 
 $(STAMP): pyproject.toml
@@ -31,6 +40,7 @@ demo: $(STAMP)
 	@start=$$(date +%s); \
 	$(BIN)/roadsurf run data_samples/drive --out $(DEMO_OUT) && \
 	$(BIN)/roadsurf view $(DEMO_OUT) --save $(DEMO_OUT)/run.rrd && \
+	$(BIN)/roadsurf report $(DEMO_OUT) && \
 	echo "Demo finished in $$(( $$(date +%s) - start )) s. Outputs in $(DEMO_OUT)/" && \
 	ls -1 $(DEMO_OUT) | sed 's/^/  /' && \
 	echo "Report:    $(DEMO_OUT)/report.html" && \
@@ -52,3 +62,8 @@ sample: $(STAMP)
 
 clean:
 	rm -rf $(VENV) out .pytest_cache .ruff_cache *.egg-info
+
+# README screenshots (docs/img), made by the project's own commands on the demo output.
+screenshots: browser-deps
+	$(BIN)/roadsurf report $(DEMO_OUT) --screenshot docs/img/report.png
+	$(BIN)/roadsurf view $(DEMO_OUT) --serve --web-port 0 --grpc-port 0 --screenshot docs/img/rerun_web.png
