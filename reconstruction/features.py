@@ -14,6 +14,7 @@ import numpy as np
 from reconstruction.config import FeatureConfig
 from reconstruction.types import Features
 from roadsurf.drive import Camera
+from roadsurf.errors import ConfigError
 from roadsurf.io import write_npz_atomic
 
 
@@ -23,8 +24,20 @@ def _detector(cfg: FeatureConfig, n: int) -> cv2.Feature2D:
     if cfg.kind == "orb":
         return cv2.ORB_create(nfeatures=n, fastThreshold=5)
     if cfg.kind == "akaze":
-        return cv2.AKAZE_create(threshold=1e-4)
-    raise ValueError(f"features.kind={cfg.kind!r}: use sift, orb or akaze")
+        return cv2.AKAZE_create(threshold=1e-4)  # type: ignore[attr-defined]
+    raise ConfigError(f"features.kind={cfg.kind!r}: use sift, orb or akaze")
+
+
+def check_available(cfg: FeatureConfig) -> None:
+    """Raise ConfigError before a run when this OpenCV build lacks the chosen detector."""
+    if cfg.kind == "akaze" and not hasattr(cv2, "AKAZE_create"):
+        raise ConfigError(
+            f"features.kind='akaze' is not available in OpenCV {cv2.__version__} "
+            "(AKAZE left the main modules in OpenCV 5); use 'sift' or 'orb', or install an "
+            "OpenCV build with AKAZE"
+        )
+    if cfg.kind not in ("sift", "orb", "akaze"):
+        raise ConfigError(f"features.kind={cfg.kind!r}: use sift, orb or akaze")
 
 
 def to_gray(image: np.ndarray) -> np.ndarray:
@@ -39,6 +52,7 @@ def to_gray(image: np.ndarray) -> np.ndarray:
 
 def detect(image: np.ndarray, cfg: FeatureConfig) -> Features:
     """Detect and describe keypoints of one image, at most cfg.max_features, spread on a grid."""
+    check_available(cfg)
     gray = to_gray(image)
     scale = float(cfg.downscale)
     if 0 < scale < 1:

@@ -112,6 +112,7 @@ def run(
     only_pairs restricts the work to those (index_a, index_b) pairs. Cached pair files are
     reused unless cfg.overwrite. Returns the PairResults in frame order (failed ones included).
     """
+    feat.check_available(cfg.features)  # a config problem stops the run before any work
     run_dir = Path(run_dir)
     pairs_dir = run_dir / "pairs"
     pairs_dir.mkdir(parents=True, exist_ok=True)

@@ -402,7 +402,9 @@ def make_plots(agg: list[dict[str, Any]], out_dir: Path) -> list[Path]:
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = []
     for name, title, panels, methods in figs:
-        fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 3.6), squeeze=False)
+        fig, axes = plt.subplots(
+            1, len(panels), figsize=(max(5.0, 4.2 * len(panels)), 3.6), squeeze=False
+        )
         for ax, (sweep, xlabel, logx) in zip(axes[0], panels, strict=True):
             _plot_sweeps(ax, agg, sweep, methods, xlabel, logx)
         axes[0][0].legend(fontsize=7)
