@@ -27,7 +27,7 @@ from roadsurf.formats import (
     write_geotiff_blocks,
 )
 from roadsurf.geometry import lla_from_utm
-from simulation.world import Distractor, Pothole, Trough, World
+from simulation.world import Pothole, Trough, World
 
 BLOCK = 256
 DEFECT_DEPTH_M = 0.010  # frame label: footprint area deeper than this ...
@@ -92,12 +92,8 @@ def write_rasters(world: World, corridor, out: Path) -> GridSpec:
     lx0, ly0 = e0 - world.origin_e_m, n0 - world.origin_n_m  # grid corner in local metres
     prepared = prep(corridor)
     alt0 = world.cfg.origin_alt_m
-    cache: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
 
     def block_fields(r0: int, c0: int) -> tuple[np.ndarray, np.ndarray] | None:
-        key = (r0, c0)
-        if key in cache:
-            return cache.pop(key)
         h, w = min(BLOCK, height - r0), min(BLOCK, width - c0)
         bx0, by_top = lx0 + c0 * g, ly0 - r0 * g
         if not prepared.intersects(box(bx0, by_top - h * g, bx0 + w * g, by_top)):
@@ -291,7 +287,3 @@ def write_frame_labels(out: Path, rows: list[tuple[str, float, float]]) -> None:
     write_csv(
         out / "frame_labels.csv", ["filename", "defect", "defect_area_cm2", "max_depth_m"], data
     )
-
-
-def geometry_of(d: Distractor) -> Polygon:
-    return Polygon(d.shape.outline())

@@ -41,7 +41,9 @@ class Route:
     heading: np.ndarray  # (M,) grid heading, clockwise from grid north (rad)
 
     @classmethod
-    def make(cls, length_m: float, heading0: float, amp: float, wavelength: float, phase: float):
+    def make(
+        cls, length_m: float, heading0: float, amp: float, wavelength: float, phase: float
+    ) -> Route:
         ds = 0.05
         s = np.arange(0.0, length_m + ds, ds)
         hd = heading0 + amp * np.sin(2 * np.pi * s / wavelength + phase)
@@ -296,7 +298,8 @@ class World:
         if not appearance:
             return out
 
-        assert self.texture is not None
+        if self.texture is None:
+            raise ValueError("World.evaluate(appearance=True) needs World.texture")
         grey = self.texture.grey(x0, y_top, gsd, rows, cols)
         alb = 0.1 + 0.8 * grey
         alb *= 1.0 + 0.1 * value_noise(X, Y, 0.7, self.seed * 13 + 2)
