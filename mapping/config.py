@@ -54,5 +54,9 @@ class MappingConfig:
         0.10  # never interpolate the surface across a gap wider than this (m)
     )
     surface_smooth_m: float = 0.01  # σ of the masked Gaussian that averages point noise (m)
+    surface_smooth_flat_m: float = (
+        0.03  # σ of the stronger smoothing used where relief is noise (m)
+    )
+    surface_detail_sigmas: float = 2.0  # fine/coarse difference (× point noise MAD) kept as relief
     surface_edge_factor: float = 4.0  # ... nor wider than this × the median point spacing (−)
     colour_from_images: bool = True  # sample point colours from image a at px_a

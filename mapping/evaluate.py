@@ -211,7 +211,9 @@ def _open_surface(run_dir: Path) -> Path | None:
     return None
 
 
-def _corridor_polygon(truth_dir: Path, truth: dict[str, Any], seen: set[str]) -> Any:
+def _corridor_polygon(
+    truth_dir: Path, truth: dict[str, Any], seen: set[str], stereo: bool = False
+) -> Any:
     """Union of the true camera footprints on the road (truth CRS), or None."""
     import shapely
     import yaml
@@ -236,6 +238,7 @@ def _corridor_polygon(truth_dir: Path, truth: dict[str, Any], seen: set[str]) ->
     polys = []
     for k in range(len(q)):
         if truth["filename"][k] not in seen:
+            polys.append(None)
             continue
         rw = rays @ Rs[k].T
         if np.any(rw[:, 2] >= -1e-6):
@@ -243,6 +246,13 @@ def _corridor_polygon(truth_dir: Path, truth: dict[str, Any], seen: set[str]) ->
         lam = -float(cam["height_m"]) / rw[:, 2]
         xy = truth["xy"][k] + lam[:, None] * rw[:, :2]
         polys.append(shapely.Polygon(xy))
+    if stereo:  # seen by two consecutive frames: what a two-view method can measure
+        polys = [
+            a.intersection(b)
+            for a, b in zip(polys[:-1], polys[1:], strict=True)
+            if a is not None and b is not None
+        ]
+    polys = [p for p in polys if p is not None and not p.is_empty]
     return shapely.union_all(polys) if polys else None
 
 
@@ -288,12 +298,15 @@ def _surface_metrics(
             dmask = rasterize(
                 shapes, out_shape=tshape, transform=tT, fill=0, default_value=1
             ).astype(bool)
-    corridor = _corridor_polygon(truth_dir, truth, seen)
-    cmask = None
-    if corridor is not None:
-        cmask = rasterize(
-            [corridor], out_shape=tshape, transform=tT, fill=0, default_value=1
-        ).astype(bool)
+
+    def burn(poly: Any) -> np.ndarray | None:
+        if poly is None:
+            return None
+        return rasterize([poly], out_shape=tshape, transform=tT, fill=0, default_value=1) > 0
+
+    cmask = burn(_corridor_polygon(truth_dir, truth, seen))
+    smask = burn(_corridor_polygon(truth_dir, truth, seen, stereo=True))
+    n_in_stereo = 0
     inv_t = ~tT
 
     acc = {k: [] for k in ("raw_flat", "raw_def", "al_flat", "al_def")}
@@ -337,6 +350,8 @@ def _surface_metrics(
                     if tag == ("al" if align else "raw") and cmask is not None:
                         n_in_corridor += int(cmask[row[ok], col[ok]].sum())
                         our_px_area = abs(T.a * T.e)
+                        if smask is not None:
+                            n_in_stereo += int(smask[row[ok], col[ok]].sum())
 
     def stats(lst: list[np.ndarray]) -> dict[str, float]:
         d = np.concatenate(lst) if lst else np.zeros(0)
@@ -367,6 +382,9 @@ def _surface_metrics(
         area = float(cmask.sum() * abs(tT.a * tT.e))
         res["coverage"] = float(min(1.0, n_in_corridor * our_px_area / area))
         res["corridor_area_m2"] = area
+    if smask is not None and smask.any():
+        sarea = float(smask.sum() * abs(tT.a * tT.e))
+        res["coverage_two_view"] = float(min(1.0, n_in_stereo * our_px_area / sarea))
     return res
 
 
@@ -436,7 +454,7 @@ def _fmt(v: Any, key: str) -> str:
         return f"{v * 1000:.2f} mm" if abs(v) < 0.1 else f"{v:.3f} m"
     if key.endswith("_pct"):
         return f"{v:.2f} %"
-    if key == "coverage":
+    if key.startswith("coverage"):
         return f"{v * 100:.1f} %"
     return f"{v:.3g}" if isinstance(v, float) else str(v)
 
@@ -453,6 +471,7 @@ ROWS = [
     ("surface.raw.flat_mae_m", "flat-road height MAE (raw)"),
     ("surface.raw.defect_mae_m", "in-defect height MAE (raw)"),
     ("coverage", "coverage of the imaged corridor"),
+    ("coverage_two_view", "coverage of the part seen by two consecutive frames"),
     ("seam_step_max_m", "largest seam step between patches"),
 ]
 

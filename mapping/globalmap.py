@@ -456,6 +456,9 @@ def _rasters(
     level = max(0, int(math.floor(math.log2(max(cfg.gsd_m / max(native, 1e-9), 1.0)))))
     # points per tile (with a margin so interpolation is continuous across tile borders)
     margin = cfg.surface_max_edge_m
+    # robust per-point height noise (MAD of all residuals; defects are a small minority)
+    noise_m = float(1.4826 * np.median(np.abs(resid))) if len(resid) else 0.0
+    prod.residual_stats_m["noise_mad_m"] = noise_m
     writers: list[TiledWriter] = []
     try:
         sw = TiledWriter(
@@ -478,7 +481,7 @@ def _rasters(
         for t in tqdm(tiles, desc="rasters", unit="tile", leave=False):
             grid = lat.tile_grid(*t)
             sel = _points_in(pts_grid, grid, margin)
-            res_t = _surface_tile(cfg, pts_grid[sel], resid[sel], grid)
+            res_t = _surface_tile(cfg, pts_grid[sel], resid[sel], grid, noise_m)
             mos_t, wsum = _mosaic_tile(
                 cfg,
                 cam,
@@ -524,14 +527,25 @@ def _rasters(
     prod.files["surface_preview"] = "surface_preview.png"
 
 
+def _masked_gauss(r: np.ndarray, m: np.ndarray, sig_px: float) -> np.ndarray:
+    num = cv2.GaussianBlur(np.where(m, r, 0).astype(np.float32), (0, 0), sig_px)
+    den = cv2.GaussianBlur(m.astype(np.float32), (0, 0), sig_px)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(m & (den > 1e-3), num / den, np.nan).astype(np.float32)
+
+
 def _surface_tile(
-    cfg: MappingConfig, xy: np.ndarray, resid: np.ndarray, grid: GridSpec
+    cfg: MappingConfig, xy: np.ndarray, resid: np.ndarray, grid: GridSpec, noise_m: float
 ) -> np.ndarray:
-    """Residual raster of one tile: Delaunay interpolation of the fused points on a padded
-    grid, then a masked (normalised) Gaussian smoothing of σ = surface_smooth_m that averages
-    point noise without spreading values into holes; the padding keeps tile borders seamless."""
-    sig_px = cfg.surface_smooth_m / grid.gsd_m
-    pad = int(math.ceil(3 * sig_px)) if sig_px > 0 else 0
+    """Residual raster of one tile: Delaunay interpolation of the fused points on a padded grid,
+    then masked (normalised) Gaussian smoothing that never spreads values into holes. Where the
+    fine (σ = surface_smooth_m) and the coarse (σ = surface_smooth_flat_m) versions agree within
+    the point noise, the coarse one is used (flat road: noise averaged); where they differ by
+    more (defect edges, real relief) the fine one is kept, with a soft transition. The padding
+    keeps tile borders seamless."""
+    sig_f = cfg.surface_smooth_m / grid.gsd_m
+    sig_c = max(cfg.surface_smooth_flat_m / grid.gsd_m, sig_f)
+    pad = int(math.ceil(3 * sig_c)) if sig_c > 0 else 0
     big = GridSpec(
         grid.crs,
         grid.x0_m - pad * grid.gsd_m,
@@ -543,10 +557,14 @@ def _surface_tile(
     r = interpolate_to_grid(xy, resid, big, cfg.surface_max_edge_m, cfg.surface_edge_factor)
     if pad:
         m = np.isfinite(r)
-        num = cv2.GaussianBlur(np.where(m, r, 0).astype(np.float32), (0, 0), sig_px)
-        den = cv2.GaussianBlur(m.astype(np.float32), (0, 0), sig_px)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            r = np.where(m & (den > 1e-3), num / den, np.nan).astype(np.float32)
+        fine = _masked_gauss(r, m, sig_f) if sig_f > 0 else r
+        if sig_c > sig_f and noise_m > 0:
+            coarse = _masked_gauss(r, m, sig_c)
+            t = cfg.surface_detail_sigmas * noise_m
+            w = np.clip((np.abs(fine - coarse) - t) / t, 0.0, 1.0)
+            r = np.where(np.isfinite(w), (1 - w) * coarse + w * fine, fine).astype(np.float32)
+        else:
+            r = fine
     return r[pad : pad + grid.height, pad : pad + grid.width]
 
 
