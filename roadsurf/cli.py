@@ -192,11 +192,12 @@ def bench_mapping(
     full: Annotated[
         bool, typer.Option("--full/--mapping-only", help="Also time the full `roadsurf run`.")
     ] = True,
+    width: Annotated[int, typer.Option(help="Image width of the simulated drives (px).")] = 640,
 ) -> None:
     """Peak RSS of `roadsurf run` and of the mapping stages on simulated drives of each length."""
     from mapping.bench import run_benchmark
 
-    res = run_benchmark(work, tuple(int(f) for f in frames.split(",")), full=full)
+    res = run_benchmark(work, tuple(int(f) for f in frames.split(",")), full=full, width=width)
     typer.echo(res["markdown"])
 
 
