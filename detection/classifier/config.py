@@ -21,13 +21,16 @@ class ClassifierConfig:
     lr_decay: float = 0.95  # learning rate multiplied by this every epoch (dissertation default)
     batch_size: int = 64  # images per step (dissertation default)
     epochs: int = 30  # passes over the training split
+    min_steps_per_epoch: int = 10  # at least this many batches per epoch, for tiny datasets (1)
     weight_decay: float = 1e-4  # L2 penalty of the optimiser (1)
     val_fraction: float = 0.2  # share held out for validation (the 80/20 split)
     balanced_sampling: bool = True  # sample classes equally per epoch (§5.3.2 imbalance)
     class_weighting: bool = False  # weight the loss by inverse class frequency instead
     seed: int = 0  # seeds the split, augmentation, initialisation and sampling
     device: str = "auto"  # "auto" (CUDA when present), "cpu" or "cuda"
-    num_threads: int = 0  # torch CPU threads (0 = torch default)
+    # torch CPU threads (0 = torch default). 1 by default: on a small shared CPU, more threads
+    # than free cores slow torch down by up to 10x
+    num_threads: int = 1
 
     # --- self-labelling (eq. 5.8-5.9) ---
     defect_depth_m: float = 0.010  # Z^d: a point deeper than this below the road is a defect (m)

@@ -43,6 +43,16 @@ class DefectNet(nn.Module):
         self.fc7 = nn.Linear(fc, fc)
         self.fc8 = nn.Linear(fc, 2)
         self.relu = nn.ReLU(inplace=True)
+        self._init_weights()
+
+    def _init_weights(self) -> None:
+        # He initialisation suits the ReLU stack; without batch norm the default init leaves the
+        # loss flat at ln 2 for many epochs on small datasets
+        for m in self.modules():
+            if isinstance(m, (nn.Conv2d, nn.Linear)):
+                nn.init.kaiming_normal_(m.weight, nonlinearity="relu")
+                nn.init.zeros_(m.bias)
+        nn.init.normal_(self.fc8.weight, std=0.01)
 
     @staticmethod
     def _side_after_features(s: int) -> int:

@@ -213,7 +213,7 @@ def train(
         else:
             log.warning("%s belongs to other data or settings; training from scratch", ckpt_path)
 
-    steps = max(1, int(np.ceil(len(tr) / cfg.batch_size)))
+    steps = max(cfg.min_steps_per_epoch, int(np.ceil(len(tr) / cfg.batch_size)))
     bar = tqdm(
         range(start_epoch, cfg.epochs),
         desc="train",
