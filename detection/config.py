@@ -27,6 +27,7 @@ class PlaneFitConfig:
     min_road_share: float = 0.7  # m: refit while T_n = |X^rn| / |X| > m (0-1)
     max_iterations: int = 10  # cap on refits (count)
     min_points: int = 30  # a pair with fewer points is not segmented (count)
+    max_depth_m: float = 0.25  # points further below the plane are mismatches, not defects (m)
 
 
 @dataclass(frozen=True)
@@ -81,7 +82,8 @@ class MapSegmentConfig:
     mean_shift_tol_m: float = 0.001  # a window has converged when it moves less (m)
     min_area_m2: float = 0.002  # drop defects whose deep area (>= seed threshold) is smaller (m²)
     min_depth_m: float = 0.010  # drop defects shallower than this at their deepest (m)
-    min_support_pairs: int = 1  # 3D veto: refined pair points from at least this many pairs (count)
+    min_support_pairs: int = 1  # 3D veto: defect points from at least this many pairs (count)
+    min_support_points: int = 3  # 3D veto: and at least this many defect points in all (count)
     point_support_radius_m: float = 0.02  # a point supports a region within this distance (m)
     crack_max_width_m: float = 0.06  # narrower elongated defects are cracks (m)
     rut_min_length_m: float = 1.0  # longer elongated, wider defects are ruts (m)

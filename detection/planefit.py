@@ -59,7 +59,8 @@ def recursive_plane_fit(points_m: np.ndarray, cfg: PlaneFitConfig) -> PlaneFitRe
 
     Each round: distances to the current plane; candidates are d_i < 0 and |d_i| >= T_d with
     T_d = max(cfg floor, noise_k · σ) and σ the robust spread of the road points; refit on the
-    road points. Rounds repeat while T_n > m and the split changes.
+    road points (|d_i| < T_d). Rounds repeat while T_n > m and the split changes. Points more
+    than ``max_depth_m`` below the plane are mismatches: neither road nor candidates.
     """
     P = check_shape("points_m", np.asarray(points_m, float), (None, 3))
     n = P.shape[0]
@@ -78,9 +79,9 @@ def recursive_plane_fit(points_m: np.ndarray, cfg: PlaneFitConfig) -> PlaneFitRe
         d = signed_distance(P, plane)
         sigma = robust_sigma(d[road])
         T_d = max(cfg.depth_threshold_m, cfg.noise_k * sigma)
-        new_cand = (d < 0) & (np.abs(d) >= T_d)
+        new_cand = (d < 0) & (np.abs(d) >= T_d) & (np.abs(d) <= cfg.max_depth_m)
         # Bumps far above the plane are not road either: keep them out of the refit.
-        new_road = ~new_cand & (d < T_d)
+        new_road = (d > -T_d) & (d < T_d)
         share = float(new_road.sum()) / n
         if share <= cfg.min_road_share or new_road.sum() < 3:
             # Too few road points left: the split is no longer a road with defects; keep the
@@ -92,6 +93,6 @@ def recursive_plane_fit(points_m: np.ndarray, cfg: PlaneFitConfig) -> PlaneFitRe
         cand, road = new_cand, new_road
         plane = fit_plane(P[road])
     d = signed_distance(P, plane)
-    cand = (d < 0) & (np.abs(d) >= T_d)
+    cand = (d < 0) & (np.abs(d) >= T_d) & (np.abs(d) <= cfg.max_depth_m)
     share = 1.0 - float(cand.sum()) / n
     return PlaneFitResult(cand, d, plane, float(T_d), float(sigma), share, it)

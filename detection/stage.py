@@ -254,8 +254,11 @@ def _measure_regions(
             why = f"shallow ({1000 * max_depth:.1f} mm)"
         elif deep_area < mc.min_area_m2:
             why = f"small ({1e4 * deep_area:.1f} cm²)"
-        elif have_pairs and len(reg.support_pairs) < mc.min_support_pairs:
-            why = "no refined 3D points from any pair"
+        elif have_pairs and (
+            len(reg.support_pairs) < mc.min_support_pairs
+            or reg.n_support_points < mc.min_support_points
+        ):
+            why = f"{reg.n_support_points} defect point(s) from {len(reg.support_pairs)} pair(s)"
         if why:
             log.debug("detection: region at %s vetoed: %s", (reg.rows[0], reg.cols[0]), why)
             continue
