@@ -48,7 +48,7 @@ class MappingConfig:
     tiled_vrt_min_tiles: int = 2  # write per-tile files + VRT index when the grid has >= this
     mosaic_border_px: int = 8  # image border ignored when projecting frames (px)
     feather_px: int = 40  # feathering ramp width at image edges for mosaic blending (px)
-    max_raster_px: int = 400_000_000  # refuse a single raster larger than this (px), tile instead
+    max_raster_px: int = 20_000_000_000  # bounding grid above this (px): tiles + VRT only
     preview_max_px: int = 2000  # longest side of the PNG previews (px)
     surface_max_edge_m: float = (
         0.10  # never interpolate the surface across a gap wider than this (m)

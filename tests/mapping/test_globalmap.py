@@ -189,3 +189,18 @@ def test_gridding_helpers() -> None:
     m = grid_mean(xy, v, grid)
     assert np.isfinite(m).sum() > 0.8 * 90 * 90 * (1 - np.exp(-0.33))
     assert ExportFrame.for_reference(REF).crs == "EPSG:32617"
+
+
+def test_no_gps_map_stays_in_the_local_frame(tmp_path: Path) -> None:
+    syn = make_synthetic(n=16, seed=41, with_gps=False)
+    syn = write_images(syn, tmp_path / "drive")
+    run = tmp_path / "run"
+    traj = poses.run(CFG, syn.drive, syn.pairs, run)
+    prod = globalmap.run(CFG, syn.drive, syn.pairs, traj, run)
+    assert prod.crs is None and not (run / "trajectory.geojson").exists()
+    with rasterio.open(run / "surface.tif") as s:
+        assert s.crs is None
+        assert np.isfinite(s.read(1)).sum() > 1000
+    v = PlyData.read(str(run / "cloud.ply"))["vertex"].data
+    # local ENU metres around the first camera, not UTM
+    assert np.max(np.abs(v["x"])) < 50 and np.max(np.abs(v["y"])) < 50
