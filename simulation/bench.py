@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from simulation.render import TILE, Renderer
+from simulation.render import Renderer
 from simulation.scenarios import SCENARIOS, make_config
 from simulation.sensors import encode_image, form_image
 from simulation.world import build_world
@@ -56,7 +56,7 @@ def bench_render(scenario: str = "sample", n_frames: int = 20, **overrides: Any)
     sensor = np.array(times["sensor"])[sl]
     encode = np.array(times["encode"])[sl]
     total = render + sensor + encode
-    tile_mb = TILE * TILE * 5 * 4 / 1e6
+    tile_mb = r.tile * r.tile * 5 * 4 / 1e6
     return {
         "scenario": scenario,
         "frames": n_frames,

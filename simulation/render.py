@@ -1,6 +1,6 @@
 """Ray-casting renderer: each (supersampled) pixel's ray is intersected with the height field.
 
-The world is evaluated lazily in square tiles of ``TILE`` px at the render GSD (finer than the
+The world is evaluated lazily in square tiles of ~``TILE_M`` (at most ``TILE`` px) at the render GSD (finer than the
 pixel footprint) and kept in a small LRU cache; a frame assembles the few tiles under its
 footprint into a mosaic and samples it with ``cv2.remap`` (bilinear). Memory therefore scales
 with the footprint, not with the route.
@@ -22,7 +22,8 @@ import numpy as np
 
 from simulation.world import Pose, World
 
-TILE = 384  # tile size (px at the render GSD)
+TILE = 384  # largest tile size (px at the render GSD)
+TILE_M = 0.47  # target tile size on the ground (m): coarse GSDs get smaller tiles
 
 
 @dataclass
@@ -41,6 +42,7 @@ class Renderer:
         c = world.cfg
         self.g = world.render_gsd_m
         self.ss = max(1, int(c.supersample))
+        self.tile = int(np.clip(round(TILE_M / self.g / 16) * 16, 64, TILE))
         self.cache: OrderedDict[tuple[int, int], tuple[np.ndarray, ...]] = OrderedDict()
         self.cache_tiles = cache_tiles
         self.tile_seconds = 0.0  # time spent evaluating world tiles (for benchmarks)
@@ -63,7 +65,7 @@ class Renderer:
             self.cache.move_to_end(key)
             return self.cache[key]
         t_start = time.perf_counter()
-        g, n = self.g, TILE
+        g, n = self.g, self.tile
         x0 = a * n * g - g
         y_top = -b * n * g + g
         f = self.world.evaluate(x0, y_top, g, n + 2, n + 2, appearance=True)
@@ -90,7 +92,7 @@ class Renderer:
         return tile
 
     def _mosaic(self, xmin: float, ymin: float, xmax: float, ymax: float):
-        g, n = self.g, TILE
+        g, n = self.g, self.tile
         a0, a1 = math.floor(xmin / (n * g)), math.floor(xmax / (n * g))
         b0, b1 = math.floor(-ymax / (n * g)), math.floor(-ymin / (n * g))
         rows, cols = (b1 - b0 + 1) * n, (a1 - a0 + 1) * n
