@@ -6,6 +6,7 @@ from __future__ import annotations
 import logging
 import os
 import shutil
+import signal
 import socket
 import subprocess
 import sys
@@ -39,6 +40,25 @@ class ViewResult:
     url: str | None = None
     missing: list[str] = field(default_factory=list)
     server: subprocess.Popen[bytes] | None = None
+
+    def stop(self) -> None:
+        """Stop the web viewer server of ``serve`` (no-op otherwise)."""
+        if self.server is not None:
+            stop_server(self.server)
+
+
+def stop_server(proc: subprocess.Popen[bytes]) -> None:
+    """Terminate a server started by ``serve`` and its children (its process group)."""
+    if proc.poll() is None:
+        try:
+            os.killpg(proc.pid, signal.SIGTERM)
+        except ProcessLookupError:
+            pass
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
 
 
 def record(rec: rr.RecordingStream, data: RunData, cfg: ViewerConfig) -> dict[str, int]:
@@ -173,7 +193,9 @@ def serve(
         str(res.rrd),
     ]
     errlog = tempfile.TemporaryFile()  # a pipe nobody reads would block the server
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=errlog)
+    # own process group: `python -m rerun` runs the viewer binary as a child, and stopping
+    # must reach that child too
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=errlog, start_new_session=True)
     deadline = time.monotonic() + wait_ready_s
     while time.monotonic() < deadline:
         if proc.poll() is not None:
@@ -187,7 +209,7 @@ def serve(
             break
         time.sleep(0.2)
     else:
-        proc.terminate()
+        stop_server(proc)
         raise RoadsurfError(f"the Rerun web viewer did not start within {wait_ready_s:.0f} s")
     url = viewer_url(web_port, grpc_port)
     log.info("web viewer at %s", url)
@@ -258,6 +280,5 @@ def view(
     except KeyboardInterrupt:
         pass
     finally:
-        res.server.terminate()
-        res.server.wait(timeout=10)
+        res.stop()
     return res

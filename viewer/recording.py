@@ -334,7 +334,13 @@ def log_frames(
     rec.log("frames/p_defect", rr.SeriesLines(names="p_defect", colors=[220, 30, 30]), static=True)
     rec.log("frames/inliers", rr.SeriesLines(names="inliers", colors=[40, 160, 40]), static=True)
     rec.log("frames/matches", rr.SeriesLines(names="matches", colors=[120, 120, 120]), static=True)
-    rec.log("frames/mask", rr.AnnotationContext([(1, "defect", (255, 0, 255, 110))]), static=True)
+    # class colours of the refined mask (looked up from the image entity downwards)
+    rec.log(
+        "world/camera/image",
+        rr.AnnotationContext([(1, "defect", (255, 0, 255, 110))]),
+        static=True,
+    )
+    outlines = _defect_rings_3d(data)
     n = 0
     stride = max(1, cfg.frame_stride)
     for k, (index, name, ts, path) in enumerate(
@@ -350,6 +356,8 @@ def log_frames(
         pair, side = (pair_a[index], "a") if index in pair_a else (pair_b.get(index), "b")
         log_frame_overlays(rec, pair, side, cfg)
         _log_mask(rec, data, name, cam)
+        if cam is not None and index in pose_of and outlines:
+            _log_projected_defects(rec, data, outlines, traj.world_from_cam[pose_of[index]], cam)
         row = data.frame_labels.get(name)
         p = _float_or_nan(row.get("p_defect")) if row else math.nan
         if math.isfinite(p):
@@ -435,6 +443,49 @@ def log_frame_overlays(rec: rr.RecordingStream, pair: Any, side: str, cfg: Viewe
         )
     else:
         rec.log("world/camera/image/defect_points", rr.Clear(recursive=False))
+
+
+def _defect_rings_3d(data: RunData) -> list[tuple[Any, np.ndarray]]:
+    """(defect, (K, 3) ENU outline at the road surface) for every defect."""
+    out = []
+    for d in data.defects:
+        z = road_height_near(data, d.centroid_enu_m)
+        out.append((d, np.column_stack([d.ring_enu_m, np.full(len(d.ring_enu_m), z)])))
+    return out
+
+
+def _log_projected_defects(
+    rec: rr.RecordingStream,
+    data: RunData,
+    outlines: list[tuple[Any, np.ndarray]],
+    world_from_cam: np.ndarray,
+    cam: Any,
+) -> None:
+    """Final (map) defect outlines projected into the current frame, where they are visible."""
+    from roadsurf.geometry import invert_pose, transform_points
+
+    cam_from_world = invert_pose(world_from_cam)
+    strips, colors, labels = [], [], []
+    for d, ring in outlines:
+        pc = transform_points(cam_from_world, ring)
+        if np.any(pc[:, 2] <= 1e-3):
+            continue  # behind the camera
+        uv = (pc @ cam.K.T)[:, :2] / pc[:, 2:3]
+        inside = (
+            (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+        )
+        if not inside.any():
+            continue
+        strips.append(uv.astype(np.float32))
+        colors.append(severity_rgb(d.severity))
+        labels.append(d.label)
+    if strips:
+        rec.log(
+            "world/camera/image/defect_outlines",
+            rr.LineStrips2D(strips, colors=colors, labels=labels, radii=rr.Radius.ui_points(2.0)),
+        )
+    else:
+        rec.log("world/camera/image/defect_outlines", rr.Clear(recursive=False))
 
 
 def _subsample(n: int, k: int, rng: np.random.Generator) -> np.ndarray:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import socket
+import time
 from pathlib import Path
 
 import pytest
@@ -48,11 +49,12 @@ def _non_loopback_ip() -> str | None:
 def test_serve_loads_in_headless_chromium(
     synthetic_run: SyntheticRun, saved_rrd: Path, tmp_path: Path, chromium: str
 ) -> None:
+    web_port = free_port()
     res = serve(
         synthetic_run.run,
         rrd=saved_rrd,
         record=False,
-        web_port=free_port(),
+        web_port=web_port,
         grpc_port=free_port(),
     )
     try:
@@ -74,5 +76,8 @@ def test_serve_loads_in_headless_chromium(
         assert "Wasm loaded" in shot.console, shot.console[-2000:]
         assert not is_blank(shot.path)
     finally:
-        res.server.terminate()
-        res.server.wait(timeout=10)
+        res.stop()
+    assert res.server is not None and res.server.poll() is not None
+    time.sleep(0.5)
+    with socket.socket() as s:  # the viewer binary (a child process) is gone too
+        assert s.connect_ex(("127.0.0.1", web_port)) != 0

@@ -99,7 +99,7 @@ def test_run_folder_without_drive_or_pairs(tmp_path: Path, synthetic_run: Synthe
     assert any("drive" in m for m in res.missing) and "pairs/" in res.missing
     s = summarize_rrd(res.rrd)
     assert s.has("/world/cloud") and s.has("/map/defects") and s.has("/world/trajectory")
-    assert not s.has("/world/camera/image")
+    assert s.rows("/world/camera/image", "EncodedImage:blob") == 0
     assert s.rows("/world/camera", "Transform3D:translation") == synthetic_run.expected["frames"]
 
 
@@ -120,3 +120,24 @@ def test_depth_profile_finds_the_pothole_floor(synthetic_run: SyntheticRun) -> N
     mid = 0.5 * (dist[0] + dist[-1])
     assert abs(dist[k] - mid) < 0.03  # at the middle of the long axis
     assert math.isclose(float(np.nanmax(res)), 0.0, abs_tol=0.003)  # road beyond the rim
+
+
+def test_map_defects_are_projected_into_the_frames(saved_rrd: Path) -> None:
+    """The pothole (E 0.05, N 0.35) seen by a camera 0.5 m up at N = 0.1 i, heading north:
+    u = cx + fx * 0.05 / 0.5 = 95 px, v = cy - fy * (0.35 - 0.1 i) / 0.5."""
+    rows = component_values(saved_rrd, "/world/camera/image/defect_outlines", "LineStrips2D:strips")
+    labels = component_values(
+        saved_rrd, "/world/camera/image/defect_outlines", "LineStrips2D:labels"
+    )
+    centres = [
+        np.array(strip)[:-1].mean(axis=0)
+        for row, lab in zip(rows, labels, strict=True)
+        for strip, text in zip(row, lab, strict=True)
+        if "pothole" in text
+    ]
+    assert len(centres) >= 4
+    vs = sorted(round(float(c[1])) for c in centres)
+    for i in (2, 3, 4, 5):
+        v = 60.0 - 150.0 * (0.35 - 0.1 * i) / 0.5
+        assert any(abs(x - v) <= 1 for x in vs), (v, vs)
+    assert all(abs(float(c[0]) - 95.0) < 1.0 for c in centres)
