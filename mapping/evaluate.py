@@ -454,7 +454,7 @@ def _fmt(v: Any, key: str) -> str:
         return f"{v * 1000:.2f} mm" if abs(v) < 0.1 else f"{v:.3f} m"
     if key.endswith("_pct"):
         return f"{v:.2f} %"
-    if key.startswith("coverage"):
+    if key.startswith("coverage") or key.endswith(("accuracy", "precision", "recall")):
         return f"{v * 100:.1f} %"
     return f"{v:.3g}" if isinstance(v, float) else str(v)
 
@@ -473,6 +473,10 @@ ROWS = [
     ("coverage", "coverage of the imaged corridor"),
     ("coverage_two_view", "coverage of the part seen by two consecutive frames"),
     ("seam_step_max_m", "largest seam step between patches"),
+    ("detection.frames.accuracy", "detection: frame accuracy"),
+    ("detection.defects.precision", "detection: defect precision"),
+    ("detection.defects.recall", "detection: defect recall"),
+    ("detection.defects.depth_mae_m", "detection: defect depth MAE"),
 ]
 
 
