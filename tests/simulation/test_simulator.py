@@ -242,3 +242,21 @@ def test_frame_labels_agree_with_truth_raster(tiny_drive: Path) -> None:
         assert abs(area_cm2 - ray_cm2) <= 0.15 * max(area_cm2, ray_cm2) + 15.0
         n_defect += int(lab["defect"])
     assert n_defect >= 1
+
+
+def test_cli_simulate_with_overrides(tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from roadsurf.cli import app
+
+    out = tmp_path / "cli"
+    args = ["simulate", "--scenario", "flat", "--frames", "3", "--out", str(out)]
+    for kv in ("width=240", "height=180", "fx=225", "texture=brick", "greyscale=true"):
+        args += ["--set", kv]
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 0, res.output
+    drive = load_drive(out)
+    assert len(drive.frames) == 3 and drive.camera.width == 240
+    sc = json.loads((out / "truth" / "scenario.json").read_text())
+    assert sc["params"]["texture"] == "brick" and sc["params"]["greyscale"] is True
+    assert CliRunner().invoke(app, ["simulate", "--list"]).exit_code == 0
