@@ -83,6 +83,9 @@ class SimConfig:
     truth_gsd_m: float = 0.004  # ground-truth raster resolution (m)
 
     # --- sensors -----------------------------------------------------------------------------
+    gps_format: Literal["csv", "gpx", "nmea"] = "csv"  # GPS log file: gps.csv, gps.gpx, gps.nmea
+    start_utc: str = "2026-06-15T14:00:00+00:00"  # recording start (ISO 8601); with gpx/nmea
+    # every timestamp of the drive is UNIX seconds (UTC) from it, as the drive format requires
     gps_profile: GpsProfile = "rtk"  # rtk: 5 Hz, sigma 2 cm; consumer: 1 Hz, sigma 1 m, bias
     gps_rate_hz: float | None = None  # GPS rate (Hz); None = the profile's
     gps_sigma_m: float | None = None  # GPS white noise per axis σ (m); None = the profile's

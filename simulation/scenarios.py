@@ -24,7 +24,16 @@ from roadsurf.formats import write_csv
 from roadsurf.io import write_bytes_atomic, write_json_atomic, write_text_atomic
 from simulation.config import SimConfig
 from simulation.render import Renderer
-from simulation.sensors import encode_image, form_image, gps_params, simulate_gps, simulate_obd
+from simulation.sensors import (
+    encode_image,
+    form_image,
+    gps_params,
+    gpx_text,
+    nmea_text,
+    simulate_gps,
+    simulate_obd,
+    time_offset_s,
+)
 from simulation.truth import (
     corridor_polygon,
     write_features,
@@ -153,7 +162,8 @@ def make_config(name: str, **overrides: Any) -> SimConfig:
 
 
 def _prepare_out(out: Path) -> None:
-    known = {"frames", "truth", "camera.yaml", "frames.csv", "gps.csv", "obd.csv"}
+    known = {"frames", "truth", "camera.yaml", "frames.csv", "obd.csv"}
+    known |= {"gps.csv", "gps.gpx", "gps.nmea"}
     if out.exists() and any(out.iterdir()):
         if not {p.name for p in out.iterdir()} <= known:
             raise RoadsurfError(
@@ -204,7 +214,7 @@ def simulate(
 
     _write_drive_files(world, out, names)
     truth = out / "truth"
-    write_poses(world, truth, poses)
+    write_poses(world, truth, poses, time_offset_s(cfg))
     write_frame_labels(truth, labels)
     write_features(world, truth)
     grid = write_rasters(world, corridor_polygon(footprints), truth)
@@ -253,17 +263,26 @@ def _write_drive_files(world, out: Path, names: list[str]) -> None:
         f"height_m: {cfg.camera_height_m!r}\n"
         f"fps: {cfg.fps!r}\n",
     )
+    off = time_offset_s(cfg)
     write_csv(
         out / "frames.csv",
         ["filename", "timestamp_s"],
-        [[nm, round(float(t), 6)] for nm, t in zip(names, world.frame_times, strict=True)],
+        [[nm, round(float(t) + off, 6)] for nm, t in zip(names, world.frame_times, strict=True)],
     )
     rng = np.random.default_rng([world.seed, 7])
     gps = simulate_gps(world, rng)
-    write_csv(
-        out / "gps.csv",
-        ["timestamp_s", "lat", "lon", "alt_m", "hdop"],
-        zip(gps.timestamp_s, gps.lat_deg, gps.lon_deg, gps.alt_m, gps.hdop, strict=True),
-    )
+    if cfg.gps_format == "gpx":
+        write_text_atomic(out / "gps.gpx", gpx_text(gps, off))
+    elif cfg.gps_format == "nmea":
+        quality = 4 if cfg.gps_profile == "rtk" else 1  # RTK fixed / GPS fix
+        write_text_atomic(out / "gps.nmea", nmea_text(gps, off, quality))
+    else:
+        write_csv(
+            out / "gps.csv",
+            ["timestamp_s", "lat", "lon", "alt_m", "hdop"],
+            zip(gps.timestamp_s, gps.lat_deg, gps.lon_deg, gps.alt_m, gps.hdop, strict=True),
+        )
     t, v = simulate_obd(world, np.random.default_rng([world.seed, 8]))
-    write_csv(out / "obd.csv", ["timestamp_s", "speed_mps"], zip(t, v, strict=True))
+    write_csv(
+        out / "obd.csv", ["timestamp_s", "speed_mps"], zip(np.round(t + off, 3), v, strict=True)
+    )

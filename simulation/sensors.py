@@ -130,3 +130,86 @@ def simulate_obd(world: World, rng: np.random.Generator) -> tuple[np.ndarray, np
         q = cfg.obd_quant_kmh / 3.6
         v = np.round(v / q) * q
     return np.round(t, 3), np.round(np.clip(v, 0, None), 4)
+
+
+def time_offset_s(cfg: SimConfig) -> float:
+    """Offset added to every written timestamp: 0 with gps.csv (seconds since the recording
+    started), the UNIX time of ``start_utc`` with GPX/NMEA logs (which carry UTC times)."""
+    if cfg.gps_format == "csv":
+        return 0.0
+    from datetime import datetime
+
+    return datetime.fromisoformat(cfg.start_utc).timestamp()
+
+
+def _utc(t_unix: float):
+    from datetime import UTC, datetime
+
+    return datetime.fromtimestamp(round(t_unix, 3), tz=UTC)
+
+
+def gpx_text(gps: GpsLog, offset_s: float) -> str:
+    """GPX 1.1 track of the fixes (times ISO 8601 UTC with milliseconds)."""
+    lines = [
+        '<?xml version="1.0" encoding="UTF-8"?>',
+        '<gpx version="1.1" creator="roadsurf simulate" xmlns="http://www.topografix.com/GPX/1/1">',
+        "<trk><name>roadsurf simulated drive</name><trkseg>",
+    ]
+    for t, la, lo, al, hd in zip(
+        gps.timestamp_s, gps.lat_deg, gps.lon_deg, gps.alt_m, gps.hdop, strict=True
+    ):
+        iso = _utc(float(t) + offset_s).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+        lines.append(
+            f'<trkpt lat="{la:.9f}" lon="{lo:.9f}"><ele>{al:.3f}</ele><time>{iso}</time>'
+            f"<hdop>{hd:.1f}</hdop></trkpt>"
+        )
+    lines += ["</trkseg></trk>", "</gpx>", ""]
+    return "\n".join(lines)
+
+
+def _nmea(body: str) -> str:
+    cs = 0
+    for ch in body:
+        cs ^= ord(ch)
+    return f"${body}*{cs:02X}"
+
+
+def _ddmm(value: float, deg_digits: int, pos: str, neg: str) -> tuple[str, str]:
+    a = abs(value)
+    d = int(a)
+    m = (a - d) * 60.0
+    return f"{d:0{deg_digits}d}{m:010.7f}", pos if value >= 0 else neg
+
+
+def nmea_text(gps: GpsLog, offset_s: float, quality: int) -> str:
+    """$GPRMC + $GPGGA per fix. Altitude is the ellipsoidal height with a geoid separation of 0,
+    so MSL + separation and MSL give the same number. Speed/course from successive fixes."""
+    out = []
+    n = len(gps.timestamp_s)
+    for i in range(n):
+        t = float(gps.timestamp_s[i]) + offset_s
+        u = _utc(t)
+        hms = f"{u:%H%M%S}.{u.microsecond // 10000:02d}"
+        lat, ns = _ddmm(float(gps.lat_deg[i]), 2, "N", "S")
+        lon, ew = _ddmm(float(gps.lon_deg[i]), 3, "E", "W")
+        j0, j1 = max(0, i - 1), min(n - 1, i + 1)
+        if j1 > j0:
+            dlat = (gps.lat_deg[j1] - gps.lat_deg[j0]) * 111_320.0
+            dlon = (
+                (gps.lon_deg[j1] - gps.lon_deg[j0]) * 111_320.0 * np.cos(np.radians(gps.lat_deg[i]))
+            )
+            dt = float(gps.timestamp_s[j1] - gps.timestamp_s[j0])
+            knots = float(np.hypot(dlat, dlon)) / dt * 3600 / 1852
+            course = float(np.degrees(np.arctan2(dlon, dlat)) % 360)
+        else:
+            knots, course = 0.0, 0.0
+        out.append(
+            _nmea(f"GPRMC,{hms},A,{lat},{ns},{lon},{ew},{knots:.2f},{course:.1f},{u:%d%m%y},,,A")
+        )
+        out.append(
+            _nmea(
+                f"GPGGA,{hms},{lat},{ns},{lon},{ew},{quality},12,{gps.hdop[i]:.1f},"
+                f"{gps.alt_m[i]:.3f},M,0.0,M,,"
+            )
+        )
+    return "\r\n".join(out) + "\r\n"

@@ -261,8 +261,11 @@ def write_features(world: World, out: Path) -> None:
     write_geojson(out / "distractors.geojson", distractor_features(world), meta)
 
 
-def write_poses(world: World, out: Path, rows: list[tuple[str, Any]]) -> None:
-    """rows: (filename, Pose) per frame."""
+def write_poses(
+    world: World, out: Path, rows: list[tuple[str, Any]], time_offset_s: float = 0.0
+) -> None:
+    """rows: (filename, Pose) per frame; ``time_offset_s`` is added to the timestamps (the
+    drive's clock, see sensors.time_offset_s)."""
     data = []
     for name, p in rows:
         e, n = p.C[0] + world.origin_e_m, p.C[1] + world.origin_n_m
@@ -270,7 +273,7 @@ def write_poses(world: World, out: Path, rows: list[tuple[str, Any]]) -> None:
         up = p.C[2] + world.cfg.origin_alt_m
         q = quat_wxyz(p.R)
         data.append([
-            name, round(p.t, 6), round(e, 4), round(n, 4), round(up, 5), round(lat, 9),
+            name, round(p.t + time_offset_s, 6), round(e, 4), round(n, 4), round(up, 5), round(lat, 9),
             round(lon, 9), round(up, 5), round(true_heading_deg(world, p.C, p.R), 5),
             round(math.degrees(p.roll_rad), 5), round(math.degrees(p.pitch_rad), 5),
             *[round(float(v), 9) for v in q],

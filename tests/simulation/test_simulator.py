@@ -260,3 +260,21 @@ def test_cli_simulate_with_overrides(tmp_path: Path) -> None:
     sc = json.loads((out / "truth" / "scenario.json").read_text())
     assert sc["params"]["texture"] == "brick" and sc["params"]["greyscale"] is True
     assert CliRunner().invoke(app, ["simulate", "--list"]).exit_code == 0
+
+
+@pytest.mark.parametrize("fmt", ["gpx", "nmea"])
+def test_gps_log_formats_load_like_csv(tmp_path: Path, fmt: str) -> None:
+    """gps.gpx / gps.nmea drives (UNIX-second clock) load to the same fixes as gps.csv."""
+    kw = dict(TINY, n_potholes=0, n_cracks=0)
+    ref = load_drive(simulate("flat", tmp_path / "csv", seed=4, n_frames=4, **kw))
+    drive = load_drive(simulate("flat", tmp_path / fmt, seed=4, n_frames=4, gps_format=fmt, **kw))
+    assert drive.gps is not None and ref.gps is not None
+    assert drive.gps.source == f"gps.{fmt}" and len(drive.gps) == len(ref.gps)
+    offset = drive.frames[0].timestamp_s - ref.frames[0].timestamp_s
+    assert offset > 1.7e9  # UNIX seconds (UTC)
+    np.testing.assert_allclose(drive.gps.timestamp_s - offset, ref.gps.timestamp_s, atol=2e-3)
+    np.testing.assert_allclose(drive.gps.lat_deg, ref.gps.lat_deg, atol=2e-9)
+    np.testing.assert_allclose(drive.gps.lon_deg, ref.gps.lon_deg, atol=2e-9)
+    np.testing.assert_allclose(drive.gps.alt_m, ref.gps.alt_m, atol=2e-3)
+    poses = read_csv(tmp_path / fmt / "truth" / "poses.csv")
+    assert float(poses[0]["timestamp_s"]) == pytest.approx(drive.frames[0].timestamp_s)
