@@ -169,8 +169,19 @@ def _run_colmap(
     timings: dict[str, float] = {}
     steps = ["features", "matches", "mapping"]
 
+    # Image identity (size, mtime) is part of the fingerprint: a re-rendered or edited drive
+    # with the same filenames must not reuse stale features.
+    stats = [(f.path.stat().st_size, f.path.stat().st_mtime_ns) for f in drive.frames]
     fp_feat = _fingerprint(
-        [names, model, params, cfg.max_num_features, cfg.max_image_size, pycolmap.__version__]
+        [
+            names,
+            stats,
+            model,
+            params,
+            cfg.max_num_features,
+            cfg.max_image_size,
+            pycolmap.__version__,
+        ]
     )
     if not state.done("features", fp_feat):
         state.invalidate_from(steps)

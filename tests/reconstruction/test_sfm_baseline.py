@@ -251,3 +251,16 @@ def test_neighbour_heading_deviation_flags_a_flipped_pose() -> None:
     h = np.array([10.0, 11.0, 9.5, 190.0, 10.5, 359.0 + 12.0 - 360.0, 10.0])
     dev = _neighbour_heading_dev(h)
     assert dev[3] > 170 and np.all(np.delete(dev, 3) < 5)
+
+
+def test_changed_image_invalidates_resume(sim_drive: Path, sfm_out: Path, tmp_path: Path) -> None:
+    """Same filenames but a re-rendered image: the features (and later steps) are recomputed."""
+    d2 = tmp_path / "drive"
+    shutil.copytree(sim_drive, d2)  # copy2 keeps mtimes: unchanged files still resume
+    out2 = tmp_path / "out"
+    shutil.copytree(sfm_out / "colmap", out2 / "colmap")
+    first = sorted((d2 / "frames").iterdir())[0]
+    img = cv2.imread(str(first))
+    cv2.imwrite(str(first), cv2.flip(img, 1))
+    rep = run(SfmBaselineConfig(num_threads=2), d2, out2).report
+    assert "features_s" in rep["timings_s"] and "mapping_s" in rep["timings_s"]
