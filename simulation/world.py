@@ -15,6 +15,7 @@ import logging
 import math
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
 from roadsurf.geometry import lla_from_utm, utm_epsg_for, utm_from_lla, world_from_cam
@@ -185,6 +186,7 @@ class World:
     texture: TextureField | None = None
     base_waves: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
     render_gsd_m: float = 0.001
+    _relief: dict = field(default_factory=dict, repr=False)  # pothole index -> relief shadow
 
     # ---- derived helpers
     @property
@@ -240,6 +242,57 @@ class World:
     def camera_path_lateral(self, s: np.ndarray) -> np.ndarray:
         """Lateral offset of the camera where it passes arc length s (m)."""
         return np.interp(s, self.traj.s, self.traj.lateral)
+
+    # ---- cast shadows of the relief (pothole rims onto their floor)
+    def _relief_shadow_window(
+        self, p: Pothole, x0: float, y_top: float, gsd: float, shape: tuple[int, int]
+    ) -> np.ndarray | None:
+        """Sun shadow cast by pothole ``p``'s own walls, for the grid window starting at
+        (x0, y_top) (pixel-centre lattice (k + 0.5) gsd); None when the sun is near zenith."""
+        c = self.cfg
+        if c.sun_elevation_deg >= 85.0 or c.ambient >= 1.0:
+            return None
+        key = (self.potholes.index(p), round(gsd, 9))
+        if key not in self._relief:
+            self._relief[key] = self._relief_shadow(p, gsd)
+        k0, m0, mask = self._relief[key]
+        kc = int(round(x0 / gsd - 0.5)) + np.arange(shape[1]) - k0
+        mr = int(round(-y_top / gsd - 0.5)) + np.arange(shape[0]) - m0
+        okc = (kc >= 0) & (kc < mask.shape[1])
+        okr = (mr >= 0) & (mr < mask.shape[0])
+        out = np.zeros(shape, np.float32)
+        out[np.ix_(okr, okc)] = mask[np.ix_(mr[okr], kc[okc])]
+        return out
+
+    def _relief_shadow(self, p: Pothole, gsd: float) -> tuple[int, int, np.ndarray]:
+        """Shadow mask of a pothole on the global render lattice: march from each point towards
+        the sun and test whether the pothole's walls rise above the ray (soft-edged 0..1)."""
+        c = self.cfg
+        bx0, by0, bx1, by1 = p.bbox(0.01)
+        k0, k1 = int(math.floor(bx0 / gsd)), int(math.ceil(bx1 / gsd))
+        m0, m1 = int(math.floor(-by1 / gsd)), int(math.ceil(-by0 / gsd))
+        xs = (np.arange(k0, k1) + 0.5) * gsd
+        ys = -(np.arange(m0, m1) + 0.5) * gsd
+        X, Y = np.meshgrid(xs, ys)
+        h = -p.depth(X, Y).astype(np.float32)
+        az, el = math.radians(c.sun_azimuth_deg), math.radians(c.sun_elevation_deg)
+        reach = float(-h.min()) / math.tan(el)
+        step = 1.5 * gsd
+        n = min(160, int(math.ceil(reach / step)) + 1)
+        cols, rows = np.meshgrid(
+            np.arange(k1 - k0, dtype=np.float32), np.arange(m1 - m0, dtype=np.float32)
+        )
+        dc, dr = math.sin(az) * step / gsd, -math.cos(az) * step / gsd
+        lit_margin = np.float32(1e-4)
+        shadow = np.zeros(h.shape, bool)
+        for j in range(1, n + 1):
+            hs = cv2.remap(
+                h, cols + np.float32(j * dc), rows + np.float32(j * dr), cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_CONSTANT, borderValue=0.0,
+            )  # fmt: skip
+            shadow |= hs > h + np.float32(j * step * math.tan(el)) + lit_margin
+        mask = cv2.GaussianBlur(shadow.astype(np.float32), (0, 0), 0.8)
+        return k0, m0, mask
 
     # ---- evaluation on a north-up grid
     def evaluate(
@@ -325,6 +378,9 @@ class World:
             )
             inner = (p.darken * (0.08 + 0.9 * g2))[..., None] * tint
             rgb[sl] = rgb[sl] * (1 - w[..., None]) + inner * w[..., None]
+            rs = self._relief_shadow_window(p, x0 + c0 * gsd, y_top - r0 * gsd, gsd, w.shape)
+            if rs is not None:
+                shadow[sl] = np.maximum(shadow[sl], rs)
         for tr, sl in trough_d:
             d = tr.dist(X[sl], Y[sl], win)
             if tr.kind == "crack":
