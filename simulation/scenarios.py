@@ -170,8 +170,13 @@ def _prepare_out(out: Path) -> None:
                 f"{out}: folder exists and is not a simulated drive; refusing to overwrite. "
                 "Choose an empty or new --out folder."
             )
-        for sub in ("frames", "truth"):
-            shutil.rmtree(out / sub, ignore_errors=True)
+        # A previous simulated drive: replace all of it (a stale gps.csv would win over a new
+        # gps.gpx in the loader's priority order).
+        for item in out.iterdir():
+            if item.is_dir():
+                shutil.rmtree(item)
+            else:
+                item.unlink()
     (out / "frames").mkdir(parents=True, exist_ok=True)
     (out / "truth").mkdir(parents=True, exist_ok=True)
 

@@ -13,7 +13,7 @@ import rasterio
 from pyproj import Transformer
 
 from roadsurf.drive import load_drive, read_gray
-from roadsurf.errors import ConfigError
+from roadsurf.errors import ConfigError, RoadsurfError
 from roadsurf.formats import read_csv, read_geojson, read_geotiff
 from simulation.scenarios import describe, simulate
 
@@ -278,3 +278,18 @@ def test_gps_log_formats_load_like_csv(tmp_path: Path, fmt: str) -> None:
     np.testing.assert_allclose(drive.gps.alt_m, ref.gps.alt_m, atol=2e-3)
     poses = read_csv(tmp_path / fmt / "truth" / "poses.csv")
     assert float(poses[0]["timestamp_s"]) == pytest.approx(drive.frames[0].timestamp_s)
+
+
+def test_rerun_into_same_folder_replaces_drive(tmp_path: Path) -> None:
+    out = tmp_path / "d"
+    simulate("flat", out, n_frames=3, **TINY)
+    simulate("flat", out, n_frames=2, gps_format="gpx", **TINY)
+    assert not (out / "gps.csv").exists() and (out / "gps.gpx").exists()
+    assert sorted(p.name for p in (out / "frames").iterdir()) == [
+        "frame_000000.jpg",
+        "frame_000001.jpg",
+    ]
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "notes.txt").write_text("mine")
+    with pytest.raises(RoadsurfError):
+        simulate("flat", tmp_path / "other", n_frames=2, **TINY)
