@@ -30,6 +30,7 @@ from viewer.recording import (
     log_mosaic,
     log_setup,
     log_trajectory,
+    overview_eye,
     summary_markdown,
 )
 from viewer.runfolder import RunData, load_run
@@ -100,7 +101,7 @@ class LiveObserver:
         elif stage == "detection":
             data = self._load()
             self.counts["defects"] = log_defects(rec, data, cfg)
-            rec.send_blueprint(blueprint(data.defects))
+            rec.send_blueprint(blueprint(data.defects, overview_eye(data)))
         elif stage == "report":
             data = self._load()
             rec.log(

@@ -585,7 +585,27 @@ def log_run(rec: rr.RecordingStream, data: RunData, cfg: ViewerConfig) -> dict[s
     return counts
 
 
-def blueprint(defects: list[DefectView] | None = None) -> rrb.Blueprint:
+def overview_eye(data: RunData) -> rrb.EyeControls3D | None:
+    """A 3D camera that looks at the whole cloud (or path) obliquely from the south."""
+    pts = data.cloud_enu_m
+    if pts is None or len(pts) == 0:
+        pts = data.trajectory.positions_enu_m if data.trajectory is not None else None
+    if pts is None or len(pts) == 0:
+        return None
+    lo, hi = np.percentile(pts, 1, axis=0), np.percentile(pts, 99, axis=0)
+    centre = (lo + hi) / 2
+    span = float(np.clip(np.max(hi[:2] - lo[:2]), 2.0, 40.0))
+    return rrb.EyeControls3D(
+        kind=rrb.Eye3DKind.Orbital,
+        position=centre + np.array([0.0, -0.55 * span, 0.75 * span]),
+        look_target=centre,
+        eye_up=[0.0, 0.0, 1.0],
+    )
+
+
+def blueprint(
+    defects: list[DefectView] | None = None, eye: rrb.EyeControls3D | None = None
+) -> rrb.Blueprint:
     """Default layout: 3D map left; map / mosaic tabs, current frame and plots right."""
     profile_tabs = [
         rrb.BarChartView(name=f"Profile #{d.id} (mm)", origin=f"profiles/{_safe(d.id)}")
@@ -598,6 +618,7 @@ def blueprint(defects: list[DefectView] | None = None) -> rrb.Blueprint:
                     name="3D map (ENU m, residual colours)",
                     origin="world",
                     contents=["+ world/**", "- world/cloud_rgb"],
+                    eye_controls=eye,
                 ),
                 rrb.Horizontal(
                     rrb.Spatial2DView(name="Residual legend", origin="legend"),
