@@ -782,12 +782,13 @@ class _PoseGraph:
         old_scale = self.gps_scale
         old_vis = self.vis_scale
         if self.cfg.adapt_sigmas and self.gps_used.sum() >= 8:
-            # A 2D error norm with per-axis σ has median ≈ 1.1774 σ (Rayleigh). Only a clear
-            # mismatch is corrected (e.g. σ from HDOP on an RTK receiver): residuals after the
-            # fit are biased low, so small corrections would over-weight GPS against vision.
+            # A 2D error norm with per-axis σ has median ≈ 1.1774 σ (Rayleigh). Only GPS that is
+            # clearly worse than its σ says (> 3×) is loosened. The reverse (an RTK receiver
+            # reporting HDOP) is left alone: residuals after the fit are biased low, and
+            # tightening GPS would over-weight it against vision (measured: worse drift).
             s = float(np.median(e[self.gps_used]) / 1.1774)
-            if not 1.0 / 3.0 <= s <= 3.0:
-                self.gps_scale = float(np.clip(s, 0.02, 20.0))
+            if s > 3.0:
+                self.gps_scale = float(np.clip(s, 1.0, 20.0))
         thr = self.cfg.gps_outlier_sigmas * self.gps_scale
         self.gps_used = e <= thr
         if self.gps_used.sum() < min(2, len(e)):
