@@ -21,17 +21,31 @@ def bench_reconstruction(
     images: bool = True,
     work: Path | None = None,
     frames: int | None = None,
+    study: bool = True,
 ) -> str:
-    """Parametric study (point level) + rendered drives (image level). Returns the report."""
+    """Parametric study (point level) + rendered drives (image level). Returns the report.
+
+    study=False re-runs only the rendered-drive part and keeps the study's summary.md part.
+    """
     from reconstruction.study import run_study
 
     out = Path(out)
-    st = run_study(out, quick=quick, trials=trials, workers=workers)
-    lines = ["Parametric study (point level):"]
-    lines += [
-        f"  [{'MET' if ok else 'NOT MET'}] {name}: {detail}" for name, ok, detail in st["targets"]
-    ]
-    md = "## Point-level study\n\n" + st["summary"]
+    lines: list[str] = []
+    if study:
+        st = run_study(out, quick=quick, trials=trials, workers=workers)
+        lines = ["Parametric study (point level):"]
+        lines += [
+            f"  [{'MET' if ok else 'NOT MET'}] {name}: {detail}"
+            for name, ok, detail in st["targets"]
+        ]
+        md = "## Point-level study\n\n" + st["summary"]
+    else:
+        prev = out / "summary.md"
+        md = (
+            prev.read_text(encoding="utf-8").split("\n## Rendered drives")[0]
+            if prev.is_file()
+            else ""
+        )
     if images:
         from reconstruction.bench_images import bench_images
 

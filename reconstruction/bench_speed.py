@@ -131,7 +131,9 @@ def _bench_pycolmap(
 
     opts = pycolmap.FeatureExtractionOptions()
     opts.num_threads = threads
-    opts.sift.max_num_features = cfg.features.max_features
+    sift_opts = opts.sift  # pybind returns a copy: modify, then assign back
+    sift_opts.max_num_features = cfg.features.max_features
+    opts.sift = sift_opts
     try:
         sift = pycolmap.Sift(opts, device=pycolmap.Device.cpu)
     except Exception as e:  # noqa: BLE001 - report, do not fail the benchmark

@@ -19,14 +19,16 @@ class FeatureConfig:
     """Feature detection and matching."""
 
     kind: FeatureKind = "sift"  # detector/descriptor: sift (default) | orb | akaze
-    max_features: int = 3000  # cap on keypoints per frame (count); bounds the matching time
+    max_features: int = 2500  # cap on keypoints per frame (count); bounds the matching time
     ratio: float = 0.8  # Lowe ratio test, best/second-best descriptor distance (unitless)
     matcher: Literal["flann", "bf"] = "flann"  # float descriptors: FLANN kd-trees (fast) or brute
     # force (exact); binary descriptors (ORB/AKAZE) always use brute-force Hamming
-    flann_checks: int = 64  # FLANN leaf checks per query (count): more = closer to exact
+    flann_checks: int = 32  # FLANN leaf checks per query (count): more = closer to exact
     mutual: bool = True  # keep only mutual nearest neighbours (a->b and b->a agree)
-    grid_cells: int = 8  # spread keypoints over a grid_cells x grid_cells grid (count); 0 = off
+    grid_cells: int = 0  # spread keypoints over a grid_cells x grid_cells grid (count); 0 = off
     downscale: float = 1.0  # detect on an image resized by this factor (unitless, <= 1)
+    max_detect_megapixels: float = 0.45  # ... and at most this many Mpx (0 = off): SIFT's cost
+    # grows with the area; 1024x768 -> 0.755x (+5% height RMSE, 2x faster), 640x480 untouched
 
 
 @dataclass(frozen=True)

@@ -55,6 +55,8 @@ def detect(image: np.ndarray, cfg: FeatureConfig) -> Features:
     check_available(cfg)
     gray = to_gray(image)
     scale = float(cfg.downscale)
+    if cfg.max_detect_megapixels > 0:
+        scale = min(scale, float(np.sqrt(cfg.max_detect_megapixels * 1e6 / gray.size)))
     if 0 < scale < 1:
         gray = cv2.resize(gray, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
     det = _detector(cfg, 2 * cfg.max_features if cfg.grid_cells > 0 else cfg.max_features)

@@ -30,7 +30,7 @@ log = logging.getLogger(__name__)
 
 def _feature_path(run_dir: Path, frame: Frame, cfg: ReconstructionConfig) -> Path:
     f = cfg.features
-    tag = f"{f.kind}{f.max_features}g{f.grid_cells}s{f.downscale:g}"
+    tag = f"{f.kind}{f.max_features}g{f.grid_cells}s{f.downscale:g}m{f.max_detect_megapixels:g}"
     return run_dir / "features" / f"{frame.index:06d}_{tag}.npz"
 
 

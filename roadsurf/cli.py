@@ -101,12 +101,21 @@ def bench_reconstruction(
     workers: Annotated[int, typer.Option(help="Worker processes.")] = 2,
     images: Annotated[bool, typer.Option(help="Also evaluate rendered drives.")] = True,
     frames: Annotated[int | None, typer.Option(help="Frames per rendered drive.")] = None,
+    study: Annotated[bool, typer.Option(help="Run the point-level study.")] = True,
 ) -> None:
     """Parametric study (Figs. 3.6-3.12, bound, targets) and rendered-drive accuracy."""
     from reconstruction.bench import bench_reconstruction as _bench
 
     typer.echo(
-        _bench(out, quick=quick, trials=trials, workers=workers, images=images, frames=frames)
+        _bench(
+            out,
+            quick=quick,
+            trials=trials,
+            workers=workers,
+            images=images,
+            frames=frames,
+            study=study,
+        )
     )
 
 
