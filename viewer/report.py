@@ -21,6 +21,7 @@ from viewer.colors import residual_half_range_m
 from viewer.config import ViewerConfig
 from viewer.runfolder import (
     RunData,
+    depth_profile,
     gps_enu_m,
     load_run,
     rowcol_from_enu,
@@ -220,6 +221,8 @@ def _figure(b64: str, caption: str) -> str:
 
 def _figures(data: RunData, cfg: ViewerConfig) -> str:
     figs = [_depth_histogram(data), _path_plot(data)]
+    if data.defects:
+        figs.append(_profiles_plot(data, cfg))
     for raster, kind in ((data.mosaic, "mosaic"), (data.surface, "surface")):
         figs.append(
             _raster_plot(data, raster, kind, cfg)
@@ -265,6 +268,33 @@ def _depth_histogram(data: RunData) -> str:
     ax.set_title("Surface residuals of the cloud", fontsize=10)
     fig.tight_layout()
     return _figure(_png(fig), "Depth histogram of the defects (left) and of all map points.")
+
+
+def _profiles_plot(data: RunData, cfg: ViewerConfig, n_max: int = 6) -> str:
+    import matplotlib.pyplot as plt
+
+    shown = [(d, depth_profile(data, d, cfg.profile_samples)) for d in data.defects[:n_max]]
+    shown = [(d, p) for d, p in shown if p is not None]
+    if not shown:
+        return (
+            "<p class='muted'>No depth profiles: the cloud has no residuals near the defects.</p>"
+        )
+    cols = min(3, len(shown))
+    rows = math.ceil(len(shown) / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 2.3 * rows), squeeze=False)
+    for ax in axes.ravel()[len(shown) :]:
+        ax.axis("off")
+    for ax, (d, (dist, res)) in zip(axes.ravel(), shown, strict=False):
+        ax.plot(100 * dist, 1000 * res, "-", color=np.array(severity_rgb(d.severity)) / 255)
+        ax.axhline(0, color="k", lw=0.5)
+        ax.set_title(f"#{d.id} {d.type}, {d.severity}", fontsize=9)
+        ax.set_xlabel("along the long axis (cm)", fontsize=8)
+        ax.set_ylabel("height (mm)", fontsize=8)
+        ax.tick_params(labelsize=7)
+    fig.tight_layout()
+    return _figure(
+        _png(fig), "Depth profiles of the most severe defects (mean residual in a strip)."
+    )
 
 
 def _path_plot(data: RunData) -> str:

@@ -12,6 +12,7 @@ the drive folder named in report.json (camera.yaml, frames, GPS) when it still e
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 from dataclasses import dataclass, field
@@ -119,6 +120,14 @@ class RunData:
     masks: dict[str, Path]  # frame filename (stem) -> refined 2D defect mask image
     drive: Any | None  # roadsurf.drive.Drive
     missing: list[str] = field(default_factory=list)
+
+    @functools.cached_property
+    def cloud_tree_xy(self) -> Any:
+        """KD-tree (scipy cKDTree) of the cloud's east/north coordinates."""
+        from scipy.spatial import cKDTree
+
+        xy = self.cloud_enu_m[:, :2] if self.cloud_enu_m is not None else np.zeros((0, 2))
+        return cKDTree(xy)
 
     @property
     def export_frame(self) -> ExportFrame | None:
@@ -425,9 +434,8 @@ def road_height_near(data: RunData, east_north: np.ndarray, radius_m: float = 0.
     nearest pose, then 0."""
     c = data.cloud_enu_m
     if c is not None and len(c):
-        d2 = np.sum((c[:, :2] - east_north[None, :2]) ** 2, axis=1)
-        near = d2 < radius_m**2
-        if np.count_nonzero(near) >= 3:
+        near = data.cloud_tree_xy.query_ball_point(np.asarray(east_north, float)[:2], radius_m)
+        if len(near) >= 3:
             z = c[near, 2]
             if data.cloud_residual_m is not None:
                 z = z - data.cloud_residual_m[near]  # the road surface, not the defect floor
@@ -456,14 +464,17 @@ def depth_profile(
     along_ring = (ring - c0) @ axis
     half_len = (along_ring.max() - along_ring.min()) / 2 * (1 + margin)
     half_w = max(0.02, 0.15 * half_len)
-    rel = data.cloud_enu_m[:, :2] - c0
+    if half_len <= 0:
+        return None
+    cand = np.asarray(data.cloud_tree_xy.query_ball_point(c0, math.hypot(half_len, half_w)), int)
+    rel = data.cloud_enu_m[cand, :2] - c0
     s, t = rel @ axis, rel @ side
     sel = (np.abs(s) <= half_len) & (np.abs(t) <= half_w)
-    if np.count_nonzero(sel) < 3 or half_len <= 0:
+    if np.count_nonzero(sel) < 3:
         return None
     edges = np.linspace(-half_len, half_len, n_samples + 1)
     idx = np.clip(np.digitize(s[sel], edges) - 1, 0, n_samples - 1)
-    r = data.cloud_residual_m[sel]
+    r = data.cloud_residual_m[cand[sel]]
     sums = np.bincount(idx, weights=r, minlength=n_samples)
     cnt = np.bincount(idx, minlength=n_samples)
     prof = np.full(n_samples, np.nan)
