@@ -73,6 +73,13 @@ class MapSegmentConfig:
     )
     rim_threshold_m: float = 0.002  # outline floor: a defect extends while deeper than this (m)
     rim_noise_k: float = 1.5  # outline threshold = max(rim floor, rim_noise_k * σ_map) (unitless)
+    rim_max_grow_frac: float = (
+        0.5  # outline reaches at most this x the seeds' equivalent radius (-)
+    )
+    rim_max_grow_min_m: float = 0.02  # ... or at least this far from the seeds (m)
+    level_window_m: float = (
+        0.6  # re-level depths to the median road within this window (m); 0 = off
+    )
     smooth_m: float = 0.005  # Gaussian σ applied to the raster before thresholds (m); 0 = off
     fill_px: float = 1.0  # unobserved cells are filled from neighbours within about this σ (px)
     max_raster_cells: int = 60_000_000  # refuse to rasterise points into a larger grid (cells)

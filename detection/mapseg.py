@@ -14,6 +14,7 @@ rather than the T_d contour (a bowl cut at T_d would lose a third of its area).
 from __future__ import annotations
 
 import logging
+import warnings
 from dataclasses import dataclass, field
 
 import cv2
@@ -107,6 +108,44 @@ def smooth_nan(a: np.ndarray, sigma_px: float, min_support: float = 0.05) -> np.
     return out
 
 
+def road_level(
+    res: np.ndarray, exclude: np.ndarray, gsd_m: float, window_m: float, block_m: float = 0.05
+) -> np.ndarray:
+    """Slowly varying road level (H, W) of a residual raster: median of 5 cm blocks (excluded
+    cells left out), then a median over ``window_m``; NaN blocks take the nearest value."""
+    b = max(1, int(round(block_m / gsd_m)))
+    h, w = res.shape
+    hb, wb = -(-h // b), -(-w // b)
+    a = np.full((hb * b, wb * b), np.nan, np.float32)
+    a[:h, :w] = np.where(exclude, np.nan, res)
+    blocks = a.reshape(hb, b, wb, b).transpose(0, 2, 1, 3).reshape(hb, wb, b * b)
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        med = np.nanmedian(blocks, axis=2)
+        k = max(3, int(round(window_m / block_m)) | 1)
+        lvl = ndimage.generic_filter(med, np.nanmedian, size=k, mode="nearest", cval=np.nan)
+    bad = ~np.isfinite(lvl)
+    if bad.all():
+        return np.zeros_like(res)
+    if bad.any():
+        idx = ndimage.distance_transform_edt(bad, return_distances=False, return_indices=True)
+        lvl = lvl[tuple(idx)]
+    up = np.repeat(np.repeat(lvl, b, axis=0), b, axis=1)[:h, :w]
+    return cv2.blur(up.astype(np.float32), (b | 1, b | 1))
+
+
+def _near_seeds(seed: np.ndarray, gsd_m: float, frac: float, min_m: float) -> np.ndarray:
+    """Cells within max(min_m, frac · r_eq) of a seed component (r_eq: its equivalent radius)."""
+    if not seed.any():
+        return np.zeros_like(seed)
+    lab, n = ndimage.label(seed, structure=np.ones((3, 3), bool))
+    area = np.bincount(lab.ravel(), minlength=n + 1).astype(float)
+    reach_px = np.maximum(min_m / gsd_m, frac * np.sqrt(area / np.pi))
+    dist, idx = ndimage.distance_transform_edt(~seed, return_indices=True)
+    nearest = lab[idx[0], idx[1]]
+    return dist <= reach_px[nearest]
+
+
 def choose_gsd(xy_m: np.ndarray, gsd_min_m: float, gsd_max_m: float = 0.1) -> float:
     """Finest cell size at which occupied cells hold >= 2 points on average (about 80 % of the
     covered cells then hold a point), for rasterising a sparse cloud."""
@@ -170,16 +209,25 @@ def segment(
     noise = robust_sigma(res)
     if not np.isfinite(noise):
         return Segmentation(float("nan"), float("nan"), float("nan"), [], res, grid)
-    seed_t = max(cfg.depth_threshold_m, cfg.noise_k * noise)
-    rim_t = max(cfg.rim_threshold_m, cfg.rim_noise_k * noise)
     # Fill small holes from observed neighbours, then smooth lightly (σ in metres).
     res = np.where(np.isfinite(res), res, smooth_nan(res, cfg.fill_px))
+    if cfg.level_window_m > 0:
+        # Re-level: the residual of a real map drifts by millimetres around zero (seams, local
+        # fits); measure depth from the surrounding road instead. Deep cells are left out.
+        sm0 = smooth_nan(res, cfg.smooth_m / grid.gsd_m, min_support=0.5)
+        deep0 = sm0 <= -max(cfg.depth_threshold_m, cfg.noise_k * noise)
+        res = res - road_level(res, deep0, grid.gsd_m, cfg.level_window_m)
+        noise = robust_sigma(res)
+    seed_t = max(cfg.depth_threshold_m, cfg.noise_k * noise)
+    rim_t = max(cfg.rim_threshold_m, cfg.rim_noise_k * noise)
     sm = smooth_nan(res, cfg.smooth_m / grid.gsd_m, min_support=0.5)
     depth_s = -np.nan_to_num(sm, nan=0.0)
     seed = depth_s >= seed_t
-    # Outline mask: deeper than the rim threshold, with small unobserved holes closed.
+    # Outline mask: deeper than the rim threshold, with small unobserved holes closed, and not
+    # further from the seeds than a share of their size (no leaking along shallow undulations).
     rim = depth_s >= rim_t
     rim = ndimage.binary_closing(rim, structure=np.ones((3, 3), bool)) | rim
+    rim &= _near_seeds(seed, grid.gsd_m, cfg.rim_max_grow_frac, cfg.rim_max_grow_min_m)
     rim_lab, _ = ndimage.label(rim, structure=np.ones((3, 3), bool))
     seed_rc = np.argwhere(seed)
     if len(seed_rc) == 0:
