@@ -73,7 +73,12 @@ def bench_reconstruction(
 
 
 def bench_speed_report(
-    out: Path, *, frames: int = 60, repeats: int = 5, max_features: int = 3000, kind: str = "sift"
+    out: Path,
+    *,
+    frames: int = 60,
+    repeats: int = 5,
+    max_features: int | None = None,
+    kind: str = "sift",
 ) -> str:
     """Speed benchmark; returns the markdown report (also OUT/speed.md)."""
     from dataclasses import replace
@@ -82,7 +87,8 @@ def bench_speed_report(
     from reconstruction.config import ReconstructionConfig
 
     base = ReconstructionConfig()
-    cfg = replace(base, features=replace(base.features, kind=kind, max_features=max_features))  # type: ignore[arg-type]
+    mf = max_features or base.features.max_features
+    cfg = replace(base, features=replace(base.features, kind=kind, max_features=mf))  # type: ignore[arg-type]
     res = bench_speed(Path(out), n_frames=frames, repeats=repeats, cfg=cfg)
     d = res["drive"]
     verdict = "MET" if d["pairs_per_s"] >= 5 else "NOT MET"

@@ -126,7 +126,9 @@ def bench_speed(
     ),
     frames: Annotated[int, typer.Option(help="Frames of the timed drive.")] = 60,
     repeats: Annotated[int, typer.Option(help="Repeats of the single-pair timing.")] = 5,
-    max_features: Annotated[int, typer.Option(help="Keypoints per frame.")] = 3000,
+    max_features: Annotated[
+        int | None, typer.Option(help="Keypoints per frame (default: the config's).")
+    ] = None,
     features: Annotated[str, typer.Option(help="sift | orb | akaze")] = "sift",
 ) -> None:
     """Reconstruction speed: one 1024x768 pair (breakdown) and pairs/s over a drive."""
