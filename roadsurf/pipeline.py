@@ -206,7 +206,9 @@ def _pairs_to_reconstruct(
     from detection.classifier.fusion import pairs_to_reconstruct
 
     threshold = float(getattr(clf_cfg, "fusion_threshold", 0.95))
-    return pairs_to_reconstruct(frame_probs, [f.filename for f in drive.frames], threshold)
+    context = int(getattr(clf_cfg, "context_frames", 1))
+    names = [f.filename for f in drive.frames]
+    return pairs_to_reconstruct(frame_probs, names, threshold, context_frames=context)
 
 
 def _build_report(

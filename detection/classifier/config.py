@@ -55,6 +55,9 @@ class ClassifierConfig:
     # when True a confident CNN "defect" must be confirmed by the 3D result (which runs anyway to
     # measure the defect); False is the dissertation's rule (the confident CNN decision stands)
     confirm_defect_with_3d: bool = False
+    # neighbours (frames) of an unsure/defect frame that are reconstructed too and decided by 3D
+    # (temporal-context extension; 0 = the dissertation's per-frame rule)
+    context_frames: int = 1
     screen_batch_size: int = 64  # images per inference batch (1)
 
     def depth_threshold_m(self, camera_height_m: float) -> float:

@@ -4,6 +4,13 @@ The CNN gives p = (p_non_defect, p_defect) per frame. When max(p) >= threshold t
 stands; otherwise the 3D physics result decides, which means reconstructing that pair. Frames the
 CNN calls "defect" are reconstructed as well, because a defect must be measured: their source is
 ``fused`` (CNN decision, 3D measurement). Pure Python, no torch import.
+
+Beyond the dissertation, ``context_frames`` (default 1) uses the drive's temporal context:
+consecutive frames overlap, so a defect the CNN sees in frame i usually enters the view in
+frame i-1 or leaves it in i+1, where only a sliver shows and the CNN tends to call the frame
+clear with confidence. A frame within ``context_frames`` of a frame that needs 3D (unsure or
+defect) is therefore reconstructed too and its 3D result decides (source ``3d``).
+``context_frames=0`` is the dissertation's per-frame rule.
 """
 
 from __future__ import annotations
@@ -14,6 +21,8 @@ from dataclasses import dataclass
 from typing import Literal
 
 Source = Literal["cnn", "3d", "fused"]
+
+CONTEXT_FRAMES = 1  # default neighbourhood (frames) of the temporal-context extension
 
 log = logging.getLogger(__name__)
 
@@ -67,36 +76,62 @@ def fuse(
     return FusedDecision(bool(defect_3d), p, "3d")
 
 
+def frames_needing_3d(
+    frame_probs: Mapping[str, float],
+    filenames: Sequence[str],
+    threshold: float = 0.95,
+    context_frames: int = CONTEXT_FRAMES,
+) -> list[bool]:
+    """Per frame (capture order): must the physics pipeline see it? Unsure or defect frames,
+    frames without a CNN probability, and their neighbours within ``context_frames``."""
+    flags = [needs_3d(frame_probs.get(fn), threshold) for fn in filenames]
+    k = max(0, int(context_frames))
+    n = len(flags)
+    return [any(flags[max(0, i - k) : min(n, i + k + 1)]) for i in range(n)]
+
+
 def fuse_frames(
     frame_probs: Mapping[str, float] | None,
     labels_3d: Mapping[str, bool],
     filenames: Sequence[str],
     threshold: float = 0.95,
     confirm_defect_with_3d: bool = False,
+    context_frames: int = CONTEXT_FRAMES,
 ) -> dict[str, FusedDecision]:
-    """Fuse every frame in ``filenames``; frames missing from a mapping count as not available."""
+    """Fuse every frame in ``filenames`` (capture order); frames missing from a mapping count
+    as not available. A confident CNN "non-defect" next to a frame that needed 3D is decided
+    by 3D when its 3D result exists (temporal context, see the module docstring)."""
     probs = frame_probs or {}
-    return {
-        fn: fuse(probs.get(fn), labels_3d.get(fn), threshold, confirm_defect_with_3d)
-        for fn in filenames
-    }
+    if not probs:
+        return {fn: fuse(None, labels_3d.get(fn), threshold) for fn in filenames}
+    ctx = frames_needing_3d(probs, filenames, threshold, context_frames)
+    out: dict[str, FusedDecision] = {}
+    for fn, need in zip(filenames, ctx, strict=True):
+        p, d3 = probs.get(fn), labels_3d.get(fn)
+        d = fuse(p, d3, threshold, confirm_defect_with_3d)
+        if need and d.source == "cnn" and d3 is not None and p is not None:
+            d = FusedDecision(bool(d3), float(p), "3d")
+        out[fn] = d
+    return out
 
 
 def pairs_to_reconstruct(
     frame_probs: Mapping[str, float],
     filenames: Sequence[str],
     threshold: float = 0.95,
+    context_frames: int = CONTEXT_FRAMES,
 ) -> set[tuple[int, int]]:
     """Consecutive pairs (i, i+1) the physics pipeline must reconstruct.
 
     ``filenames`` are the drive's valid frames in capture order (position = ``Frame.index``).
     Frame i is measured from pair (i, i+1) (points live in camera i); the last frame uses
-    (i-1, i). A frame without a CNN probability is always reconstructed.
+    (i-1, i). A frame without a CNN probability is always reconstructed, and so are the
+    neighbours (``context_frames``) of frames that need 3D.
     """
     n = len(filenames)
     out: set[tuple[int, int]] = set()
-    for i, fn in enumerate(filenames):
-        if not needs_3d(frame_probs.get(fn), threshold):
+    for i, need in enumerate(frames_needing_3d(frame_probs, filenames, threshold, context_frames)):
+        if not need:
             continue
         if i + 1 < n:
             out.add((i, i + 1))

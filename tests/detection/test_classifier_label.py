@@ -39,14 +39,27 @@ def test_fusion_switches_at_the_threshold(thr: float) -> None:
 
 
 def test_fuse_frames_and_pairs_to_reconstruct() -> None:
-    names = ["a", "b", "c", "d"]
-    probs = {"a": 0.001, "b": 0.6, "c": 0.001, "d": 0.999}
-    assert pairs_to_reconstruct(probs, names, 0.95) == {(1, 2), (2, 3)}
-    fused = fuse_frames(probs, {"b": True, "d": True}, names, 0.95)
-    assert [fused[n].source for n in names] == ["cnn", "3d", "cnn", "fused"]
-    assert [fused[n].defect for n in names] == [False, True, False, True]
+    names = ["a", "b", "c", "d", "e", "f"]
+    probs = {"a": 0.001, "b": 0.6, "c": 0.001, "d": 0.002, "e": 0.001, "f": 0.999}
+    # the dissertation's per-frame rule: only unsure (b) and defect (f) frames
+    assert pairs_to_reconstruct(probs, names, 0.95, context_frames=0) == {(1, 2), (4, 5)}
+    d3 = {"b": True, "c": True, "e": True, "f": True}
+    fused = fuse_frames(probs, d3, names, 0.95, context_frames=0)
+    assert [fused[n].source for n in names] == ["cnn", "3d", "cnn", "cnn", "cnn", "fused"]
+    assert [fused[n].defect for n in names] == [False, True, False, False, False, True]
+    # temporal context: neighbours of b and f are reconstructed and 3D decides them
+    assert pairs_to_reconstruct(probs, names, 0.95, context_frames=1) == {
+        (0, 1),
+        (1, 2),
+        (2, 3),
+        (4, 5),
+    }
+    fused = fuse_frames(probs, d3, names, 0.95, context_frames=1)
+    assert [fused[n].source for n in names] == ["cnn", "3d", "3d", "cnn", "3d", "fused"]
+    assert [fused[n].defect for n in names] == [False, True, True, False, True, True]
     # a frame the CNN could not read is reconstructed
     assert (0, 1) in pairs_to_reconstruct({}, names, 0.95)
+    assert all(d.source == "3d" for d in fuse_frames(None, d3, names).values())
 
 
 def _blob(size: int = 64, cx: int = 20, cy: int = 40) -> np.ndarray:
