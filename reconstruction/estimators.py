@@ -341,6 +341,13 @@ def _estimate(
             f"{int(keep.sum())} matches left after motion-prior rejection (λ={cfg.lambda_prior})",
         )
     pa, pb, idx = px_a[keep], px_b[keep], idx[keep]
+    disp = float(np.median(np.linalg.norm(pb - pa, axis=1)))
+    if method != "stereo" and disp < cfg.min_displacement_px:
+        raise PairFailure(
+            "geometry_failed",
+            f"median displacement {disp:.2f} px < {cfg.min_displacement_px} px: the camera did "
+            "not move between the frames (vehicle stopped?), depth is unobservable",
+        )
 
     if method == "stereo":
         # Rectified rig: pose is the calibration (R = I, t = (B, 0, 0)); any vibration of camera 2

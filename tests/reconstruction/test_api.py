@@ -91,3 +91,9 @@ def test_distorted_camera_is_undistorted(cam) -> None:
     assert not naive.ok or np.median(np.abs(naive.plane_dist_m)) > np.median(
         np.abs(res.plane_dist_m)
     )
+
+
+def test_no_motion_gives_status(cam) -> None:
+    a, _ = render_pair(cam, seed=8)
+    res = reconstruct_pair(a, a.copy(), cam, CFG)  # vehicle stopped: same view twice
+    assert res.status == "geometry_failed" and "did not move" in res.reason
