@@ -26,13 +26,30 @@ from roadsurf.formats import (
     write_geotiff,
     write_ply,
 )
-from roadsurf.geometry import EnuReference, ExportFrame, world_from_cam
+from roadsurf.geometry import (
+    EnuReference,
+    ExportFrame,
+    enu_from_lla,
+    lla_from_utm,
+    world_from_cam,
+)
 from roadsurf.io import write_json_atomic
 
 REF = EnuReference(45.0, 7.0, 200.0)
 W, H = 160, 120
 CAM_H = 0.5
 STEP_M = 0.1
+
+
+POTHOLE_C, POTHOLE_R = np.array([0.05, 0.35]), 0.08  # ENU centre (m), radius (m); 30 mm deep
+
+
+def surface_model(xy: np.ndarray) -> np.ndarray:
+    """Residual height (m) at ENU east/north: a 30 mm paraboloid pothole and a 12 mm crack."""
+    d = np.linalg.norm(xy - POTHOLE_C, axis=1)
+    resid = np.where(d < POTHOLE_R, -0.03 * (1 - (d / POTHOLE_R) ** 2), 0.0)
+    crack = (np.abs(xy[:, 0] + 0.15) < 0.01) & (np.abs(xy[:, 1] - 0.5) < 0.1)
+    return np.where(crack, -0.012, resid)
 
 
 @dataclass
@@ -110,11 +127,7 @@ def make_synthetic_run(
     ys = np.arange(-0.1, STEP_M * n_frames + 0.1, 0.01)
     gx, gy = np.meshgrid(xs, ys)
     xy = np.column_stack([gx.ravel(), gy.ravel()])
-    pothole_c, pothole_r = np.array([0.05, 0.35]), 0.08
-    d = np.linalg.norm(xy - pothole_c, axis=1)
-    resid = np.where(d < pothole_r, -0.03 * (1 - (d / pothole_r) ** 2), 0.0)
-    crack = (np.abs(xy[:, 0] + 0.15) < 0.01) & (np.abs(xy[:, 1] - 0.5) < 0.1)
-    resid = np.where(crack, -0.012, resid) + rng.normal(0, 0.0005, len(xy))
+    resid = surface_model(xy) + rng.normal(0, 0.0005, len(xy))
     xyz = np.column_stack([xy, resid])
     rgb = np.full((len(xy), 3), 120, np.uint8)
     out_xyz = ef.utm_from_enu(xyz) if ef is not None else xyz
@@ -125,11 +138,11 @@ def make_synthetic_run(
     sev_order: list[str] = []
     if defects:
         ang = np.linspace(0, 2 * math.pi, 24, endpoint=False)
-        ring_p = pothole_c + pothole_r * np.column_stack([np.cos(ang), np.sin(ang)])
+        ring_p = POTHOLE_C + POTHOLE_R * np.column_stack([np.cos(ang), np.sin(ang)])
         ring_c = np.array([[-0.16, 0.4], [-0.14, 0.4], [-0.14, 0.6], [-0.16, 0.6]])
         for did, typ, sev, ring, depth, area in (
             (2, "crack", "low", ring_c, 0.012, 0.004),
-            (1, "pothole", "medium", ring_p, 0.03, math.pi * pothole_r**2),
+            (1, "pothole", "medium", ring_p, 0.03, math.pi * POTHOLE_R**2),
         ):
             if ef is not None:
                 geom = polygon_geometry(ef.lonlat_from_enu(ring))
@@ -218,7 +231,14 @@ def make_synthetic_run(
         rng.integers(60, 200, (grid.height, grid.width, 3), dtype=np.uint8),
         grid,
     )
-    surf = rng.normal(0, 0.001, (grid.height, grid.width)).astype(np.float32)
+    # the same surface model at the pixel centres (exact UTM -> ENU), plus noise
+    rows, cols = np.mgrid[0 : grid.height, 0 : grid.width]
+    pix = grid.xy_from_rowcol(rows.ravel(), cols.ravel())
+    if ef is not None:
+        latlon = lla_from_utm(pix[:, 0], pix[:, 1], ef.epsg)
+        pix = enu_from_lla(latlon[:, 0], latlon[:, 1], 0.0, REF)[:, :2]
+    surf = (surface_model(pix) + rng.normal(0, 0.0005, len(pix))).astype(np.float32)
+    surf = surf.reshape(grid.height, grid.width)
     surf[:5] = -9999.0
     write_geotiff(run / "surface.tif", surf, grid, nodata=-9999.0)
 

@@ -6,6 +6,7 @@ import math
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from roadsurf.geometry import ExportFrame
 from tests.viewer.synthetic_run import REF, SyntheticRun, make_synthetic_run
@@ -110,8 +111,11 @@ def test_cloud_from_utm_is_exact_enu() -> None:
     assert np.abs(back - enu).max() < 1e-6
 
 
-def test_depth_profile_finds_the_pothole_floor(synthetic_run: SyntheticRun) -> None:
+@pytest.mark.parametrize("source", ["surface", "cloud"])
+def test_depth_profile_finds_the_pothole_floor(synthetic_run: SyntheticRun, source: str) -> None:
     data = load_run(synthetic_run.run, with_pairs=False)
+    if source == "cloud":
+        data.surface = None  # profile from the cloud points instead of surface.tif
     pothole = next(d for d in data.defects if d.type == "pothole")
     dist, res = depth_profile(data, pothole, n_samples=32)
     assert dist.shape == res.shape == (32,)
