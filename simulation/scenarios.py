@@ -244,7 +244,6 @@ def simulate(
                 "gps": gps_params(cfg),
                 "n_defects": len(world.potholes) + len(world.troughs),
                 "n_distractors": len(world.distractors),
-                "render_s_per_frame": None,  # timings vary; kept out for byte-identical output
             },
         },
     )
