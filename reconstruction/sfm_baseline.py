@@ -64,7 +64,7 @@ log = logging.getLogger(__name__)
 class SfmBaselineConfig:
     """pycolmap incremental-SfM baseline. Units in the comments; α = h / d_c (eq. 3.34)."""
 
-    max_num_features: int = 3000  # SIFT keypoints per image (count); = roadsurf FeatureConfig
+    max_num_features: int = 3000  # SIFT keypoints per image (count)
     max_image_size: int = 1600  # longer image side for SIFT extraction (px); larger are resized
     overlap: int = 5  # sequential matching: each frame is matched to this many successors (count)
     min_num_inliers: int = 15  # two-view verification: fewer inliers -> pair rejected (count)
