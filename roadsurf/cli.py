@@ -50,6 +50,10 @@ def simulate(
             "(see docs/simulator.md; values are parsed as YAML).",
         ),
     ] = None,
+    config: Annotated[
+        Path | None,
+        typer.Option(help="YAML file of simulator parameters (docs/simulator.md); --set wins."),
+    ] = None,
     list_scenarios: Annotated[
         bool, typer.Option("--list", help="List scenarios and exit.")
     ] = False,
@@ -71,7 +75,7 @@ def simulate(
         if not sep:
             raise typer.BadParameter(f"--set expects key=value, got {item!r}")
         overrides[key.strip()] = yaml.safe_load(value)
-    res = scenarios.simulate(scenario, out, seed=seed, n_frames=frames, **overrides)
+    res = scenarios.simulate(scenario, out, seed=seed, n_frames=frames, config=config, **overrides)
     typer.echo(f"Wrote drive '{scenario}' to {res}")
 
 

@@ -16,9 +16,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 from tqdm import tqdm
 
-from roadsurf.config import from_dict
+from roadsurf.config import from_dict, load_yaml_config
 from roadsurf.errors import ConfigError, RoadsurfError
 from roadsurf.formats import write_csv
 from roadsurf.io import write_bytes_atomic, write_json_atomic, write_text_atomic
@@ -151,12 +152,18 @@ def describe() -> dict[str, str]:
     }
 
 
-def make_config(name: str, **overrides: Any) -> SimConfig:
+def make_config(name: str, config: str | Path | None = None, **overrides: Any) -> SimConfig:
+    """SimConfig of scenario ``name``: its overrides, then the YAML file ``config`` (a mapping
+    of SimConfig fields), then keyword ``overrides``. Unknown keys raise ConfigError."""
     if name not in SCENARIOS:
         raise ConfigError(
             f"unknown scenario {name!r}; choose one of {sorted(SCENARIOS)} (roadsurf simulate --list)"
         )
     data = dict(SCENARIOS[name].overrides)
+    if config is not None:
+        from_file = load_yaml_config(SimConfig, config)  # validates, naming the file
+        raw = yaml.safe_load(Path(config).read_text(encoding="utf-8")) or {}
+        data.update({k: getattr(from_file, k) for k in raw})
     data.update(overrides)
     return from_dict(SimConfig, data, f"scenario {name!r}")
 
@@ -187,10 +194,14 @@ def simulate(
     seed: int | None = None,
     n_frames: int | None = None,
     progress: bool = True,
+    config: str | Path | None = None,
     **overrides: Any,
 ) -> Path:
-    """Render scenario ``name`` into folder ``out`` (drive format + truth/). Returns ``out``."""
-    cfg = make_config(name, **overrides)
+    """Render scenario ``name`` into folder ``out`` (drive format + truth/). Returns ``out``.
+
+    ``config``: optional YAML file of SimConfig fields; ``overrides``: SimConfig fields by name
+    (they win over the file, which wins over the scenario)."""
+    cfg = make_config(name, config, **overrides)
     sc = SCENARIOS[name]
     seed = sc.seed if seed is None else int(seed)
     n = sc.n_frames if n_frames is None else int(n_frames)

@@ -260,6 +260,22 @@ def test_cli_simulate_with_overrides(tmp_path: Path) -> None:
     sc = json.loads((out / "truth" / "scenario.json").read_text())
     assert sc["params"]["texture"] == "brick" and sc["params"]["greyscale"] is True
     assert CliRunner().invoke(app, ["simulate", "--list"]).exit_code == 0
+    # A YAML parameter file, with --set winning over it.
+    cfg = tmp_path / "sim.yaml"
+    cfg.write_text("texture: grass\nwidth: 240\nheight: 180\nfx: 225.0\nn_oil_stains: 0\n")
+    out2 = tmp_path / "cli2"
+    res = CliRunner().invoke(
+        app,
+        ["simulate", "--scenario", "flat", "--frames", "2", "--config", str(cfg), "--out",
+         str(out2), "--set", "texture=asphalt"],
+    )  # fmt: skip
+    assert res.exit_code == 0, res.output
+    params = json.loads((out2 / "truth" / "scenario.json").read_text())["params"]
+    assert params["texture"] == "asphalt" and params["width"] == 240
+    assert params["n_oil_stains"] == 0
+    cfg.write_text("textur: grass\n")
+    with pytest.raises(ConfigError, match="sim.yaml"):
+        simulate("flat", tmp_path / "cli3", n_frames=2, config=cfg)
 
 
 @pytest.mark.parametrize("fmt", ["gpx", "nmea"])
