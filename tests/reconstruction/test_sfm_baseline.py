@@ -264,3 +264,36 @@ def test_changed_image_invalidates_resume(sim_drive: Path, sfm_out: Path, tmp_pa
     cv2.imwrite(str(first), cv2.flip(img, 1))
     rep = run(SfmBaselineConfig(num_threads=2), d2, out2).report
     assert "features_s" in rep["timings_s"] and "mapping_s" in rep["timings_s"]
+
+
+def _blank_drive(root: Path, n: int = 4) -> Path:
+    (root / "frames").mkdir(parents=True)
+    (root / "camera.yaml").write_text(
+        "model: pinhole\nwidth: 64\nheight: 48\nfx: 60\nfy: 60\ncx: 31.5\ncy: 23.5\n"
+        "height_m: 1.1\nfps: 10\n"
+    )
+    rows = ["filename,timestamp_s"]
+    for i in range(n):
+        cv2.imwrite(str(root / "frames" / f"{i:03d}.png"), np.full((48, 64), 128, np.uint8))
+        rows.append(f"{i:03d}.png,{0.1 * i}")
+    (root / "frames.csv").write_text("\n".join(rows) + "\n")
+    return root
+
+
+def test_textureless_drive_fails_with_reasons(tmp_path: Path) -> None:
+    from roadsurf.errors import RoadsurfError
+
+    drive = _blank_drive(tmp_path / "d")
+    with pytest.raises(RoadsurfError, match=r"no usable model.*SIFT features"):
+        run(SfmBaselineConfig(num_threads=1), drive, tmp_path / "out")
+    assert (tmp_path / "out" / "colmap" / "database.db").is_file()
+
+
+def test_config_file_rejects_unknown_keys(tmp_path: Path) -> None:
+    from reconstruction.sfm_baseline import run_from_paths
+    from roadsurf.errors import ConfigError
+
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("sfm_baseline:\n  overlap: 3\n  ovrlap: 4\n")
+    with pytest.raises(ConfigError, match="ovrlap"):
+        run_from_paths(tmp_path / "d", tmp_path / "o", config_path=cfg)
