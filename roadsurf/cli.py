@@ -242,6 +242,19 @@ def sfm_baseline(
         typer.echo(f"  ... and {len(res.not_registered) - 20} more (see report.json)")
 
 
+@bench_app.command("loader")
+def bench_loader(
+    drive: Annotated[Path, typer.Argument(help="Drive whose frames are repeated.")] = Path(
+        "data_samples/drive"
+    ),
+    repeat: Annotated[int, typer.Option(help="Repeat the frames this many times.")] = 12,
+) -> None:
+    """Time load_drive (with and without the image check) on a long drive made by repetition."""
+    from roadsurf._drive_bench import bench_loader as _bench
+
+    typer.echo(_bench(drive, repeat=repeat))
+
+
 # --- CNN classifier (detection/classifier) -------------------------------------------------
 @app.command()
 def label(
