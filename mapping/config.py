@@ -40,7 +40,6 @@ class MappingConfig:
     local_fit_window_m: float = 1.5  # side of the window for the local road-surface fit (m)
     local_fit_cell_m: float = 0.25  # cell size of the local fit's anchor grid (m)
     local_fit_inlier_m: float = 0.008  # points further than this from the fit are not road (m)
-    local_fit_order: int = 1  # 1: plane, 2: quadric, per window
     align_patches: bool = True  # remove per-pair height offset/tilt against the fused surface
     # ---------------------------------------------------------------- rasters / exports
     gsd_m: float = 0.005  # ground sampling distance of surface.tif / mosaic.tif (m)
@@ -58,5 +57,8 @@ class MappingConfig:
         0.03  # σ of the stronger smoothing used where relief is noise (m)
     )
     surface_detail_sigmas: float = 2.0  # fine/coarse difference (× point noise MAD) kept as relief
+    surface_interp_step_px: int = (
+        2  # interpolate/smooth the surface on a grid this much coarser (px)
+    )
     surface_edge_factor: float = 4.0  # ... nor wider than this × the median point spacing (−)
     colour_from_images: bool = True  # sample point colours from image a at px_a

@@ -543,16 +543,18 @@ def _surface_tile(
     the point noise, the coarse one is used (flat road: noise averaged); where they differ by
     more (defect edges, real relief) the fine one is kept, with a soft transition. The padding
     keeps tile borders seamless."""
-    sig_f = cfg.surface_smooth_m / grid.gsd_m
-    sig_c = max(cfg.surface_smooth_flat_m / grid.gsd_m, sig_f)
+    # interpolate and smooth on a grid `step` times coarser (the points are ~cm apart and the
+    # smoothing is >= 1 cm), then upsample: 4x fewer Delaunay look-ups per tile
+    step = max(1, int(cfg.surface_interp_step_px))
+    while step > 1 and grid.width % step:
+        step -= 1
+    g = grid.gsd_m * step
+    sig_f = cfg.surface_smooth_m / g
+    sig_c = max(cfg.surface_smooth_flat_m / g, sig_f)
     pad = int(math.ceil(3 * sig_c)) if sig_c > 0 else 0
+    cw, ch = grid.width // step, grid.height // step
     big = GridSpec(
-        grid.crs,
-        grid.x0_m - pad * grid.gsd_m,
-        grid.y0_m + pad * grid.gsd_m,
-        grid.gsd_m,
-        grid.width + 2 * pad,
-        grid.height + 2 * pad,
+        grid.crs, grid.x0_m - pad * g, grid.y0_m + pad * g, g, cw + 2 * pad, ch + 2 * pad
     )
     r = interpolate_to_grid(xy, resid, big, cfg.surface_max_edge_m, cfg.surface_edge_factor)
     if pad:
@@ -565,7 +567,16 @@ def _surface_tile(
             r = np.where(np.isfinite(w), (1 - w) * coarse + w * fine, fine).astype(np.float32)
         else:
             r = fine
-    return r[pad : pad + grid.height, pad : pad + grid.width]
+    r = r[pad : pad + ch, pad : pad + cw]
+    if step == 1:
+        return r
+    m = np.isfinite(r).astype(np.float32)
+    size = (grid.width, grid.height)
+    num = cv2.resize(np.nan_to_num(r), size, interpolation=cv2.INTER_LINEAR)
+    den = cv2.resize(m, size, interpolation=cv2.INTER_LINEAR)
+    keep = cv2.resize(m, size, interpolation=cv2.INTER_NEAREST) > 0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(keep & (den > 1e-3), num / den, np.nan).astype(np.float32)
 
 
 def _points_in(xy: np.ndarray, grid: GridSpec, margin: float) -> np.ndarray:
@@ -614,7 +625,12 @@ def _mosaic_tile(
     R0, R1 = min(b[0] for b in valid), max(b[1] for b in valid)
     C0, C1 = min(b[2] for b in valid), max(b[3] for b in valid)
     e, n = g2e.pixel_enu(grid, slice(R0, R1 + 1), slice(C0, C1 + 1))
-    z = surf.height(np.column_stack([e.ravel(), n.ravel()])).reshape(e.shape)
+    # the fitted road is smooth on the node scale (25 cm): evaluate it every 8 px and upsample
+    zs = surf.height(np.column_stack([e[::8, ::8].ravel(), n[::8, ::8].ravel()]))
+    zs = zs.reshape(e[::8, ::8].shape).astype(np.float32)
+    if np.isfinite(zs).any():
+        zs = np.where(np.isfinite(zs), zs, np.nanmedian(zs))
+    z = cv2.resize(zs, (e.shape[1], e.shape[0]), interpolation=cv2.INTER_LINEAR).astype(float)
     rz = res_t[R0 : R1 + 1, C0 : C1 + 1]
     z = z + np.where(np.isfinite(rz), rz, 0.0)
     scale = 0.5**level

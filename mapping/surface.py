@@ -13,7 +13,6 @@ from __future__ import annotations
 import logging
 
 import numpy as np
-from tqdm import tqdm
 
 from mapping.config import MappingConfig
 from roadsurf.geometry import check_shape
@@ -35,29 +34,24 @@ class LocalSurface:
         self.cell = float(cfg.local_fit_cell_m)
         self.half = max(1, int(round(0.5 * cfg.local_fit_window_m / self.cell)))
         self.inlier_m = float(cfg.local_fit_inlier_m)
-        self.order = int(cfg.local_fit_order)
         self.origin = xyz[:, :2].min(0) if len(xyz) else np.zeros(2)
         self._fit(xyz, progress)
 
     def _fit(self, xyz: np.ndarray, progress: bool) -> None:
+        """Vectorised robust fit: per-cell weighted moment sums, window sums per node by sparse
+        lookups of the (2h)² neighbour cells, a 3×3 solve per node (plane z = c + a·dx + b·dy
+        about the node), then trimming of points off the (bilinear) surface; 5 rounds."""
         c = self.cell
+        self.node_keys = np.zeros(0, np.int64)
+        self.node_z = np.zeros(0)
         if len(xyz) == 0:
-            self.node_keys = np.zeros(0, np.int64)
-            self.node_z = np.zeros(0)
             return
         rel = xyz[:, :2] - self.origin
-        ix = np.floor(rel[:, 0] / c).astype(np.int64)
-        iy = np.floor(rel[:, 1] / c).astype(np.int64)
-        keys = _key(ix, iy)
-        order = np.argsort(keys, kind="stable")
-        skeys = keys[order]
-        ukeys, starts = np.unique(skeys, return_index=True)
-        ends = np.append(starts[1:], len(skeys))
-        cell_rng = dict(
-            zip(ukeys.tolist(), zip(starts.tolist(), ends.tolist(), strict=True), strict=True)
-        )
-        pts = xyz[order]
-        # nodes: corners of occupied cells
+        x, y = rel[:, 0], rel[:, 1]
+        z0 = float(np.median(xyz[:, 2]))
+        z = xyz[:, 2] - z0
+        keys = _key(np.floor(x / c), np.floor(y / c))
+        ukeys, inv = np.unique(keys, return_inverse=True)
         cix = ukeys // (1 << 22) - _OFF
         ciy = ukeys % (1 << 22) - _OFF
         nodes = np.unique(
@@ -65,67 +59,71 @@ class LocalSurface:
         )
         nix = nodes // (1 << 22) - _OFF
         niy = nodes % (1 << 22) - _OFF
-        z = np.full(len(nodes), np.nan)
+        xn, yn = nix * c, niy * c
+        # neighbour cell index of each node for each window offset (-1: empty cell)
         h = self.half
-        span = range(-h, h)
-        max_pts = 4000
-        it = tqdm(
-            range(len(nodes)),
-            desc="road surface fit",
-            unit="node",
-            disable=not progress,
-            leave=False,
-        )
-        for j in it:
-            chunks = []
-            for dx in span:
-                for dy in span:
-                    r = cell_rng.get(int(_key(nix[j] + dx, niy[j] + dy)))
-                    if r is not None:
-                        chunks.append(pts[r[0] : r[1]])
-            if not chunks:
-                continue
-            P = np.concatenate(chunks) if len(chunks) > 1 else chunks[0]
-            if len(P) < 8:
-                continue
-            if len(P) > max_pts:
-                P = P[:: int(np.ceil(len(P) / max_pts))]
-            node_xy = self.origin + np.array([nix[j], niy[j]], float) * c
-            z[j] = self._robust_fit(P, node_xy)
-        ok = np.isfinite(z)
-        self.node_keys = nodes[ok]
-        self.node_z = z[ok]
-        log.debug("road surface: %d nodes fitted of %d", ok.sum(), len(nodes))
-
-    def _robust_fit(self, P: np.ndarray, node_xy: np.ndarray) -> float:
-        dx, dy = P[:, 0] - node_xy[0], P[:, 1] - node_xy[1]
-        cols = [np.ones(len(P)), dx, dy]
-        if self.order >= 2:
-            cols += [dx * dx, dx * dy, dy * dy]
-        A = np.column_stack(cols)
-        z = P[:, 2]
-        inl = np.ones(len(P), bool)
-        coef = None
+        nb = []
+        for dx in range(-h, h):
+            for dy in range(-h, h):
+                k = _key(nix + dx, niy + dy)
+                pos = np.minimum(np.searchsorted(ukeys, k), len(ukeys) - 1)
+                nb.append(np.where(ukeys[pos] == k, pos, -1))
+        nb_a = np.stack(nb, axis=1)  # (nodes, (2h)²)
+        terms = (np.ones_like(x), x, y, x * x, x * y, y * y, z, x * z, y * z)
+        w = np.ones(len(x))
+        self.node_keys = nodes
+        self.node_z = np.full(len(nodes), np.nan)
         for _ in range(5):
-            if inl.sum() < A.shape[1] + 3:
+            cell = np.stack([np.bincount(inv, weights=w * t, minlength=len(ukeys)) for t in terms])
+            cell = np.concatenate([cell, np.zeros((len(terms), 1))], axis=1)  # index -1 = empty
+            S = cell[:, nb_a].sum(axis=2)  # (9, nodes)
+            n, sx, sy, sxx, sxy, syy, sz, sxz, syz = S
+            # moments about the node
+            X, Y = sx - n * xn, sy - n * yn
+            XX = sxx - 2 * xn * sx + n * xn * xn
+            XY = sxy - xn * sy - yn * sx + n * xn * yn
+            YY = syy - 2 * yn * sy + n * yn * yn
+            XZ, YZ = sxz - xn * sz, syz - yn * sz
+            ok = n >= 8
+            ridge = 1e-6 * np.maximum(n, 1.0)  # keeps slopes finite on a narrow strip
+            A = np.stack(
+                [
+                    np.stack([n, X, Y], -1),
+                    np.stack([X, XX + ridge, XY], -1),
+                    np.stack([Y, XY, YY + ridge], -1),
+                ],
+                axis=1,
+            )[ok]
+            rhs = np.stack([sz, XZ, YZ], -1)[ok]
+            zn = np.full(len(nodes), np.nan)
+            zn[ok] = np.linalg.solve(A, rhs[..., None])[:, 0, 0]
+            self.node_z = zn
+            fin = np.isfinite(zn)
+            self.node_keys, self.node_z = nodes[fin], zn[fin]
+            r = z - self._height_rel(rel)
+            good = np.isfinite(r)
+            if not good.any():
                 break
-            coef, *_ = np.linalg.lstsq(A[inl], z[inl], rcond=None)
-            r = z - A @ coef
-            s = 1.4826 * np.median(np.abs(r[inl]))
-            thr = max(3.0 * s, self.inlier_m)
-            new = np.abs(r) < thr
-            if np.array_equal(new, inl):
+            mad = 1.4826 * float(np.median(np.abs(r[good & (w > 0)]))) if (w > 0).any() else 0.0
+            thr = max(3.0 * mad, self.inlier_m)
+            w_new = (good & (np.abs(r) < thr)).astype(float)
+            if np.array_equal(w_new, w):
                 break
-            inl = new
-        return float(coef[0]) if coef is not None else float("nan")
+            w = w_new
+        self.node_z = self.node_z + z0
+        log.debug("road surface: %d nodes fitted", len(self.node_keys))
 
     # ------------------------------------------------------------------ evaluation
     def height(self, xy_enu_m: np.ndarray) -> np.ndarray:
         """(N, 2) ENU -> (N,) road height (m); NaN where no node around is fitted."""
         xy = np.atleast_2d(np.asarray(xy_enu_m, float))
+        return self._height_rel(xy - self.origin)
+
+    def _height_rel(self, rel: np.ndarray) -> np.ndarray:
         if len(self.node_keys) == 0:
-            return np.full(len(xy), np.nan)
-        g = (xy - self.origin) / self.cell
+            return np.full(len(rel), np.nan)
+        xy = rel
+        g = rel / self.cell
         i0 = np.floor(g[:, 0]).astype(np.int64)
         j0 = np.floor(g[:, 1]).astype(np.int64)
         fx, fy = g[:, 0] - i0, g[:, 1] - j0
