@@ -159,7 +159,9 @@ def _run_colmap(
     if overwrite and colmap_dir.exists():
         shutil.rmtree(colmap_dir)
     colmap_dir.mkdir(parents=True, exist_ok=True)
-    pycolmap.logging.minloglevel = int(cfg.colmap_log_level)
+    # COLMAP's own (glog) output: as configured, or everything with `roadsurf -v`.
+    verbose = log.isEnabledFor(logging.DEBUG)
+    pycolmap.logging.minloglevel = 0 if verbose else int(cfg.colmap_log_level)
     db_path = colmap_dir / "database.db"
     sparse_dir = colmap_dir / "sparse"
     state = _State(colmap_dir / "state.json")
@@ -257,7 +259,12 @@ def _run_colmap(
         opts.random_seed = cfg.seed
         opts.min_model_size = 3
         pycolmap.set_random_seed(cfg.seed)
-        pycolmap.incremental_mapping(db_path, image_dir, tmp, opts)
+        from tqdm import tqdm
+
+        with tqdm(total=len(names), desc="COLMAP mapping", unit="img", leave=False) as bar:
+            pycolmap.incremental_mapping(
+                db_path, image_dir, tmp, opts, next_image_callback=lambda: bar.update(1)
+            )
         tmp.rename(sparse_dir)  # atomic: a killed mapping leaves no sparse/ to trust
         timings["mapping_s"] = time.perf_counter() - t
         state.mark("mapping", fp_map)
