@@ -488,6 +488,17 @@ def _gps_from_lists(
     warnings: list[str],
 ) -> GpsTrack | None:
     """rows: (line, t, lat, lon, alt, hdop) of fixes that passed validation."""
+    # A row repeated verbatim (same time and position; some loggers write a fix twice) carries
+    # no information: drop it. Any other non-increasing time is an error below.
+    dedup: list[tuple[int | None, float, float, float, float, float]] = []
+    for r in rows:
+        if dedup and r[1] == dedup[-1][1] and r[2:4] == dedup[-1][2:4]:
+            where = f"line {r[0]}" if r[0] is not None else f"time {r[1]}"
+            skipped.append(Skipped(path.name, r[0], f"duplicate GPS fix ({where}) dropped"))
+            n_bad += 1
+            continue
+        dedup.append(r)
+    rows = dedup
     if n_bad:
         warnings.append(
             f"{path}: dropped {n_bad} of {n_total} GPS record(s) (bad or out-of-range values; "

@@ -302,7 +302,7 @@ def test_gps_bad_rows_dropped_and_counted(tmp_path: Path) -> None:
 
 
 def test_gps_non_increasing_timestamps(tmp_path: Path) -> None:
-    rows = [f"0.0,{LAT0},{LON0}", f"0.5,{LAT0},{LON0}", f"0.5,{LAT0},{LON0}"]
+    rows = [f"0.0,{LAT0},{LON0}", f"0.5,{LAT0},{LON0}", f"0.5,{LAT0 + 1e-5},{LON0}"]
     root = make_drive(tmp_path / "d", gps_rows=rows)
     with pytest.raises(DriveFormatError, match=r"gps.csv:4: GPS timestamp 0.5 is not after"):
         load_drive(root)
@@ -453,3 +453,11 @@ def test_check_images_is_fast_on_many_frames(tmp_path: Path) -> None:
     """Not a timing assertion: checks that 200 JPEG frames load and are all validated."""
     d = load_drive(make_drive(tmp_path / "d", n=200, ext=".jpg"))
     assert len(d.frames) == 200 and not d.skipped
+
+
+def test_gps_verbatim_duplicate_row_is_dropped_not_fatal(tmp_path: Path) -> None:
+    rows = [f"0.0,{LAT0},{LON0}", f"0.5,{LAT0},{LON0}", f"0.5,{LAT0},{LON0}", f"1.0,{LAT0},{LON0}"]
+    d = load_drive(make_drive(tmp_path / "d", gps_rows=rows))
+    assert d.gps is not None and len(d.gps) == 3
+    (s,) = [s for s in d.skipped if s.file == "gps.csv"]
+    assert s.line == 4 and "duplicate" in s.reason
