@@ -117,6 +117,8 @@ def load_camera(path: Path) -> Camera:
             continue
         v = data[key]
         if tp is int:
+            if isinstance(v, float) and v.is_integer():  # "640.0" from some writers
+                v = int(v)
             if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
                 raise DriveFormatError(
                     f"{where(key)}: camera.yaml '{key}' must be a positive integer (pixels), "

@@ -146,6 +146,15 @@ def test_ill_typed_camera_key_names_line(tmp_path: Path) -> None:
         load_drive(root)
 
 
+def test_integral_float_size_accepted(tmp_path: Path) -> None:
+    root = make_drive(tmp_path / "d")
+    (root / "camera.yaml").write_text(camera_yaml(width=f"{W}.0"))
+    assert load_drive(root).camera.width == W
+    (root / "camera.yaml").write_text(camera_yaml(width=f"{W}.5"))
+    with pytest.raises(DriveFormatError, match="positive integer"):
+        load_drive(root)
+
+
 def test_unknown_camera_key(tmp_path: Path) -> None:
     root = make_drive(tmp_path / "d")
     (root / "camera.yaml").write_text(camera_yaml() + "focal: 3\n")
