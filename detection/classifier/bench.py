@@ -285,6 +285,12 @@ def bench_classifier(
         fused_pred = _frame_labels(work / "runs" / s.name / "fused" / "frames.csv")
         sources = _frame_sources(work / "runs" / s.name / "fused" / "frames.csv")
         cnn_pred = {f: int(p >= 0.5) for f, p in probs.items()}
+        # variant: where the CNN is confident "defect" the 3D pipeline ran anyway; let it decide
+        # (confirm_defect_with_3d). Its 3D label is taken from the 3D-only run of the same drive.
+        confirm_pred = {
+            f: (phys_pred.get(f, v) if sources.get(f) == "fused" else v)
+            for f, v in fused_pred.items()
+        }
         n = len(truth)
         results[s.name] = {
             "spec": dataclasses.asdict(s),
@@ -298,6 +304,11 @@ def bench_classifier(
             },
             "fused": {
                 **score(fused_pred, truth, dis),
+                "s_per_frame": fused["s_per_frame"],
+                "cpu_s_per_frame": fused.get("cpu_s_per_frame", float("nan")),
+            },
+            "fused_3d_confirms": {
+                **score(confirm_pred, truth, dis),
                 "s_per_frame": fused["s_per_frame"],
                 "cpu_s_per_frame": fused.get("cpu_s_per_frame", float("nan")),
             },

@@ -124,9 +124,10 @@ def pairs_to_reconstruct(
     """Consecutive pairs (i, i+1) the physics pipeline must reconstruct.
 
     ``filenames`` are the drive's valid frames in capture order (position = ``Frame.index``).
-    Frame i is measured from pair (i, i+1) (points live in camera i); the last frame uses
-    (i-1, i). A frame without a CNN probability is always reconstructed, and so are the
-    neighbours (``context_frames``) of frames that need 3D.
+    A frame that needs 3D gets both its pairs, (i-1, i) and (i, i+1), so one failed pair (e.g.
+    too little overlap) does not leave it without 3D; a run of k such frames costs k+1 pairs.
+    A frame without a CNN probability is always reconstructed, and so are the neighbours
+    (``context_frames``) of frames that need 3D.
     """
     n = len(filenames)
     out: set[tuple[int, int]] = set()
@@ -135,6 +136,6 @@ def pairs_to_reconstruct(
             continue
         if i + 1 < n:
             out.add((i, i + 1))
-        elif i > 0:
+        if i > 0:
             out.add((i - 1, i))
     return out

@@ -42,7 +42,7 @@ def test_fuse_frames_and_pairs_to_reconstruct() -> None:
     names = ["a", "b", "c", "d", "e", "f"]
     probs = {"a": 0.001, "b": 0.6, "c": 0.001, "d": 0.002, "e": 0.001, "f": 0.999}
     # the dissertation's per-frame rule: only unsure (b) and defect (f) frames
-    assert pairs_to_reconstruct(probs, names, 0.95, context_frames=0) == {(1, 2), (4, 5)}
+    assert pairs_to_reconstruct(probs, names, 0.95, context_frames=0) == {(0, 1), (1, 2), (4, 5)}
     d3 = {"b": True, "c": True, "e": True, "f": True}
     fused = fuse_frames(probs, d3, names, 0.95, context_frames=0)
     assert [fused[n].source for n in names] == ["cnn", "3d", "cnn", "cnn", "cnn", "fused"]
@@ -52,6 +52,7 @@ def test_fuse_frames_and_pairs_to_reconstruct() -> None:
         (0, 1),
         (1, 2),
         (2, 3),
+        (3, 4),
         (4, 5),
     }
     fused = fuse_frames(probs, d3, names, 0.95, context_frames=1)
