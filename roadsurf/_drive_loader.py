@@ -358,10 +358,20 @@ def _load_frames(
     times: list[float] = []
     lines: list[int] = []
     seen: dict[str, int] = {}
+    prefixed = False
     for line, row in rows:
-        name = row["filename"]
+        name = row["filename"].replace("\\", "/")
         if not name:
             raise DriveFormatError(f"{csv_path}:{line}: empty filename. Fill it in or delete it.")
+        if name.startswith("frames/") and not (img_dir / name).exists():
+            # Written relative to the drive instead of frames/: accept it, say so once.
+            name = name[len("frames/") :]
+            if not prefixed:
+                warnings.append(
+                    f"{csv_path}:{line}: filenames start with 'frames/'; they should be relative "
+                    f"to frames/ (the prefix was removed)."
+                )
+                prefixed = True
         try:
             t = float(row["timestamp_s"])
         except ValueError:

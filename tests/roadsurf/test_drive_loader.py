@@ -198,6 +198,15 @@ def test_bad_frames_header(tmp_path: Path) -> None:
         load_drive(root)
 
 
+def test_filenames_with_frames_prefix_are_accepted(tmp_path: Path) -> None:
+    root = make_drive(tmp_path / "d")
+    txt = (root / "frames.csv").read_text().replace("\n0000", "\nframes/0000")
+    (root / "frames.csv").write_text(txt)
+    d = load_drive(root)
+    assert len(d.frames) == 5 and d.frames[0].filename == "000000.png"
+    assert any("'frames/'" in w for w in d.warnings)
+
+
 def test_row_pointing_to_missing_image_is_skipped(tmp_path: Path) -> None:
     root = make_drive(tmp_path / "d")
     (root / "frames" / "000002.png").unlink()
