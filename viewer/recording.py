@@ -647,5 +647,5 @@ def blueprint(
         ),
         rrb.BlueprintPanel(state="collapsed"),
         rrb.SelectionPanel(state="collapsed"),
-        rrb.TimePanel(timeline="frame", state="expanded"),
+        rrb.TimePanel(timeline="frame", state="collapsed"),
     )

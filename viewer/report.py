@@ -141,12 +141,29 @@ def _summary(data: RunData) -> str:
             else "none",
         ),
     ]
-    if r.get("map"):
+    m = r.get("map") or {}
+    map_bits = [
+        f"{label} {fmt(m[key])}"
+        for key, label, fmt in (
+            ("gsd_m", "GSD", lambda v: f"{1000 * float(v):.1f} mm"),
+            ("n_points", "points", lambda v: f"{int(v):,}"),
+            ("surface_px", "surface pixels", lambda v: f"{int(v):,}"),
+            ("mosaic_px", "mosaic pixels", lambda v: f"{int(v):,}"),
+        )
+        if isinstance(m.get(key), (int, float))
+    ]
+    if map_bits:
+        rows.append(("Map", " · ".join(map_bits)))
+    det = r.get("detection") or {}
+    if isinstance(det.get("noise_m"), (int, float)):
         rows.append(
             (
-                "Map",
-                ", ".join(
-                    f"{k}: {v}" for k, v in r["map"].items() if not isinstance(v, (dict, list))
+                "Detection",
+                f"road noise σ {1000 * det['noise_m']:.2f} mm"
+                + (
+                    f", depth threshold T_d {1000 * det['seed_threshold_m']:.1f} mm"
+                    if isinstance(det.get("seed_threshold_m"), (int, float))
+                    else ""
                 ),
             )
         )
