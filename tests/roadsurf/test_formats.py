@@ -107,3 +107,23 @@ def test_atomic_write_leaves_no_temp_on_failure(tmp_path):
     assert list(tmp_path.iterdir()) == []
     write_json_atomic(tmp_path / "y.json", {"a": np.float64(1.5)})
     assert json.loads((tmp_path / "y.json").read_text()) == {"a": 1.5}
+
+
+def test_geotiff_blocks_sparse_round_trip(tmp_path):
+    from roadsurf.formats import write_geotiff_blocks
+
+    # A long thin diagonal corridor in a large box: only the written blocks are stored.
+    grid = GridSpec("EPSG:32617", 630000.0, 4833000.0, 0.005, 4096, 4096)
+    blocks = [
+        (i * 256, i * 256, np.full((256, 256), -0.01 * (i + 1), np.float32)) for i in range(16)
+    ]
+    p = write_geotiff_blocks(tmp_path / "s.tif", grid, blocks, nodata=float("nan"))
+    data, g2, nodata = read_geotiff(p)
+    assert g2 == grid and np.isnan(nodata)
+    for i in range(16):
+        np.testing.assert_array_equal(
+            data[i * 256 : (i + 1) * 256, i * 256 : (i + 1) * 256], np.float32(-0.01 * (i + 1))
+        )
+    assert np.isnan(data[0, 4000]) and np.isnan(data[4000, 0])
+    # Sparse: 16 of 256 tiles written, so the file is far smaller than a dense float32 raster.
+    assert p.stat().st_size < 0.1 * 4096 * 4096 * 4
