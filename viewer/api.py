@@ -22,7 +22,7 @@ import rerun as rr
 
 from roadsurf.errors import RoadsurfError
 from viewer.config import ViewerConfig
-from viewer.recording import APP_ID, blueprint, log_run, overview_eye
+from viewer.recording import APP_ID, layout_for, log_run
 from viewer.runfolder import RunData, load_run
 
 log = logging.getLogger(__name__)
@@ -84,7 +84,7 @@ def save_rrd(
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.stem}.tmp.rrd")
     rec = rr.RecordingStream(APP_ID, recording_id=_recording_id(data))
-    rec.save(tmp, default_blueprint=blueprint(data.defects, overview_eye(data)))
+    rec.save(tmp, default_blueprint=layout_for(data))
     counts = record(rec, data, cfg)
     rec.disconnect()  # closes and finishes the file sink
     tmp.replace(out)
@@ -108,7 +108,7 @@ def spawn_viewer(
     require_display(f"roadsurf view {run_dir}")
     data = load_run(run_dir, drive_dir, max_raster_side_px=cfg.max_mosaic_side_px)
     rec = rr.RecordingStream(APP_ID, recording_id=_recording_id(data))
-    spawn_native(rec, blueprint(data.defects, overview_eye(data)), hint=f"roadsurf view {run_dir}")
+    spawn_native(rec, layout_for(data), hint=f"roadsurf view {run_dir}")
     counts = record(rec, data, cfg)
     return ViewResult("spawn", None, counts, missing=data.missing)
 

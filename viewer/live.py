@@ -23,6 +23,7 @@ from viewer.config import ViewerConfig
 from viewer.recording import (
     APP_ID,
     blueprint,
+    layout_for,
     log_camera_poses,
     log_cloud,
     log_defects,
@@ -30,7 +31,6 @@ from viewer.recording import (
     log_mosaic,
     log_setup,
     log_trajectory,
-    overview_eye,
     summary_markdown,
 )
 from viewer.runfolder import RunData, load_run
@@ -101,7 +101,7 @@ class LiveObserver:
         elif stage == "detection":
             data = self._load()
             self.counts["defects"] = log_defects(rec, data, cfg)
-            rec.send_blueprint(blueprint(data.defects, overview_eye(data)))
+            rec.send_blueprint(layout_for(data))
         elif stage == "report":
             data = self._load()
             rec.log(

@@ -603,8 +603,27 @@ def overview_eye(data: RunData) -> rrb.EyeControls3D | None:
     )
 
 
+def map_zoom(data: RunData, view_px: float = 400.0) -> float:
+    """Web-map zoom level that fits the GPS track / path into about ``view_px`` pixels."""
+    pts = gps_enu_m(data)
+    if pts is None and data.trajectory is not None and len(data.trajectory):
+        pts = data.trajectory.positions_enu_m
+    if pts is None or len(pts) < 2 or data.reference is None:
+        return 18.0
+    extent = max(5.0, float(np.max(np.ptp(pts[:, :2], axis=0))))
+    m_per_px_z0 = 156543.03 * math.cos(math.radians(data.reference.lat_deg))
+    return float(np.clip(math.log2(m_per_px_z0 * view_px / extent), 3.0, 19.0))
+
+
+def layout_for(data: RunData) -> rrb.Blueprint:
+    """The default blueprint fitted to a run (3D eye over the cloud, map zoom over the track)."""
+    return blueprint(data.defects, overview_eye(data), map_zoom(data))
+
+
 def blueprint(
-    defects: list[DefectView] | None = None, eye: rrb.EyeControls3D | None = None
+    defects: list[DefectView] | None = None,
+    eye: rrb.EyeControls3D | None = None,
+    zoom: float = 18.0,
 ) -> rrb.Blueprint:
     """Default layout: 3D map left; map / mosaic tabs, current frame and plots right."""
     profile_tabs = [
@@ -629,7 +648,7 @@ def blueprint(
             ),
             rrb.Vertical(
                 rrb.Tabs(
-                    rrb.MapView(name="Map", origin="map", zoom=18.0),
+                    rrb.MapView(name="Map", origin="map", zoom=zoom),
                     rrb.Spatial2DView(name="Mosaic", origin="mosaic"),
                     rrb.Spatial2DView(name="Surface residual", origin="surface"),
                     active_tab=0,
