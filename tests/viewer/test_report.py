@@ -51,3 +51,15 @@ def test_report_renders_in_headless_chromium(
     shot = screenshot(out.resolve().as_uri(), tmp_path / "report.png", size=(1200, 1600))
     assert shot.path.stat().st_size > 10_000
     assert not is_blank(shot.path)
+
+
+def test_screenshot_without_chromium_says_how_to_install(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    import viewer.browser as browser
+    from roadsurf.errors import RoadsurfError
+
+    monkeypatch.setattr(browser.shutil, "which", lambda name: None)
+    assert browser.find_chromium() is None
+    with pytest.raises(RoadsurfError, match="apt-get install chromium"):
+        browser.screenshot("file:///nonexistent.html", tmp_path / "x.png")
