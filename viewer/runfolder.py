@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from roadsurf.errors import RoadsurfError
-from roadsurf.formats import GridSpec, read_csv, read_geojson, read_ply
+from roadsurf.formats import GridSpec, read_csv, read_ply, validate_geojson
 from roadsurf.geometry import (
     EnuReference,
     ExportFrame,
@@ -294,8 +294,10 @@ def _load_defects(
     if not path.exists():
         missing.append("defects.geojson")
         return []
-    fc = read_geojson(path)
+    fc = read_json(path)
     georef = bool((fc.get("properties") or {}).get("georeferenced", True))
+    if georef:
+        validate_geojson(fc)  # lon/lat; without GPS detection writes local ENU metres instead
     out: list[DefectView] = []
     for i, f in enumerate(fc["features"]):
         g = f.get("geometry") or {}

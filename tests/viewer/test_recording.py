@@ -145,3 +145,24 @@ def test_map_defects_are_projected_into_the_frames(saved_rrd: Path) -> None:
         v = 60.0 - 150.0 * (0.35 - 0.1 * i) / 0.5
         assert any(abs(x - v) <= 1 for x in vs), (v, vs)
     assert all(abs(float(c[0]) - 95.0) < 1.0 for c in centres)
+
+
+def test_defects_without_gps_are_local_enu_metres(tmp_path: Path) -> None:
+    """Without GPS detection writes the GeoJSON layout with local ENU metres (not lon/lat)."""
+    import json
+
+    syn = make_synthetic_run(tmp_path, gps=False, defects=True, n_frames=4)
+    fc = json.loads((syn.run / "defects.geojson").read_text())
+    for f in fc["features"]:  # move them far enough that lon/lat validation would reject them
+        f["geometry"]["coordinates"] = [
+            [[x + 250.0, y - 120.0] for x, y in ring] for ring in f["geometry"]["coordinates"]
+        ]
+    (syn.run / "defects.geojson").write_text(json.dumps(fc))
+    data = load_run(syn.run, with_pairs=False)
+    assert len(data.defects) == 2
+    assert all(d.ring_lonlat is None for d in data.defects)
+    pothole = next(d for d in data.defects if d.type == "pothole")
+    assert np.allclose(pothole.centroid_enu_m, [250.05, -119.65], atol=1e-6)
+    s = summarize_rrd(save_rrd(syn.run).rrd)
+    assert s.instances("/world/defects", "LineStrips3D:strips") == 2
+    assert not s.under("/map")
