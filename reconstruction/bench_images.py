@@ -189,13 +189,15 @@ def images_markdown(summary: list[dict[str, Any]], overlap: float) -> str:
         f"(true residual > {FLAT_MAX_M * 1e3:g} mm) and in potholes (< {POTHOLE_MAX_M * 1e3:g} mm, "
         "pairs with ≥ 20 such points); median points per pair; pair success rate.",
         "",
-        "| drive | method | pairs | success | points | RMSE flat (mm) | RMSE pothole (mm) |",
-        "|---|---|---|---|---|---|---|",
+        "| drive | method | pairs | success | points | RMSE flat (mm) | RMSE pothole (mm) "
+        "| pothole pairs |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for s in summary:
         lines.append(
             f"| {s['drive']} | {s['method']} | {s['pairs']} | {s['success']:.1%} | "
-            f"{s['points_median']:.0f} | {s['rmse_flat_mm']:.2f} | {s['rmse_pothole_mm']:.2f} |"
+            f"{s['points_median']:.0f} | {s['rmse_flat_mm']:.2f} | {s['rmse_pothole_mm']:.2f} | "
+            f"{s['pothole_pairs']} |"
         )
     return "\n".join(lines) + "\n"
 
