@@ -363,8 +363,11 @@ def to_markdown(res: dict[str, Any]) -> str:
         for key, label in (
             ("cnn", "image-only CNN"),
             ("fused", "fused CNN+3D"),
+            ("fused_3d_confirms", "fused, 3D confirms CNN defects"),
             ("physics", "3D only"),
         ):
+            if key not in r:
+                continue
             m = r[key]
             fpd = m.get("fp_with_distractor", {})
             lines.append(
@@ -398,6 +401,13 @@ def to_markdown(res: dict[str, Any]) -> str:
         f"{json.dumps({k: v for k, v in (mm['val_metrics'] or {}).items() if k.startswith('val_') and k[4:] in ('accuracy', 'precision', 'recall')})}"
     )
     return "\n".join(lines) + "\n"
+
+
+def rewrite_markdown(work: str | Path) -> str:
+    """Re-render work/results.md from work/results.json (after a format change)."""
+    md = to_markdown(read_json(Path(work) / "results.json"))
+    write_text_atomic(Path(work) / "results.md", md)
+    return md
 
 
 def require_simulator() -> None:
