@@ -88,7 +88,12 @@ def log_cloud(rec: rr.RecordingStream, data: RunData, cfg: ViewerConfig) -> int:
     spacing = _point_spacing_m(xyz[idx, :2])
     rec.log(
         "world/cloud",
-        rr.Points3D(xyz[idx].astype(np.float32), colors=colors, radii=0.5 * spacing),
+        rr.Points3D(
+            xyz[idx].astype(np.float32),
+            colors=colors,
+            radii=0.5 * spacing,
+            point_shading="flat",  # true colormap colours (no sphere shading)
+        ),
         static=True,
     )
     if data.cloud_rgb is not None:
@@ -638,6 +643,7 @@ def blueprint(
                     origin="world",
                     contents=["+ world/**", "- world/cloud_rgb"],
                     eye_controls=eye,
+                    background=[28, 30, 36],  # dark: the white flat road and red/blue stand out
                 ),
                 rrb.Horizontal(
                     rrb.Spatial2DView(name="Residual legend", origin="legend"),
