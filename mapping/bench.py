@@ -25,7 +25,7 @@ mode, drive, out = sys.argv[1], sys.argv[2], sys.argv[3]
 t0 = time.perf_counter()
 if mode == "run":
     from roadsurf.pipeline import run_drive
-    rep = run_drive(drive, out)
+    rep = run_drive(drive, out, overwrite=True)  # a full run, not a resumed one
     extra = {"timings_s": rep["timings_s"], "n_tiles": rep.get("map", {}).get("n_tiles")}
 else:  # mapping stages only, on the pairs cached by a previous full run
     from roadsurf.drive import load_drive
@@ -95,7 +95,11 @@ def run_benchmark(
         row: dict[str, Any] = {"frames": n, "image": f"{width}x{width * 3 // 4}"}
         if full or not (out / "pairs").is_dir():
             t0 = time.perf_counter()
-            row["run"] = _child("run", drive, out)
+            try:
+                row["run"] = _child("run", drive, out)
+            except RuntimeError as e:  # e.g. a later stage failed; the mapping figures still count
+                log.warning("%s", e)
+                row["run"] = {"error": str(e)[-500:]}
             row["run"]["bench_wall_s"] = time.perf_counter() - t0
         row["mapping"] = _child("mapping", drive, out)
         rows.append(row)
