@@ -39,7 +39,7 @@ from reconstruction.types import PairResult
 from roadsurf.config import to_dict
 from roadsurf.drive import Drive, read_gray
 from roadsurf.errors import FrameReadError
-from roadsurf.formats import read_geotiff
+from roadsurf.formats import GridSpec
 
 log = logging.getLogger(__name__)
 
@@ -176,12 +176,7 @@ def load_surface(
     for name in ("surface.tif", "surface.vrt"):
         path = run_dir / name
         if path.exists():
-            data, grid, nodata = read_geotiff(path)
-            res = np.asarray(data, np.float32)
-            if res.ndim != 2:
-                raise ValueError(f"{path}: expected a single-band residual raster, got {res.shape}")
-            if nodata is not None and not (isinstance(nodata, float) and math.isnan(nodata)):
-                res = np.where(res == nodata, np.nan, res)
+            res, grid = read_residual_raster(path, cfg.map.max_raster_cells)
             mframe = MapFrame.create(traj.reference, grid.crs if traj.reference else None)
             return Surface(res, grid, name), mframe
     mframe = MapFrame.create(traj.reference)
@@ -213,6 +208,42 @@ def load_surface(
         xy, np.concatenate(res_l), choose_gsd(xy, gsd), mframe.crs, cfg.map.max_raster_cells
     )
     return Surface(r, grid, "pairs"), mframe
+
+
+def read_residual_raster(path: Path, max_cells: int) -> tuple[np.ndarray, GridSpec]:
+    """Read a single-band residual GeoTIFF/VRT as float32 with NaN for nodata.
+
+    A raster larger than ``max_cells`` (a map whose trajectory went astray spans kilometres) is
+    read averaged down to fit, with a warning, instead of exhausting memory.
+    """
+    import rasterio
+    from rasterio.enums import Resampling
+    from rasterio.windows import Window
+
+    with rasterio.open(path) as src:
+        if src.count != 1:
+            raise ValueError(
+                f"{path}: expected a single-band residual raster, got {src.count} bands"
+            )
+        t = src.transform
+        f = max(1.0, math.sqrt(src.width * src.height / max(max_cells, 1)))
+        if f > 1.0:
+            f = math.ceil(f)
+            log.warning(
+                "detection: %s is %dx%d cells; reading it averaged %dx (%.3f m cells)",
+                path, src.width, src.height, f, t.a * f,
+            )  # fmt: skip
+        fi = int(f)
+        shape = (max(1, src.height // fi), max(1, src.width // fi))
+        window = Window(0, 0, shape[1] * fi, shape[0] * fi)
+        data = src.read(
+            1, window=window, out_shape=shape, resampling=Resampling.average, masked=True
+        )
+        res = np.ma.filled(data.astype(np.float32), np.nan)
+        grid = GridSpec(str(src.crs), t.c, t.f, t.a * fi, shape[1], shape[0])
+    if src.nodata is not None and np.isfinite(src.nodata):
+        res[res == src.nodata] = np.nan
+    return res, grid
 
 
 def _footprints(drive: Drive, traj: Trajectory, mframe: MapFrame) -> dict[str, Any]:
