@@ -83,18 +83,13 @@ def save_rrd(
     out = Path(out) if out is not None else Path(run_dir) / "run.rrd"
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.stem}.tmp.rrd")
-    rec = rr.RecordingStream(APP_ID, recording_id=_recording_id(data))
+    rec = rr.RecordingStream(APP_ID)
     rec.save(tmp, default_blueprint=layout_for(data))
     counts = record(rec, data, cfg)
     rec.disconnect()  # closes and finishes the file sink
     tmp.replace(out)
     log.info("wrote %s (%s)", out, ", ".join(f"{k} {v}" for k, v in counts.items()))
     return ViewResult("save", out, counts, missing=data.missing)
-
-
-def _recording_id(data: RunData) -> str:
-    # stable per run folder, so re-opening a refreshed .rrd replaces the old one in the viewer
-    return f"roadsurf:{data.run_dir.resolve()}"
 
 
 def spawn_viewer(
@@ -107,7 +102,7 @@ def spawn_viewer(
     cfg = cfg or ViewerConfig()
     require_display(f"roadsurf view {run_dir}")
     data = load_run(run_dir, drive_dir, max_raster_side_px=cfg.max_mosaic_side_px)
-    rec = rr.RecordingStream(APP_ID, recording_id=_recording_id(data))
+    rec = rr.RecordingStream(APP_ID)
     spawn_native(rec, layout_for(data), hint=f"roadsurf view {run_dir}")
     counts = record(rec, data, cfg)
     return ViewResult("spawn", None, counts, missing=data.missing)

@@ -55,7 +55,7 @@ class LiveObserver:
         self.counts: dict[str, int] = {}
         self.rrd: Path | None = None
         if rec is None:
-            rec = rr.RecordingStream(APP_ID, recording_id=f"roadsurf-live:{self.run_dir.resolve()}")
+            rec = rr.RecordingStream(APP_ID)
             self._connect(rec, spawn)
         self.rec = rec
         log_setup(rec)
