@@ -33,8 +33,10 @@ from viewer.config import ViewerConfig
 from viewer.runfolder import (
     DefectView,
     RunData,
+    defect_rings_3d,
     depth_profile,
     gps_enu_m,
+    project_to_image,
     road_height_near,
     rowcol_from_enu,
     severity_rgb,
@@ -345,7 +347,7 @@ def log_frames(
         rr.AnnotationContext([(1, "defect", (255, 0, 255, 110))]),
         static=True,
     )
-    outlines = _defect_rings_3d(data)
+    outlines = defect_rings_3d(data)
     n = 0
     stride = max(1, cfg.frame_stride)
     for k, (index, name, ts, path) in enumerate(
@@ -450,15 +452,6 @@ def log_frame_overlays(rec: rr.RecordingStream, pair: Any, side: str, cfg: Viewe
         rec.log("world/camera/image/defect_points", rr.Clear(recursive=False))
 
 
-def _defect_rings_3d(data: RunData) -> list[tuple[Any, np.ndarray]]:
-    """(defect, (K, 3) ENU outline at the road surface) for every defect."""
-    out = []
-    for d in data.defects:
-        z = road_height_near(data, d.centroid_enu_m)
-        out.append((d, np.column_stack([d.ring_enu_m, np.full(len(d.ring_enu_m), z)])))
-    return out
-
-
 def _log_projected_defects(
     rec: rr.RecordingStream,
     data: RunData,
@@ -467,19 +460,10 @@ def _log_projected_defects(
     cam: Any,
 ) -> None:
     """Final (map) defect outlines projected into the current frame, where they are visible."""
-    from roadsurf.geometry import invert_pose, transform_points
-
-    cam_from_world = invert_pose(world_from_cam)
     strips, colors, labels = [], [], []
     for d, ring in outlines:
-        pc = transform_points(cam_from_world, ring)
-        if np.any(pc[:, 2] <= 1e-3):
-            continue  # behind the camera
-        uv = (pc @ cam.K.T)[:, :2] / pc[:, 2:3]
-        inside = (
-            (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
-        )
-        if not inside.any():
+        uv = project_to_image(world_from_cam, cam, ring)
+        if uv is None:
             continue
         strips.append(uv.astype(np.float32))
         colors.append(severity_rgb(d.severity))

@@ -21,9 +21,11 @@ from viewer.colors import residual_half_range_m
 from viewer.config import ViewerConfig
 from viewer.runfolder import (
     RunData,
+    defect_rings_3d,
     depth_profile,
     gps_enu_m,
     load_run,
+    project_to_image,
     rowcol_from_enu,
     severity_rank,
     severity_rgb,
@@ -76,6 +78,7 @@ def render_report(data: RunData, cfg: ViewerConfig) -> str:
     parts = [
         _summary(data),
         _defect_table(data, cfg),
+        _evidence(data),
         _figures(data, cfg),
         _problems(data),
         _timings(data),
@@ -217,6 +220,52 @@ def _defect_table(data: RunData, cfg: ViewerConfig) -> str:
     return (
         f"<section><h2>Defects ({len(data.defects)}, most severe first)</h2>"
         f"<table id='defects'>{head}{''.join(rows)}</table>{note}</section>"
+    )
+
+
+def _evidence(data: RunData, n_max: int = 8, width_px: int = 360) -> str:
+    """For the most severe defects: the frame taken closest above it, outline projected in."""
+    t, drive = data.trajectory, data.drive
+    if not data.defects or t is None or len(t) == 0 or drive is None:
+        return ""
+    import cv2
+
+    frame_of = {f.index: f for f in drive.frames}
+    pos = t.positions_enu_m[:, :2]
+    cells = []
+    for d, ring in defect_rings_3d(data)[:n_max]:
+        order = np.argsort(np.sum((pos - d.centroid_enu_m) ** 2, axis=1))
+        for k in order[:5]:  # the nearest frames whose image holds the outline
+            f = frame_of.get(int(t.frame_indices[k]))
+            uv = project_to_image(t.world_from_cam[k], drive.camera, ring) if f else None
+            if uv is None:
+                continue
+            img = cv2.imread(str(f.path), cv2.IMREAD_COLOR)
+            if img is None:
+                continue
+            r, g, b = severity_rgb(d.severity)
+            pts = np.rint(uv).astype(np.int32).reshape(-1, 1, 2)
+            cv2.polylines(img, [pts], True, (b, g, r), max(2, img.shape[1] // 200), cv2.LINE_AA)
+            scale = width_px / img.shape[1]
+            img = cv2.resize(
+                img, (width_px, max(1, round(img.shape[0] * scale))), interpolation=cv2.INTER_AREA
+            )
+            ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 80])
+            if not ok:
+                continue
+            b64 = base64.b64encode(buf.tobytes()).decode("ascii")
+            cap = f"#{d.id} {d.type}, {_fmt(d.max_depth_m, 1000)} mm, {d.severity} — {f.filename}"
+            cells.append(
+                f"<figure style='flex:0 0 {width_px}px'><img alt='{_esc(cap)}' "
+                f"src='data:image/jpeg;base64,{b64}'><figcaption>{_esc(cap)}</figcaption></figure>"
+            )
+            break
+    if not cells:
+        return ""
+    return (
+        "<section><h2>Image evidence (most severe first)</h2>"
+        "<p class='muted'>The frame taken nearest each defect, with the measured outline "
+        f"projected in using the fused pose.</p><div class='grid'>{''.join(cells)}</div></section>"
     )
 
 

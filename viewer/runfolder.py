@@ -557,6 +557,30 @@ def _profile_from_cloud(
     return centres, prof
 
 
+def defect_rings_3d(data: RunData) -> list[tuple[DefectView, np.ndarray]]:
+    """(defect, (K, 3) ENU outline at the road surface) for every defect."""
+    out = []
+    for d in data.defects:
+        z = road_height_near(data, d.centroid_enu_m)
+        out.append((d, np.column_stack([d.ring_enu_m, np.full(len(d.ring_enu_m), z)])))
+    return out
+
+
+def project_to_image(
+    world_from_cam: np.ndarray, cam: Any, pts_enu_m: np.ndarray
+) -> np.ndarray | None:
+    """(K, 3) ENU points -> (K, 2) pixels (u right, v down) of a pinhole camera (no distortion);
+    None when any point is behind the camera or none falls inside the image."""
+    from roadsurf.geometry import invert_pose, transform_points
+
+    pc = transform_points(invert_pose(world_from_cam), pts_enu_m)
+    if np.any(pc[:, 2] <= 1e-3):
+        return None
+    uv = (pc @ cam.K.T)[:, :2] / pc[:, 2:3]
+    inside = (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+    return uv if inside.any() else None
+
+
 def rowcol_from_enu(data: RunData, grid: GridSpec, enu_m: np.ndarray) -> np.ndarray:
     """(N, 2|3) ENU -> (N, 2) float row, col on a raster grid in the run's export CRS."""
     enu = np.atleast_2d(np.asarray(enu_m, float))

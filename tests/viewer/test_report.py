@@ -33,6 +33,10 @@ def test_report_contents(synthetic_run: SyntheticRun, report_html: Path) -> None
     assert "frames/broken.jpg" in text and "truncated JPEG" in text
     assert "too_few_matches" in text
     assert "reconstruction" in text[text.index("id='timings'") :]
+    # image evidence: a frame per defect with the outline projected in
+    evidence = text[text.index("Image evidence") : text.index("<h2>Figures")]
+    assert evidence.count("data:image/jpeg;base64,") == len(synthetic_run.defect_ids_by_severity)
+    assert "#1 pothole, 30.0 mm, medium" in evidence
 
 
 def test_report_without_gps_or_defects(tmp_path: Path) -> None:
