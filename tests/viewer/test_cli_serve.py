@@ -81,3 +81,17 @@ def test_serve_loads_in_headless_chromium(
     time.sleep(0.5)
     with socket.socket() as s:  # the viewer binary (a child process) is gone too
         assert s.connect_ex(("127.0.0.1", web_port)) != 0
+
+
+def test_native_viewer_without_display_explains_alternatives(
+    synthetic_run: SyntheticRun, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import sys
+
+    for k in ("DISPLAY", "WAYLAND_DISPLAY", "WAYLAND_SOCKET"):
+        monkeypatch.delenv(k, raising=False)
+    monkeypatch.setattr(sys, "platform", "linux")
+    res = CliRunner().invoke(app, ["view", str(synthetic_run.run)])
+    assert res.exit_code != 0
+    msg = str(res.exception)
+    assert "no display" in msg and "--save" in msg and "--serve" in msg
