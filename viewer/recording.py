@@ -8,7 +8,8 @@ Entity tree (all 3D in local ENU metres, x east, y north, z up; see docs/viewer.
 - ``world/trajectory``       fused camera path; ``world/gps`` GPS fixes in ENU
 - ``world/frusta/f<idx>``    static camera frusta every ``frustum_stride`` frames
 - ``world/camera``           current camera (timeline): pose + pinhole; ``world/camera/image`` the
-                             frame, with ``matches``, ``rejected``, ``defect_points``, ``mask``
+                             frame, with ``matches``, ``rejected``, ``defect_points``,
+                             ``defect_outlines`` (map defects projected in), ``mask``
 - ``map/*``                  GeoLineStrings / GeoPoints for the map view (tiles are the viewer's)
 - ``mosaic/*``, ``surface/*``  ortho-mosaic and residual surface images with defect outlines
 - ``frames/*``               per-frame scalars (p_defect, matches, inliers) and a frame card
