@@ -167,7 +167,7 @@ def test_labelling_a_rendered_drive_agrees_with_truth_on_clear_cases(tmp_path: P
         "potholes",
         tmp_path / "drive",
         seed=5,
-        n_frames=10,
+        n_frames=12,
         width=320,
         height=240,
         fx=300.0,
@@ -180,19 +180,23 @@ def test_labelling_a_rendered_drive_agrees_with_truth_on_clear_cases(tmp_path: P
     rows = _read_labels(tmp_path / "ds" / "labels.csv")
     orig = [r for r in rows if not r["augmentation"]]
     assert len(orig) >= 6  # most frames get a confident label
-    agree = clear = 0
+    agree = 0
+    clear = {0: 0, 1: 0}
     for r in orig:
         t = truth[r["frame"]]
         area, depth = float(t["defect_area_cm2"]), float(t["max_depth_m"])
-        want = 1 if area >= 200 and depth >= 0.02 else 0 if area == 0 and depth < 0.008 else None
-        if want is not None:  # a clear case in the truth
-            clear += 1
+        # clear cases: a sizeable deep defect, or nothing deeper than the 10 mm truth threshold
+        want = 1 if area >= 100 and depth >= 0.015 else 0 if area == 0 else None
+        if want is not None:
+            clear[want] += 1
             agree += int(r["label"]) == want
         assert r["rule"] == "physics+depth+extent" and Path(r["run"]).is_dir()
     # the labels can be no better than the 3D teacher; it may miss a frame, not most of them
-    assert clear >= 5 and agree >= 0.8 * clear, (agree, clear)
+    n_clear = clear[0] + clear[1]
+    assert clear[0] >= 1 and clear[1] >= 1 and n_clear >= 5, clear
+    assert agree >= 0.8 * n_clear, (agree, clear)
     assert (
-        bal["before_augmentation"]["defect"] >= 3 and bal["before_augmentation"]["non-defect"] >= 1
+        bal["before_augmentation"]["defect"] >= 1 and bal["before_augmentation"]["non-defect"] >= 1
     )
     # augmentation copies point back to their source image and exist on disk
     aug = [r for r in rows if r["augmentation"]]
