@@ -11,7 +11,6 @@ import html
 import io
 import logging
 import math
-import os
 from pathlib import Path
 from typing import Any
 
@@ -68,10 +67,6 @@ def write_report(
     data = load_run(run_dir, drive_dir, max_raster_side_px=cfg.max_mosaic_side_px)
     out = Path(out) if out is not None else Path(run_dir) / "report.html"
     write_text_atomic(out, render_report(data, cfg))
-    # atomic writes go through mkstemp (mode 0600); a report is meant to be shared
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(out, 0o666 & ~umask)
     log.info("wrote %s", out)
     return out
 

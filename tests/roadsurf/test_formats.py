@@ -127,3 +127,13 @@ def test_geotiff_blocks_sparse_round_trip(tmp_path):
     assert np.isnan(data[0, 4000]) and np.isnan(data[4000, 0])
     # Sparse: 16 of 256 tiles written, so the file is far smaller than a dense float32 raster.
     assert p.stat().st_size < 0.1 * 4096 * 4096 * 4
+
+
+def test_atomic_outputs_are_not_private(tmp_path):
+    import os
+    import stat
+
+    p = write_json_atomic(tmp_path / "r.json", {"a": 1})
+    mask = os.umask(0)
+    os.umask(mask)
+    assert stat.S_IMODE(p.stat().st_mode) == 0o666 & ~mask
