@@ -25,7 +25,8 @@ class FeatureConfig:
     # force (exact); binary descriptors (ORB/AKAZE) always use brute-force Hamming
     flann_checks: int = 32  # FLANN leaf checks per query (count): more = closer to exact
     mutual: bool = True  # keep only mutual nearest neighbours (a->b and b->a agree)
-    grid_cells: int = 0  # spread keypoints over a grid_cells x grid_cells grid (count); 0 = off
+    grid_cells: int = 8  # spread keypoints over a grid_cells x grid_cells grid (count); 0 = off.
+    # Even coverage raised the sample drive's map coverage from 79% to 89% for ~+10% CPU
     downscale: float = 1.0  # detect on an image resized by this factor (unitless, <= 1)
     max_detect_megapixels: float = 0.45  # ... and at most this many Mpx (0 = off): SIFT's cost
     # grows with the area; 1024x768 -> 0.755x (+5% height RMSE, 2x faster), 640x480 untouched
