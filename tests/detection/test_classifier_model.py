@@ -160,3 +160,22 @@ def test_metrics_counts() -> None:
     assert (m["tp"], m["fn"], m["fp"], m["tn"]) == (1, 1, 1, 2)
     assert m["accuracy"] == pytest.approx(0.6)
     assert m["precision"] == pytest.approx(0.5) and m["recall"] == pytest.approx(0.5)
+
+
+def test_train_command_and_model_error_exit(tmp_path: Path) -> None:
+    """`roadsurf train` wiring; a bad model path exits with a clear message, not a traceback."""
+    from typer.testing import CliRunner
+
+    from roadsurf.cli import app
+
+    ds = write_dataset(tmp_path / "ds", n_per_class=10)
+    runner = CliRunner()
+    res = runner.invoke(
+        app, ["train", str(ds), "--out", str(tmp_path / "m"), "--epochs", "1", "--input-size", "48"]
+    )
+    assert res.exit_code == 0, res.output
+    assert "model.safetensors" in res.output
+    _, meta = load_model(tmp_path / "m")
+    assert meta["input_size_px"] == 48 and meta["config"]["epochs"] == 1
+    with pytest.raises(ModelFileError):
+        screen_drive(tmp_path / "missing", tmp_path / "ds")
