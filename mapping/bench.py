@@ -27,6 +27,17 @@ if mode == "run":
     from roadsurf.pipeline import run_drive
     rep = run_drive(drive, out, overwrite=True)  # a full run, not a resumed one
     extra = {"timings_s": rep["timings_s"], "n_tiles": rep.get("map", {}).get("n_tiles")}
+elif mode == "detection":  # detection only, on the cached pairs and map of a previous run
+    from roadsurf.drive import load_drive
+    from reconstruction.types import load_pair
+    from mapping.types import load_trajectory
+    from detection.config import DetectionConfig
+    from detection import stage
+    drive_ = load_drive(drive)
+    pairs = [load_pair(p) for p in sorted((Path(out) / "pairs").glob("*.npz"))]
+    t1 = time.perf_counter()
+    stage.run(DetectionConfig(overwrite=True), drive_, pairs, load_trajectory(out), Path(out))
+    extra = {"detection_s": time.perf_counter() - t1}
 else:  # mapping stages only, on the pairs cached by a previous full run
     from roadsurf.drive import load_drive
     from reconstruction.types import load_pair
@@ -102,11 +113,16 @@ def run_benchmark(
                 row["run"] = {"error": str(e)[-500:]}
             row["run"]["bench_wall_s"] = time.perf_counter() - t0
         row["mapping"] = _child("mapping", drive, out)
+        try:
+            row["detection"] = _child("detection", drive, out)
+        except RuntimeError as e:
+            log.warning("%s", e)
+            row["detection"] = {"error": str(e)[-500:]}
         rows.append(row)
     lines = [
         "| frames | image | `roadsurf run` peak RSS | run wall time | mapping-only peak RSS | "
-        "poses | global map | tiles | corridor (imaged px) |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "poses | global map | tiles | corridor (imaged px) | detection-only peak RSS |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         run = r.get("run", {})
@@ -115,7 +131,8 @@ def run_benchmark(
             f"| {r['frames']} | {r['image']} | {run.get('peak_rss_mb', float('nan')):.0f} MB | "
             f"{run.get('wall_s', float('nan')):.0f} s | {m['peak_rss_mb']:.0f} MB | "
             f"{m['poses_s']:.1f} s | {m['globalmap_s']:.1f} s | {m['n_tiles']} | "
-            f"{m['corridor_px'] / 1e6:.1f} Mpx |"
+            f"{m['corridor_px'] / 1e6:.1f} Mpx | "
+            f"{r['detection'].get('peak_rss_mb', float('nan')):.0f} MB |"
         )
     md = "\n".join(lines) + "\n"
     res = {"rows": rows, "markdown": md}
