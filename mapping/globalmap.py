@@ -65,6 +65,9 @@ class MapProducts:
     surface_px: int = 0  # observed pixels in surface.tif
     mosaic_px: int = 0  # imaged pixels in mosaic.tif
     patch_alignment: dict[str, float] = field(default_factory=dict)
+    # non-empty tiles: row, col, bounds [x_min, y_min, x_max, y_max] in the grid CRS, and the
+    # per-tile files when written, so readers can stay within the corridor (window by window)
+    tiles: list[dict[str, Any]] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
     timings_s: dict[str, float] = field(default_factory=dict)
 
@@ -509,6 +512,21 @@ def _rasters(
             prod.mosaic_px += int((wsum > 0).sum())
             sw.write(*t, res_t)
             mw.write(*t, mos_t)
+            tg = lat.tile_grid(*t)
+            info: dict[str, Any] = {
+                "row": t[0],
+                "col": t[1],
+                "bounds": [
+                    tg.x0_m,
+                    tg.y0_m - tg.height * tg.gsd_m,
+                    tg.x0_m + tg.width * tg.gsd_m,
+                    tg.y0_m,
+                ],
+            }
+            if write_tiles:
+                info["surface"] = f"tiles/surface_{t[0]:04d}_{t[1]:04d}.tif"
+                info["mosaic"] = f"tiles/mosaic_{t[0]:04d}_{t[1]:04d}.tif"
+            prod.tiles.append(info)
             prev.add(t, lat, res_t, mos_t)
         for w in writers:
             w.close()

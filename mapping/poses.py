@@ -85,7 +85,7 @@ def run(
 ) -> Trajectory:
     """Fuse GPS and pairs into the trajectory; writes RUN/poses.npz, reference.json,
     trajectory.geojson and poses_report.json. Resumes when the inputs did not change."""
-    from mapping.export import write_trajectory_geojson
+    from mapping.export import write_trajectory_csv, write_trajectory_geojson
 
     run_dir = Path(run_dir)
     key = _fingerprint(cfg, drive, pairs)
@@ -103,6 +103,7 @@ def run(
     traj, report = estimate_trajectory(cfg, drive, pairs)
     save_trajectory(run_dir, traj)
     write_trajectory_geojson(run_dir / "trajectory.geojson", traj, drive)
+    write_trajectory_csv(run_dir / "trajectory.csv", traj)
     write_json_atomic(rep_path, {"fingerprint": key, **report.to_dict()})
     return traj
 

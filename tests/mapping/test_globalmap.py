@@ -117,7 +117,12 @@ def test_vrt_and_tiles_cover_the_same_data(mapped) -> None:
     run, _, prod = mapped
     assert prod.n_tiles > 2
     tiles = sorted((run / "tiles").glob("surface_*.tif"))
-    assert len(tiles) == prod.n_tiles
+    assert len(tiles) == prod.n_tiles == len(prod.tiles)
+    rep = json.loads((run / "map_report.json").read_text())
+    for t in rep["tiles"]:
+        assert (run / t["surface"]).is_file() and (run / t["mosaic"]).is_file()
+        with rasterio.open(run / t["surface"]) as ts:
+            assert np.allclose(list(ts.bounds), t["bounds"])
     with rasterio.open(run / "surface.vrt") as v, rasterio.open(run / "surface.tif") as s:
         assert v.shape == s.shape and v.transform == s.transform and v.crs == s.crs
         a, b = v.read(1), s.read(1)

@@ -150,7 +150,13 @@ def test_obd_speed_constraint_runs() -> None:
 def test_run_writes_artifacts_and_resumes(tmp_path) -> None:
     syn = make_synthetic(n=40, seed=10, gps_hz=5.0)
     traj = poses.run(RTK, syn.drive, syn.pairs, tmp_path)
-    for name in ("poses.npz", "reference.json", "trajectory.geojson", "poses_report.json"):
+    for name in (
+        "poses.npz",
+        "reference.json",
+        "trajectory.geojson",
+        "trajectory.csv",
+        "poses_report.json",
+    ):
         assert (tmp_path / name).is_file(), name
     back = load_trajectory(tmp_path)
     np.testing.assert_allclose(back.world_from_cam, traj.world_from_cam)
