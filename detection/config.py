@@ -40,9 +40,7 @@ class RefineConfig:
     adaptive_window_frac: float = 0.25  # local road brightness window, share of image width (0-1)
     adaptive_dark_k: float = 1.5  # adaptive: dark = grey < local median - k * local MAD (unitless)
     adaptive_min_drop: float = 0.06  # adaptive: and at least this share darker than local (0-1)
-    adaptive_blur_frac: float = (
-        0.02  # adaptive: compare grey levels box-averaged over this share of the width
-    )
+    adaptive_blur_frac: float = 0.02  # adaptive: compare grey box-averaged over this x width (-)
     window_px: int = 5  # W: erosion then dilation window W x W (px)
     grow_depth_frac: float = 0.5  # grow: a point joins when inside the region and d_i <= -frac*T_d
     strong_factor: float = 2.5  # candidates deeper than strong_factor * T_d need no 2D support
@@ -68,18 +66,13 @@ class MapSegmentConfig:
     """Segmentation and measurement on the global map (surface raster + refined points)."""
 
     depth_threshold_m: float = 0.008  # T_d floor on the map: seed cells deeper than this (m)
-    noise_k: float = (
-        4.0  # seed threshold = max(floor, noise_k * σ_map), σ_map = 1.4826 MAD (unitless)
-    )
+    noise_k: float = 4.0  # seeds: T_d = max(floor, noise_k * σ_map), σ_map = 1.4826 MAD (-)
     rim_threshold_m: float = 0.002  # outline floor: a defect extends while deeper than this (m)
     rim_noise_k: float = 1.5  # outline threshold = max(rim floor, rim_noise_k * σ_map) (unitless)
-    rim_max_grow_frac: float = (
-        0.5  # outline reaches at most this x the seeds' equivalent radius (-)
-    )
+    rim_max_grow_frac: float = 0.5  # outline reaches <= this x the seeds' equivalent radius (-)
     rim_max_grow_min_m: float = 0.02  # ... or at least this far from the seeds (m)
-    level_window_m: float = (
-        0.6  # re-level depths to the median road within this window (m); 0 = off
-    )
+    level_window_m: float = 0.6  # re-level depths to the median road in this window (m); 0 = off
+    level_ring_m: float = 0.2  # max depth: points are levelled to the road in this ring (m)
     smooth_m: float = 0.005  # Gaussian σ applied to the raster before thresholds (m); 0 = off
     fill_px: float = 1.0  # unobserved cells are filled from neighbours within about this σ (px)
     max_raster_cells: int = 60_000_000  # refuse to rasterise points into a larger grid (cells)

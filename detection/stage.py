@@ -81,7 +81,8 @@ def run(
         ev_xy = mframe.grid_from_enu(ev_enu) if len(ev_enu) else np.zeros((0, 2))
         seg = segment(surface, cfg.map, ev_xy, ev_pair)
         noise, seed = seg.noise_m, seg.seed_m
-        defects, deep_xy = _measure_regions(cfg, seg, footprints, bool(per_pair))
+        pts = _depth_points(run_dir, pairs, per_pair, traj, pose_of, mframe)
+        defects, deep_xy = _measure_regions(cfg, seg, footprints, bool(per_pair), pts)
         log.info(
             "detection: %d defect(s) from %d region(s); map noise σ %.2f mm, T_d %.1f mm (%s)",
             len(defects),
@@ -270,8 +271,13 @@ def _measure_regions(
     seg: Any,
     footprints: dict[str, Any],
     have_pairs: bool,
+    points: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[list[Defect], list[np.ndarray]]:
-    """Veto regions without 3D evidence, measure the rest; ids ordered along the drive."""
+    """Veto regions without 3D evidence, measure the rest; ids ordered along the drive.
+
+    ``points`` (grid xy (N, 2), residual (N,)): the 3D points, whose deepest value inside the
+    outline gives the max depth (the raster interpolation and smoothing shave pothole bottoms).
+    """
     from shapely.geometry import Polygon
 
     mc = cfg.map
@@ -294,8 +300,17 @@ def _measure_regions(
             log.debug("detection: region at %s vetoed: %s", (reg.rows[0], reg.cols[0]), why)
             continue
         m = measure(reg, seg.grid, mc.frame_depth_m)
-        kind = classify(m, mc)
         poly = Polygon(m.outline_xy_m)
+        if points is not None:
+            pt_max = point_max_depth(poly, points[0], points[1], mc)
+            if pt_max is not None and pt_max > 0:
+                # The raster's bottom is shaved by interpolation: scale its depths to the
+                # points' before measuring the area deeper than the frame-label depth.
+                k = max(1.0, pt_max / max(m.max_depth_m, 1e-6))
+                deep = reg.depth_smooth_m * k >= mc.frame_depth_m
+                m.deep_xy_m = seg.grid.xy_from_rowcol(reg.rows[deep], reg.cols[deep])
+                m.max_depth_m = pt_max
+        kind = classify(m, mc)
         seen = sorted(fn for fn, fp in footprints.items() if fp.intersects(poly))
         snr = max_depth / max(seg.noise_m, 1e-6)
         n_views = len(reg.support_pairs) if have_pairs else len(seen)
@@ -323,6 +338,64 @@ def _measure_regions(
     for i, (d, _) in enumerate(kept, start=1):
         d.id = i
     return [d for d, _ in kept], [x for _, x in kept]
+
+
+def _depth_points(
+    run_dir: Path,
+    pairs: list[PairResult],
+    per_pair: dict[int, PairDefects],
+    traj: Trajectory,
+    pose_of: dict[str, int],
+    mframe: MapFrame,
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The 3D points with their residual (m, negative below) in the grid frame: the fused map
+    points (RUN/map_points.npz) when mapping wrote them, else every pair's points."""
+    mp = run_dir / "map_points.npz"
+    if mp.exists():
+        with np.load(mp, allow_pickle=False) as z:
+            if len(z["xyz"]):
+                return mframe.grid_from_enu(np.asarray(z["xyz"], float)), np.asarray(
+                    z["residual_m"], float
+                )
+    xyz_l, res_l = [], []
+    for k, pd in per_pair.items():
+        i = pose_of.get(pd.frame_a)
+        if i is None:
+            continue
+        T = traj.world_from_cam[i]
+        xyz_l.append(np.asarray(pairs[k].points_cam_a_m, float) @ T[:3, :3].T + T[:3, 3])
+        res_l.append(pd.dist_m)
+    if not xyz_l:
+        return None
+    return mframe.grid_from_enu(np.vstack(xyz_l)), np.concatenate(res_l)
+
+
+def point_max_depth(poly: Any, xy: np.ndarray, residual: np.ndarray, mc: Any) -> float | None:
+    """Deepest point inside ``poly`` relative to the median road level in a ring around it.
+
+    An isolated deepest point (deeper than the next by more than max(5 mm, 20 %)) is taken for
+    a mismatch and the next one is used. None with fewer than ``min_support_points`` inside.
+    """
+    from shapely import contains_xy
+
+    x0, y0, x1, y1 = poly.bounds
+    pad = mc.level_ring_m
+    near = (xy[:, 0] >= x0 - pad) & (xy[:, 0] <= x1 + pad) & (xy[:, 1] >= y0 - pad)
+    near &= xy[:, 1] <= y1 + pad
+    if not near.any():
+        return None
+    p, r = xy[near], residual[near]
+    ins = contains_xy(poly, p[:, 0], p[:, 1])
+    if ins.sum() < max(3, mc.min_support_points):
+        return None
+    ring = contains_xy(poly.buffer(pad), p[:, 0], p[:, 1]) & ~contains_xy(
+        poly.buffer(0.03), p[:, 0], p[:, 1]
+    )
+    level = float(np.median(r[ring])) if ring.sum() >= 10 else 0.0
+    d = np.sort(level - r[ins])[::-1]
+    if d[0] - d[1] > max(0.005, 0.2 * d[1]):
+        return float(d[1])
+    return float(d[0])
 
 
 # --------------------------------------------------------------------------- frames
