@@ -25,6 +25,7 @@ class MappingConfig:
     heading_sigma_deg: float = 5.0  # σ of the eq. 6.1 heading between successive fixes (degrees)
     heading_min_baseline_m: float = 0.5  # fixes closer than this give no heading (m)
     tilt_sigma_deg: float = 3.0  # σ of the road normal vs world up (road grade/cross-fall) (deg)
+    gps_bridge_s: float = 2.0  # fixes this close before and after a failed pair bridge it (s)
     gap_sigma_m: float = 1.0  # σ of the constant-velocity guess across a failed pair (m)
     gap_sigma_rot_deg: float = 10.0  # σ of its rotation (deg)
     adapt_sigmas: bool = True  # rescale GPS/visual σ from the fit's own residuals (robust MAD)

@@ -160,7 +160,7 @@ def estimate_trajectory(
     init = _initial_poses(cfg, t, comp, consecutive, gps, rep)
 
     # ---------------------------------------------------------------- segments
-    segment, bridged_gaps = _segments(t, comp, gps)
+    segment, bridged_gaps = _segments(t, comp, gps, cfg.gps_bridge_s)
     rep.n_segments = int(segment.max()) + 1
     if rep.n_segments > 1:
         msg = (
@@ -426,9 +426,12 @@ def _place_before(W, t, comp, c, C, consecutive) -> None:  # noqa: ANN001 - priv
     W[fr] = last @ invert_pose(C[-1]) @ C
 
 
-def _segments(t: np.ndarray, comp: np.ndarray, gps: _Gps | None) -> tuple[np.ndarray, list[int]]:
-    """Segment id per frame: a gap between components is bridged when GPS fixes tie both sides
-    (a fix inside the gap, or fixes within both neighbouring components)."""
+def _segments(
+    t: np.ndarray, comp: np.ndarray, gps: _Gps | None, bridge_s: float
+) -> tuple[np.ndarray, list[int]]:
+    """Segment id per frame: a gap between components is bridged when GPS ties both sides (a
+    fix inside the gap, fixes within both neighbouring components, or fixes within
+    ``bridge_s`` before and after the gap)."""
     n = len(t)
     seg = np.zeros(n, int)
     bridged: list[int] = []
@@ -447,7 +450,11 @@ def _segments(t: np.ndarray, comp: np.ndarray, gps: _Gps | None) -> tuple[np.nda
     for i in range(1, n):
         if comp[i] != comp[i - 1]:
             inside = gps is not None and bool(np.any((gps.t_s > t[i - 1]) & (gps.t_s < t[i])))
-            if inside or (has_fix[comp[i - 1]] and has_fix[comp[i]]):
+            near = gps is not None and bool(
+                np.any((gps.t_s <= t[i - 1]) & (gps.t_s >= t[i - 1] - bridge_s))
+                and np.any((gps.t_s >= t[i]) & (gps.t_s <= t[i] + bridge_s))
+            )
+            if inside or near or (has_fix[comp[i - 1]] and has_fix[comp[i]]):
                 bridged.append(i)
             else:
                 s += 1

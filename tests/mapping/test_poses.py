@@ -183,3 +183,10 @@ def test_no_gps_run_writes_no_lonlat(tmp_path) -> None:
     assert (tmp_path / "poses.npz").is_file()
     assert not (tmp_path / "trajectory.geojson").exists()
     assert json.loads((tmp_path / "reference.json").read_text())["reference"] is None
+
+
+def test_all_pairs_failed_falls_back_to_gps() -> None:
+    syn = make_synthetic(n=40, seed=12, gps_hz=5.0, failed=tuple(range(39)))
+    traj, rep = poses.estimate_trajectory(RTK, syn.drive, syn.pairs)
+    assert set(traj.source) == {"gps"} and rep.n_segments == 1
+    assert _h_rmse(traj, syn) < 0.05
