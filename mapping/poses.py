@@ -351,7 +351,12 @@ def _initial_poses(
                 continue
             chain_heading = _heading_rad(C[len(C) // 2])
             T = _yaw_matrix(yaw - chain_heading)
-            T[:2, 3] = g_en[:, :2].mean(0) - (T[:2, :2] @ cp[:, :2].T).T.mean(0)
+            if len(fr) == 1:
+                # a lone frame: the GPS track at its own time (the fix is up to half a frame
+                # interval away, i.e. centimetres at speed)
+                T[:2, 3] = _gps_at(gps, float(t[fr[0]]))[:2] - T[:2, :2] @ C[0, :2, 3]
+            else:
+                T[:2, 3] = g_en[:, :2].mean(0) - (T[:2, :2] @ cp[:, :2].T).T.mean(0)
         T[2, 3] = (
             float(np.mean(g_en[gps.has_alt[sel], 2] - cp[gps.has_alt[sel], 2]))
             if gps.has_alt[sel].any()
@@ -360,6 +365,24 @@ def _initial_poses(
         W[fr] = T @ C
         placed[c] = True
 
+    if gps is not None and len(gps.t_s) >= 2:
+        # vision broke and no fix falls inside: place on the GPS track interpolated at the
+        # frame times (a fallback guess only; the pose graph then weighs it weakly)
+        for c in np.flatnonzero(~placed):
+            fr = np.flatnonzero(comp == c)
+            tc = float(np.mean(t[fr]))
+            yaw = _gps_track_yaw(gps, tc, cfg.heading_min_baseline_m)
+            if yaw is None:
+                continue
+            C = chains[c]
+            T = _yaw_matrix(yaw - _heading_rad(C[len(C) // 2]))
+            pos = _gps_at(gps, tc)
+            mid = np.mean(C[:, :3, 3], axis=0)
+            T[:3, 3] = pos - T[:3, :3] @ mid
+            if not gps.has_alt.any():
+                T[2, 3] = 0.0
+            W[fr] = T @ C
+            placed[c] = True
     if not placed.any():
         # no GPS anywhere usable: local frame anchored at the first component
         W[comp == 0] = chains[0]
@@ -374,6 +397,16 @@ def _initial_poses(
             _place_before(W, t, comp, c, chains[c], consecutive)
             placed[c] = True
     return W
+
+
+def _gps_at(gps: _Gps, tq: float) -> np.ndarray:
+    """(3,) GPS track at time tq: linear between fixes, extrapolated from the end pairs."""
+    ts, p = gps.t_s, gps.enu_m
+    if len(ts) == 1:
+        return p[0].copy()
+    k = int(np.clip(np.searchsorted(ts, tq) - 1, 0, len(ts) - 2))
+    w = (tq - ts[k]) / max(ts[k + 1] - ts[k], 1e-9)
+    return (1 - w) * p[k] + w * p[k + 1]
 
 
 def _heading_rad(T: np.ndarray) -> float:
@@ -450,9 +483,18 @@ def _segments(
     for i in range(1, n):
         if comp[i] != comp[i - 1]:
             inside = gps is not None and bool(np.any((gps.t_s > t[i - 1]) & (gps.t_s < t[i])))
+            # GPS close on both sides (near the drive's ends one side is enough: those few
+            # frames are extrapolated from a GPS-tied neighbour)
             near = gps is not None and bool(
-                np.any((gps.t_s <= t[i - 1]) & (gps.t_s >= t[i - 1] - bridge_s))
-                and np.any((gps.t_s >= t[i]) & (gps.t_s <= t[i] + bridge_s))
+                (
+                    np.any((gps.t_s <= t[i - 1]) & (gps.t_s >= t[i - 1] - bridge_s))
+                    or t[i - 1] - t[0] <= bridge_s
+                )
+                and (
+                    np.any((gps.t_s >= t[i]) & (gps.t_s <= t[i] + bridge_s))
+                    or t[-1] - t[i] <= bridge_s
+                )
+                and np.any(np.abs(gps.t_s - t[i]) <= bridge_s)
             )
             if inside or near or (has_fix[comp[i - 1]] and has_fix[comp[i]]):
                 bridged.append(i)
@@ -541,11 +583,12 @@ class _PoseGraph:
                 cfg.visual_sigma_trans_m + cfg.visual_sigma_trans_rel * np.linalg.norm(T[:3, 3])
             )
             sr.append(math.radians(cfg.visual_sigma_rot_deg))
-        consecutive = {(pos_of[p.index_a], pos_of[p.index_b]): p for p in ok_pairs}
         self.n_vis = len(ia)
         for i in range(self.n - 1):
             if comp[i] != comp[i + 1]:
-                T = _step_motion(t, i, consecutive)
+                # the initial guess already holds the best motion across the gap (chained
+                # constant velocity, or the GPS track when vision broke)
+                T = invert_pose(init[i + 1]) @ init[i]
                 ia.append(i), ib.append(i + 1), Rm.append(T[:3, :3]), tm.append(T[:3, 3])
                 st.append(cfg.gap_sigma_m), sr.append(math.radians(cfg.gap_sigma_rot_deg))
         self.ia, self.ib = np.array(ia, int), np.array(ib, int)
