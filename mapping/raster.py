@@ -345,3 +345,30 @@ def write_vrt(
 
 def file_size_mb(path: Path) -> float:
     return os.path.getsize(path) / 1e6 if path.exists() else 0.0
+
+
+def iter_tiles(run_dir: str | Path, name: str = "surface") -> Any:
+    """Yield (GridSpec, data) for each non-empty tile of RUN's ``name`` raster ("surface" or
+    "mosaic"), one at a time, from the tile list in RUN/map_report.json (the per-tile files, or
+    windows of the monolithic GeoTIFF). Memory stays bounded by one tile; use it instead of
+    reading the whole bounding grid of a long drive."""
+    import rasterio
+    from rasterio.windows import Window
+
+    from roadsurf.io import read_json
+
+    run_dir = Path(run_dir)
+    rep = read_json(run_dir / "map_report.json")
+    g = rep["grid"]
+    tp = int(g["tile_px"])
+    full = run_dir / f"{name}.tif"
+    for t in rep.get("tiles", []):
+        x0, y1 = t["bounds"][0], t["bounds"][3]
+        grid = GridSpec(g["crs"], x0, y1, g["gsd_m"], tp, tp)
+        if name in t and (run_dir / t[name]).is_file():
+            with rasterio.open(run_dir / t[name]) as src:
+                arr = src.read()
+        else:
+            with rasterio.open(full) as src:
+                arr = src.read(window=Window(t["col"] * tp, t["row"] * tp, tp, tp))
+        yield grid, (arr[0] if arr.shape[0] == 1 else np.moveaxis(arr, 0, 2))
