@@ -31,6 +31,8 @@ def bench_reconstruction(
 
     out = Path(out)
     lines: list[str] = []
+    prev = out / "summary.md"
+    prev_md = prev.read_text(encoding="utf-8") if prev.is_file() else ""
     if study:
         st = run_study(out, quick=quick, trials=trials, workers=workers)
         lines = ["Parametric study (point level):"]
@@ -40,12 +42,7 @@ def bench_reconstruction(
         ]
         md = "## Point-level study\n\n" + st["summary"]
     else:
-        prev = out / "summary.md"
-        md = (
-            prev.read_text(encoding="utf-8").split("\n## Rendered drives")[0]
-            if prev.is_file()
-            else ""
-        )
+        md = prev_md.split("\n## Rendered drives")[0]
     if images:
         from reconstruction.bench_images import bench_images
 
@@ -67,6 +64,8 @@ def bench_reconstruction(
         lines.append(
             f"  [{'MET' if worst >= 0.99 else 'NOT MET'}] success ≥ 99% at 50% overlap: worst {worst:.1%}"
         )
+    elif "\n## Rendered drives" in prev_md:  # keep the previous image-level part
+        md += "\n## Rendered drives" + prev_md.split("\n## Rendered drives", 1)[1]
     write_text_atomic(out / "summary.md", md)
     lines.append(f"Wrote {out}/study_cells.csv, figures fig3_*.png and summary.md")
     return "\n".join(lines)
