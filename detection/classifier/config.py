@@ -24,6 +24,9 @@ class ClassifierConfig:
     min_steps_per_epoch: int = 10  # at least this many batches per epoch, for tiny datasets (1)
     weight_decay: float = 1e-4  # L2 penalty of the optimiser (1)
     val_fraction: float = 0.2  # share held out for validation (the 80/20 split)
+    # keep the weights of the best validation epoch (balanced accuracy, then loss); False keeps
+    # the last epoch (more confident after the learning-rate decay, when validation is tiny)
+    keep_best_epoch: bool = False
     balanced_sampling: bool = True  # sample classes equally per epoch (§5.3.2 imbalance)
     class_weighting: bool = False  # weight the loss by inverse class frequency instead
     seed: int = 0  # seeds the split, augmentation, initialisation and sampling

@@ -236,7 +236,8 @@ def train(
         history.append(rec)
         score = (m.get("balanced_accuracy", 0.0), -loss) if m else (0.0, -loss)
         score = (np.nan_to_num(score[0]), score[1])
-        if not best or tuple(score) > (best["score"], best["neg_loss"]):
+        improved = not best or tuple(score) > (best["score"], best["neg_loss"])
+        if improved or not cfg.keep_best_epoch:
             best = {"epoch": epoch + 1, "score": float(score[0]), "neg_loss": float(score[1])}
             _save(out, net, cfg, ds, tr, va, rec, history, device, t0)
         bar.set_postfix(
