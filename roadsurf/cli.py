@@ -350,7 +350,7 @@ def bench_detection(
     ] = False,
     methods: Annotated[
         str, typer.Option(help="Comma-separated reconstruction methods (first = product).")
-    ] = "rotation_aware,classic,colmap",
+    ] = "rotation_aware,proposed,classic,colmap",
     docs: Annotated[
         Path | None, typer.Option(help="Markdown file whose detection section is rewritten.")
     ] = Path("docs/benchmarks.md"),
