@@ -310,6 +310,8 @@ def _measure_regions(
                 deep = reg.depth_smooth_m * k >= mc.frame_depth_m
                 m.deep_xy_m = seg.grid.xy_from_rowcol(reg.rows[deep], reg.cols[deep])
                 m.max_depth_m = pt_max
+                m.mean_depth_m *= k
+                m.volume_m3 *= k
         kind = classify(m, mc)
         seen = sorted(fn for fn, fp in footprints.items() if fp.intersects(poly))
         snr = max_depth / max(seg.noise_m, 1e-6)
