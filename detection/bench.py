@@ -310,8 +310,9 @@ def update_docs(
     section = (
         f"{DOC_BEGIN}\n## detection\n\n"
         f"Command: `{command}` — {today}, 2-core x86-64 VM, 24 GB, no GPU, shared with other "
-        f"jobs; wall {wall_s / 60:.0f} min for this invocation (simulated drives, pairs and maps "
-        "in the work folder are reused when it is re-run). Drives: "
+        f"jobs; wall {wall_s / 60:.0f} min for a cold run (simulation, reconstruction, mapping "
+        "and detection of every drive and method; a re-run in the same work folder reuses them "
+        "and only redoes what changed). Drives: "
         + ", ".join(f"{s} seed {sd} ({n} frames)" for s, sd, n in drives)
         + ". Each column is a full `roadsurf run --method M` of every drive, scored by "
         "`detection.evaluate.evaluate_detection`; counts are pooled over all drives. Defects are "
@@ -397,6 +398,9 @@ def run_benchmark(
     if failures:
         body += "\n\nFailed runs: " + "; ".join(failures)
     wall = time.perf_counter() - t0
+    # The docs quote the cold-run time: keep the longest wall seen in this work folder.
+    prev = out / "bench_detection.json"
+    cold = max(wall, float(read_json(prev).get("cold_wall_s", 0.0))) if prev.exists() else wall
     summary = {
         "pooled": pooled,
         "t_b": tb_pooled,
@@ -405,11 +409,12 @@ def run_benchmark(
         "drives": [list(d) for d in drives],
         "machine": platform.platform(),
         "wall_s": wall,
+        "cold_wall_s": cold,
         "markdown": body,
     }
     write_json_atomic(out / "bench_detection.json", summary)
     if docs is not None and not quick:
-        update_docs(docs, body, command, wall, drives)
+        update_docs(docs, body, command, cold, drives)
     return summary
 
 
