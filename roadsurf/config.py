@@ -9,6 +9,7 @@ dissertation names it, its symbol.
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import types
 import typing
 from pathlib import Path
@@ -36,8 +37,14 @@ def from_dict(cls: type[T], data: dict[str, Any] | None, where: str = "config") 
     fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
     unknown = sorted(set(data) - set(fields))
     if unknown:
+        hints = [
+            f"'{k}' -> did you mean '{m[0]}'?"
+            for k in unknown
+            if (m := difflib.get_close_matches(k, list(fields), n=1))
+        ]
+        hint = (" " + " ".join(hints)) if hints else ""
         raise ConfigError(
-            f"{where}: unknown key(s) {unknown}. Valid keys are: {sorted(fields)}. "
+            f"{where}: unknown key(s) {unknown}.{hint} Valid keys are: {sorted(fields)}. "
             "Fix the spelling or remove them."
         )
     kwargs: dict[str, Any] = {}

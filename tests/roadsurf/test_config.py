@@ -29,6 +29,8 @@ def test_defaults_and_nested():
 def test_unknown_key_rejected_with_location():
     with pytest.raises(ConfigError, match=r"cfg.yaml.inner: unknown key\(s\) \['lamda'\]"):
         from_dict(Outer, {"inner": {"lamda": 1.0}}, "cfg.yaml")
+    with pytest.raises(ConfigError, match="did you mean 'lam'"):
+        from_dict(Outer, {"inner": {"lamda": 1.0}}, "cfg.yaml")
 
 
 def test_ill_typed_value_rejected():
