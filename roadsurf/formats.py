@@ -123,6 +123,37 @@ class GridSpec:
         return np.column_stack([row, col])
 
 
+LOCAL_CRS = (
+    "LOCAL_ENU"  # GridSpec.crs of a run without GPS: written without a CRS, read back as this
+)
+
+
+def geotiff_profile(grid: GridSpec, count: int, dtype: str, nodata: float | None) -> dict[str, Any]:
+    """The one GeoTIFF layout every raster of the project uses: tiled 256, deflate with a
+    predictor, sparse (nodata-only tiles are not stored), BigTIFF when needed."""
+    profile: dict[str, Any] = {
+        "driver": "GTiff",
+        "width": grid.width,
+        "height": grid.height,
+        "count": count,
+        "dtype": dtype,
+        "crs": None if grid.crs == LOCAL_CRS else grid.crs,
+        "transform": grid.transform,
+        "compress": "deflate",
+        "predictor": 3 if np.dtype(dtype).kind == "f" else 2,
+        "tiled": True,
+        "blockxsize": 256,
+        "blockysize": 256,
+        "SPARSE_OK": "TRUE",
+        "BIGTIFF": "IF_SAFER",
+    }
+    if count >= 3 and np.dtype(dtype) == np.uint8:
+        profile["photometric"] = "RGB"
+    if nodata is not None:
+        profile["nodata"] = nodata
+    return profile
+
+
 def write_geotiff(
     path: str | Path,
     data: np.ndarray,
@@ -142,25 +173,7 @@ def write_geotiff(
         raise ValueError(f"data: expected (H, W) or (H, W, 3|4), got {arr.shape}")
     if bands.shape[1:] != (grid.height, grid.width):
         raise ValueError(f"data is {bands.shape[1:]} but grid is {(grid.height, grid.width)}")
-    profile: dict[str, Any] = {
-        "driver": "GTiff",
-        "width": grid.width,
-        "height": grid.height,
-        "count": bands.shape[0],
-        "dtype": bands.dtype.name,
-        "crs": grid.crs,
-        "transform": grid.transform,
-        "compress": "deflate",
-        "tiled": True,
-        "blockxsize": 256,
-        "blockysize": 256,
-        "SPARSE_OK": "TRUE",
-        "BIGTIFF": "IF_SAFER",
-    }
-    if bands.shape[0] >= 3 and bands.dtype == np.uint8:
-        profile["photometric"] = "RGB"
-    if nodata is not None:
-        profile["nodata"] = nodata
+    profile = geotiff_profile(grid, bands.shape[0], bands.dtype.name, nodata)
     with atomic_path(path) as tmp:
         with rasterio.open(tmp, "w", **profile) as dst:
             dst.write(bands)
@@ -184,24 +197,7 @@ def write_geotiff_blocks(
     import rasterio
     from rasterio.windows import Window
 
-    profile: dict[str, Any] = {
-        "driver": "GTiff",
-        "width": grid.width,
-        "height": grid.height,
-        "count": 1,
-        "dtype": dtype,
-        "crs": grid.crs,
-        "transform": grid.transform,
-        "compress": "deflate",
-        "predictor": 3 if np.dtype(dtype).kind == "f" else 2,
-        "tiled": True,
-        "blockxsize": 256,
-        "blockysize": 256,
-        "SPARSE_OK": "TRUE",
-        "BIGTIFF": "IF_SAFER",
-    }
-    if nodata is not None:
-        profile["nodata"] = nodata
+    profile = geotiff_profile(grid, 1, dtype, nodata)
     with atomic_path(path) as tmp:
         with rasterio.open(tmp, "w", **profile) as dst:
             for r0, c0, arr in blocks:
@@ -222,7 +218,8 @@ def read_geotiff(path: str | Path) -> tuple[np.ndarray, GridSpec, float | None]:
         t = src.transform
         if abs(t.a + t.e) > 1e-12 * max(1.0, abs(t.a)) or t.b != 0 or t.d != 0:
             raise ValueError(f"{path}: only north-up square-pixel rasters are supported")
-        grid = GridSpec(str(src.crs), t.c, t.f, t.a, src.width, src.height)
+        crs = LOCAL_CRS if src.crs is None else str(src.crs)
+        grid = GridSpec(crs, t.c, t.f, t.a, src.width, src.height)
         nodata = src.nodata
     data = arr[0] if arr.shape[0] == 1 else np.moveaxis(arr, 0, 2)
     return data, grid, nodata

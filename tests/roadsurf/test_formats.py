@@ -137,3 +137,15 @@ def test_atomic_outputs_are_not_private(tmp_path):
     mask = os.umask(0)
     os.umask(mask)
     assert stat.S_IMODE(p.stat().st_mode) == 0o666 & ~mask
+
+
+def test_geotiff_local_frame_round_trip(tmp_path):
+    from roadsurf.formats import LOCAL_CRS
+
+    # A run without GPS: the raster has no CRS, and reads back as the local frame.
+    grid = GridSpec(LOCAL_CRS, -5.0, 20.0, 0.01, 40, 30)
+    write_geotiff(tmp_path / "s.tif", np.zeros((30, 40), np.float32), grid, nodata=float("nan"))
+    with rasterio.open(tmp_path / "s.tif") as src:
+        assert src.crs is None
+    _, g2, _ = read_geotiff(tmp_path / "s.tif")
+    assert g2 == grid
