@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import os
 import shutil
 import time
 from dataclasses import dataclass, field
@@ -51,6 +52,49 @@ TRAIN_DRIVES = (
     DriveSpec("train_a", "potholes", 1101, 60),
     DriveSpec("train_b", "potholes", 1102, 60, {"sun_azimuth_deg": 60.0, "n_lane_markings": 2}),
     DriveSpec("train_c", "flat", 1103, 40, {"n_shadows": 2, "n_lane_markings": 2}),
+    # more varied training data (round 2): other photo texture, low/other sun, greyscale,
+    # darker exposure, dense distractors on clear road. The test texture/lighting stay unseen.
+    DriveSpec(
+        "train_d",
+        "potholes",
+        1104,
+        60,
+        {
+            "texture": "brick",
+            "sun_azimuth_deg": 210.0,
+            "sun_elevation_deg": 30.0,
+            "ambient": 0.55,
+            "n_shadows": 3,
+            "n_oil_stains": 2,
+        },
+    ),
+    DriveSpec(
+        "train_e",
+        "potholes",
+        1105,
+        60,
+        {
+            "greyscale": True,
+            "exposure": 0.75,
+            "sun_elevation_deg": 60.0,
+            "n_lane_markings": 3,
+            "n_oil_stains": 2,
+        },
+    ),
+    DriveSpec(
+        "train_f",
+        "flat",
+        1106,
+        40,
+        {
+            "texture": "grass",
+            "ambient": 0.6,
+            "exposure": 1.15,
+            "n_shadows": 4,
+            "n_lane_markings": 3,
+            "n_oil_stains": 3,
+        },
+    ),
 )
 # Testing: unseen seeds, another texture, other light, greyscale JPEG, more distractors.
 TEST_DRIVES = (
@@ -122,10 +166,13 @@ def _timed_run(
 
     if run_dir.exists():
         shutil.rmtree(run_dir)  # a timing must come from a clean run, not a resumed one
+    load0 = os.getloadavg()[0]
     t0, c0 = time.perf_counter(), time.process_time()
     report = run_drive(drive, run_dir, classifier=classifier, config_path=cfg_path)
     wall = time.perf_counter() - t0
+    # process CPU time, all threads (torch, pycolmap, numpy); children are not spawned
     cpu = time.process_time() - c0
+    load1 = os.getloadavg()[0]
     n = int(report.get("counts", {}).get("frames", 0)) or 1
     rec = {
         "wall_s": round(wall, 3),
@@ -134,6 +181,7 @@ def _timed_run(
         "cpu_s": round(cpu, 3),
         "cpu_s_per_frame": cpu / n,
         "model": model_id,
+        "load_avg_1min": [round(load0, 2), round(load1, 2)],
         "stage_timings_s": report.get("timings_s", {}),
         "pairs_reconstructed": report.get("counts", {}).get("pairs", 0),
     }
@@ -322,6 +370,14 @@ def bench_classifier(
                 "physics": phys["pairs_reconstructed"],
                 "fused": fused["pairs_reconstructed"],
             },
+            "stage_timings_s": {
+                "physics": phys.get("stage_timings_s", {}),
+                "fused": fused.get("stage_timings_s", {}),
+            },
+            "load_avg_1min": {
+                "physics": phys.get("load_avg_1min"),
+                "fused": fused.get("load_avg_1min"),
+            },
             "time_ratio_fused_over_physics": fused["s_per_frame"] / phys["s_per_frame"],
             "cpu_time_ratio_fused_over_physics": fused["cpu_s_per_frame"] / phys["cpu_s_per_frame"],
         }
@@ -336,6 +392,7 @@ def bench_classifier(
             "val_metrics": meta.get("metrics"),
             "train_time_s": meta.get("train_time_s"),
             "train_balance": meta.get("training_data", {}).get("train_balance"),
+            "calibration": meta.get("calibration"),
         },
         "tests": results,
         "total_s": round(time.perf_counter() - t_all, 1),
@@ -382,7 +439,9 @@ def to_markdown(res: dict[str, Any]) -> str:
         lines.append(
             f"- {name}: fused/physics time = {r['time_ratio_fused_over_physics']:.2f} (wall), "
             f"{r['cpu_time_ratio_fused_over_physics']:.2f} (CPU); fused "
-            f"sources {r['fused_sources']}; pairs reconstructed {r['pairs_reconstructed']}"
+            f"sources {r['fused_sources']}; pairs reconstructed {r['pairs_reconstructed']}; "
+            f"stage wall s {r.get('stage_timings_s')}; load avg (start, end) "
+            f"{r.get('load_avg_1min')}"
         )
     b = res["balance"]
     lines.append(
@@ -396,6 +455,8 @@ def to_markdown(res: dict[str, Any]) -> str:
             f"recall {_pct(m['recall'])} % vs truth"
         )
     mm = res["model"]
+    if mm.get("calibration"):
+        lines.append(f"- calibration: {json.dumps(mm['calibration'])}")
     lines.append(
         f"- CNN: best epoch {mm['best_epoch']}, training {mm['train_time_s']} s, validation "
         f"{json.dumps({k: v for k, v in (mm['val_metrics'] or {}).items() if k.startswith('val_') and k[4:] in ('accuracy', 'precision', 'recall')})}"

@@ -12,13 +12,20 @@ class ClassifierConfig:
     """CNN classifier (dissertation §5.2-5.3). Lengths in metres, images in pixels."""
 
     # --- network (§5.2.3) ---
-    input_size_px: int = 64  # square network input side (px); the dissertation used 227
+    input_size_px: int = 96  # square network input side (px); the dissertation used 227
     dropout: float = 0.5  # dropout probability before FC6 and FC7
     width: int = 1  # channel multiplier of the conv layers (1 = small CPU-sized net)
 
     # --- training (§5.3) ---
     learning_rate: float = 5e-5  # initial learning rate (dissertation default)
     lr_decay: float = 0.95  # learning rate multiplied by this every epoch (dissertation default)
+    # "exponential": ×lr_decay per epoch (dissertation); "cosine": linear warm-up over
+    # warmup_epochs, then cosine decay to 1 % of learning_rate by the last epoch
+    lr_schedule: str = "exponential"
+    warmup_epochs: int = 2  # epochs of linear learning-rate warm-up ("cosine" only)
+    # fit the softmax temperature T on the validation split after training (temperature
+    # scaling), so that p >= fusion_threshold means about that share of correct decisions
+    calibrate: bool = True
     batch_size: int = 64  # images per step (dissertation default)
     epochs: int = 30  # passes over the training split
     min_steps_per_epoch: int = 10  # at least this many batches per epoch, for tiny datasets (1)

@@ -60,6 +60,7 @@ def save_model(out: str | Path, net: DefectNet, meta: dict[str, Any]) -> Path:
         format_version=FORMAT_VERSION,
         class_names=list(CLASS_NAMES),
         input_size_px=net.input_size_px,
+        temperature=float(net.temperature),
         torch_version=torch.__version__,
     )
     full.setdefault("architecture", {})
@@ -122,7 +123,10 @@ def load_model(model: str | Path, device: torch.device | str = "cpu") -> tuple[D
             width=int(arch.get("width", 1)),
         )
         net.load_state_dict(tensors, strict=True)
-    except (KeyError, RuntimeError, ValueError) as e:
+        net.temperature = float(meta.get("temperature", 1.0))  # older files: uncalibrated
+        if not 0.0 < net.temperature < 1e3:
+            raise ValueError(f"softmax temperature {net.temperature} outside (0, 1000)")
+    except (KeyError, RuntimeError, ValueError, TypeError) as e:
         raise ModelFileError(
             f"{path}: weights do not fit the DefectNet architecture described in its metadata "
             f"({e}); the file is incompatible with this roadsurf version. Retrain the model."

@@ -43,6 +43,9 @@ class DefectNet(nn.Module):
         self.fc7 = nn.Linear(fc, fc)
         self.fc8 = nn.Linear(fc, 2)
         self.relu = nn.ReLU(inplace=True)
+        # temperature T of the softmax (calibration, fitted on the validation split after
+        # training); a plain attribute, not a weight, so it lives in the model metadata
+        self.temperature = 1.0
         self._init_weights()
 
     def _init_weights(self) -> None:
@@ -90,8 +93,9 @@ class DefectNet(nn.Module):
 
     @torch.no_grad()
     def predict_proba(self, x: torch.Tensor) -> torch.Tensor:
-        """Softmax probabilities (N, 2) in class order (non-defect, defect)."""
-        return torch.softmax(self.forward(x), dim=1)
+        """Calibrated softmax probabilities (N, 2), softmax(logits / T), class order
+        (non-defect, defect)."""
+        return torch.softmax(self.forward(x) / float(self.temperature), dim=1)
 
 
 def pick_device(name: str = "auto") -> torch.device:

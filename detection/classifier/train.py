@@ -112,6 +112,104 @@ def predict(
     return torch.cat(out).numpy() if out else np.zeros(0, np.float32)
 
 
+def make_scheduler(
+    optim: torch.optim.Optimizer, cfg: ClassifierConfig
+) -> torch.optim.lr_scheduler.LRScheduler:
+    """Per-epoch learning-rate schedule (``cfg.lr_schedule``)."""
+    if cfg.lr_schedule == "exponential":
+        return torch.optim.lr_scheduler.ExponentialLR(optim, gamma=cfg.lr_decay)
+    if cfg.lr_schedule == "cosine":
+        warm = max(0, int(cfg.warmup_epochs))
+        total = max(1, int(cfg.epochs))
+
+        def factor(epoch: int) -> float:
+            # epoch = number of scheduler steps taken; factor for the NEXT epoch
+            if epoch < warm:
+                return (epoch + 1) / (warm + 1)
+            t = min(1.0, (epoch - warm) / max(1, total - warm))
+            return 0.01 + 0.99 * 0.5 * (1.0 + np.cos(np.pi * t))
+
+        return torch.optim.lr_scheduler.LambdaLR(optim, factor)
+    raise RoadsurfError(
+        f"classifier.lr_schedule {cfg.lr_schedule!r} unknown; use 'exponential' or 'cosine'"
+    )
+
+
+@torch.no_grad()
+def logits_of(
+    net: DefectNet, images: np.ndarray, device: torch.device, batch: int = 256
+) -> np.ndarray:
+    """Raw logits (N, 2) for uint8 images (N, S, S) (no temperature)."""
+    net.eval()
+    x = torch.as_tensor(np.asarray(images))
+    out = [
+        net(x[i : i + batch].unsqueeze(1).to(device)).float().cpu()
+        for i in range(0, x.shape[0], batch)
+    ]
+    return torch.cat(out).numpy() if out else np.zeros((0, 2), np.float32)
+
+
+def fit_temperature(logits: np.ndarray, labels: np.ndarray) -> float:
+    """Temperature T minimising the validation negative log-likelihood of softmax(logits / T).
+
+    A 1-D search over log T in [ln 0.25, ln 20] (robust for the few dozen validation frames
+    here; no optimiser state). Returns 1.0 for an empty set.
+    """
+    logits = np.asarray(logits, np.float64)
+    labels = np.asarray(labels, np.int64)
+    if logits.shape[0] == 0:
+        return 1.0
+    z = logits[:, 1] - logits[:, 0]  # binary margin; softmax(l/T)[1] = sigmoid(z/T)
+    sign = np.where(labels == 1, 1.0, -1.0)
+
+    def nll(t: float) -> float:
+        return float(np.mean(np.logaddexp(0.0, -sign * z / t)))
+
+    grid = np.exp(np.linspace(np.log(0.25), np.log(20.0), 200))
+    vals = [nll(t) for t in grid]
+    return float(grid[int(np.argmin(vals))])
+
+
+def _calibration_summary(
+    logits: np.ndarray, labels: np.ndarray, t: float, threshold: float
+) -> dict[str, float]:
+    z = (logits[:, 1] - logits[:, 0]) / t
+    p = 1.0 / (1.0 + np.exp(-z))
+    conf = np.maximum(p, 1 - p) >= threshold
+    correct = (p >= 0.5) == (labels == 1)
+    sign = np.where(labels == 1, 1.0, -1.0)
+    return {
+        "nll": float(np.mean(np.logaddexp(0.0, -sign * z))),
+        "share_confident": float(conf.mean()),
+        "accuracy_when_confident": float(correct[conf].mean()) if conf.any() else float("nan"),
+        "share_confident_clear_of_clear": float(conf[labels == 0].mean())
+        if (labels == 0).any()
+        else float("nan"),
+    }
+
+
+def _calibrate(
+    out: Path, images: np.ndarray, labels: np.ndarray, device: torch.device, cfg: ClassifierConfig
+) -> None:
+    """Temperature scaling of the saved model on the validation split (rewrites the model)."""
+    from detection.classifier.modelfile import load_model
+
+    net, meta = load_model(out, device)
+    lg = logits_of(net, images, device)
+    t = fit_temperature(lg, labels)
+    net.temperature = t
+    meta["calibration"] = {
+        "method": "temperature scaling on the validation split (NLL)",
+        "temperature": t,
+        "n_val": int(len(labels)),
+        "fusion_threshold": cfg.fusion_threshold,
+        "before": _calibration_summary(lg, labels, 1.0, cfg.fusion_threshold),
+        "after": _calibration_summary(lg, labels, t, cfg.fusion_threshold),
+    }
+    log.info("calibration: T = %.2f, %s", t, meta["calibration"]["after"])
+    save_model(out, net, meta)
+
+
 def _fingerprint(ds: Dataset, cfg: ClassifierConfig) -> str:
     h = hashlib.sha256()
     h.update((ds.root / "labels.csv").read_bytes())
@@ -194,7 +292,7 @@ def train(
     torch.manual_seed(cfg.seed)
     net = DefectNet(cfg.input_size_px, cfg.dropout, cfg.width).to(device)
     optim = torch.optim.Adam(net.parameters(), lr=cfg.learning_rate, weight_decay=cfg.weight_decay)
-    sched = torch.optim.lr_scheduler.ExponentialLR(optim, gamma=cfg.lr_decay)
+    sched = make_scheduler(optim, cfg)
     fp = _fingerprint(ds, cfg)
     history: list[dict[str, float]] = []
     best: dict[str, float] = {}
@@ -262,6 +360,8 @@ def train(
         _save(out, net, cfg, ds, tr, va, history[-1] if history else {}, history, device, t0)
     from roadsurf.io import read_json
 
+    if cfg.calibrate and len(va):
+        _calibrate(out, ds.images[va], ds.labels[va], device, cfg)
     meta = read_json(out / "model.json")
     # the final history/timing is recorded even if the best epoch was earlier
     meta["history"] = history

@@ -132,6 +132,10 @@ def test_train_few_steps_resume_and_screen(tmp_path: Path) -> None:
     assert (tmp_path / "model" / "checkpoint.pt").is_file()
     assert len(meta["history"]) == 2
     assert meta["training_data"]["n_val"] == 8  # 20% of the 40 frames
+    # temperature scaling on the validation split, stored with the weights
+    cal = meta["calibration"]
+    assert cal["n_val"] == 8 and cal["after"]["nll"] <= cal["before"]["nll"] + 1e-9
+    assert load_model(tmp_path / "model")[0].temperature == pytest.approx(cal["temperature"])
     # resume: a longer run continues from the checkpoint instead of starting again
     cfg3 = ClassifierConfig(
         input_size_px=48, epochs=3, batch_size=16, learning_rate=1e-3, num_threads=1

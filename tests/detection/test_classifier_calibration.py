@@ -1,0 +1,70 @@
+"""Temperature scaling and the learning-rate schedule of the CNN classifier."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from detection.classifier.config import ClassifierConfig
+from detection.classifier.modelfile import load_model, save_model
+from detection.classifier.network import DefectNet
+from detection.classifier.train import fit_temperature, make_scheduler
+from roadsurf.errors import ModelFileError, RoadsurfError
+
+
+def _logits_with_temperature(t_true: float, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Labels drawn from sigmoid(z / t_true): logits z * 1 are overconfident by t_true."""
+    rng = np.random.default_rng(seed)
+    z = rng.normal(0.0, 6.0, n)
+    y = (rng.random(n) < 1.0 / (1.0 + np.exp(-z / t_true))).astype(np.int64)
+    return np.column_stack([np.zeros(n), z]), y
+
+
+@pytest.mark.parametrize("t_true", [0.5, 1.0, 3.0])
+def test_fit_temperature_recovers_the_generating_temperature(t_true: float) -> None:
+    logits, y = _logits_with_temperature(t_true, 4000, seed=int(10 * t_true))
+    t = fit_temperature(logits, y)
+    assert t == pytest.approx(t_true, rel=0.2)
+
+
+def test_fit_temperature_empty_is_identity() -> None:
+    assert fit_temperature(np.zeros((0, 2)), np.zeros(0)) == 1.0
+
+
+def test_temperature_round_trips_and_softens_probabilities(tmp_path: Path) -> None:
+    torch.manual_seed(1)
+    net = DefectNet(48).eval()
+    x = torch.randint(0, 256, (6, 1, 48, 48), dtype=torch.uint8)
+    p1 = net.predict_proba(x)[:, 1]
+    net.temperature = 4.0
+    p4 = net.predict_proba(x)[:, 1]
+    # a higher temperature pulls every probability towards 0.5, never across it
+    assert torch.all((p4 - 0.5).abs() <= (p1 - 0.5).abs() + 1e-6)
+    assert torch.equal(p4 >= 0.5, p1 >= 0.5)
+    save_model(tmp_path / "m", net, {})
+    net2, meta = load_model(tmp_path / "m")
+    assert meta["temperature"] == 4.0 and net2.temperature == 4.0
+    assert torch.allclose(net2.predict_proba(x)[:, 1], p4)
+    net.temperature = -1.0
+    save_model(tmp_path / "bad", net, {})
+    with pytest.raises(ModelFileError, match="temperature"):
+        load_model(tmp_path / "bad")
+
+
+def test_cosine_schedule_warms_up_then_decays() -> None:
+    cfg = ClassifierConfig(learning_rate=1e-3, lr_schedule="cosine", warmup_epochs=2, epochs=10)
+    opt = torch.optim.SGD([torch.nn.Parameter(torch.zeros(1))], lr=cfg.learning_rate)
+    sched = make_scheduler(opt, cfg)
+    lrs = []
+    for _ in range(cfg.epochs):
+        lrs.append(opt.param_groups[0]["lr"])
+        opt.step()
+        sched.step()
+    assert lrs[0] < lrs[1] < lrs[2] == pytest.approx(1e-3)
+    assert all(a >= b for a, b in zip(lrs[2:], lrs[3:], strict=False))
+    assert lrs[-1] < 0.1e-3
+    with pytest.raises(RoadsurfError, match="lr_schedule"):
+        make_scheduler(opt, ClassifierConfig(lr_schedule="step"))
