@@ -75,7 +75,11 @@ class MapSegmentConfig:
     level_ring_m: float = 0.2  # max depth: points are levelled to the road in this ring (m)
     smooth_m: float = 0.005  # Gaussian σ applied to the raster before thresholds (m); 0 = off
     fill_px: float = 1.0  # unobserved cells are filled from neighbours within about this σ (px)
-    max_raster_cells: int = 60_000_000  # refuse to rasterise points into a larger grid (cells)
+    window_core_m: float = 1.0  # the map is read in windows around blocks of this size that hold
+    # 3D defect evidence (m); memory grows with the defects, not the drive's bounding box
+    window_margin_m: float = (
+        1.0  # road read around each block for re-levelling, noise (m), >= level_window_m
+    )
     fallback_gsd_m: float = 0.01  # grid size when RUN/surface.tif is absent (m)
     mean_shift_window_m: float = 0.30  # w: flat-kernel mean-shift window w x w (m), eq. 5.11
     mean_shift_max_iter: int = 50  # iterations per window (count)

@@ -48,6 +48,9 @@ class Region:
     depth_smooth_m: np.ndarray  # (K,) depth of the smoothed raster
     support_pairs: set[int] = field(default_factory=set)  # pairs whose refined points fall in it
     n_support_points: int = 0
+    support_idx: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # evidence ids
+    noise_m: float = float("nan")  # σ of the raster window it was segmented in (m)
+    seed_m: float = float("nan")  # T_d used in that window (m)
 
 
 @dataclass
@@ -63,32 +66,6 @@ class Measured:
     length_m: float
     width_m: float
     deep_xy_m: np.ndarray  # (M, 2) centres of cells deeper than the frame-label depth
-
-
-def rasterise(
-    xy_m: np.ndarray, residual_m: np.ndarray, gsd_m: float, crs: str, max_cells: int
-) -> tuple[np.ndarray, GridSpec]:
-    """Mean residual per cell of a north-up grid covering the points; NaN where empty."""
-    xy = np.asarray(xy_m, float)
-    lo = np.floor(xy.min(axis=0) / gsd_m) * gsd_m - 2 * gsd_m
-    hi = np.ceil(xy.max(axis=0) / gsd_m) * gsd_m + 2 * gsd_m
-    width = int(round((hi[0] - lo[0]) / gsd_m))
-    height = int(round((hi[1] - lo[1]) / gsd_m))
-    if width * height > max_cells:
-        raise ValueError(
-            f"rasterising {len(xy)} points at {gsd_m} m needs {width}x{height} cells "
-            f"(> {max_cells}); raise detection.map.fallback_gsd_m or write RUN/surface.tif"
-        )
-    grid = GridSpec(crs, float(lo[0]), float(hi[1]), gsd_m, width, height)
-    rc = np.floor(grid.rowcol_from_xy(xy) + 0.5).astype(int)
-    ok = (rc[:, 0] >= 0) & (rc[:, 0] < height) & (rc[:, 1] >= 0) & (rc[:, 1] < width)
-    flat = rc[ok, 0] * width + rc[ok, 1]
-    s = np.bincount(flat, weights=np.asarray(residual_m, float)[ok], minlength=width * height)
-    c = np.bincount(flat, minlength=width * height)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        r = (s / c).reshape(height, width).astype(np.float32)
-    r[c.reshape(height, width) == 0] = np.nan
-    return r, grid
 
 
 def smooth_nan(a: np.ndarray, sigma_px: float, min_support: float = 0.05) -> np.ndarray:
@@ -307,6 +284,8 @@ def segment(
         in_reg = np.isin(ev_comp, list(comp_set)) if len(ev_comp) else np.zeros(0, bool)
         reg.support_pairs = set(np.unique(ev_pair[in_reg]).tolist())
         reg.n_support_points = int(in_reg.sum())
+        reg.support_idx = np.flatnonzero(in_reg)
+        reg.noise_m, reg.seed_m = noise, seed_t
         regions.append(reg)
     return Segmentation(noise, seed_t, rim_t, regions, sm, grid)
 

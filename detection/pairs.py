@@ -9,7 +9,7 @@ import numpy as np
 
 from detection.config import DetectionConfig
 from detection.planefit import recursive_plane_fit
-from detection.refine import binarise, correct_defects
+from detection.refine import binarise, correct_defects, refined_mask
 from reconstruction.types import PairResult
 
 log = logging.getLogger(__name__)
@@ -29,6 +29,7 @@ class PairDefects:
     deep_area_m2: float  # footprint area covered by refined points deeper than the frame depth
     score: float  # p_defect from this pair alone, in [0, 1]
     area_per_point_m2: float = float("nan")  # road area one point stands for (m²)
+    mask: np.ndarray | None = None  # (H, W) bool refined 2D defect mask of image a (with gray)
 
     @property
     def label(self) -> int:
@@ -46,12 +47,14 @@ def analyse_pair(
     if not np.isfinite(fit.threshold_m):
         return None
     refined = fit.candidate.copy()
+    mask = None if gray is None else np.zeros(np.asarray(gray).shape[:2], bool)
     if cfg.refine.enabled and gray is not None and refined.any():
         road = ~fit.candidate & (np.abs(fit.dist_m) < fit.threshold_m)
         dark = binarise(gray, cfg.refine, road_px=np.asarray(pair.px_a)[road])
         refined = correct_defects(
             fit.dist_m, pair.px_a, fit.candidate, dark, fit.threshold_m, cfg.refine
         )
+        mask = refined_mask(dark, pair.px_a, refined, max(1, cfg.refine.window_px))
     app = _area_per_point(P)
     deep = refined & (-fit.dist_m >= cfg.map.frame_depth_m)
     area = float(deep.sum()) * app if deep.sum() >= 3 else 0.0
@@ -67,6 +70,7 @@ def analyse_pair(
         deep_area_m2=area,
         score=float(area / (area + a_min)) if area > 0 else 0.0,
         area_per_point_m2=app,
+        mask=mask,
     )
 
 

@@ -148,3 +148,33 @@ def correct_defects(
             break
         kept = grown
     return kept
+
+
+def refined_mask(
+    dark: np.ndarray, px: np.ndarray, refined: np.ndarray, radius_px: int = 3
+) -> np.ndarray:
+    """The refined 2D defect mask (H, W) bool of one image: the dark components (opened mask)
+    that hold refined points, plus a disc of ``radius_px`` around refined points outside any
+    dark component (kept on 3D evidence alone)."""
+    h, w = dark.shape
+    px = np.asarray(px, float)
+    ref = np.asarray(refined, bool)
+    mask = np.zeros((h, w), bool)
+    if not ref.any():
+        return mask
+    p = px[ref]
+    inside = (p[:, 0] >= -0.5) & (p[:, 0] < w - 0.5) & (p[:, 1] >= -0.5) & (p[:, 1] < h - 0.5)
+    u = np.clip(np.round(p[inside, 0]).astype(int), 0, w - 1)
+    v = np.clip(np.round(p[inside, 1]).astype(int), 0, h - 1)
+    _, labels = cv2.connectedComponents(dark.astype(np.uint8), connectivity=8)
+    lab = labels[v, u]
+    comps = np.unique(lab[lab > 0])
+    if len(comps):
+        mask |= np.isin(labels, comps)
+    alone = lab == 0
+    if alone.any():
+        dots = np.zeros((h, w), np.uint8)
+        for x, y in zip(u[alone].tolist(), v[alone].tolist(), strict=True):
+            cv2.circle(dots, (x, y), int(radius_px), 1, -1)
+        mask |= dots.astype(bool)
+    return mask

@@ -30,16 +30,16 @@ from tqdm import tqdm
 from detection.config import DetectionConfig
 from detection.footprint import footprint_enu
 from detection.mapframe import MapFrame
-from detection.mapseg import Surface, choose_gsd, classify, measure, rasterise, segment, severity
+from detection.mapseg import choose_gsd, classify, measure, severity
 from detection.output import load_result, write_outputs
 from detection.pairs import PairDefects, analyse_pair
 from detection.types import Defect, DetectionResult, FrameLabel
+from detection.windows import PointsSource, RasterSource, WindowSource, segment_windows
 from mapping.types import Trajectory
 from reconstruction.types import PairResult
 from roadsurf.config import to_dict
 from roadsurf.drive import Drive, read_gray
 from roadsurf.errors import FrameReadError
-from roadsurf.formats import GridSpec
 
 log = logging.getLogger(__name__)
 
@@ -67,11 +67,11 @@ def run(
             return cached
 
     # ---- 1. per pair
-    per_pair = analyse_pairs(cfg, drive, pairs)
+    per_pair = analyse_pairs(cfg, drive, pairs, masks_dir=run_dir / "masks")
     pose_of = {fn: i for i, fn in enumerate(traj.filenames)}
     ev_enu, ev_pair = _evidence_points(pairs, per_pair, traj, pose_of)
 
-    # ---- 2. global map
+    # ---- 2. global map, read in windows around the 3D evidence only
     surface, mframe = load_surface(cfg, run_dir, pairs, per_pair, traj, pose_of)
     defects: list[Defect] = []
     noise = seed = float("nan")
@@ -79,9 +79,20 @@ def run(
     deep_xy: list[np.ndarray] = []
     if surface is not None:
         ev_xy = mframe.grid_from_enu(ev_enu) if len(ev_enu) else np.zeros((0, 2))
-        seg = segment(surface, cfg.map, ev_xy, ev_pair)
-        noise, seed = seg.noise_m, seg.seed_m
         pts = _depth_points(run_dir, pairs, per_pair, traj, pose_of, mframe)
+        seeds_xy = ev_xy
+        if not per_pair and pts is not None:
+            # No pairs: windows around the deep map points (no per-pair evidence to seed them).
+            deep = -pts[1] >= cfg.map.depth_threshold_m
+            seeds_xy = pts[0][deep]
+        try:
+            seg = segment_windows(
+                surface, cfg.map, seeds_xy, ev_xy, ev_pair,
+                min_points=cfg.map.min_support_points if per_pair else 1,
+            )  # fmt: skip
+        finally:
+            surface.close()
+        noise, seed = seg.noise_m, seg.seed_m
         defects, deep_xy = _measure_regions(cfg, seg, footprints, bool(per_pair), pts)
         log.info(
             "detection: %d defect(s) from %d region(s); map noise σ %.2f mm, T_d %.1f mm (%s)",
@@ -119,9 +130,16 @@ def run(
 
 
 def analyse_pairs(
-    cfg: DetectionConfig, drive: Drive, pairs: list[PairResult]
+    cfg: DetectionConfig,
+    drive: Drive,
+    pairs: list[PairResult],
+    masks_dir: Path | None = None,
 ) -> dict[int, PairDefects]:
-    """Plane fit + 2D/3D refinement of every ok pair; keyed by the pair's position in ``pairs``."""
+    """Plane fit + 2D/3D refinement of every ok pair; keyed by the pair's position in ``pairs``.
+
+    With ``masks_dir`` the refined 2D defect mask of each pair's image a is written there as
+    ``<frame stem>.png`` (uint8, 255 = defect, 0 = not) and not kept in memory.
+    """
     frames = {f.filename: f for f in drive.frames}
     out: dict[int, PairDefects] = {}
     ok = [(k, p) for k, p in enumerate(pairs) if p.ok]
@@ -133,9 +151,24 @@ def analyse_pairs(
             except FrameReadError as e:
                 log.warning("detection: %s; pair %s uses 3D only", e, p.frame_a)
         res = analyse_pair(p, gray, cfg)
-        if res is not None:
-            out[k] = res
+        if res is None:
+            continue
+        if masks_dir is not None and res.mask is not None:
+            _write_mask(Path(masks_dir) / f"{Path(res.frame_a).stem}.png", res.mask)
+        res.mask = None  # bounded memory: one image mask at a time
+        out[k] = res
     return out
+
+
+def _write_mask(path: Path, mask: np.ndarray) -> None:
+    """Write a refined 2D defect mask as an 8-bit PNG (255 = defect), atomically."""
+    import cv2
+
+    from roadsurf.io import atomic_path
+
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), np.where(mask, 255, 0).astype(np.uint8)):
+            raise OSError(f"{path}: could not write the defect mask PNG (disk full?)")
 
 
 def _evidence_points(
@@ -172,14 +205,15 @@ def load_surface(
     per_pair: dict[int, PairDefects],
     traj: Trajectory,
     pose_of: dict[str, int],
-) -> tuple[Surface | None, MapFrame]:
-    """The residual raster: RUN/surface.tif (or .vrt), else rasterised map points or pairs."""
+) -> tuple[WindowSource | None, MapFrame]:
+    """The residual raster as a windowed source: RUN/surface.tif (or .vrt), else the map points
+    or the pairs' points gridded per window. Nothing is read here."""
     for name in ("surface.tif", "surface.vrt"):
         path = run_dir / name
         if path.exists():
-            res, grid = read_residual_raster(path, cfg.map.max_raster_cells)
-            mframe = MapFrame.create(traj.reference, grid.crs if traj.reference else None)
-            return Surface(res, grid, name), mframe
+            src = RasterSource(path)
+            mframe = MapFrame.create(traj.reference, src.grid.crs if traj.reference else None)
+            return src, mframe
     mframe = MapFrame.create(traj.reference)
     gsd = cfg.map.fallback_gsd_m
     mp = run_dir / "map_points.npz"
@@ -189,10 +223,9 @@ def load_surface(
             resid = np.asarray(z["residual_m"], float)
         if len(xyz):
             xy = mframe.grid_from_enu(xyz)
-            r, grid = rasterise(
-                xy, resid, choose_gsd(xy, gsd), mframe.crs, cfg.map.max_raster_cells
-            )
-            return Surface(r, grid, "map_points.npz"), mframe
+            return PointsSource(
+                xy, resid, choose_gsd(xy, gsd), mframe.crs, "map_points.npz"
+            ), mframe
     xyz_l, res_l = [], []
     for k, pd in per_pair.items():
         i = pose_of.get(pd.frame_a)
@@ -205,46 +238,7 @@ def load_surface(
     if not xyz_l:
         return None, mframe
     xy = mframe.grid_from_enu(np.vstack(xyz_l))
-    r, grid = rasterise(
-        xy, np.concatenate(res_l), choose_gsd(xy, gsd), mframe.crs, cfg.map.max_raster_cells
-    )
-    return Surface(r, grid, "pairs"), mframe
-
-
-def read_residual_raster(path: Path, max_cells: int) -> tuple[np.ndarray, GridSpec]:
-    """Read a single-band residual GeoTIFF/VRT as float32 with NaN for nodata.
-
-    A raster larger than ``max_cells`` (a map whose trajectory went astray spans kilometres) is
-    read averaged down to fit, with a warning, instead of exhausting memory.
-    """
-    import rasterio
-    from rasterio.enums import Resampling
-    from rasterio.windows import Window
-
-    with rasterio.open(path) as src:
-        if src.count != 1:
-            raise ValueError(
-                f"{path}: expected a single-band residual raster, got {src.count} bands"
-            )
-        t = src.transform
-        f = max(1.0, math.sqrt(src.width * src.height / max(max_cells, 1)))
-        if f > 1.0:
-            f = math.ceil(f)
-            log.warning(
-                "detection: %s is %dx%d cells; reading it averaged %dx (%.3f m cells)",
-                path, src.width, src.height, f, t.a * f,
-            )  # fmt: skip
-        fi = int(f)
-        shape = (max(1, src.height // fi), max(1, src.width // fi))
-        window = Window(0, 0, shape[1] * fi, shape[0] * fi)
-        data = src.read(
-            1, window=window, out_shape=shape, resampling=Resampling.average, masked=True
-        )
-        res = np.ma.filled(data.astype(np.float32), np.nan)
-        grid = GridSpec(str(src.crs), t.c, t.f, t.a * fi, shape[1], shape[0])
-    if src.nodata is not None and np.isfinite(src.nodata):
-        res[res == src.nodata] = np.nan
-    return res, grid
+    return PointsSource(xy, np.concatenate(res_l), choose_gsd(xy, gsd), mframe.crs, "pairs"), mframe
 
 
 def _footprints(drive: Drive, traj: Trajectory, mframe: MapFrame) -> dict[str, Any]:
@@ -284,7 +278,9 @@ def _measure_regions(
     gsd2 = seg.grid.gsd_m**2
     kept: list[tuple[Defect, np.ndarray]] = []
     for reg in seg.regions:
-        deep_area = float((reg.depth_smooth_m >= seg.seed_m).sum() * gsd2)
+        seed_m = reg.seed_m if math.isfinite(reg.seed_m) else seg.seed_m
+        noise_m = reg.noise_m if math.isfinite(reg.noise_m) else seg.noise_m
+        deep_area = float((reg.depth_smooth_m >= seed_m).sum() * gsd2)
         max_depth = float(np.nanmax(reg.depth_smooth_m))
         why = None
         if max_depth < mc.min_depth_m:
@@ -314,7 +310,7 @@ def _measure_regions(
                 m.volume_m3 *= k
         kind = classify(m, mc)
         seen = sorted(fn for fn, fp in footprints.items() if fp.intersects(poly))
-        snr = max_depth / max(seg.noise_m, 1e-6)
+        snr = max_depth / max(noise_m, 1e-6)
         n_views = len(reg.support_pairs) if have_pairs else len(seen)
         conf = (1.0 - math.exp(-snr / 6.0)) * (1.0 - 0.5 ** (n_views + 1))
         d = Defect(

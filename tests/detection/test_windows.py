@@ -1,0 +1,130 @@
+"""Windowed map segmentation (detection.windows): bounded reads, defects whole across windows,
+and the refined 2D masks written per frame."""
+
+import dataclasses
+
+import cv2
+import numpy as np
+import pytest
+
+from detection import stage
+from detection.config import DetectionConfig, MapSegmentConfig
+from detection.mapseg import Region
+from detection.windows import PointsSource, candidate_windows, merge_regions, segment_windows
+from roadsurf.formats import GridSpec
+from tests.detection.synthetic import Pothole, Scene, Trough, build, write_surface
+
+CFG = DetectionConfig()
+
+
+def _surface_run(tmp_path, scene, cfg):
+    drive, pairs, traj = build(scene, tmp_path / "drive")
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    write_surface(scene, run_dir, traj)
+    return stage.run(cfg, drive, pairs, traj, run_dir)
+
+
+def test_defects_come_out_whole_across_small_windows(tmp_path):
+    """With blocks much smaller than the defects (15 cm; the margin is raised to the 0.6 m
+    re-levelling window) the pothole and the 1.7 m rut are cut by many window borders; merged,
+    they measure like with the default windows."""
+    scene = Scene(
+        potholes=[Pothole(0.15, 0.9, 0.15, 0.045)],
+        troughs=[Trough(-0.3, 0.2, -0.3, 1.9, 0.25, 0.018)],
+    )
+    big = _surface_run(tmp_path / "big", scene, CFG)
+    small_map = dataclasses.replace(CFG.map, window_core_m=0.15, window_margin_m=0.1)
+    small = _surface_run(tmp_path / "small", scene, dataclasses.replace(CFG, map=small_map))
+    assert sorted(d.type for d in big.defects) == ["pothole", "rut"]
+    assert sorted(d.type for d in small.defects) == ["pothole", "rut"], small.table()
+    for a, b in zip(
+        sorted(big.defects, key=lambda d: d.type),
+        sorted(small.defects, key=lambda d: d.type),
+        strict=True,
+    ):
+        assert b.area_m2 == pytest.approx(a.area_m2, rel=0.1)
+        assert b.length_m == pytest.approx(a.length_m, rel=0.1)
+        assert b.max_depth_m == pytest.approx(a.max_depth_m, abs=0.002)
+
+
+def test_reads_stay_near_the_candidates():
+    """A 200 m long sparse corridor: only windows around the seeded place are read."""
+    rng = np.random.default_rng(3)
+    x = rng.uniform(0, 200, 200_000)
+    y = rng.uniform(0, 1.0, len(x))
+    res = rng.normal(0, 0.001, len(x))
+    hole = np.hypot(x - 100.0, y - 0.5) < 0.15
+    res[hole] -= 0.03
+    src = PointsSource(np.c_[x, y], res, 0.01, "EPSG:32617", "test")
+    reads: list[int] = []
+    orig = src.read
+
+    def counting(r0, c0, h, w):
+        reads.append(h * w)
+        return orig(r0, c0, h, w)
+
+    src.read = counting
+    seeds = np.c_[x[hole], y[hole]]
+    seg = segment_windows(src, MapSegmentConfig(), seeds, seeds, np.zeros(len(seeds), int))
+    full = src.grid.width * src.grid.height
+    assert len(seg.regions) == 1
+    assert sum(reads) < 0.05 * full
+    assert max(reads) <= (300 + 2) ** 2  # (core + 2 margins) / 1 cm, squared
+
+
+def test_candidate_windows_skip_isolated_points():
+    grid = GridSpec("EPSG:32617", 0.0, 10.0, 0.01, 1000, 1000)
+    pts = np.array([[2.0, 8.0], [2.05, 8.0], [2.1, 8.02], [7.0, 3.0]])
+    rc = grid.rowcol_from_xy(pts)
+
+    def covers(w, k):
+        return w.r0 <= rc[k, 0] < w.r0 + w.h and w.c0 <= rc[k, 1] < w.c0 + w.w
+
+    wins = candidate_windows(pts, grid, 1.0, 0.5, min_points=3)
+    assert wins and all(w.h <= 200 and w.w <= 200 for w in wins)
+    assert all(any(covers(w, k) for w in wins) for k in range(3))
+    assert not any(covers(w, 3) for w in wins)  # the isolated point gets no window
+    assert any(covers(w, 3) for w in candidate_windows(pts, grid, 1.0, 0.5, min_points=1))
+
+
+def test_merge_regions_unions_touching_and_overlapping_cells():
+    def reg(rows, cols, idx):
+        r = Region(
+            rows=np.array(rows),
+            cols=np.array(cols),
+            depth_m=np.ones(len(rows)),
+            depth_smooth_m=np.ones(len(rows)),
+        )
+        r.support_idx = np.array(idx)
+        r.noise_m, r.seed_m = 0.001, 0.008
+        return r
+
+    a = reg([5, 5, 6], [5, 6, 5], [0, 1])
+    b = reg([7, 7], [6, 7], [1, 2])  # touches a diagonally at (6,5)-(7,6)
+    c = reg([5, 20], [6, 20], [3])  # shares cell (5,6) with a
+    d = reg([50], [50], [4])  # far away
+    ev_pair = np.array([0, 0, 1, 2, 3])
+    out = merge_regions([a, b, c, d], 100, ev_pair)
+    assert len(out) == 2
+    m = max(out, key=lambda r: len(r.rows))
+    assert len(m.rows) == 6  # the shared cell counted once
+    assert m.n_support_points == 4  # evidence point 1 counted once
+    assert m.support_pairs == {0, 1, 2}
+
+
+def test_refined_masks_are_written_per_frame(tmp_path):
+    scene = Scene(potholes=[Pothole(0.1, 1.0, 0.15, 0.030)], lane_x_m=-0.3)
+    drive, pairs, traj = build(scene, tmp_path / "drive")
+    run_dir = tmp_path / "run"
+    stage.run(CFG, drive, pairs, traj, run_dir)
+    masks = {p.stem: p for p in (run_dir / "masks").glob("*.png")}
+    assert set(masks) == {pairs[k].frame_a.rsplit(".", 1)[0] for k in range(len(pairs))}
+    area = {}
+    for stem, p in masks.items():
+        m = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+        assert m.dtype == np.uint8 and m.ndim == 2
+        area[stem] = int((m > 0).sum())
+    # The pothole is seen in frames 2 and 3 (as in test_stage); the lane marking never counts.
+    assert area["000002"] > 0 and area["000003"] > 0
+    assert area["000000"] == 0 and area["000001"] == 0
