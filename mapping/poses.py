@@ -25,6 +25,7 @@ import hashlib
 import json
 import logging
 import math
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -100,11 +101,13 @@ def run(
                 return traj
         except (OSError, ValueError, KeyError) as e:
             log.info("poses: cached result unreadable (%s); recomputing", e)
+    t0 = time.perf_counter()
     traj, report = estimate_trajectory(cfg, drive, pairs)
     save_trajectory(run_dir, traj)
     write_trajectory_geojson(run_dir / "trajectory.geojson", traj, drive)
     write_trajectory_csv(run_dir / "trajectory.csv", traj)
-    write_json_atomic(rep_path, {"fingerprint": key, **report.to_dict()})
+    elapsed = round(time.perf_counter() - t0, 3)  # kept for resumed runs' report.json
+    write_json_atomic(rep_path, {"fingerprint": key, "elapsed_s": elapsed, **report.to_dict()})
     return traj
 
 

@@ -178,7 +178,14 @@ def run(
         rerun=rerun,
         overwrite=overwrite,
     )
-    typer.echo(f"Outputs in {out}/ ({report['timings_s']['total']:.1f} s):")
+    table = (report.get("detection") or {}).get("table")
+    if table:
+        typer.echo("Defects found:")
+        typer.echo(table)
+    this_run = report.get("timings_this_run_s", report["timings_s"])
+    resumed = report.get("resumed_stages") or []
+    note = f"; resumed: {', '.join(resumed)}" if resumed else ""
+    typer.echo(f"Outputs in {out}/ ({this_run['total']:.1f} s{note}):")
     for name in sorted(p.name for p in Path(out).iterdir() if p.is_file()):
         typer.echo(f"  {name}")
 

@@ -121,6 +121,8 @@ def run_drive(
             ) from e
         obs.append(live.make_observer(out))
     timings: dict[str, float] = {}
+    started: dict[str, float] = {}  # wall-clock start of each stage (artifact mtimes vs this)
+    previous = _previous_stage_timings(out)
 
     def notify(stage: str, result: Any) -> None:
         for o in obs:
@@ -130,6 +132,7 @@ def run_drive(
                 log.warning("observer failed on stage %s: %s", stage, e)
 
     def timed(name: str, fn: Callable[[], Any]) -> Any:
+        started[name] = time.time()
         t0 = time.perf_counter()
         res = fn()
         timings[name] = round(time.perf_counter() - t0, 3)
@@ -173,6 +176,7 @@ def run_drive(
     )
 
     timings["total"] = round(time.perf_counter() - t_start, 3)
+    stages = stage_timings(out, timings, started, previous, _own_timings(out, pairs))
     report = _build_report(
         drive,
         pairs,
@@ -184,9 +188,105 @@ def run_drive(
         timings,
         out,
     )
+    report["stages"] = stages
+    report["resumed_stages"] = [k for k, v in stages.items() if v["resumed"] != "no"]
+    report["timings_this_run_s"] = timings
+    # timings of the run that computed each stage (a resumed stage keeps its original time)
+    report["timings_s"] = {
+        **{k: v["computed_s"] for k, v in stages.items() if v["computed_s"] is not None},
+        "total": round(sum(v["computed_s"] or 0.0 for v in stages.values()), 3),
+    }
     write_json_atomic(out / "report.json", report)
     notify("report", report)
     return report
+
+
+# artifacts whose modification time tells whether a stage computed or resumed (run-folder paths)
+STAGE_ARTIFACTS: dict[str, tuple[str, ...]] = {
+    "reconstruction": ("pairs",),
+    "poses": ("poses.npz",),
+    "globalmap": ("map_report.json",),
+    "detection": ("defects.geojson",),
+}
+
+
+def _previous_stage_timings(out: Path) -> dict[str, Any]:
+    """Per-stage timings recorded by an earlier run in ``out`` (report.json), if any."""
+    try:
+        rep = read_json(out / "report.json")
+    except (OSError, ValueError):
+        return {}
+    stages = rep.get("stages")
+    if isinstance(stages, dict):
+        return stages
+    # an older report without "stages": its timings_s are the times of that run
+    t = rep.get("timings_s") or {}
+    return {k: {"computed_s": v} for k, v in t.items() if k != "total"}
+
+
+def _own_timings(out: Path, pairs: list[Any]) -> dict[str, float | None]:
+    """Compute times the stages recorded in their own artifacts (for resumed stages)."""
+    own: dict[str, float | None] = {}
+    secs = [sum(getattr(p, "timings_s", {}).values()) for p in pairs]
+    own["reconstruction"] = round(float(sum(secs)), 3) if any(secs) else None
+    for name, file, key in (
+        ("poses", "poses_report.json", ("elapsed_s",)),
+        ("globalmap", "map_report.json", ("timings_s", "total")),
+    ):
+        try:
+            v: Any = read_json(out / file)
+            for k in key:
+                v = v.get(k) if isinstance(v, dict) else None
+            own[name] = float(v) if isinstance(v, (int, float)) else None
+        except (OSError, ValueError):
+            own[name] = None
+    return own
+
+
+def _mtimes(path: Path) -> list[float]:
+    if path.is_dir():
+        return [f.stat().st_mtime for f in path.iterdir() if f.is_file()]
+    return [path.stat().st_mtime] if path.exists() else []
+
+
+def stage_timings(
+    out: Path,
+    this_run_s: dict[str, float],
+    started: dict[str, float],
+    previous: dict[str, Any],
+    own: dict[str, float | None] | None = None,
+) -> dict[str, dict[str, Any]]:
+    """For each stage of this run: ``this_run_s`` (seconds spent now), ``resumed`` ("no",
+    "all" when every artifact predates the stage's start, "partial" when some do, e.g. a
+    killed reconstruction) and ``computed_s``: the time of the run(s) that computed it (this
+    run's time, plus the earlier run's for a partial resume; None when unknown). For a
+    resumed stage, ``computed_s`` comes from the earlier report's per-stage record, else from
+    ``own`` (the time a stage recorded in its own artifacts), else from an older report."""
+    out_s: dict[str, dict[str, Any]] = {}
+    for name, secs in this_run_s.items():
+        if name == "total":
+            continue
+        resumed = "no"
+        arts = STAGE_ARTIFACTS.get(name, ())
+        mt = [m for a in arts for m in _mtimes(out / a)]
+        t0 = started.get(name)
+        if mt and t0 is not None:
+            old = [m < t0 - 1e-3 for m in mt]
+            resumed = "all" if all(old) else ("partial" if any(old) else "no")
+        prev = previous.get(name, {}) if isinstance(previous.get(name), dict) else {}
+        prev_s = prev.get("computed_s")
+        if resumed == "all":
+            computed = prev_s if "resumed" in prev else None  # a per-stage record: trusted
+            if computed is None:
+                computed = (own or {}).get(name)
+            if computed is None:
+                computed = prev_s
+        elif resumed == "partial":
+            computed = round(secs + float(prev_s or 0.0), 3)
+        else:
+            computed = secs
+        out_s[name] = {"computed_s": computed, "this_run_s": secs, "resumed": resumed}
+    return out_s
 
 
 def _with_overwrite(cfg: PipelineConfig) -> PipelineConfig:

@@ -120,7 +120,16 @@ def test_rerun_resumes_without_recomputing(sample_run) -> None:
     drive, out, _ = sample_run
     from roadsurf.pipeline import run_drive
 
+    first = json.loads((out / "report.json").read_text())
     m0 = (out / "surface.tif").stat().st_mtime_ns
     rep = run_drive(drive, out)
     assert (out / "surface.tif").stat().st_mtime_ns == m0
-    assert rep["timings_s"]["globalmap"] < 5.0
+    assert rep["timings_this_run_s"]["globalmap"] < 5.0
+    # the resumed stages keep the times of the run that computed them, and say so
+    assert {"reconstruction", "poses", "globalmap"} <= set(rep["resumed_stages"])
+    for name in ("reconstruction", "poses", "globalmap"):
+        st = rep["stages"][name]
+        assert st["resumed"] == "all"
+        assert st["computed_s"] == first["timings_s"][name]
+        assert rep["timings_s"][name] == first["timings_s"][name]
+    assert first["stages"]["globalmap"]["resumed"] == "no"
