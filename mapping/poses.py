@@ -602,7 +602,7 @@ class _PoseGraph:
 
         # road-normal (tilt) prior per frame, in camera coordinates (pointing up, at the camera)
         n_up = np.tile([0.0, 0.0, -1.0], (self.n, 1))
-        for p in ok_pairs:
+        for p in ok_pairs if cfg.tilt_prior_axis == "road_normal" else []:
             pl = np.asarray(p.plane, float)
             if np.all(np.isfinite(pl)):
                 v = np.array([pl[0], pl[1], -1.0])

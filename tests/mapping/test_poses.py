@@ -190,3 +190,26 @@ def test_all_pairs_failed_falls_back_to_gps() -> None:
     traj, rep = poses.estimate_trajectory(RTK, syn.drive, syn.pairs)
     assert set(traj.source) == {"gps"} and rep.n_segments == 1
     assert _h_rmse(traj, syn) < 0.05
+
+
+def test_tilt_prior_axis_on_a_cross_fall() -> None:
+    """Camera roll is unobservable from GPS on a straight-ish drive: the tilt prior decides it.
+    On a 3 % cross-fall seen by a levelled camera, the road-normal prior tilts the camera by the
+    cross-fall (1.7°); the optical-axis prior keeps it level."""
+    from tests.mapping.synth import make_synthetic
+
+    lateral = np.array([np.cos(np.radians(30.0)), -np.sin(np.radians(30.0))])
+
+    def cross_fall(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        return 0.03 * (lateral[0] * x + lateral[1] * y)
+
+    syn = make_synthetic(n=30, seed=5, gps_hz=5.0, road_z=cross_fall)
+    errs = {}
+    for axis in ("road_normal", "optical_axis"):
+        cfg = MappingConfig(gps_sigma_m=0.02, tilt_prior_axis=axis)
+        traj, _ = poses.estimate_trajectory(cfg, syn.drive, syn.pairs)
+        est = traj.world_from_cam[:, :3, 2]
+        true = syn.world_from_cam[:, :3, 2]
+        errs[axis] = np.degrees(np.arccos(np.clip(np.sum(est * true, axis=1), -1, 1)))
+    assert np.median(errs["optical_axis"]) < 0.6
+    assert np.median(errs["road_normal"]) > 1.2
