@@ -63,6 +63,7 @@ class MappingConfig:
         0.03  # σ of the stronger smoothing used where relief is noise (m)
     )
     surface_detail_sigmas: float = 2.0  # fine/coarse difference (× point noise MAD) kept as relief
+    surface_smooth_defect_m: float = 0.005  # σ of the light smoothing kept in relief (m)
     surface_interp_step_px: int = (
         2  # interpolate/smooth the surface on a grid this much coarser (px)
     )

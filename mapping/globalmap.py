@@ -558,8 +558,9 @@ def _surface_tile(
     """Residual raster of one tile: Delaunay interpolation of the fused points on a padded grid,
     then masked (normalised) Gaussian smoothing that never spreads values into holes. Where the
     fine (σ = surface_smooth_m) and the coarse (σ = surface_smooth_flat_m) versions agree within
-    the point noise, the coarse one is used (flat road: noise averaged); where they differ by
-    more (defect edges, real relief) the fine one is kept, with a soft transition. The padding
+    the point noise and the fine one is within the noise of the road, the coarse one is used
+    (flat road: noise averaged); in relief (defect edges and bottoms) a lightly smoothed version
+    (σ = surface_smooth_defect_m) keeps the depth, with a soft transition. The padding
     keeps tile borders seamless."""
     # interpolate and smooth on a grid `step` times coarser (the points are ~cm apart and the
     # smoothing is >= 1 cm), then upsample: 4x fewer Delaunay look-ups per tile
@@ -581,8 +582,14 @@ def _surface_tile(
         if sig_c > sig_f and noise_m > 0:
             coarse = _masked_gauss(r, m, sig_c)
             t = cfg.surface_detail_sigmas * noise_m
+            # relief = the fine and coarse versions disagree (edges) OR the surface is off the
+            # local road (a pothole's smooth bottom: fine ≈ coarse there, but the wide coarse
+            # kernel would average its curvature away and lift the bottom)
             w = np.clip((np.abs(fine - coarse) - t) / t, 0.0, 1.0)
-            r = np.where(np.isfinite(w), (1 - w) * coarse + w * fine, fine).astype(np.float32)
+            w = np.maximum(w, np.clip((np.abs(fine) - t) / t, 0.0, 1.0))
+            sig_d = min(cfg.surface_smooth_defect_m / g, sig_f)
+            detail = _masked_gauss(r, m, sig_d) if sig_d > 0.3 else r
+            r = np.where(np.isfinite(w), (1 - w) * coarse + w * detail, fine).astype(np.float32)
         else:
             r = fine
     r = r[pad : pad + ch, pad : pad + cw]

@@ -1,7 +1,8 @@
 """The residual raster keeps the depth of a pothole: a bowl of known depth, sampled by noisy
 scattered points like a pair's triangulation, must come out of the surface interpolation and
 noise-adaptive smoothing (``globalmap._surface_tile``) with its depth, while flat road noise is
-still averaged."""
+still averaged. (The earlier smoothing used the wide flat-road kernel on a pothole's smooth bottom,
+where the fine and coarse versions agree, and lifted it: 2.0 mm MAE inside a 40 mm bowl.)"""
 
 from __future__ import annotations
 
@@ -44,8 +45,8 @@ def test_surface_tile_keeps_the_depth_of_a_bowl(depth_m: float, radius_m: float)
     flat = np.linalg.norm(pix - CENTRE, axis=1) > radius_m + 0.05
     assert inside.sum() > 200 and bottom.sum() > 50 and flat.sum() > 10000
     # depth kept: the bottom is not lifted, the deepest value is close to the true depth
-    assert abs(np.median(got[bottom] - truth[bottom])) < 0.15 * depth_m + 0.0005
+    assert abs(np.median(got[bottom] - truth[bottom])) < 0.01 * depth_m + 0.0003
     assert abs(-got[inside].min() - depth_m) < 0.1 * depth_m + 0.002
-    assert np.mean(np.abs(got[inside] - truth[inside])) < 0.0025
+    assert np.mean(np.abs(got[inside] - truth[inside])) < 0.03 * depth_m + 0.0003
     # flat road: noise averaged below the single-point noise
     assert np.mean(np.abs(got[flat] - truth[flat])) < 0.6 * noise
