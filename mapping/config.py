@@ -25,11 +25,12 @@ class MappingConfig:
     heading_sigma_deg: float = 5.0  # σ of the eq. 6.1 heading between successive fixes (degrees)
     heading_min_baseline_m: float = 0.5  # fixes closer than this give no heading (m)
     tilt_sigma_deg: float = 3.0  # σ of the road normal vs world up (road grade/cross-fall) (deg)
-    # which axis the tilt prior holds vertical: the road normal of each pair's plane fit (the
-    # camera tilts with the vehicle on a cross-fall) or the camera's optical axis (a levelled
-    # mount). Camera roll is not observable from GPS on a straight drive; an error of θ shifts
-    # the map by camera height × tan θ (2 % cross-fall, 1.1 m: 22 mm)
-    tilt_prior_axis: Literal["road_normal", "optical_axis"] = "road_normal"
+    # which axis the tilt prior holds vertical: the camera's optical axis (the downward-facing
+    # mount; equal to the road normal when the camera sits square to the road) or the road
+    # normal of each pair's plane fit (assumes no cross-fall). Camera roll is not observable
+    # from GPS on a straight drive; an error of θ shifts the map by camera height × tan θ
+    # (2 % cross-fall, 1.1 m: 22 mm)
+    tilt_prior_axis: Literal["optical_axis", "road_normal"] = "optical_axis"
     gps_bridge_s: float = 2.0  # fixes this close before and after a failed pair bridge it (s)
     gap_sigma_m: float = 1.0  # σ of the constant-velocity guess across a failed pair (m)
     gap_sigma_rot_deg: float = 10.0  # σ of its rotation (deg)
