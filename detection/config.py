@@ -48,6 +48,26 @@ class RefineConfig:
 
 
 @dataclass(frozen=True)
+class CrackConfig:
+    """Thin dark linear features confirmed by 3D points just below the road (cracks)."""
+
+    enabled: bool = True  # run the crack detector (needs the images)
+    tophat_m: float = 0.025  # black top-hat disc: wider than a crack, narrower than a pothole (m)
+    contrast_k: float = 3.0  # top-hat response > median + k * 1.4826 MAD of the image's (-)
+    min_contrast: float = 0.15  # ... and > this share of the median grey level (0-1)
+    min_length_m: float = 0.08  # a crack piece is at least this long (m)
+    max_width_m: float = 0.025  # ... and at most this wide on average (m; FHWA high > 19 mm)
+    min_elongation: float = 8.0  # length / mean width at least (unitless)
+    near_px: float = 1.0  # 3D points within this distance of the crack pixels test it (px)
+    # 3D test pooled over all pairs whose pieces link up on the map:
+    min_points: int = 5  # at least this many 3D points on the crack (count)
+    min_below_share: float = 0.6  # share of them below the road plane (0-1)
+    z_k: float = 3.0  # Σ depth / sqrt(Σ n σ²) >= z_k, σ: each pair's point noise (unitless)
+    max_samples: int = 150  # samples per crack piece mapped onto the road (count)
+    link_m: float = 0.08  # samples closer than this on the map are one crack (m)
+
+
+@dataclass(frozen=True)
 class SeverityConfig:
     """Severity bands (ASTM D6433 pothole table; FHWA Distress Identification Manual depths)."""
 
@@ -104,6 +124,7 @@ class DetectionConfig:
     refine: RefineConfig = field(default_factory=RefineConfig)
     map: MapSegmentConfig = field(default_factory=MapSegmentConfig)
     severity: SeverityConfig = field(default_factory=SeverityConfig)
+    crack: CrackConfig = field(default_factory=CrackConfig)
     use_images: bool = True  # read frames for the 2D refinement (False: 3D only)
     # Frame labels: "map" = deep area of vetted map defects in the frame's footprint (default);
     # "pair" = the dissertation's per-pair decision from the refined points alone.

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from detection.config import DetectionConfig
+from detection.cracks import PairCracks, detect_pair_cracks
 from detection.planefit import recursive_plane_fit
 from detection.refine import binarise, correct_defects, refined_mask
 from reconstruction.types import PairResult
@@ -30,6 +31,7 @@ class PairDefects:
     score: float  # p_defect from this pair alone, in [0, 1]
     area_per_point_m2: float = float("nan")  # road area one point stands for (m²)
     mask: np.ndarray | None = None  # (H, W) bool refined 2D defect mask of image a (with gray)
+    cracks: PairCracks | None = None  # cracks confirmed by 3D (with gray and m_per_px)
 
     @property
     def label(self) -> int:
@@ -37,9 +39,15 @@ class PairDefects:
 
 
 def analyse_pair(
-    pair: PairResult, gray: np.ndarray | None, cfg: DetectionConfig
+    pair: PairResult,
+    gray: np.ndarray | None,
+    cfg: DetectionConfig,
+    m_per_px: float | None = None,
 ) -> PairDefects | None:
-    """Plane fit + CORRECT_DEFECTS for one ok pair; None when the pair has no usable points."""
+    """Plane fit + CORRECT_DEFECTS for one ok pair; None when the pair has no usable points.
+
+    With ``gray`` and ``m_per_px`` (ground size of a pixel, m) cracks are detected too.
+    """
     if not pair.ok or pair.n_points < max(3, cfg.plane.min_points):
         return None
     P = np.asarray(pair.points_cam_a_m, float)
@@ -55,6 +63,12 @@ def analyse_pair(
             fit.dist_m, pair.px_a, fit.candidate, dark, fit.threshold_m, cfg.refine
         )
         mask = refined_mask(dark, pair.px_a, refined, max(1, cfg.refine.window_px))
+    cracks = None
+    if cfg.crack.enabled and gray is not None and m_per_px:
+        road = ~fit.candidate & (np.abs(fit.dist_m) < fit.threshold_m)
+        cracks = detect_pair_cracks(
+            gray, pair.px_a, P, fit.dist_m, road, fit.noise_m, m_per_px, cfg.crack
+        )
     app = _area_per_point(P)
     deep = refined & (-fit.dist_m >= cfg.map.frame_depth_m)
     area = float(deep.sum()) * app if deep.sum() >= 3 else 0.0
@@ -71,6 +85,7 @@ def analyse_pair(
         score=float(area / (area + a_min)) if area > 0 else 0.0,
         area_per_point_m2=app,
         mask=mask,
+        cracks=cracks,
     )
 
 

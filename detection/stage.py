@@ -24,13 +24,14 @@ import math
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 from tqdm import tqdm
 
 from detection.config import DetectionConfig
 from detection.footprint import footprint_enu
 from detection.mapframe import MapFrame
-from detection.mapseg import choose_gsd, classify, measure, severity
+from detection.mapseg import Measured, choose_gsd, classify, measure, severity
 from detection.output import load_result, write_outputs
 from detection.pairs import PairDefects, analyse_pair
 from detection.types import Defect, DetectionResult, FrameLabel
@@ -94,6 +95,9 @@ def run(
             surface.close()
         noise, seed = seg.noise_m, seg.seed_m
         defects, deep_xy = _measure_regions(cfg, seg, footprints, bool(per_pair), pts)
+        cracks = _crack_defects(cfg, per_pair, traj, pose_of, mframe, footprints, defects)
+        if cracks:
+            defects = _renumber(defects + cracks, footprints)
         log.info(
             "detection: %d defect(s) from %d region(s); map noise σ %.2f mm, T_d %.1f mm (%s)",
             len(defects),
@@ -150,7 +154,7 @@ def analyse_pairs(
                 gray = read_gray(frames[p.frame_a])
             except FrameReadError as e:
                 log.warning("detection: %s; pair %s uses 3D only", e, p.frame_a)
-        res = analyse_pair(p, gray, cfg)
+        res = analyse_pair(p, gray, cfg, m_per_px=drive.camera.height_m / drive.camera.fx)
         if res is None:
             continue
         if masks_dir is not None and res.mask is not None:
@@ -336,6 +340,117 @@ def _measure_regions(
     for i, (d, _) in enumerate(kept, start=1):
         d.id = i
     return [d for d, _ in kept], [x for _, x in kept]
+
+
+def _renumber(defects: list[Defect], footprints: dict[str, Any]) -> list[Defect]:
+    """Ids ordered along the drive (first frame that saw the defect, then easting)."""
+    order = {fn: i for i, fn in enumerate(footprints)}
+    defects = sorted(
+        defects,
+        key=lambda d: (min((order[f] for f in d.frames), default=1 << 30), d.centroid_xy_m[0]),
+    )
+    for i, d in enumerate(defects, start=1):
+        d.id = i
+    return defects
+
+
+def _crack_defects(
+    cfg: DetectionConfig,
+    per_pair: dict[int, PairDefects],
+    traj: Trajectory,
+    pose_of: dict[str, int],
+    mframe: MapFrame,
+    footprints: dict[str, Any],
+    others: list[Defect],
+) -> list[Defect]:
+    """Cracks confirmed per pair, placed in the map and clustered (one crack seen by several
+    pairs is one defect); pieces inside a map defect's outline belong to that defect."""
+    from shapely.geometry import MultiPoint, Polygon
+
+    from detection.cracks import cluster_cracks, crack_evidence
+
+    xy_l, pair_l, piece_l, pieces = [], [], [], []
+    for k, pd in per_pair.items():
+        c = pd.cracks
+        i = pose_of.get(pd.frame_a)
+        if c is None or i is None or not len(c.label):
+            continue
+        T = traj.world_from_cam[i]
+        xy_l.append(mframe.grid_from_enu(c.xyz_cam_m @ T[:3, :3].T + T[:3, 3]))
+        pair_l.append(np.full(len(c.label), k))
+        piece_l.append(c.label + len(pieces))
+        for j in range(len(c.width_m)):
+            pieces.append(
+                (c.width_m[j], c.sum_depth_m[j], c.n_points[j], c.n_below[j], c.var_m2[j],
+                 c.max_depth_m[j])
+            )  # fmt: skip
+    if not xy_l:
+        return []
+    xy = np.vstack(xy_l)
+    pair = np.concatenate(pair_l)
+    piece = np.concatenate(piece_l)
+    pc = np.asarray(pieces, float)
+    lab = cluster_cracks(xy, cfg.crack.link_m)
+    taken = [Polygon(d.outline_xy_m).buffer(0.01) for d in others]
+    out: list[Defect] = []
+    close = cfg.crack.link_m / 2
+    for c in np.unique(lab):
+        sel = lab == c
+        p = xy[sel]
+        ids = np.unique(piece[sel])
+        ok, z = crack_evidence(
+            pc[ids, 1].sum(), int(pc[ids, 2].sum()), int(pc[ids, 3].sum()), pc[ids, 4].sum(),
+            cfg.crack,
+        )  # fmt: skip
+        if not ok or len(p) < 3:
+            continue
+        w = float(np.median(pc[ids, 0]))
+        geom = MultiPoint(p).buffer(max(0.5 * w, 0.003) + close).buffer(-close)
+        if geom.geom_type != "Polygon":
+            geom = max(geom.geoms, key=lambda g: g.area)
+        if any(t.intersects(geom) for t in taken):
+            continue
+        (_, _), (a, b), _ = cv2.minAreaRect((p - p.mean(axis=0)).astype(np.float32))
+        length = float(max(a, b)) + w
+        # Robust max: the median over the pieces of each piece's second-deepest point.
+        dmax = float(np.median(pc[ids, 5]))
+        # Parabolic groove profile (1 - q²): the mean over the width is 2/3 of the centre depth.
+        dmean = dmax * 2.0 / 3.0
+        area = length * w
+        n_pairs = len(np.unique(pair[sel]))
+        conf = (1.0 - math.exp(-z / 6.0)) * (1.0 - 0.5 ** (n_pairs + 1))
+        seen = sorted(fn for fn, fp in footprints.items() if fp.intersects(geom))
+        m = Measured(
+            outline_xy_m=np.asarray(geom.exterior.coords)[:-1],
+            centroid_xy_m=p.mean(axis=0),
+            max_depth_m=dmax,
+            mean_depth_m=dmean,
+            area_m2=area,
+            volume_m3=area * dmean,
+            length_m=length,
+            width_m=w,
+            deep_xy_m=np.zeros((0, 2)),
+        )
+        out.append(
+            Defect(
+                id=0,
+                type="crack",
+                severity=severity("crack", m, cfg.severity),
+                outline_xy_m=m.outline_xy_m,
+                centroid_xy_m=m.centroid_xy_m,
+                max_depth_m=dmax,
+                mean_depth_m=dmean,
+                area_m2=area,
+                volume_m3=m.volume_m3,
+                length_m=length,
+                width_m=w,
+                confidence=float(np.clip(conf, 0.0, 1.0)),
+                frames=seen,
+            )
+        )
+    if out:
+        log.info("detection: %d crack(s) from %d confirmed piece(s)", len(out), len(np.unique(lab)))
+    return out
 
 
 def _depth_points(

@@ -41,6 +41,7 @@ class Trough:
     y1_m: float
     width_m: float
     depth_m: float
+    darker: float = 1.0  # image intensity factor inside (cracks are dark lines)
 
 
 @dataclass
@@ -76,6 +77,16 @@ class Scene:
         for p in self.potholes:
             inside = (x - p.x_m) ** 2 + (y - p.y_m) ** 2 < p.radius_m**2
             g = np.where(inside, g * p.darker, g)
+        for t in self.troughs:
+            if t.darker != 1.0:
+                a = np.array([t.x0_m, t.y0_m])
+                b = np.array([t.x1_m, t.y1_m])
+                L = float(np.linalg.norm(b - a))
+                ux, uy = (b - a) / L
+                s_ = (x - a[0]) * ux + (y - a[1]) * uy
+                n_ = -(x - a[0]) * uy + (y - a[1]) * ux
+                inside = (s_ >= 0) & (s_ <= L) & (np.abs(n_) < 0.5 * t.width_m)
+                g = np.where(inside, g * t.darker, g)
         if self.lane_x_m is not None:
             g = np.where(np.abs(x - self.lane_x_m) < 0.05, 235.0, g)
         if self.shadow_x_m is not None:

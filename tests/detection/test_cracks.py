@@ -1,0 +1,70 @@
+"""Cracks: thin dark lines confirmed by 3D points just below the road (detection.cracks)."""
+
+import numpy as np
+import pytest
+
+from detection import stage
+from detection.config import CrackConfig, DetectionConfig
+from detection.cracks import cluster_cracks, crack_evidence, thin_dark_components
+from tests.detection.synthetic import Pothole, Scene, Trough, build
+
+CFG = DetectionConfig()
+
+
+def _run(tmp_path, scene):
+    drive, pairs, traj = build(scene, tmp_path / "drive")
+    return stage.run(CFG, drive, pairs, traj, tmp_path / "run")
+
+
+def test_crack_is_detected_once_and_typed(tmp_path):
+    crack = Trough(-0.2, 0.7, 0.25, 1.1, 0.012, 0.004, darker=0.45)
+    res = _run(tmp_path, Scene(troughs=[crack], potholes=[Pothole(0.0, 1.8, 0.12, 0.03)]))
+    cracks = [d for d in res.defects if d.type == "crack"]
+    assert len(cracks) == 1, res.table()
+    c = cracks[0]
+    assert c.length_m == pytest.approx(np.hypot(0.45, 0.4), rel=0.3)
+    assert c.width_m < 0.03
+    assert 0.0 < c.max_depth_m < 0.008
+    assert c.severity in ("low", "medium", "high") and c.frames
+    # Cracks shallower than the frame-label depth do not make defect frames by themselves.
+    assert [d.type for d in res.defects].count("pothole") == 1
+
+
+def test_dark_line_without_depth_is_not_a_crack(tmp_path):
+    """A tar seam / painted dark line: same 2D look, no depth -> the 3D test vetoes it."""
+    from roadsurf.drive import read_gray
+
+    seam = Trough(-0.2, 0.7, 0.25, 1.1, 0.012, 0.0, darker=0.45)
+    scene = Scene(troughs=[seam], lane_x_m=-0.35, shadow_x_m=0.3)
+    drive, pairs, traj = build(scene, tmp_path / "drive")
+    # The 2D detector does see the seam: the veto is the 3D test's doing.
+    m_per_px = drive.camera.height_m / drive.camera.fx
+    seen = [thin_dark_components(read_gray(f), m_per_px, CrackConfig())[1] for f in drive.frames]
+    assert any(seen)
+    res = stage.run(CFG, drive, pairs, traj, tmp_path / "run")
+    assert res.defects == []
+
+
+def test_thin_dark_components_keeps_lines_not_blobs():
+    rng = np.random.default_rng(0)
+    g = (120 + rng.normal(0, 6, (200, 300))).clip(0, 255).astype(np.uint8)
+    g[100:102, 40:260] = 50  # a 2 px dark line, 220 px long
+    g[20:45, 20:45] = 50  # a dark blob (pothole-like): too wide for the top-hat / not thin
+    lab, keep, widths = thin_dark_components(g, 0.002, CrackConfig())
+    assert len(keep) == 1
+    ys, xs = np.nonzero(lab == keep[0])
+    assert ys.min() >= 97 and ys.max() <= 104 and xs.max() - xs.min() > 180
+    assert widths[0] < 5
+
+
+def test_pooled_evidence_and_clustering():
+    cfg = CrackConfig()
+    # 20 points 1 mm deep with σ 1 mm: z = 20e-3 / sqrt(20e-6) = 4.5 -> confirmed.
+    assert crack_evidence(0.020, 20, 18, 20 * 1e-6, cfg)[0]
+    # Same points at road level on average: not confirmed.
+    assert not crack_evidence(0.0, 20, 10, 20 * 1e-6, cfg)[0]
+    # Too few points, even if deep.
+    assert not crack_evidence(0.02, 3, 3, 3 * 1e-6, cfg)[0]
+    xy = np.array([[0.0, 0.0], [0.05, 0.0], [0.10, 0.0], [1.0, 1.0]])
+    lab = cluster_cracks(xy, 0.06)
+    assert lab[0] == lab[1] == lab[2] != lab[3]
