@@ -65,6 +65,7 @@ class CrackConfig:
     z_k: float = 3.0  # Σ depth / sqrt(Σ n σ²) >= z_k, σ: each pair's point noise (unitless)
     max_samples: int = 150  # samples per crack piece mapped onto the road (count)
     link_m: float = 0.08  # samples closer than this on the map are one crack (m)
+    join_m: float = 0.2  # confirmed cracks closer than this are joined into one (m)
 
 
 @dataclass(frozen=True)

@@ -393,16 +393,33 @@ def _crack_defects(
     lab = cluster_cracks(xy, cfg.crack.link_m)
     taken = [Polygon(d.outline_xy_m).buffer(0.01) for d in others]
     out: list[Defect] = []
-    close = cfg.crack.link_m / 2
-    for c in np.unique(lab):
-        sel = lab == c
-        p = xy[sel]
+
+    def evidence(sel: np.ndarray) -> tuple[bool, float]:
         ids = np.unique(piece[sel])
-        ok, z = crack_evidence(
+        return crack_evidence(
             pc[ids, 1].sum(), int(pc[ids, 2].sum()), int(pc[ids, 3].sum()), pc[ids, 4].sum(),
             cfg.crack,
         )  # fmt: skip
-        if not ok or len(p) < 3:
+
+    # Confirmed cracks whose samples come within ``join_m`` are one crack (a crack is often
+    # confirmed in pieces where the texture hides its middle from the 2D detector).
+    confirmed = [c for c in np.unique(lab) if evidence(lab == c)[0] and (lab == c).sum() >= 3]
+    if len(confirmed) > 1:
+        keep = np.isin(lab, confirmed)
+        joined = cluster_cracks(xy[keep], cfg.crack.join_m)
+        first = {}
+        for c, j in zip(lab[keep].tolist(), joined.tolist(), strict=True):
+            first.setdefault(j, c)
+        lab = lab.copy()
+        lab[keep] = [first[j] for j in joined.tolist()]
+        confirmed = sorted(set(first.values()))
+    close = cfg.crack.join_m / 2
+    for c in confirmed:
+        sel = lab == c
+        p = xy[sel]
+        ids = np.unique(piece[sel])
+        ok, z = evidence(sel)
+        if not ok:
             continue
         w = float(np.median(pc[ids, 0]))
         geom = MultiPoint(p).buffer(max(0.5 * w, 0.003) + close).buffer(-close)
