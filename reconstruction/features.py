@@ -20,9 +20,13 @@ from roadsurf.io import write_npz_atomic
 
 def _detector(cfg: FeatureConfig, n: int) -> cv2.Feature2D:
     if cfg.kind == "sift":
-        return cv2.SIFT_create(nfeatures=n)
+        return cv2.SIFT_create(
+            nfeatures=n,
+            nOctaveLayers=int(cfg.n_octave_layers),
+            contrastThreshold=float(cfg.contrast_threshold),
+        )
     if cfg.kind == "orb":
-        return cv2.ORB_create(nfeatures=n, fastThreshold=5)
+        return cv2.ORB_create(nfeatures=n if n > 0 else 20_000, fastThreshold=5)
     if cfg.kind == "akaze":
         return cv2.AKAZE_create(threshold=1e-4)  # type: ignore[attr-defined]
     raise ConfigError(f"features.kind={cfg.kind!r}: use sift, orb or akaze")
@@ -57,19 +61,42 @@ def detect(image: np.ndarray, cfg: FeatureConfig) -> Features:
     scale = float(cfg.downscale)
     if cfg.max_detect_megapixels > 0:
         scale = min(scale, float(np.sqrt(cfg.max_detect_megapixels * 1e6 / gray.size)))
+    if scale >= 0.95:  # a few per cent smaller is not worth a resampling blur
+        scale = 1.0
     if 0 < scale < 1:
         gray = cv2.resize(gray, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
-    det = _detector(cfg, 2 * cfg.max_features if cfg.grid_cells > 0 else cfg.max_features)
-    kps, desc = det.detectAndCompute(gray, None)
-    if desc is None or len(kps) == 0:
-        return Features(np.zeros((0, 2), np.float32), np.zeros((0, 128), np.float32), cfg.kind)
-    pts = np.array([k.pt for k in kps], dtype=np.float32)
+    if cfg.clahe_clip > 0:  # even out shadows / dark pothole floors for the detector only
+        tiles = max(1, int(cfg.clahe_tiles))
+        gray = cv2.createCLAHE(cfg.clahe_clip, (tiles, tiles)).apply(gray)
+    pad = max(0, int(cfg.border_pad_px))
+    h0, w0 = gray.shape[:2]
+    if pad:
+        gray = cv2.copyMakeBorder(gray, pad, pad, pad, pad, cv2.BORDER_REFLECT_101)
+    cap = cfg.max_features
+    if cfg.grid_cells > 0:
+        cap = int(round(cfg.candidates_per_feature * cfg.max_features))
+    det = _detector(cfg, cap)
+    # Detect all candidates, keep an even spread, and describe only those: the descriptors,
+    # not the detection, dominate SIFT's cost (~30 us per keypoint).
+    kps = list(det.detect(gray, None) or [])
+    if pad:  # keypoints in the mirrored border are not real
+        kps = [k for k in kps if pad <= k.pt[0] <= pad + w0 - 1 and pad <= k.pt[1] <= pad + h0 - 1]
+    if not kps:
+        return _empty(cfg)
+    pts = np.array([k.pt for k in kps], dtype=np.float32) - pad
     resp = np.array([k.response for k in kps], dtype=np.float32)
-    keep = _spread(pts, resp, gray.shape, cfg)
-    pts, desc = pts[keep], desc[keep]
+    keep = _spread(pts, resp, (h0, w0), cfg)
+    kps, desc = det.compute(gray, [kps[i] for i in keep])
+    if desc is None or len(kps) == 0:
+        return _empty(cfg)
+    pts = np.array([k.pt for k in kps], dtype=np.float32) - pad
     if 0 < scale < 1:
         pts = (pts + 0.5) / scale - 0.5
     return Features(pts.astype(np.float32), desc, cfg.kind)
+
+
+def _empty(cfg: FeatureConfig) -> Features:
+    return Features(np.zeros((0, 2), np.float32), np.zeros((0, 128), np.float32), cfg.kind)
 
 
 def _spread(

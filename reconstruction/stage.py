@@ -10,6 +10,7 @@ A failed pair is a PairResult with status != "ok"; nothing here raises for bad f
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import time
 from collections import Counter
@@ -30,7 +31,17 @@ log = logging.getLogger(__name__)
 
 def _feature_path(run_dir: Path, frame: Frame, cfg: ReconstructionConfig) -> Path:
     f = cfg.features
-    tag = f"{f.kind}{f.max_features}g{f.grid_cells}s{f.downscale:g}m{f.max_detect_megapixels:g}"
+    # every detection setting is in the name, so a changed config never reuses stale features
+    det = (f.grid_cells, f.downscale, f.max_detect_megapixels, f.contrast_threshold)
+    det += (
+        f.n_octave_layers,
+        f.candidates_per_feature,
+        f.clahe_clip,
+        f.clahe_tiles,
+        f.border_pad_px,
+    )
+    digest = hashlib.sha1(repr(det).encode()).hexdigest()[:8]
+    tag = f"{f.kind}{f.max_features}_{digest}"
     return run_dir / "features" / f"{frame.index:06d}_{tag}.npz"
 
 
