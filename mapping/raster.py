@@ -18,11 +18,9 @@ from xml.sax.saxutils import escape
 
 import numpy as np
 
-from roadsurf.formats import GridSpec
+from roadsurf.formats import LOCAL_CRS, GridSpec, geotiff_profile
 from roadsurf.geometry import EnuReference, ExportFrame, enu_from_lla, lla_from_utm
 from roadsurf.io import atomic_path, write_text_atomic
-
-LOCAL_CRS = "LOCAL_ENU"  # grid CRS name without GPS (GeoTIFFs are then written without a CRS)
 
 
 @dataclass(frozen=True)
@@ -207,29 +205,6 @@ def interpolate_to_grid(
 # --------------------------------------------------------------------------- writing
 
 
-def _profile(grid: GridSpec, count: int, dtype: str, nodata: float | None) -> dict[str, Any]:
-    prof: dict[str, Any] = {
-        "driver": "GTiff",
-        "width": grid.width,
-        "height": grid.height,
-        "count": count,
-        "dtype": dtype,
-        "crs": None if grid.crs == LOCAL_CRS else grid.crs,
-        "transform": grid.transform,
-        "compress": "deflate",
-        "tiled": True,
-        "blockxsize": 256,
-        "blockysize": 256,
-        "SPARSE_OK": "TRUE",
-        "BIGTIFF": "IF_SAFER",
-    }
-    if count >= 3 and dtype == "uint8":
-        prof["photometric"] = "RGB"
-    if nodata is not None:
-        prof["nodata"] = nodata
-    return prof
-
-
 class TiledWriter:
     """Writes one raster product (e.g. surface) tile by tile: per-tile GeoTIFFs under
     ``tiles/`` plus, when the bounding grid is small enough, one sparse ``<name>.tif`` written
@@ -258,7 +233,7 @@ class TiledWriter:
         if write_full:
             tmp = self._stack.enter_context(atomic_path(run_dir / f"{name}.tif"))
             self._full = self._stack.enter_context(
-                rasterio.open(tmp, "w", **_profile(lattice.full_grid, count, dtype, nodata))
+                rasterio.open(tmp, "w", **geotiff_profile(lattice.full_grid, count, dtype, nodata))
             )
             if self.tags:
                 self._full.update_tags(**self.tags)
@@ -277,7 +252,7 @@ class TiledWriter:
             grid = self.lat.tile_grid(r, c)
             with atomic_path(self.run_dir / rel) as tmp:
                 with rasterio.open(
-                    tmp, "w", **_profile(grid, self.count, self.dtype, self.nodata)
+                    tmp, "w", **geotiff_profile(grid, self.count, self.dtype, self.nodata)
                 ) as d:
                     d.write(bands)
             self.tile_files.append((r, c, rel))
