@@ -501,7 +501,7 @@ def rasterise_mean(
 
     Returns (float32 (H, W) raster, NaN where no point fell, GridSpec). The GSD is coarsened
     when the bounding grid would exceed ``max_px`` pixels."""
-    from roadsurf.formats import GridSpec
+    from roadsurf.formats import LOCAL_CRS, GridSpec
 
     xy = check_shape("xy", xy, (None, 2))
     lo, hi = xy.min(0), xy.max(0)
@@ -514,7 +514,7 @@ def rasterise_mean(
     y0 = math.ceil(hi[1] / gsd) * gsd
     w = int(math.floor((hi[0] - x0) / gsd)) + 1
     h = int(math.floor((y0 - lo[1]) / gsd)) + 1
-    grid = GridSpec(crs, x0, y0, gsd, w, h)  # type: ignore[arg-type]  # None: local frame
+    grid = GridSpec(crs or LOCAL_CRS, x0, y0, gsd, w, h)
     col = np.clip(((xy[:, 0] - x0) / gsd).astype(np.int64), 0, w - 1)
     row = np.clip(((y0 - xy[:, 1]) / gsd).astype(np.int64), 0, h - 1)
     flat = row * w + col
