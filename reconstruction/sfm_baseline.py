@@ -532,7 +532,8 @@ def rasterise_mean(
 def _interp_gps_enu(drive: Drive, times: np.ndarray, ref: EnuReference, max_gap_s: float):
     """GPS ENU (N, 3) at ``times`` (linear between fixes); NaN rows where no fix is near."""
     g = drive.gps
-    assert g is not None  # noqa: S101 - caller checked
+    if g is None:
+        raise ValueError(f"{drive.root}: no GPS log to align the SfM model to")
     alt = np.where(np.isfinite(g.alt_m), g.alt_m, ref.alt_m)
     enu = enu_from_lla(g.lat_deg, g.lon_deg, alt, ref)
     out = np.column_stack([np.interp(times, g.timestamp_s, enu[:, k]) for k in range(3)])
