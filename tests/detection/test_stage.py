@@ -234,3 +234,30 @@ def test_map_points_fallback_when_no_raster(tmp_path):
     assert len(res.defects) == 1
     assert res.defects[0].max_depth_m == pytest.approx(0.035, abs=0.004)
     assert res.defects[0].area_m2 == pytest.approx(np.pi * 0.12**2, rel=0.2)
+
+
+def test_max_depth_from_pairs_not_the_pose_smeared_map(tmp_path):
+    """A trajectory error smears the fused map's copy of a pothole (two copies 6 cm apart,
+    averaged: 26 mm instead of 35 mm deep); each pair still sees it in its own frame, and the
+    max depth is measured there."""
+    from roadsurf.io import write_npz_atomic
+
+    scene = Scene(potholes=[Pothole(0.0, 1.2, 0.12, 0.035)])
+    drive, pairs, traj = build(scene, tmp_path / "drive")
+    rng = np.random.default_rng(7)
+    xy = np.column_stack([rng.uniform(-0.5, 0.5, 40000), rng.uniform(-0.4, 2.4, 40000)])
+    smeared = 0.5 * (
+        scene.depth(xy[:, 0] - 0.06, xy[:, 1]) + scene.depth(xy[:, 0] + 0.06, xy[:, 1])
+    )
+    res_m = -smeared + rng.normal(0, 0.0007, len(xy))
+    run_dir = tmp_path / "run"
+    write_npz_atomic(
+        run_dir / "map_points.npz",
+        xyz=np.column_stack([xy, res_m]),
+        rgb=np.zeros((len(xy), 3), np.uint8),
+        residual_m=res_m,
+        frame_index=np.zeros(len(xy), int),
+    )
+    res = stage.run(CFG, drive, pairs, traj, run_dir)
+    assert len(res.defects) == 1
+    assert res.defects[0].max_depth_m == pytest.approx(0.035, abs=0.003)
