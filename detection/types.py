@@ -74,12 +74,12 @@ class DetectionResult:
 
     def table(self) -> str:
         """Short text table of the defects (the CLI prints it)."""
-        head = f"{'id':>3} {'type':8} {'sev':6} {'depth mm':>9} {'area m2':>8} {'L x W m':>11} {'conf':>5}"
+        head = f"{'id':>3} {'type':8} {'sev':6} {'depth mm':>9} {'area m2':>8} {'L x W mm':>11} {'conf':>5}"
         lines = [head]
         for d in self.defects:
             lines.append(
                 f"{d.id:>3} {d.type:8} {d.severity:6} {1000 * d.max_depth_m:9.1f} "
-                f"{d.area_m2:8.3f} {d.length_m:5.2f}x{d.width_m:<5.2f} {d.confidence:5.2f}"
+                f"{d.area_m2:8.3f} {1000 * d.length_m:5.0f}x{1000 * d.width_m:<5.0f} {d.confidence:5.2f}"
             )
         n_def = sum(f.defect for f in self.frames)
         lines.append(
