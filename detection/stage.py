@@ -80,7 +80,10 @@ def run(
     deep_xy: list[np.ndarray] = []
     if surface is not None:
         ev_xy = mframe.grid_from_enu(ev_enu) if len(ev_enu) else np.zeros((0, 2))
-        pts = _depth_points(run_dir, pairs, per_pair, traj, pose_of, mframe)
+        if isinstance(surface, PointsSource):  # already read by load_surface
+            pts = (surface.xy, surface.residual, surface.source)
+        else:
+            pts = _depth_points(run_dir, pairs, per_pair, traj, pose_of, mframe)
         seeds_xy = ev_xy
         if not per_pair and pts is not None:
             # No pairs: windows around the deep map points (no per-pair evidence to seed them).
@@ -96,7 +99,12 @@ def run(
         noise, seed = seg.noise_m, seg.seed_m
         pair_pts = _pair_points(pairs, per_pair, traj, pose_of, mframe)
         defects, deep_xy = _measure_regions(
-            cfg, seg, footprints, bool(per_pair), pts, pair_pts=pair_pts
+            cfg,
+            seg,
+            footprints,
+            bool(per_pair),
+            None if pts is None else pts[:2],
+            pair_pts=pair_pts,
         )
         cracks = _crack_defects(cfg, per_pair, traj, pose_of, mframe, footprints, defects)
         if cracks:
@@ -222,30 +230,12 @@ def load_surface(
             mframe = MapFrame.create(traj.reference, src.grid.crs if traj.reference else None)
             return src, mframe
     mframe = MapFrame.create(traj.reference)
-    gsd = cfg.map.fallback_gsd_m
-    mp = run_dir / "map_points.npz"
-    if mp.exists():
-        with np.load(mp, allow_pickle=False) as z:
-            xyz = np.asarray(z["xyz"], float)
-            resid = np.asarray(z["residual_m"], float)
-        if len(xyz):
-            xy = mframe.grid_from_enu(xyz)
-            return PointsSource(
-                xy, resid, choose_gsd(xy, gsd), mframe.crs, "map_points.npz"
-            ), mframe
-    xyz_l, res_l = [], []
-    for k, pd in per_pair.items():
-        i = pose_of.get(pd.frame_a)
-        if i is None:
-            continue
-        T = traj.world_from_cam[i]
-        P = np.asarray(pairs[k].points_cam_a_m, float)
-        xyz_l.append(P @ T[:3, :3].T + T[:3, 3])
-        res_l.append(pd.dist_m)
-    if not xyz_l:
+    pts = _depth_points(run_dir, pairs, per_pair, traj, pose_of, mframe)
+    if pts is None:
         return None, mframe
-    xy = mframe.grid_from_enu(np.vstack(xyz_l))
-    return PointsSource(xy, np.concatenate(res_l), choose_gsd(xy, gsd), mframe.crs, "pairs"), mframe
+    xy, resid, name = pts
+    gsd = choose_gsd(xy, cfg.map.fallback_gsd_m)
+    return PointsSource(xy, resid, gsd, mframe.crs, name), mframe
 
 
 def _footprints(drive: Drive, traj: Trajectory, mframe: MapFrame) -> dict[str, Any]:
@@ -491,16 +481,16 @@ def _depth_points(
     traj: Trajectory,
     pose_of: dict[str, int],
     mframe: MapFrame,
-) -> tuple[np.ndarray, np.ndarray] | None:
-    """The 3D points with their residual (m, negative below) in the grid frame: the fused map
-    points (RUN/map_points.npz) when mapping wrote them, else every pair's points."""
+) -> tuple[np.ndarray, np.ndarray, str] | None:
+    """The 3D points with their residual (m, negative below) in the grid frame, and where they
+    came from: the fused map points (RUN/map_points.npz) when mapping wrote them, else every
+    pair's points ("pairs")."""
     mp = run_dir / "map_points.npz"
     if mp.exists():
         with np.load(mp, allow_pickle=False) as z:
             if len(z["xyz"]):
-                return mframe.grid_from_enu(np.asarray(z["xyz"], float)), np.asarray(
-                    z["residual_m"], float
-                )
+                xy = mframe.grid_from_enu(np.asarray(z["xyz"], float))
+                return xy, np.asarray(z["residual_m"], float), "map_points.npz"
     xyz_l, res_l = [], []
     for k, pd in per_pair.items():
         i = pose_of.get(pd.frame_a)
@@ -511,7 +501,7 @@ def _depth_points(
         res_l.append(pd.dist_m)
     if not xyz_l:
         return None
-    return mframe.grid_from_enu(np.vstack(xyz_l)), np.concatenate(res_l)
+    return mframe.grid_from_enu(np.vstack(xyz_l)), np.concatenate(res_l), "pairs"
 
 
 def point_max_depth(poly: Any, xy: np.ndarray, residual: np.ndarray, mc: Any) -> float | None:
