@@ -214,21 +214,13 @@ def test_pair_level_frame_decision(tmp_path):
 
 def test_map_points_fallback_when_no_raster(tmp_path):
     """Without surface.tif the stage rasterises RUN/map_points.npz (mapping's fused points)."""
-    from roadsurf.io import write_npz_atomic
-
     scene = Scene(potholes=[Pothole(0.0, 1.2, 0.12, 0.035)], shadow_x_m=0.2)
     drive, pairs, traj = build(scene, tmp_path / "drive")
     rng = np.random.default_rng(5)
     xy = np.column_stack([rng.uniform(-0.5, 0.5, 40000), rng.uniform(-0.4, 2.4, 40000)])
     res_m = -scene.depth(xy[:, 0], xy[:, 1]) + rng.normal(0, 0.0007, len(xy))
     run_dir = tmp_path / "run"
-    write_npz_atomic(
-        run_dir / "map_points.npz",
-        xyz=np.column_stack([xy, res_m]),
-        rgb=np.zeros((len(xy), 3), np.uint8),
-        residual_m=res_m,
-        frame_index=np.zeros(len(xy), int),
-    )
+    _write_map_points(run_dir, xy, res_m)
     res = stage.run(CFG, drive, pairs, traj, run_dir)
     assert res.surface_source == "map_points.npz"
     assert len(res.defects) == 1
@@ -240,8 +232,6 @@ def test_max_depth_from_pairs_not_the_pose_smeared_map(tmp_path):
     """A trajectory error smears the fused map's copy of a pothole (two copies 6 cm apart,
     averaged: 26 mm instead of 35 mm deep); each pair still sees it in its own frame, and the
     max depth is measured there."""
-    from roadsurf.io import write_npz_atomic
-
     scene = Scene(potholes=[Pothole(0.0, 1.2, 0.12, 0.035)])
     drive, pairs, traj = build(scene, tmp_path / "drive")
     rng = np.random.default_rng(7)
@@ -251,6 +241,16 @@ def test_max_depth_from_pairs_not_the_pose_smeared_map(tmp_path):
     )
     res_m = -smeared + rng.normal(0, 0.0007, len(xy))
     run_dir = tmp_path / "run"
+    _write_map_points(run_dir, xy, res_m)
+    res = stage.run(CFG, drive, pairs, traj, run_dir)
+    assert len(res.defects) == 1
+    assert res.defects[0].max_depth_m == pytest.approx(0.035, abs=0.003)
+
+
+def _write_map_points(run_dir, xy, res_m):
+    """RUN/map_points.npz as mapping writes it (grid-frame xy == ENU here, z = residual)."""
+    from roadsurf.io import write_npz_atomic
+
     write_npz_atomic(
         run_dir / "map_points.npz",
         xyz=np.column_stack([xy, res_m]),
@@ -258,6 +258,3 @@ def test_max_depth_from_pairs_not_the_pose_smeared_map(tmp_path):
         residual_m=res_m,
         frame_index=np.zeros(len(xy), int),
     )
-    res = stage.run(CFG, drive, pairs, traj, run_dir)
-    assert len(res.defects) == 1
-    assert res.defects[0].max_depth_m == pytest.approx(0.035, abs=0.003)
