@@ -124,3 +124,32 @@ def test_bound_matches_known_pose_monte_carlo(delta_m: float) -> None:
         )
         eps.append(np.mean(np.abs(pp.h_measured_m * ratio_to_plane(X) - pp.d_true_m)))
     assert abs(np.mean(eps) / bound - 1) < 0.05
+
+
+def test_rotation_aware_prior_keeps_genuine_matches_under_vibration() -> None:
+    """θ = (5°, 5°, 5°) spreads the plane's displacement field over the image; the constant
+    window of eq. 4.7 (R ≈ I) dropped genuine edge matches there, the affine one keeps them."""
+    scene = PointScene(theta_deg=(5.0, 5.0, 5.0))
+    dropped_constant = 0
+    for seed in range(6):
+        pp = simulate_points(scene, seed)
+        res = estimate_matches(pp.px_a, pp.px_b, pp.K, pp.h_measured_m, ReconstructionConfig())
+        assert res.ok, res.reason
+        assert res.n_prior_inliers == res.n_matches, (seed, res.n_prior_inliers)
+        dropped_constant += int(
+            (~motion_prior_mask(pp.px_a, pp.px_b, ReconstructionConfig())).sum()
+        )
+    assert dropped_constant > 0  # the scene does exercise the R ≈ I window (proposed keeps it)
+
+
+@pytest.mark.parametrize("theta", [(0.0, 0.0, 0.0), (5.0, 5.0, 5.0)])
+def test_affine_prior_still_rejects_mismatches(theta: tuple[float, float, float]) -> None:
+    pp = simulate_points(PointScene(n_points=300, sigma_px=0.2, theta_deg=theta), 2)
+    rng = np.random.default_rng(3)
+    bad = rng.choice(300, 60, replace=False)
+    px_b = pp.px_b.copy()
+    px_b[bad] = rng.uniform([0, 0], [1024, 768], (60, 2))
+    truly_bad = bad[np.linalg.norm(px_b[bad] - pp.px_b[bad], axis=1) > 30]
+    keep = motion_prior_mask(pp.px_a, px_b, ReconstructionConfig(), affine=True)
+    assert keep[np.setdiff1d(np.arange(300), bad)].all()
+    assert (~keep[truly_bad]).mean() > 0.95
