@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import logging
+import math
 import time
 from pathlib import Path
 from typing import Any
@@ -23,6 +24,7 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
+from detection.classifier import augment
 from detection.classifier.config import CLASS_NAMES, ClassifierConfig
 from detection.classifier.dataset import Dataset, load_dataset
 from detection.classifier.modelfile import save_model
@@ -127,7 +129,9 @@ def make_scheduler(
             if epoch < warm:
                 return (epoch + 1) / (warm + 1)
             t = min(1.0, (epoch - warm) / max(1, total - warm))
-            return 0.01 + 0.99 * 0.5 * (1.0 + np.cos(np.pi * t))
+            # a Python float: a numpy scalar would end up in the optimiser state and make the
+            # checkpoint unreadable with torch.load(weights_only=True), i.e. no resume
+            return float(0.01 + 0.99 * 0.5 * (1.0 + math.cos(math.pi * t)))
 
         return torch.optim.lr_scheduler.LambdaLR(optim, factor)
     raise RoadsurfError(
@@ -229,10 +233,12 @@ def train_steps(
     weights: torch.Tensor | None = None,
     class_weight: torch.Tensor | None = None,
     dihedral: bool = True,
+    photometric: float = 0.0,
 ) -> float:
     """Run ``steps`` optimiser steps on uint8 ``images`` (N, S, S); returns the mean loss.
 
-    ``weights`` (N,) are sampling weights (balanced sampling), else uniform.
+    ``weights`` (N,) are sampling weights (balanced sampling), else uniform. ``photometric`` is
+    the strength of the random lighting/camera changes (``augment.photometric``; 0 = none).
     """
     net.train()
     device = next(net.parameters()).device
@@ -249,6 +255,8 @@ def train_steps(
         xb = images[idx].unsqueeze(1)
         if dihedral:
             xb = _random_dihedral(xb, gen)
+        if photometric > 0:
+            xb = augment.photometric(xb, gen, photometric)
         xb, yb = xb.to(device), labels[idx].to(device)
         optim.zero_grad(set_to_none=True)
         loss = loss_fn(net(xb), yb)
@@ -324,7 +332,16 @@ def train(
         gen = torch.Generator().manual_seed(cfg.seed * 1000 + epoch)
         torch.manual_seed(cfg.seed * 1000 + epoch)  # dropout masks
         loss = train_steps(
-            net, x_tr, y_tr, optim, steps, cfg.batch_size, gen, weights, class_weight
+            net,
+            x_tr,
+            y_tr,
+            optim,
+            steps,
+            cfg.batch_size,
+            gen,
+            weights,
+            class_weight,
+            photometric=cfg.photometric_strength,
         )
         sched.step()
         p_val = predict(net, ds.images[va], device) if len(va) else np.zeros(0)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import numpy as np
@@ -66,5 +67,12 @@ def test_cosine_schedule_warms_up_then_decays() -> None:
     assert lrs[0] < lrs[1] < lrs[2] == pytest.approx(1e-3)
     assert all(a >= b for a, b in zip(lrs[2:], lrs[3:], strict=False))
     assert lrs[-1] < 0.1e-3
+    # the schedule's state must survive the checkpoint (resume loads it with weights_only=True;
+    # a numpy scalar learning rate made every cosine checkpoint unreadable)
+    buf = io.BytesIO()
+    torch.save({"optim": opt.state_dict(), "sched": sched.state_dict()}, buf)
+    buf.seek(0)
+    back = torch.load(buf, weights_only=True)
+    assert back["optim"]["param_groups"][0]["lr"] == pytest.approx(opt.param_groups[0]["lr"])
     with pytest.raises(RoadsurfError, match="lr_schedule"):
         make_scheduler(opt, ClassifierConfig(lr_schedule="step"))
