@@ -8,10 +8,12 @@ flipped. Images are square greyscale uint8 thumbnails; ``bbox`` is the defect's 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import cv2
 import numpy as np
+import torch
 
 Bbox = tuple[float, float, float, float]
 Transform = Callable[[np.ndarray, Bbox | None], np.ndarray]
@@ -107,3 +109,51 @@ def augment_image(
         name = f"{pool[a][0]}+{pool[b][0]}"
         out.append((name, pool[b][1](pool[a][1](img, bbox), None)))
     return out
+
+
+# ---------------------------------------------------------------- photometric (on-line, torch)
+def photometric(x: torch.Tensor, gen: torch.Generator, strength: float = 1.0) -> torch.Tensor:
+    """Random camera/lighting changes of a grey batch (N, 1, S, S), 0-255 -> float 0-255.
+
+    Unseen drives differ in exposure, gamma/tone curve, contrast, sensor noise, blur and smooth
+    illumination gradients (sun, clouds, vignetting), and may be 8-bit greyscale from a dark
+    exposure (coarse grey levels). Each image gets its own random draw, so the CNN learns the
+    defect's shape and shading rather than one camera's rendering. ``strength`` scales every
+    range (0 = identity). Geometric changes are elsewhere (``augment_image``, dihedral turns).
+    """
+    if strength <= 0:
+        return x.float()
+    n, _, s, _ = x.shape
+    x = x.float() / 255.0
+
+    def u(lo: float, hi: float) -> torch.Tensor:  # one value per image, shape (N, 1, 1, 1)
+        return lo + (hi - lo) * torch.rand((n, 1, 1, 1), generator=gen)
+
+    k = float(strength)
+    # smooth illumination: a random linear ramp (cloud edge, vignetting, sun falloff)
+    ang = u(0.0, 2 * math.pi)
+    yy, xx = torch.meshgrid(torch.linspace(-1, 1, s), torch.linspace(-1, 1, s), indexing="ij")
+    ramp = torch.cos(ang) * xx + torch.sin(ang) * yy
+    x = x * (1.0 + u(-0.25 * k, 0.25 * k) * ramp)
+    # tone curve (gamma) and exposure gain, clipped like a real sensor
+    x = x.clamp(0, 1) ** torch.exp(u(-0.5 * k, 0.5 * k))
+    x = (x * torch.exp(u(-0.6 * k, 0.4 * k))).clamp(0, 1)
+    # contrast about the image mean (flat ambient light vs hard sun)
+    m = x.mean(dim=(2, 3), keepdim=True)
+    x = (m + (x - m) * torch.exp(u(-0.5 * k, 0.3 * k))).clamp(0, 1)
+    # blur (defocus, motion) for about a third of the images: a 3x3 binomial kernel, mixed in
+    blur_w = (torch.rand((n, 1, 1, 1), generator=gen) < 0.35).float() * u(0.0, 1.0)
+    ker = torch.tensor([1.0, 2.0, 1.0])
+    ker = (ker[:, None] * ker[None, :] / 16.0).view(1, 1, 3, 3)
+    xb = torch.nn.functional.conv2d(torch.nn.functional.pad(x, (1, 1, 1, 1), "replicate"), ker)
+    x = x + blur_w * (xb - x)
+    # sensor noise
+    x = x + torch.randn(x.shape, generator=gen) * u(0.0, 0.02 * k)
+    # coarse grey levels (dark 8-bit exposure brightened later) for about a quarter of them
+    levels = torch.where(
+        torch.rand((n, 1, 1, 1), generator=gen) < 0.25,
+        u(24.0, 96.0),
+        torch.full((n, 1, 1, 1), 255.0),
+    )
+    x = torch.round(x.clamp(0, 1) * levels) / levels
+    return x * 255.0

@@ -59,6 +59,10 @@ class ClassifierConfig:
     augment_max_copies: int = 12  # at most this many augmented copies per defect image (1)
     augment_target_ratio: float = 1.0  # aim for defect:non-defect this close to 1:1 (1)
     rescale_range: tuple[float, float] = (0.8, 1.25)  # zoom factor range for rescaling (1)
+    # on-line photometric augmentation of every training batch (exposure, gamma, contrast, blur,
+    # sensor noise, coarse grey levels, illumination ramps), so unseen cameras and lighting are in
+    # distribution; scales every range, 0 = off (1)
+    photometric_strength: float = 1.0
 
     # --- screening and fusion (Fig. 5.6) ---
     fusion_threshold: float = 0.95  # the CNN decision stands when max(p) >= this (1)

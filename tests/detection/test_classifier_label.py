@@ -96,6 +96,28 @@ def test_augmentations_move_rotate_and_flip_the_defect() -> None:
     assert augment.copies_needed(0, 50, 1.0, 12) == 0
 
 
+def test_photometric_augmentation_varies_lighting_but_keeps_the_image() -> None:
+    import torch
+
+    rng = np.random.default_rng(3)
+    x = torch.from_numpy(np.stack([_blob() for _ in range(64)]) + rng.integers(0, 3, (64, 64, 64)))
+    x = x.to(torch.uint8).unsqueeze(1)
+    same = augment.photometric(x, torch.Generator().manual_seed(0), 0.0)
+    assert torch.equal(same, x.float())  # strength 0 is the identity
+    a = augment.photometric(x, torch.Generator().manual_seed(1))
+    b = augment.photometric(x, torch.Generator().manual_seed(1))
+    assert torch.equal(a, b) and a.shape == x.shape  # seeded
+    assert float(a.min()) >= 0.0 and float(a.max()) <= 255.0
+    # every image gets its own exposure / tone: the batch's brightness spreads out
+    means = a.mean(dim=(1, 2, 3))
+    assert float(means.std()) > 5.0 > float(x.float().mean(dim=(1, 2, 3)).std())
+    # the defect (dark blob) stays darker than the road in (nearly) every image
+    core = a[:, 0, 36:44, 16:24].mean(dim=(1, 2))
+    road = a[:, 0, 5:15, 45:60].mean(dim=(1, 2))
+    assert float((core < road).float().mean()) >= 0.95
+    assert ClassifierConfig().photometric_strength > 0  # on by default for training
+
+
 def _pair(i: int, depth_m: float, n_deep: int, rng: np.random.Generator) -> PairResult:
     """Road points at 1 m (camera z down) plus n_deep points depth_m below, in a 10 cm patch."""
     road = np.column_stack([rng.uniform(-0.5, 0.5, 300), rng.uniform(-0.4, 0.4, 300)])
