@@ -8,9 +8,13 @@ CNN calls "defect" are reconstructed as well, because a defect must be measured:
 Beyond the dissertation, ``context_frames`` (default 1) uses the drive's temporal context:
 consecutive frames overlap, so a defect the CNN sees in frame i usually enters the view in
 frame i-1 or leaves it in i+1, where only a sliver shows and the CNN tends to call the frame
-clear with confidence. A frame within ``context_frames`` of a frame that needs 3D (unsure or
-defect) is therefore reconstructed too and its 3D result decides (source ``3d``).
-``context_frames=0`` is the dissertation's per-frame rule.
+clear with confidence. A frame within ``context_frames`` of a frame the CNN leans "defect" on
+(p_defect >= 0.5, sure or not, or no CNN probability) is therefore reconstructed too and its 3D
+result decides (source ``3d``). Frames the CNN is merely unsure about but leans "clear" on get
+3D themselves but do not pull in their neighbours: on a long drive those are scattered over
+plain road, where neighbours would double the cost without a defect to catch (round 3; round 2
+took the neighbours of every frame that needed 3D). ``context_frames=0`` is the dissertation's
+per-frame rule.
 """
 
 from __future__ import annotations
@@ -76,6 +80,11 @@ def fuse(
     return FusedDecision(bool(defect_3d), p, "3d")
 
 
+def leans_defect(p_defect: float | None) -> bool:
+    """CNN says "defect" (p >= 0.5, confident or not), or there is no CNN probability."""
+    return p_defect is None or p_defect != p_defect or p_defect >= 0.5
+
+
 def frames_needing_3d(
     frame_probs: Mapping[str, float],
     filenames: Sequence[str],
@@ -83,11 +92,13 @@ def frames_needing_3d(
     context_frames: int = CONTEXT_FRAMES,
 ) -> list[bool]:
     """Per frame (capture order): must the physics pipeline see it? Unsure or defect frames,
-    frames without a CNN probability, and their neighbours within ``context_frames``."""
+    frames without a CNN probability, and the neighbours within ``context_frames`` of frames
+    the CNN leans "defect" on (``leans_defect``)."""
     flags = [needs_3d(frame_probs.get(fn), threshold) for fn in filenames]
+    lean = [leans_defect(frame_probs.get(fn)) for fn in filenames]
     k = max(0, int(context_frames))
     n = len(flags)
-    return [any(flags[max(0, i - k) : min(n, i + k + 1)]) for i in range(n)]
+    return [flags[i] or any(lean[max(0, i - k) : min(n, i + k + 1)]) for i in range(n)]
 
 
 def fuse_frames(
@@ -127,7 +138,7 @@ def pairs_to_reconstruct(
     A frame that needs 3D gets both its pairs, (i-1, i) and (i, i+1), so one failed pair (e.g.
     too little overlap) does not leave it without 3D; a run of k such frames costs k+1 pairs.
     A frame without a CNN probability is always reconstructed, and so are the neighbours
-    (``context_frames``) of frames that need 3D.
+    (``context_frames``) of frames the CNN leans "defect" on.
     """
     n = len(filenames)
     out: set[tuple[int, int]] = set()

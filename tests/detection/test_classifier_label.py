@@ -58,6 +58,17 @@ def test_fuse_frames_and_pairs_to_reconstruct() -> None:
     fused = fuse_frames(probs, d3, names, 0.95, context_frames=1)
     assert [fused[n].source for n in names] == ["cnn", "3d", "3d", "cnn", "3d", "fused"]
     assert [fused[n].defect for n in names] == [False, True, True, False, True, True]
+    # a frame the CNN is unsure about but leans "clear" on (p < 0.5) gets 3D itself, but its
+    # neighbours are not pulled in: on plain road they would double the cost for nothing
+    probs_u = {**probs, "b": 0.3}
+    assert pairs_to_reconstruct(probs_u, names, 0.95, context_frames=1) == {
+        (0, 1),
+        (1, 2),
+        (3, 4),
+        (4, 5),
+    }
+    fused = fuse_frames(probs_u, d3, names, 0.95, context_frames=1)
+    assert [fused[n].source for n in names] == ["cnn", "3d", "cnn", "cnn", "3d", "fused"]
     # a frame the CNN could not read is reconstructed
     assert (0, 1) in pairs_to_reconstruct({}, names, 0.95)
     assert all(d.source == "3d" for d in fuse_frames(None, d3, names).values())
