@@ -52,7 +52,8 @@ class MappingConfig:
     gsd_m: float = 0.005  # ground sampling distance of surface.tif / mosaic.tif (m)
     tile_px: int = 1024  # raster tile side (px); tiles exist only where the corridor passes
     tiled_vrt_min_tiles: int = 2  # write per-tile files + VRT index when the grid has >= this
-    mosaic_border_px: int = 8  # image border ignored when projecting frames (px)
+    mosaic_border_px: int = 0  # image border ignored when projecting frames (px); edge pixels
+    # are sampled with edge replication, and the feathering already down-weights them
     feather_px: int = 40  # feathering ramp width at image edges for mosaic blending (px)
     max_raster_px: int = 20_000_000_000  # bounding grid above this (px): tiles + VRT only
     preview_max_px: int = 2000  # longest side of the PNG previews (px)
@@ -69,4 +70,16 @@ class MappingConfig:
         2  # interpolate/smooth the surface on a grid this much coarser (px)
     )
     surface_edge_factor: float = 4.0  # ... nor wider than this × the median point spacing (−)
+    # extend the surface from its measured points by at most this distance (m), only inside the
+    # part of the road seen by BOTH frames of an ok pair (projected with the fused poses); the
+    # filled height is the local road fit plus a Gaussian-weighted mean of the nearby measured
+    # residuals (σ = half this), like GDAL fillnodata with a max distance: it continues the
+    # measured surface and cannot create a depression; 0 = off. Half of surface_max_edge_m: a
+    # gap the interpolation would bridge with points on both sides, with points on one side
+    surface_fill_max_m: float = 0.05
+    # ... and only where the measured surface around is road: its residual within
+    # max(surface_detail_sigmas × point noise, this) (m); deeper relief (a defect running off
+    # the measured part) is not extrapolated. The floor keeps road texture (mm) from blocking
+    # the fill when the points are nearly noise-free
+    surface_fill_relief_min_m: float = 0.002
     colour_from_images: bool = True  # sample point colours from image a at px_a

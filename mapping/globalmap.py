@@ -7,8 +7,9 @@
 3. ``residual_m`` = signed height above a locally fitted road surface (``mapping.surface``;
    continuous, robust to defects), negative below.
 4. Rasters on ONE grid (export CRS, GSD ``gsd_m``), only on tiles of a global lattice that the
-   corridor passes: the residual surface (Delaunay interpolation of the fused points, holes where
-   there are none) and an RGB orthomosaic made by projecting every posed frame onto the fitted
+   corridor passes: the residual surface (Delaunay interpolation of the fused points, extended
+   by at most ``surface_fill_max_m`` within the part seen by both frames of an ok pair, holes
+   elsewhere; NaN outside that two-view part) and an RGB orthomosaic made by projecting every posed frame onto the fitted
    surface (``cv2.remap``) and blending with feathered weights, so seams do not show. Tiles are
    processed one at a time (memory grows with the tile size, not with the drive), written to
    ``tiles/`` + ``surface.vrt``/``mosaic.vrt``, and window by window into sparse
@@ -24,6 +25,7 @@ import logging
 import math
 import time
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -34,7 +36,14 @@ from tqdm import tqdm
 
 from mapping.config import MappingConfig
 from mapping.export import export_xyz, write_cloud_ply
-from mapping.raster import LOCAL_CRS, GridToEnu, TiledWriter, corridor_tiles, interpolate_to_grid
+from mapping.raster import (
+    LOCAL_CRS,
+    GridToEnu,
+    TiledWriter,
+    corridor_tiles,
+    fill_nodata_capped,
+    interpolate_to_grid,
+)
 from mapping.surface import LocalSurface
 from mapping.types import Trajectory
 from roadsurf.config import to_dict
@@ -184,7 +193,13 @@ def build_map(
 
     # ---------------------------------------------------------------- 4 rasters
     t3 = time.perf_counter()
-    _rasters(cfg, drive, traj, surf, xyz, resid, prod, frames_by_index)
+    # pose indices of the ok pairs: the surface exists only where both frames of one saw the road
+    pair_frames = [
+        (pose_of[p.frame_a], pose_of[p.frame_b])
+        for p in pairs
+        if p.ok and p.n_points > 0 and p.frame_a in pose_of and p.frame_b in pose_of
+    ]
+    _rasters(cfg, drive, traj, surf, xyz, resid, prod, frames_by_index, pair_frames)
     prod.timings_s["rasters"] = round(time.perf_counter() - t3, 3)
     prod.timings_s["total"] = round(time.perf_counter() - t0, 3)
     return prod
@@ -392,6 +407,7 @@ def _rasters(
     resid: np.ndarray,
     prod: MapProducts,
     frames_by_index: dict[int, Frame],
+    pair_frames: list[tuple[int, int]] | None = None,
 ) -> None:
     cam = drive.camera
     ef = traj.export_frame
@@ -458,7 +474,7 @@ def _rasters(
     )
     level = max(0, int(math.floor(math.log2(max(cfg.gsd_m / max(native, 1e-9), 1.0)))))
     # points per tile (with a margin so interpolation is continuous across tile borders)
-    margin = cfg.surface_max_edge_m
+    margin = cfg.surface_max_edge_m + _surface_pad_m(cfg)
     # robust per-point height noise (MAD of all residuals; defects are a small minority)
     noise_m = float(1.4826 * np.median(np.abs(resid))) if len(resid) else 0.0
     prod.residual_stats_m["noise_mad_m"] = noise_m
@@ -481,10 +497,15 @@ def _rasters(
         prev = _Previews(fg, cfg.preview_max_px)
         cache = _ImageCache()
         frame_list = [frames_by_index.get(int(k)) for k in traj.frame_indices]
+        pf = list(pair_frames or [])
+
+        def two_view(g: GridSpec) -> np.ndarray:
+            return _two_view_mask(cam, traj, surf, g2e, g, pf, fp_grid, road_z)
+
         for t in tqdm(tiles, desc="rasters", unit="tile", leave=False):
             grid = lat.tile_grid(*t)
             sel = _points_in(pts_grid, grid, margin)
-            res_t = _surface_tile(cfg, pts_grid[sel], resid[sel], grid, noise_m)
+            res_t = _surface_tile(cfg, pts_grid[sel], resid[sel], grid, noise_m, two_view)
             mos_t, wsum = _mosaic_tile(
                 cfg,
                 cam,
@@ -502,7 +523,8 @@ def _rasters(
                 cache,
                 level,
             )
-            res_t[wsum <= 0] = np.nan  # only the imaged corridor
+            # only the part of the corridor seen by both frames of an ok pair (two-view depth)
+            res_t[~two_view(grid)] = np.nan
             has_s = bool(np.isfinite(res_t).any())
             has_m = bool((wsum > 0).any())
             if not (has_s or has_m):
@@ -552,8 +574,20 @@ def _masked_gauss(r: np.ndarray, m: np.ndarray, sig_px: float) -> np.ndarray:
         return np.where(m & (den > 1e-3), num / den, np.nan).astype(np.float32)
 
 
+def _surface_pad_m(cfg: MappingConfig) -> float:
+    """Context (m) the surface of a tile needs around it: the coarse smoothing kernel (3σ) and
+    the capped fill (its reach plus its kernel), so tile borders stay seamless."""
+    fill = max(cfg.surface_fill_max_m, 0.0)
+    return max(3 * max(cfg.surface_smooth_flat_m, cfg.surface_smooth_m), 2.5 * fill)
+
+
 def _surface_tile(
-    cfg: MappingConfig, xy: np.ndarray, resid: np.ndarray, grid: GridSpec, noise_m: float
+    cfg: MappingConfig,
+    xy: np.ndarray,
+    resid: np.ndarray,
+    grid: GridSpec,
+    noise_m: float,
+    fill_mask: Callable[[GridSpec], np.ndarray] | None = None,
 ) -> np.ndarray:
     """Residual raster of one tile: Delaunay interpolation of the fused points on a padded grid,
     then masked (normalised) Gaussian smoothing that never spreads values into holes. Where the
@@ -561,7 +595,10 @@ def _surface_tile(
     the point noise and the fine one is within the noise of the road, the coarse one is used
     (flat road: noise averaged); in relief (defect edges and bottoms) a lightly smoothed version
     (σ = surface_smooth_defect_m) keeps the depth, with a soft transition. The padding
-    keeps tile borders seamless."""
+    keeps tile borders seamless. With ``fill_mask`` (GridSpec -> (H, W) bool: where the road
+    was seen by both frames of an ok pair), holes within ``surface_fill_max_m`` of the smoothed
+    surface and inside that mask are filled (``raster.fill_nodata_capped``): the sparse points
+    stop short of the image borders, the two-view depth does not."""
     # interpolate and smooth on a grid `step` times coarser (the points are ~cm apart and the
     # smoothing is >= 1 cm), then upsample: 4x fewer Delaunay look-ups per tile
     step = max(1, int(cfg.surface_interp_step_px))
@@ -570,7 +607,8 @@ def _surface_tile(
     g = grid.gsd_m * step
     sig_f = cfg.surface_smooth_m / g
     sig_c = max(cfg.surface_smooth_flat_m / g, sig_f)
-    pad = int(math.ceil(3 * sig_c)) if sig_c > 0 else 0
+    fill_px = max(cfg.surface_fill_max_m, 0.0) / g if fill_mask is not None else 0.0
+    pad = int(math.ceil(_surface_pad_m(cfg) / g)) if (sig_c > 0 or fill_px > 0) else 0
     cw, ch = grid.width // step, grid.height // step
     big = GridSpec(
         grid.crs, grid.x0_m - pad * g, grid.y0_m + pad * g, g, cw + 2 * pad, ch + 2 * pad
@@ -592,6 +630,14 @@ def _surface_tile(
             r = np.where(np.isfinite(w), (1 - w) * coarse + w * detail, fine).astype(np.float32)
         else:
             r = fine
+    if fill_px > 0 and fill_mask is not None:
+        # dilated by one coarse pixel, so the full-resolution clip to the exact two-view mask
+        # (after upsampling) is not eaten into by coarse pixels whose centre lies just outside
+        allowed = cv2.dilate(fill_mask(big).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+        # only road is continued: where the nearby measured surface is relief (off the local road
+        # by more than the relief threshold), the unseen part of the defect is left as a hole
+        lim = max(cfg.surface_detail_sigmas * noise_m, cfg.surface_fill_relief_min_m)
+        r = fill_nodata_capped(r, allowed, fill_px, max_abs=lim)
     r = r[pad : pad + ch, pad : pad + cw]
     if step == 1:
         return r
@@ -602,6 +648,80 @@ def _surface_tile(
     keep = cv2.resize(m, size, interpolation=cv2.INTER_NEAREST) > 0
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(keep & (den > 1e-3), num / den, np.nan).astype(np.float32)
+
+
+def _two_view_mask(
+    cam: Camera,
+    traj: Trajectory,
+    surf: LocalSurface,
+    g2e: GridToEnu,
+    grid: GridSpec,
+    pair_frames: list[tuple[int, int]],
+    fp_grid: list[np.ndarray],
+    road_z: np.ndarray,
+    margin_m: float = 0.05,
+) -> np.ndarray:
+    """(H, W) bool: pixels of ``grid`` whose point on the fitted road projects inside both
+    images (pixel centres 0..width-1, 0..height-1) of at least one of the ``pair_frames`` (pose
+    indices), with the fused poses: the part of the corridor where two views give depth.
+    ``fp_grid`` holds each frame's footprint samples in the grid CRS (for bounding boxes, widened
+    by ``margin_m`` for road relief)."""
+    H, W = grid.height, grid.width
+    out = np.zeros((H, W), bool)
+    boxes: dict[int, tuple[int, int, int, int] | None] = {}
+
+    def box(i: int) -> tuple[int, int, int, int] | None:
+        if i not in boxes:
+            fp = fp_grid[i]
+            b = None
+            if len(fp) >= 3:
+                rc = grid.rowcol_from_xy(fp)
+                m = margin_m / grid.gsd_m
+                r0 = max(int(np.floor(rc[:, 0].min() - m)), 0)
+                r1 = min(int(np.ceil(rc[:, 0].max() + m)), H - 1)
+                c0 = max(int(np.floor(rc[:, 1].min() - m)), 0)
+                c1 = min(int(np.ceil(rc[:, 1].max() + m)), W - 1)
+                b = (r0, r1, c0, c1) if r1 >= r0 and c1 >= c0 else None
+            boxes[i] = b
+        return boxes[i]
+
+    todo = []
+    for a, b in pair_frames:
+        ba, bb = box(a), box(b)
+        if ba is None or bb is None:
+            continue
+        inter = (max(ba[0], bb[0]), min(ba[1], bb[1]), max(ba[2], bb[2]), min(ba[3], bb[3]))
+        if inter[1] >= inter[0] and inter[3] >= inter[2]:
+            todo.append((a, b, inter))
+    if not todo:
+        return out
+    frames = sorted({i for a, b, _ in todo for i in (a, b)})
+    fb = [boxes[i] for i in frames]
+    R0, R1 = min(b[0] for b in fb), max(b[1] for b in fb)
+    C0, C1 = min(b[2] for b in fb), max(b[3] for b in fb)
+    e, n = g2e.pixel_enu(grid, slice(R0, R1 + 1), slice(C0, C1 + 1))
+    # the fitted road is smooth on the node scale: evaluate it every ~4 cm and upsample
+    st = max(1, int(round(0.04 / grid.gsd_m)))
+    zs = surf.height(np.column_stack([e[::st, ::st].ravel(), n[::st, ::st].ravel()]))
+    zs = zs.reshape(e[::st, ::st].shape).astype(np.float32)
+    z = cv2.resize(zs, (e.shape[1], e.shape[0]), interpolation=cv2.INTER_LINEAR).astype(float)
+    inside: dict[int, np.ndarray] = {}
+    for i in frames:
+        r0, r1, c0, c1 = boxes[i]
+        sl = (slice(r0 - R0, r1 - R0 + 1), slice(c0 - C0, c1 - C0 + 1))
+        Wi = traj.world_from_cam[i]
+        zz = np.where(np.isfinite(z[sl]), z[sl], road_z[i])
+        X = np.stack([e[sl] - Wi[0, 3], n[sl] - Wi[1, 3], zz - Wi[2, 3]], axis=-1)
+        u, v = project(cam, X @ Wi[:3, :3])
+        with np.errstate(invalid="ignore"):
+            inside[i] = (u >= 0) & (u <= cam.width - 1) & (v >= 0) & (v <= cam.height - 1)
+    for a, b, (r0, r1, c0, c1) in todo:
+        parts = []
+        for i in (a, b):
+            ra, _, ca, _ = boxes[i]
+            parts.append(inside[i][r0 - ra : r1 - ra + 1, c0 - ca : c1 - ca + 1])
+        out[r0 : r1 + 1, c0 : c1 + 1] |= parts[0] & parts[1]
+    return out
 
 
 def _points_in(xy: np.ndarray, grid: GridSpec, margin: float) -> np.ndarray:
@@ -686,7 +806,8 @@ def _mosaic_tile(
         # pixel centre convention: full-res (u, v) -> level-l ((u + 0.5) * s - 0.5)
         mx = ((np.nan_to_num(u, nan=-1e4) + 0.5) * scale - 0.5).astype(np.float32)
         my = ((np.nan_to_num(v, nan=-1e4) + 0.5) * scale - 0.5).astype(np.float32)
-        samp = cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        # replicate: with mosaic_border_px = 0 the outermost half pixel must not blend in black
+        samp = cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         tile_sl = (slice(r0, r1 + 1), slice(c0, c1 + 1))
         acc[tile_sl] += samp.astype(np.float32) * w[..., None]
         wsum[tile_sl] += w

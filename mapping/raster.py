@@ -202,6 +202,46 @@ def interpolate_to_grid(
     return out
 
 
+def fill_nodata_capped(
+    values: np.ndarray, allowed: np.ndarray, max_px: float, max_abs: float | None = None
+) -> np.ndarray:
+    """Fill NaN pixels of (H, W) ``values`` that are inside the (H, W) bool ``allowed`` mask and
+    at most ``max_px`` pixels from a valid pixel, like GDAL fillnodata with a max distance.
+
+    Each filled pixel gets a Gaussian-weighted mean (σ = max_px / 2) of the valid pixels around
+    it (normalised convolution), so the fill stays within the range of the nearby measured
+    values: it continues the surface, never creates a new extremum (no invented depression).
+    Pixels further than ``max_px`` from any valid pixel, or outside ``allowed``, stay NaN; so do
+    pixels whose fill value would exceed ``max_abs`` in magnitude (for residual heights: only
+    road continues, relief such as a pothole running off the measured part is not extrapolated).
+    Returns a new float32 array."""
+    v = np.asarray(values, np.float32)
+    allowed = np.asarray(allowed, bool)
+    if v.shape != allowed.shape:
+        raise ValueError(f"values {v.shape} and allowed {allowed.shape} must have the same shape")
+    out = v.copy()
+    valid = np.isfinite(v)
+    if max_px <= 0 or valid.all() or not valid.any():
+        return out
+    import cv2
+
+    # distance (px) of each invalid pixel to the nearest valid one
+    dist = cv2.distanceTransform((~valid).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    target = ~valid & allowed & (dist <= max_px)
+    if not target.any():
+        return out
+    sig = max(0.5 * float(max_px), 0.5)
+    num = cv2.GaussianBlur(np.where(valid, v, 0).astype(np.float32), (0, 0), sig)
+    den = cv2.GaussianBlur(valid.astype(np.float32), (0, 0), sig)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        fill = num / den
+    ok = target & (den > 1e-4)
+    if max_abs is not None:
+        ok &= np.abs(fill) <= max_abs
+    out[ok] = fill[ok]
+    return out
+
+
 # --------------------------------------------------------------------------- writing
 
 

@@ -67,16 +67,21 @@ def make_pair(
     trans_noise_m: float = 0.001,
     n_pts: int = 200,
     road_z: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+    px_margin: float | None = None,
 ) -> PairResult:
-    """An ok PairResult a=i -> b=i+1 with noisy relative pose and road points seen by both."""
+    """An ok PairResult a=i -> b=i+1 with noisy relative pose and road points seen by both.
+
+    With ``px_margin`` (px), the points are only those at least that far inside BOTH images, like
+    matches that stop short of the image borders (then fewer than ``n_pts`` may remain)."""
     T = invert_pose(Wb) @ Wa  # cam_b_from_cam_a
     dR = _small_rot(rng.normal(0, np.radians(rot_noise_deg), 3))
     T_noisy = T.copy()
     T_noisy[:3, :3] = dR @ T[:3, :3]
     T_noisy[:3, 3] += rng.normal(0, trans_noise_m, 3)
     # road points: sample pixels of image a, intersect rays with the road
-    u = rng.uniform(0, cam.width - 1, n_pts)
-    v = rng.uniform(0, cam.height - 1, n_pts)
+    m = 0.0 if px_margin is None else float(px_margin)
+    u = rng.uniform(m, cam.width - 1 - m, n_pts)
+    v = rng.uniform(m, cam.height - 1 - m, n_pts)
     rays = np.column_stack([(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, np.ones(n_pts)])
     rays_w = rays @ Wa[:3, :3].T
     c = Wa[:3, 3]
@@ -93,6 +98,11 @@ def make_pair(
     px_b = np.column_stack(
         [cam.fx * pts_b[:, 0] / pts_b[:, 2] + cam.cx, cam.fy * pts_b[:, 1] / pts_b[:, 2] + cam.cy]
     )
+    if px_margin is not None:  # seen by image b too, as far inside its borders
+        lo, hi = np.array([m, m]), np.array([cam.width - 1 - m, cam.height - 1 - m])
+        keep = np.all((px_b >= lo) & (px_b <= hi), axis=1)
+        pts_a, pts_b, px_a, px_b = pts_a[keep], pts_b[keep], px_a[keep], px_b[keep]
+        n_pts = int(keep.sum())
     A = np.column_stack([pts_a[:, 0], pts_a[:, 1], np.ones(n_pts)])
     plane, *_ = np.linalg.lstsq(A, pts_a[:, 2], rcond=None)
     d = (plane[0] * pts_a[:, 0] + plane[1] * pts_a[:, 1] - pts_a[:, 2] + plane[2]) / np.sqrt(
