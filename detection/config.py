@@ -69,6 +69,23 @@ class CrackConfig:
 
 
 @dataclass(frozen=True)
+class DenseConfig:
+    """Dense measurement inside each candidate defect, per pair (LK tracks, see detection/dense.py)."""
+
+    enabled: bool = True  # measure depths, area and volume from dense tracks (needs the images)
+    step_px: float = 2.0  # track every step_px-th pixel of image a inside the defect (px)
+    window_px: int = 7  # Lucas-Kanade window (px): small, so it does not smooth the bottom
+    edge_m: float = 0.03  # the raster outline grown by this much is measured (m)
+    ring_m: float = 0.08  # road ring beyond that which levels the depths (m)
+    rim_noise_k: float = 2.0  # a dense point is in the defect when deeper than k σ_dense (-)
+    min_coverage: float = 0.6  # dense depths must cover this share of the outline (0-1)
+    max_noise_k: float = 3.0  # a pair's dense road σ above k x the sparse σ: its tracks failed (-)
+    # area at depth 0 (the rim) extrapolated from the areas deeper than 1x and 2x the rim threshold
+    area_extrapolate: bool = True
+    area: bool = True  # area from the dense points (False: cells of the raster outline)
+
+
+@dataclass(frozen=True)
 class SeverityConfig:
     """Severity bands (ASTM D6433 pothole table; FHWA Distress Identification Manual depths)."""
 
@@ -126,6 +143,7 @@ class DetectionConfig:
     map: MapSegmentConfig = field(default_factory=MapSegmentConfig)
     severity: SeverityConfig = field(default_factory=SeverityConfig)
     crack: CrackConfig = field(default_factory=CrackConfig)
+    dense: DenseConfig = field(default_factory=DenseConfig)
     use_images: bool = True  # read frames for the 2D refinement (False: 3D only)
     # Frame labels: "map" = deep area of vetted map defects in the frame's footprint (default);
     # "pair" = the dissertation's per-pair decision from the refined points alone.

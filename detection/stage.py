@@ -98,6 +98,20 @@ def run(
             surface.close()
         noise, seed = seg.noise_m, seg.seed_m
         pair_pts = _pair_points(pairs, per_pair, traj, pose_of, mframe)
+        dense = None
+        if cfg.dense.enabled and cfg.use_images and per_pair:
+            from detection.dense import DenseContext
+
+            grid = [
+                (
+                    k,
+                    xy,
+                    ~per_pair[k].candidate & (np.abs(per_pair[k].dist_m) < per_pair[k].threshold_m),
+                )
+                for k, (xy, _) in zip(_pair_keys(per_pair, traj, pose_of), pair_pts, strict=True)
+            ]
+            sparse_noise = float(np.median([pd.noise_m for pd in per_pair.values()]))
+            dense = DenseContext(drive, pairs, grid, sparse_noise)
         defects, deep_xy = _measure_regions(
             cfg,
             seg,
@@ -105,6 +119,7 @@ def run(
             bool(per_pair),
             None if pts is None else pts[:2],
             pair_pts=pair_pts,
+            dense=dense,
         )
         cracks = _crack_defects(cfg, per_pair, traj, pose_of, mframe, footprints, defects)
         if cracks:
@@ -264,6 +279,7 @@ def _measure_regions(
     have_pairs: bool,
     points: tuple[np.ndarray, np.ndarray] | None = None,
     pair_pts: list[tuple[np.ndarray, np.ndarray]] | None = None,
+    dense: Any = None,
 ) -> tuple[list[Defect], list[np.ndarray]]:
     """Veto regions without 3D evidence, measure the rest; ids ordered along the drive.
 
@@ -299,7 +315,29 @@ def _measure_regions(
             continue
         m = measure(reg, seg.grid, mc.frame_depth_m)
         poly = Polygon(m.outline_xy_m)
-        if points is not None:
+        dm = None
+        if dense is not None:
+            from detection.dense import measure_defect_dense
+
+            dm = measure_defect_dense(poly, dense, cfg.dense, mc.rim_threshold_m)
+        if dm is not None:
+            log.debug(
+                "detection: dense %s: max %.1f mm (raster %.1f), area %.4f (raster %.4f) m²",
+                m.centroid_xy_m, 1000 * dm.max_depth_m, 1000 * m.max_depth_m, dm.area_m2, m.area_m2,
+            )  # fmt: skip
+            m.max_depth_m = dm.max_depth_m
+            m.mean_depth_m = dm.mean_depth_m
+            m.volume_m3 = dm.volume_m3
+            if cfg.dense.area:
+                m.area_m2 = dm.area_m2
+            # Frame labels count raster cells this deep: the dense depth where pairs tracked
+            # the cell, else the raster's (interpolated, it shaves the bottom).
+            xy_reg = seg.grid.xy_from_rowcol(reg.rows, reg.cols)
+            d_reg = dm.depth_at(xy_reg)
+            k = max(1.0, dm.max_depth_m / max(float(np.nanmax(reg.depth_smooth_m)), 1e-6))
+            d_reg = np.fmax(d_reg, reg.depth_smooth_m * k)
+            m.deep_xy_m = xy_reg[d_reg >= mc.frame_depth_m]
+        elif points is not None:
             pt_max = point_max_depth(poly, points[0], points[1], mc)
             if pair_pts:
                 pr_max = pair_max_depth(poly, pair_pts, mc)
@@ -530,6 +568,13 @@ def point_max_depth(poly: Any, xy: np.ndarray, residual: np.ndarray, mc: Any) ->
     if d[0] - d[1] > max(0.005, 0.2 * d[1]):
         return float(d[1])
     return float(d[0])
+
+
+def _pair_keys(
+    per_pair: dict[int, PairDefects], traj: Trajectory, pose_of: dict[str, int]
+) -> list[int]:
+    """The pair indices ``_pair_points`` returns points for, in its order."""
+    return [k for k, pd in per_pair.items() if pose_of.get(pd.frame_a) is not None]
 
 
 def _pair_points(
