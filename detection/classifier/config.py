@@ -73,6 +73,10 @@ class ClassifierConfig:
     # (temporal-context extension; 0 = the dissertation's per-frame rule)
     context_frames: int = 1
     screen_batch_size: int = 64  # images per inference batch (1)
+    # test-time augmentation: CNN logits averaged over this many flips/quarter turns of each
+    # frame (1, 2, 4 or 8; 1 = off). Set at training, stored in the model file, used by
+    # calibration and screening alike (1)
+    tta_views: int = 8
 
     def depth_threshold_m(self, camera_height_m: float) -> float:
         """Z^d for a camera at height h (m): α·h when α is set, else ``defect_depth_m``."""

@@ -61,6 +61,7 @@ def save_model(out: str | Path, net: DefectNet, meta: dict[str, Any]) -> Path:
         class_names=list(CLASS_NAMES),
         input_size_px=net.input_size_px,
         temperature=float(net.temperature),
+        tta_views=int(net.tta_views),
         torch_version=torch.__version__,
     )
     full.setdefault("architecture", {})
@@ -126,6 +127,9 @@ def load_model(model: str | Path, device: torch.device | str = "cpu") -> tuple[D
         net.temperature = float(meta.get("temperature", 1.0))  # older files: uncalibrated
         if not 0.0 < net.temperature < 1e3:
             raise ValueError(f"softmax temperature {net.temperature} outside (0, 1000)")
+        net.tta_views = int(meta.get("tta_views", 1))  # older files: no test-time views
+        if net.tta_views not in (1, 2, 4, 8):
+            raise ValueError(f"tta_views {net.tta_views} is not 1, 2, 4 or 8")
     except (KeyError, RuntimeError, ValueError, TypeError) as e:
         raise ModelFileError(
             f"{path}: weights do not fit the DefectNet architecture described in its metadata "

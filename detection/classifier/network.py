@@ -17,6 +17,19 @@ from torch import nn
 
 from roadsurf.errors import RoadsurfError
 
+# (quarter turns, mirrored) of the test-time views, in order: 2 = identity + mirror, 4 = the four
+# quarter turns, 8 = all eight symmetries of the square
+DIHEDRAL_VIEWS: tuple[tuple[int, bool], ...] = (
+    (0, False),
+    (0, True),
+    (2, False),
+    (2, True),
+    (1, False),
+    (1, True),
+    (3, False),
+    (3, True),
+)
+
 
 class DefectNet(nn.Module):
     """Binary road-defect CNN. ``forward`` returns logits (N, 2); ``predict_proba`` softmax."""
@@ -46,6 +59,10 @@ class DefectNet(nn.Module):
         # temperature T of the softmax (calibration, fitted on the validation split after
         # training); a plain attribute, not a weight, so it lives in the model metadata
         self.temperature = 1.0
+        # test-time augmentation: logits averaged over this many dihedral views (flips/quarter
+        # turns) in ``logits``/``predict_proba``; 1 = the plain forward pass. Like the
+        # temperature it is metadata, not a weight
+        self.tta_views = 1
         self._init_weights()
 
     def _init_weights(self) -> None:
@@ -91,11 +108,24 @@ class DefectNet(nn.Module):
         x = r(self.fc7(self.drop7(x)))
         return self.fc8(x)
 
+    def logits(self, x: torch.Tensor) -> torch.Tensor:
+        """Logits (N, 2) averaged over the first ``tta_views`` dihedral views of each image
+        (``DIHEDRAL_VIEWS``). A road seen from above has no 'up', so every view is a valid
+        image of the same road; averaging removes the net's orientation-dependent noise."""
+        views = int(self.tta_views)
+        if views <= 1:
+            return self.forward(x)
+        out = torch.zeros((x.shape[0], 2), dtype=torch.float32, device=x.device)
+        for k, flip in DIHEDRAL_VIEWS[:views]:
+            xv = torch.rot90(x, k, dims=(2, 3))
+            out += self.forward(torch.flip(xv, dims=(3,)) if flip else xv)
+        return out / views
+
     @torch.no_grad()
     def predict_proba(self, x: torch.Tensor) -> torch.Tensor:
         """Calibrated softmax probabilities (N, 2), softmax(logits / T), class order
-        (non-defect, defect)."""
-        return torch.softmax(self.forward(x) / float(self.temperature), dim=1)
+        (non-defect, defect); logits with test-time augmentation (``tta_views``)."""
+        return torch.softmax(self.logits(x) / float(self.temperature), dim=1)
 
 
 def pick_device(name: str = "auto") -> torch.device:

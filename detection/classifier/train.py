@@ -143,11 +143,11 @@ def make_scheduler(
 def logits_of(
     net: DefectNet, images: np.ndarray, device: torch.device, batch: int = 256
 ) -> np.ndarray:
-    """Raw logits (N, 2) for uint8 images (N, S, S) (no temperature)."""
+    """Logits (N, 2) for uint8 images (N, S, S): test-time views averaged, no temperature."""
     net.eval()
     x = torch.as_tensor(np.asarray(images))
     out = [
-        net(x[i : i + batch].unsqueeze(1).to(device)).float().cpu()
+        net.logits(x[i : i + batch].unsqueeze(1).to(device)).float().cpu()
         for i in range(0, x.shape[0], batch)
     ]
     return torch.cat(out).numpy() if out else np.zeros((0, 2), np.float32)
@@ -299,6 +299,9 @@ def train(
 
     torch.manual_seed(cfg.seed)
     net = DefectNet(cfg.input_size_px, cfg.dropout, cfg.width).to(device)
+    if cfg.tta_views not in (1, 2, 4, 8):
+        raise RoadsurfError(f"classifier.tta_views must be 1, 2, 4 or 8, got {cfg.tta_views}")
+    net.tta_views = int(cfg.tta_views)
     optim = torch.optim.Adam(net.parameters(), lr=cfg.learning_rate, weight_decay=cfg.weight_decay)
     sched = make_scheduler(optim, cfg)
     fp = _fingerprint(ds, cfg)

@@ -98,6 +98,26 @@ def test_save_load_round_trip_gives_identical_outputs(tmp_path: Path) -> None:
     assert torch.equal(net(x), net3(x))
 
 
+def test_test_time_views_make_the_net_orientation_free_and_round_trip(tmp_path: Path) -> None:
+    torch.manual_seed(4)
+    net = DefectNet(48, dropout=0.0).eval()
+    x = torch.randint(0, 256, (3, 1, 48, 48), dtype=torch.uint8)
+    turned = torch.flip(torch.rot90(x, 1, dims=(2, 3)), dims=(3,))
+    # one view: the plain forward pass, which depends on how the frame is turned
+    assert torch.equal(net.logits(x), net(x))
+    assert not torch.allclose(net(x), net(turned), atol=1e-4)
+    # all eight views: a flipped/turned frame gets the same probability (a road has no 'up')
+    net.tta_views = 8
+    assert torch.allclose(net.logits(x), net.logits(turned), atol=1e-4)
+    assert torch.allclose(net.predict_proba(x), net.predict_proba(turned), atol=1e-5)
+    net.temperature = 1.7
+    save_model(tmp_path / "m", net, {})
+    net2, meta = load_model(tmp_path / "m")
+    assert meta["tta_views"] == 8 and net2.tta_views == 8
+    assert torch.equal(net.predict_proba(x), net2.predict_proba(x))
+    assert ClassifierConfig().tta_views == 8
+
+
 def test_corrupt_missing_and_incompatible_model_files_give_clear_errors(tmp_path: Path) -> None:
     with pytest.raises(ModelFileError, match="not found.*roadsurf train"):
         load_model(tmp_path / "nothing")
