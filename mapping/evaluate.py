@@ -422,6 +422,9 @@ def _surface_metrics(
     if smask is not None and smask.any():
         sarea = float(smask.sum() * abs(tT.a * tT.e))
         res["coverage_two_view"] = float(min(1.0, n_in_stereo * our_px_area / sarea))
+        if cmask is not None and cmask.any():
+            # the ceiling of a two-view method: the drive's ends are seen by one frame only
+            res["coverage_two_view_share"] = float(min(1.0, sarea / area))
     return res
 
 
@@ -510,6 +513,7 @@ ROWS = [
     ("surface.raw.defect_mae_m", "in-defect height MAE (raw)"),
     ("coverage", "coverage of the imaged corridor"),
     ("coverage_two_view", "coverage of the part seen by two consecutive frames"),
+    ("coverage_two_view_share", "share of the corridor seen by two consecutive frames"),
     ("seam_step_max_m", "largest seam step between patches"),
     ("detection.frames.accuracy", "detection: frame accuracy"),
     ("detection.defects.precision", "detection: defect precision"),
