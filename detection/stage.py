@@ -473,6 +473,10 @@ def _crack_defects(
         length = float(max(a, b)) + w
         # Robust max: the median over the pieces of each piece's second-deepest point.
         dmax = float(np.median(pc[ids, 5]))
+        if dmax > cfg.plane.max_depth_m:
+            # Deeper than any defect the plane fit accepts: the pooled "evidence" comes from a
+            # failed reconstruction (decimetre noise), not from a crack.
+            continue
         # Parabolic groove profile (1 - q²): the mean over the width is 2/3 of the centre depth.
         dmean = dmax * 2.0 / 3.0
         area = length * w

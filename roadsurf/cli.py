@@ -361,12 +361,26 @@ def bench_detection(
     docs: Annotated[
         Path | None, typer.Option(help="Markdown file whose detection section is rewritten.")
     ] = Path("docs/benchmarks.md"),
+    detection_only: Annotated[
+        bool,
+        typer.Option(
+            "--detection-only", help="Re-run only the detection stage on the runs in --work."
+        ),
+    ] = False,
 ) -> None:
     """Table 4.2: the detector on proposed, classic and colmap reconstructions of sim drives."""
     from detection.bench import run_benchmark
 
+    cmd = f"roadsurf bench detection --work {work}" + (
+        " --detection-only" if detection_only else ""
+    )
     res = run_benchmark(
-        work, quick=quick, methods=tuple(m.strip() for m in methods.split(",")), docs=docs
+        work,
+        quick=quick,
+        methods=tuple(m.strip() for m in methods.split(",")),
+        docs=docs,
+        command=cmd,
+        detection_only=detection_only,
     )
     typer.echo(res["markdown"])
     typer.echo(f"Total {res['wall_s']:.0f} s; details in {work}/bench_detection.json")

@@ -294,3 +294,122 @@ def write_truth(scene: Scene, truth_dir: Path, traj: Trajectory, camera: Camera 
         )
         dis.append(feature(polygon_geometry(ef.lonlat_from_enu(ring)), {"type": "oil_stain"}))
     write_geojson(truth_dir / "distractors.geojson", dis)
+
+
+def _random_texture(
+    seed: int, size_m: float = 3.0, res_m: float = 0.002
+) -> tuple[np.ndarray, float]:
+    """A seeded random grey texture (blurred noise, 2 mm cells) and its half size (m)."""
+    n = int(size_m / res_m)
+    rng = np.random.default_rng(seed)
+    tex = cv2.GaussianBlur(rng.normal(0.0, 1.0, (n, n)).astype(np.float32), (0, 0), 1.5)
+    tex = 128.0 + 40.0 * tex / max(float(tex.std()), 1e-6)
+    return tex.astype(np.float32), size_m / 2
+
+
+def render_relief(
+    scene: Scene, T: np.ndarray, camera: Camera, tex: tuple[np.ndarray, float]
+) -> np.ndarray:
+    """(H, W) uint8 image of the road WITH its relief seen from pose T: each pixel's ray is cast
+    onto the surface z = -depth(x, y) (fixed-point iteration), so potholes show true parallax
+    between views; texture fixed to the ground, potholes darker (``Pothole.darker``)."""
+    img, half = tex
+    res = 2 * half / img.shape[0]
+    v, u = np.mgrid[0 : camera.height, 0 : camera.width].astype(float)
+    rays = T[:3, :3] @ np.linalg.solve(camera.K, np.vstack([u.ravel(), v.ravel(), np.ones(u.size)]))
+    rays = rays / -rays[2]  # unit drop in z per step
+    s = np.full(u.size, T[2, 3])
+    for _ in range(40):
+        x = T[0, 3] + s * rays[0]
+        y = T[1, 3] + s * rays[1]
+        s = 0.5 * s + 0.5 * (T[2, 3] + scene.depth(x, y))
+    x = T[0, 3] + s * rays[0]
+    y = T[1, 3] + s * rays[1]
+    mx = ((x + half) / res).astype(np.float32).reshape(u.shape)
+    my = ((y + half) / res).astype(np.float32).reshape(u.shape)
+    g = cv2.remap(img, mx, my, cv2.INTER_LINEAR)
+    for p in scene.potholes:
+        inside = ((x - p.x_m) ** 2 + (y - p.y_m) ** 2 < p.radius_m**2).reshape(u.shape)
+        g = np.where(inside, g * p.darker, g)
+    return np.clip(g, 0, 255).astype(np.uint8)
+
+
+def build_two_view(
+    scene: Scene,
+    root: Path,
+    step_m: float = 0.25,
+    seed: int = 0,
+    camera: Camera | None = None,
+    max_feature_depth_m: float = 0.012,
+) -> tuple[Drive, list[PairResult], Trajectory]:
+    """Two frames rendered with true relief and ONE pair whose sparse matches (with exact
+    R, t, H) avoid the pothole floor: features only where the surface is shallower than
+    ``max_feature_depth_m`` (a dark, smooth pothole bottom holds no features)."""
+    from detection.planefit import fit_plane, signed_distance
+
+    cam = camera or Camera(
+        width=320, height=240, fx=300.0, fy=300.0, cx=159.5, cy=119.5, height_m=1.0, fps=10.0
+    )
+    rng = np.random.default_rng(seed)
+    Ts = poses(2, step_m=step_m, h=cam.height_m)
+    tex = _random_texture(seed)
+    (root / "frames").mkdir(parents=True, exist_ok=True)
+    frames = []
+    for k, T in enumerate(Ts):
+        fn = f"{k:06d}.png"
+        cv2.imwrite(str(root / "frames" / fn), render_relief(scene, T, cam, tex))
+        frames.append(Frame(k, fn, root / "frames" / fn, 0.1 * k))
+    drive = Drive(root, cam, frames, gps=None, obd=None)
+    # Features: random pixels of a, their true surface points, kept off the floor, seen in b.
+    n = 3000
+    u = rng.uniform(0, cam.width - 1, n)
+    v = rng.uniform(0, cam.height - 1, n)
+    rays = Ts[0][:3, :3] @ np.linalg.solve(cam.K, np.vstack([u, v, np.ones(n)]))
+    rays = rays / -rays[2]
+    s = np.full(n, Ts[0][2, 3])
+    for _ in range(40):
+        s = 0.5 * s + 0.5 * (
+            Ts[0][2, 3] + scene.depth(Ts[0][0, 3] + s * rays[0], Ts[0][1, 3] + s * rays[1])
+        )
+    Pw = (Ts[0][:3, 3][:, None] + s * rays).T
+    keep = scene.depth(Pw[:, 0], Pw[:, 1]) < max_feature_depth_m
+    Pw = Pw[keep]
+    Pa = transform_points(invert_pose(Ts[0]), Pw)
+    Pb = transform_points(invert_pose(Ts[1]), Pw)
+    px_a = (Pa @ cam.K.T)[:, :2] / Pa[:, 2:3]
+    px_b = (Pb @ cam.K.T)[:, :2] / Pb[:, 2:3]
+    inb = (
+        (px_b[:, 0] >= 0) & (px_b[:, 0] < cam.width) & (px_b[:, 1] >= 0) & (px_b[:, 1] < cam.height)
+    )
+    Pa, px_a, px_b = Pa[inb] + rng.normal(0, scene.noise_m, (inb.sum(), 3)), px_a[inb], px_b[inb]
+    T_ba = invert_pose(Ts[1]) @ Ts[0]
+    R, t = T_ba[:3, :3], T_ba[:3, 3]
+    # Road plane in camera a: Z = h (camera z points down at the road), n = (0, 0, 1), d = h.
+    H = cam.K @ (R + np.outer(t, [0.0, 0.0, 1.0]) / cam.height_m) @ np.linalg.inv(cam.K)
+    plane = fit_plane(Pa)
+    pair = PairResult(
+        frame_a=frames[0].filename,
+        frame_b=frames[1].filename,
+        index_a=0,
+        index_b=1,
+        method="proposed",
+        status="ok",
+        points_cam_a_m=Pa,
+        px_a=px_a,
+        px_b=px_b,
+        cov_m2=np.zeros((len(Pa), 3, 3)),
+        plane_dist_m=signed_distance(Pa, plane),
+        plane=plane,
+        R_b_from_a=R,
+        t_b_from_a_m=t,
+        H=H / H[2, 2],
+    )
+    traj = Trajectory(
+        filenames=[f.filename for f in frames],
+        frame_indices=np.arange(2),
+        timestamp_s=np.arange(2) * 0.1,
+        world_from_cam=Ts,
+        source=["gps"] * 2,
+        reference=REF,
+    )
+    return drive, [pair], traj

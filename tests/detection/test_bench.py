@@ -52,3 +52,24 @@ def test_update_docs_rewrites_only_its_section(tmp_path):
     text = doc.read_text(encoding="utf-8")
     assert "keep me" in text and "TABLE TWO" in text and "TABLE ONE" not in text
     assert text.count(DOC_BEGIN) == 1 and text.count(DOC_END) == 1
+
+
+def test_update_docs_says_when_only_detection_was_rerun(tmp_path):
+    doc = tmp_path / "benchmarks.md"
+    update_docs(
+        doc, "T", "roadsurf bench detection --detection-only", 1800.0, (("flat", 1, 10),), 90.0
+    )
+    text = doc.read_text(encoding="utf-8")
+    assert "detection stage re-run alone" in text and "1.5 min wall" in text
+    assert "load average" in text and "30 min for a cold run" in text
+
+
+def test_detection_only_needs_the_runs(tmp_path):
+    import pytest
+
+    from detection.bench import redetect
+    from roadsurf.errors import RoadsurfError
+
+    (tmp_path / "run").mkdir()
+    with pytest.raises(RoadsurfError, match="without --detection-only"):
+        redetect(tmp_path / "run", tmp_path / "drive")

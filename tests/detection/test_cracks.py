@@ -68,3 +68,35 @@ def test_pooled_evidence_and_clustering():
     xy = np.array([[0.0, 0.0], [0.05, 0.0], [0.10, 0.0], [1.0, 1.0]])
     lab = cluster_cracks(xy, 0.06)
     assert lab[0] == lab[1] == lab[2] != lab[3]
+
+
+def _crack_pair(depth_m: float):
+    """One pair holding one confirmed-looking crack piece 0.4 m long, its 3D points
+    ``depth_m`` deep (20 points, σ 1 mm)."""
+    from detection.cracks import PairCracks
+    from detection.pairs import PairDefects
+
+    x = np.linspace(-0.2, 0.2, 40)
+    xyz = np.c_[x, np.zeros_like(x), np.full_like(x, 1.0)]
+    c = PairCracks(
+        xyz, np.zeros(len(x), int), np.array([0.005]), np.array([20 * depth_m]), np.array([20]),
+        np.array([20]), np.array([20 * 1e-6]), np.array([depth_m]),
+    )  # fmt: skip
+    z = np.zeros(3)
+    return PairDefects(0, "000000.png", z.astype(bool), z.astype(bool), z, 0.008, 0.001, 0.0, 0.0,
+                       cracks=c)  # fmt: skip
+
+
+def test_crack_evidence_from_a_failed_reconstruction_is_vetoed():
+    """A thin dark line whose 3D points lie decimetres below the road (what a failed
+    reconstruction gives, e.g. the `classic` baseline) is no crack: deeper than any defect the
+    plane fit accepts (`plane.max_depth_m`). The same piece 4 mm deep is one."""
+    from detection.mapframe import MapFrame
+    from mapping.types import Trajectory
+    from tests.detection.synthetic import poses
+
+    traj = Trajectory(["000000.png"], np.arange(1), np.zeros(1), poses(1), ["gps"], None)
+    args = (traj, {"000000.png": 0}, MapFrame.create(None), {}, [])
+    ok = stage._crack_defects(CFG, {0: _crack_pair(0.004)}, *args)
+    assert [d.type for d in ok] == ["crack"] and ok[0].max_depth_m == pytest.approx(0.004)
+    assert stage._crack_defects(CFG, {0: _crack_pair(0.8)}, *args) == []

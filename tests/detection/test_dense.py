@@ -1,0 +1,64 @@
+"""Dense measurement inside candidate defects (detection/dense.py) on a two-view render with
+true parallax, where the sparse matches miss the pothole floor."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from detection import stage
+from detection.config import DenseConfig, DetectionConfig
+from tests.detection.synthetic import Pothole, Scene, build_two_view, write_surface
+
+DEPTH_M, RADIUS_M = 0.040, 0.12
+
+
+def _scene_and_run(tmp_path):
+    scene = Scene(potholes=[Pothole(0.05, 0.12, RADIUS_M, DEPTH_M)])
+    drive, pairs, traj = build_two_view(scene, tmp_path / "drive")
+    # The map's raster shaves the bottom (interpolation between sparse points): 26 of 40 mm.
+    shaved = dataclasses.replace(
+        scene, potholes=[dataclasses.replace(scene.potholes[0], depth_m=0.026)]
+    )
+    write_surface(shaved, tmp_path / "run", traj)
+    return drive, pairs, traj
+
+
+def test_pothole_floor_without_sparse_features_is_measured_densely(tmp_path):
+    drive, pairs, traj = _scene_and_run(tmp_path)
+    # The sparse points stop 12 mm down the walls: they cannot see the 40 mm bottom.
+    assert (-pairs[0].plane_dist_m).max() < 0.015
+    res = stage.run(DetectionConfig(), drive, pairs, traj, tmp_path / "run")
+    assert len(res.defects) == 1
+    d = res.defects[0]
+    assert d.max_depth_m == pytest.approx(DEPTH_M, abs=0.003)
+    # Bowl 1 - r²/R²: area π R², fill volume π R² D / 2, mean depth over the area D / 2.
+    assert d.area_m2 == pytest.approx(np.pi * RADIUS_M**2, rel=0.15)
+    assert d.volume_m3 == pytest.approx(np.pi * RADIUS_M**2 * DEPTH_M / 2, rel=0.15)
+    assert d.mean_depth_m == pytest.approx(DEPTH_M / 2, rel=0.2)
+
+
+def test_without_dense_measurement_the_sparse_floor_reads_shallow(tmp_path):
+    """The old behaviour (sparse points and the raster only) on the same scene: far too shallow,
+    which is what the dense measurement fixes."""
+    drive, pairs, traj = _scene_and_run(tmp_path)
+    cfg = DetectionConfig(dense=DenseConfig(enabled=False))
+    res = stage.run(cfg, drive, pairs, traj, tmp_path / "run")
+    assert len(res.defects) == 1
+    assert res.defects[0].max_depth_m < DEPTH_M - 0.010
+
+
+def test_no_dense_reading_without_the_pair_geometry(tmp_path):
+    """Pairs without a road homography (H unknown) give no dense reading: the stage falls back
+    to the sparse points instead of failing."""
+    from shapely.geometry import Point
+
+    from detection.dense import DenseContext, measure_defect_dense
+
+    drive, pairs, traj = _scene_and_run(tmp_path)
+    pairs[0].H = np.full((3, 3), np.nan)
+    xy = traj.world_from_cam[0][:2, 3] + pairs[0].points_cam_a_m[:, :2] * [1, -1]
+    ctx = DenseContext(drive, pairs, [(0, xy, np.ones(len(xy), bool))], 0.0005)
+    assert (
+        measure_defect_dense(Point(0.05, 0.12).buffer(RADIUS_M), ctx, DenseConfig(), 0.002) is None
+    )
