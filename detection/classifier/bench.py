@@ -95,6 +95,64 @@ TRAIN_DRIVES = (
             "n_oil_stains": 3,
         },
     ),
+    # round 3: long stretches of clear road (real drives are mostly clear, and a screening CNN
+    # must be sure about plain road of any look), under other lights, cameras and tone; still
+    # no asphalt texture and no test lighting.
+    DriveSpec(
+        "train_g",
+        "long",
+        1107,
+        100,
+        {
+            "texture": "grass",
+            "sun_azimuth_deg": 20.0,
+            "sun_elevation_deg": 50.0,
+            "cloud_shadow": 0.4,
+            "n_potholes": 2,
+            "n_cracks": 1,
+            "n_ruts": 1,
+            "n_lane_markings": 2,
+            "n_shadows": 3,
+            "n_oil_stains": 2,
+        },
+    ),
+    DriveSpec(
+        "train_h",
+        "potholes",
+        1108,
+        60,
+        {
+            "texture": "brick",
+            "greyscale": True,
+            "image_format": "png",
+            "exposure": 0.6,
+            "ambient": 0.8,
+            "noise_sigma": 3.0,
+            "cloud_shadow": 0.3,
+            "n_ruts": 2,
+        },
+    ),
+    DriveSpec(
+        "train_i",
+        "long",
+        1109,
+        100,
+        {
+            "texture": "gravel",
+            "greyscale": True,
+            "sun_azimuth_deg": 100.0,
+            "sun_elevation_deg": 40.0,
+            "ambient": 0.5,
+            "exposure": 1.25,
+            "vignetting": 0.4,
+            "n_potholes": 2,
+            "n_cracks": 1,
+            "n_ruts": 1,
+            "n_lane_markings": 3,
+            "n_shadows": 3,
+            "n_oil_stains": 2,
+        },
+    ),
 )
 # Testing: unseen seeds, another texture, other light, greyscale JPEG, more distractors.
 TEST_DRIVES = (
@@ -333,6 +391,19 @@ def bench_classifier(
         fused_pred = _frame_labels(work / "runs" / s.name / "fused" / "frames.csv")
         sources = _frame_sources(work / "runs" / s.name / "fused" / "frames.csv")
         cnn_pred = {f: int(p >= 0.5) for f, p in probs.items()}
+        thr = cfg.fusion_threshold
+        clear = [f for f in truth if not truth[f] and f in probs]
+        confidence = {
+            # the speed lever: clear frames the CNN is sure about need no 3D
+            "clear_frames_confident": sum(probs[f] <= 1 - thr for f in clear),
+            "clear_frames": len(clear),
+            # the accuracy risk: frames the CNN is sure about and wrong
+            "confident_wrong": sorted(
+                f
+                for f, p in probs.items()
+                if f in truth and max(p, 1 - p) >= thr and int(p >= 0.5) != truth[f]
+            ),
+        }
         # variant: where the CNN is confident "defect" the 3D pipeline ran anyway; let it decide
         # (confirm_defect_with_3d). Its 3D label is taken from the 3D-only run of the same drive.
         confirm_pred = {
@@ -366,6 +437,7 @@ def bench_classifier(
                 "cpu_s_per_frame": phys.get("cpu_s_per_frame", float("nan")),
             },
             "fused_sources": {k: list(sources.values()).count(k) for k in ("cnn", "3d", "fused")},
+            "cnn_confidence": confidence,
             "pairs_reconstructed": {
                 "physics": phys["pairs_reconstructed"],
                 "fused": fused["pairs_reconstructed"],
@@ -443,6 +515,13 @@ def to_markdown(res: dict[str, Any]) -> str:
             f"stage wall s {r.get('stage_timings_s')}; load avg (start, end) "
             f"{r.get('load_avg_1min')}"
         )
+        c = r.get("cnn_confidence")
+        if c:
+            lines.append(
+                f"- {name}: CNN sure (p <= 1 - threshold) on {c['clear_frames_confident']} of "
+                f"{c['clear_frames']} clear frames; sure and wrong on "
+                f"{len(c['confident_wrong'])} frames {c['confident_wrong']}"
+            )
     b = res["balance"]
     lines.append(
         f"- training set: before augmentation {b['before_augmentation']}, after "
