@@ -499,13 +499,15 @@ def _rasters(
         frame_list = [frames_by_index.get(int(k)) for k in traj.frame_indices]
         pf = list(pair_frames or [])
 
-        def two_view(g: GridSpec) -> np.ndarray:
-            return _two_view_mask(cam, traj, surf, g2e, g, pf, fp_grid, road_z)
+        def two_view(g: GridSpec, resid_g: np.ndarray | None = None) -> np.ndarray:
+            return _two_view_mask(cam, traj, surf, g2e, g, pf, fp_grid, road_z, resid_g)
 
         for t in tqdm(tiles, desc="rasters", unit="tile", leave=False):
             grid = lat.tile_grid(*t)
             sel = _points_in(pts_grid, grid, margin)
-            res_t = _surface_tile(cfg, pts_grid[sel], resid[sel], grid, noise_m, two_view)
+            res_t, filled = _surface_tile_filled(
+                cfg, pts_grid[sel], resid[sel], grid, noise_m, two_view
+            )
             mos_t, wsum = _mosaic_tile(
                 cfg,
                 cam,
@@ -523,8 +525,13 @@ def _rasters(
                 cache,
                 level,
             )
-            # only the part of the corridor seen by both frames of an ok pair (two-view depth)
-            res_t[~two_view(grid)] = np.nan
+            res_t[wsum <= 0] = np.nan  # only the imaged corridor
+            # filled pixels only where both frames of an ok pair saw the road (with the
+            # surface's own heights: a pothole floor near an image border is seen where the road
+            # above it would not be). Interpolated ones are kept as before, also across a thin
+            # strip seen by one frame between two pairs (a short Delaunay edge bridges it)
+            if filled.any():
+                res_t[filled & ~two_view(grid, res_t)] = np.nan
             has_s = bool(np.isfinite(res_t).any())
             has_m = bool((wsum > 0).any())
             if not (has_s or has_m):
@@ -589,6 +596,18 @@ def _surface_tile(
     noise_m: float,
     fill_mask: Callable[[GridSpec], np.ndarray] | None = None,
 ) -> np.ndarray:
+    """(H, W) residual raster of one tile (see ``_surface_tile_filled``)."""
+    return _surface_tile_filled(cfg, xy, resid, grid, noise_m, fill_mask)[0]
+
+
+def _surface_tile_filled(
+    cfg: MappingConfig,
+    xy: np.ndarray,
+    resid: np.ndarray,
+    grid: GridSpec,
+    noise_m: float,
+    fill_mask: Callable[[GridSpec], np.ndarray] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """Residual raster of one tile: Delaunay interpolation of the fused points on a padded grid,
     then masked (normalised) Gaussian smoothing that never spreads values into holes. Where the
     fine (σ = surface_smooth_m) and the coarse (σ = surface_smooth_flat_m) versions agree within
@@ -598,7 +617,8 @@ def _surface_tile(
     keeps tile borders seamless. With ``fill_mask`` (GridSpec -> (H, W) bool: where the road
     was seen by both frames of an ok pair), holes within ``surface_fill_max_m`` of the smoothed
     surface and inside that mask are filled (``raster.fill_nodata_capped``): the sparse points
-    stop short of the image borders, the two-view depth does not."""
+    stop short of the image borders, the two-view depth does not. Returns the (H, W) float32
+    residual and the (H, W) bool mask of its filled (not interpolated) pixels."""
     # interpolate and smooth on a grid `step` times coarser (the points are ~cm apart and the
     # smoothing is >= 1 cm), then upsample: 4x fewer Delaunay look-ups per tile
     step = max(1, int(cfg.surface_interp_step_px))
@@ -633,21 +653,29 @@ def _surface_tile(
     if fill_px > 0 and fill_mask is not None:
         # dilated by one coarse pixel, so the full-resolution clip to the exact two-view mask
         # (after upsampling) is not eaten into by coarse pixels whose centre lies just outside
-        allowed = cv2.dilate(fill_mask(big).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+        seen2 = cv2.dilate(fill_mask(big).astype(np.uint8), np.ones((3, 3), np.uint8))
+        allowed = _fill_region(np.isfinite(r), seen2, fill_px)
         # only road is continued: where the nearby measured surface is relief (off the local road
         # by more than the relief threshold), the unseen part of the defect is left as a hole
         lim = max(cfg.surface_detail_sigmas * noise_m, cfg.surface_fill_relief_min_m)
+        measured = np.isfinite(r)
         r = fill_nodata_capped(r, allowed, fill_px, max_abs=lim)
+        filled = np.isfinite(r) & ~measured
+    else:
+        filled = np.zeros(r.shape, bool)
     r = r[pad : pad + ch, pad : pad + cw]
+    filled = filled[pad : pad + ch, pad : pad + cw]
     if step == 1:
-        return r
+        return r, filled
     m = np.isfinite(r).astype(np.float32)
     size = (grid.width, grid.height)
     num = cv2.resize(np.nan_to_num(r), size, interpolation=cv2.INTER_LINEAR)
     den = cv2.resize(m, size, interpolation=cv2.INTER_LINEAR)
     keep = cv2.resize(m, size, interpolation=cv2.INTER_NEAREST) > 0
+    filled = cv2.resize(filled.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
     with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(keep & (den > 1e-3), num / den, np.nan).astype(np.float32)
+        out = np.where(keep & (den > 1e-3), num / den, np.nan).astype(np.float32)
+    return out, filled & np.isfinite(out)
 
 
 def _two_view_mask(
@@ -659,9 +687,11 @@ def _two_view_mask(
     pair_frames: list[tuple[int, int]],
     fp_grid: list[np.ndarray],
     road_z: np.ndarray,
+    resid: np.ndarray | None = None,
     margin_m: float = 0.05,
 ) -> np.ndarray:
-    """(H, W) bool: pixels of ``grid`` whose point on the fitted road projects inside both
+    """(H, W) bool: pixels of ``grid`` whose point on the fitted road (plus the (H, W) residual
+    height ``resid`` where it is finite) projects inside both
     images (pixel centres 0..width-1, 0..height-1) of at least one of the ``pair_frames`` (pose
     indices), with the fused poses: the part of the corridor where two views give depth.
     ``fp_grid`` holds each frame's footprint samples in the grid CRS (for bounding boxes, widened
@@ -705,6 +735,9 @@ def _two_view_mask(
     zs = surf.height(np.column_stack([e[::st, ::st].ravel(), n[::st, ::st].ravel()]))
     zs = zs.reshape(e[::st, ::st].shape).astype(np.float32)
     z = cv2.resize(zs, (e.shape[1], e.shape[0]), interpolation=cv2.INTER_LINEAR).astype(float)
+    if resid is not None:
+        rz = resid[R0 : R1 + 1, C0 : C1 + 1]
+        z = z + np.where(np.isfinite(rz), rz, 0.0)
     inside: dict[int, np.ndarray] = {}
     for i in frames:
         r0, r1, c0, c1 = boxes[i]
@@ -722,6 +755,27 @@ def _two_view_mask(
             parts.append(inside[i][r0 - ra : r1 - ra + 1, c0 - ca : c1 - ca + 1])
         out[r0 : r1 + 1, c0 : c1 + 1] |= parts[0] & parts[1]
     return out
+
+
+def _fill_region(valid: np.ndarray, seen2: np.ndarray, fill_px: float) -> np.ndarray:
+    """Where the capped fill may act, (H, W) bool, given the measured pixels ``valid`` and the
+    two-view mask ``seen2`` (uint8): (1) the strip of width ``fill_px`` along the border of
+    the two-view part, where the matches stop short of the image borders; (2) whole holes no
+    wider than twice the cap (every pixel within ``fill_px`` of a measured one), the gaps the
+    interpolation would bridge with points around. Larger holes inside (dark pothole floors,
+    textureless stains) are left entirely: a rim band would creep flat road into them."""
+    from scipy import ndimage
+
+    to_edge = cv2.distanceTransform(seen2, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    strip = (seen2 > 0) & (to_edge <= fill_px + 1.0)
+    holes = (seen2 > 0) & ~valid
+    lab, n = ndimage.label(holes)
+    if n == 0:
+        return strip
+    dist = cv2.distanceTransform((~valid).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    widest = ndimage.maximum(dist, lab, np.arange(1, n + 1))
+    small = np.concatenate([[False], np.asarray(widest) <= fill_px])
+    return strip | small[lab]
 
 
 def _points_in(xy: np.ndarray, grid: GridSpec, margin: float) -> np.ndarray:

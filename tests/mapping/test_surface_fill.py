@@ -1,9 +1,10 @@
 """The residual surface covers the part of the road seen by both frames of a pair, not only the
 hull of its sparse points: matches stop short of the image borders (SIFT needs a margin), so the
-surface is extended from the points by at most ``surface_fill_max_m`` inside the two-view part
-(``raster.fill_nodata_capped``), never beyond it, never further than the cap (holes without points,
-e.g. dark pothole floors, stay holes) and never extrapolating relief (a pothole running off the
-measured part is not continued). Before, the raster stopped at the point hull: 89-92 % coverage
+surface is extended from the points by at most ``surface_fill_max_m`` in the strip along the
+border of the two-view part (``raster.fill_nodata_capped``), never beyond it, never further than
+the cap, never into holes away from the border wider than twice the cap (dark pothole floors stay
+holes; narrower ones are closed, as the interpolation would with points around) and never
+extrapolating relief (a pothole running off the measured part is not continued). Before, the raster stopped at the point hull: 89-92 % coverage
 of the imaged corridor on the sample and potholes drives."""
 
 from __future__ import annotations
@@ -22,8 +23,11 @@ from tests.mapping.synth import make_pair, make_synthetic, write_images
 
 # ------------------------------------------------------------------ one tile, known geometry
 BOX = (0.2, 1.08)  # the points cover x and -y in this range (m, grid CRS)
-OVERLAP = (0.1, 1.18)  # ... the two-view part is 10 cm wider on every side
+# ... the two-view part is 4 cm wider (matches stop short of the image borders), 10 cm on the
+# left (x < 0.2), where the gap is wider than the cap
+OVERLAP_X, OVERLAP_Y = (0.1, 1.12), (0.16, 1.12)
 HOLE_C, HOLE_R = np.array([0.45, -0.45]), 0.10  # no points in this disk (flat road)
+SMALL_C, SMALL_R = np.array([0.8, -0.45]), 0.035  # ... nor in this small one
 BOWL_C, BOWL_R, BOWL_D = np.array([1.08, -0.8]), 0.12, 0.03  # pothole cut by the point border
 
 
@@ -37,15 +41,15 @@ def _overlap_mask(g: GridSpec) -> np.ndarray:
     r = np.arange(g.height)
     x = g.x0_m + (c + 0.5) * g.gsd_m
     y = g.y0_m - (r + 0.5) * g.gsd_m
-    inx = (x >= OVERLAP[0]) & (x <= OVERLAP[1])
-    iny = (-y >= OVERLAP[0]) & (-y <= OVERLAP[1])
+    inx = (x >= OVERLAP_X[0]) & (x <= OVERLAP_X[1])
+    iny = (-y >= OVERLAP_Y[0]) & (-y <= OVERLAP_Y[1])
     return iny[:, None] & inx[None, :]
 
 
-def _box_dist(xy: np.ndarray, lo: float, hi: float) -> np.ndarray:
-    """Distance (m) outside the square [lo, hi] x [-hi, -lo] (0 inside)."""
-    dx = np.maximum(np.maximum(lo - xy[:, 0], xy[:, 0] - hi), 0)
-    dy = np.maximum(np.maximum(lo + xy[:, 1], -xy[:, 1] - hi), 0)
+def _box_dist(xy: np.ndarray, bx: tuple[float, float], by: tuple[float, float]) -> np.ndarray:
+    """Distance (m) outside the rectangle bx x (-by) (0 inside)."""
+    dx = np.maximum(np.maximum(bx[0] - xy[:, 0], xy[:, 0] - bx[1]), 0)
+    dy = np.maximum(np.maximum(by[0] + xy[:, 1], -xy[:, 1] - by[1]), 0)
     return np.hypot(dx, dy)
 
 
@@ -56,6 +60,7 @@ def test_surface_tile_fills_to_the_overlap_up_to_the_cap() -> None:
     n = 6000  # ~1.4 cm spacing
     xy = np.column_stack([rng.uniform(*BOX, n), -rng.uniform(*BOX, n)])
     xy = xy[np.linalg.norm(xy - HOLE_C, axis=1) > HOLE_R]
+    xy = xy[np.linalg.norm(xy - SMALL_C, axis=1) > SMALL_R]
     noise = 0.001
     z = _truth(xy) + rng.normal(0, noise, len(xy))
     old = globalmap._surface_tile(cfg, xy, z, grid, noise_m=noise)
@@ -63,20 +68,29 @@ def test_surface_tile_fills_to_the_overlap_up_to_the_cap() -> None:
     rr, cc = np.mgrid[0 : grid.height, 0 : grid.width]
     pix = grid.xy_from_rowcol(rr.ravel(), cc.ravel())
     old, new = old.ravel(), new.ravel()
-    out = _box_dist(pix, *BOX)  # distance beyond the points' square
+    out = _box_dist(pix, BOX, BOX)  # distance beyond the points' square
     far_bowl = np.linalg.norm(pix - BOWL_C, axis=1) > BOWL_R + 0.08
-    band = (out > 0.01) & (out < 0.03) & far_bowl  # flat road between points and overlap border
+    left = pix[:, 0] < BOX[0]
+    # flat road between the points and the overlap border (4 cm away)
+    band = (out > 0.01) & (out < 0.03) & far_bowl & ~left
     assert band.sum() > 1000
     assert np.isfinite(old[band]).mean() < 0.1  # old: the raster stopped at the point hull
     assert np.isfinite(new[band]).mean() > 0.99  # new: the overlap is covered up to the cap
     assert np.max(np.abs(new[band])) < 2 * noise  # flat road continued, nothing invented
-    # never further than the cap (5 cm, + one coarse pixel), never outside the overlap
+    # never further than the cap (5 cm, + one coarse pixel), never outside the overlap; where
+    # the points stop 10 cm short (left), the gap is not bridged
     assert not np.isfinite(new[out > cfg.surface_fill_max_m + 0.012]).any()
-    assert not np.isfinite(new[_box_dist(pix, *OVERLAP) > 0.012]).any()
-    # a hole without points: its rim is filled, its centre (> cap from any point) is not
+    assert not np.isfinite(new[_box_dist(pix, OVERLAP_X, OVERLAP_Y) > 0.012]).any()
+    assert np.isfinite(new[left & (out > 0.015)]).mean() < 0.02
+    # a hole without points away from the overlap border (a dark pothole floor, a textureless
+    # stain) wider than twice the cap is not filled at all (no flat rim creeping in); a small
+    # one (every pixel within the cap) is closed
     d_hole = np.linalg.norm(pix - HOLE_C, axis=1)
-    assert not np.isfinite(new[d_hole < 0.03]).any()
-    assert np.isfinite(new[(d_hole > 0.07) & (d_hole < HOLE_R)]).mean() > 0.9
+    assert np.array_equal(np.isfinite(new[d_hole < HOLE_R]), np.isfinite(old[d_hole < HOLE_R]))
+    assert not np.isfinite(new[d_hole < 0.06]).any()
+    d_small = np.linalg.norm(pix - SMALL_C, axis=1) < SMALL_R
+    assert not np.isfinite(old[d_small]).all()
+    assert np.isfinite(new[d_small]).all() and np.abs(new[d_small]).max() < 2 * noise
     # the pothole cut by the point border is not continued beyond it (depth unknown there)
     beyond_bowl = (out > 0.01) & (np.linalg.norm(pix - BOWL_C, axis=1) < 0.6 * BOWL_R)
     assert beyond_bowl.sum() > 100
@@ -158,9 +172,10 @@ def test_map_covers_the_pairs_overlap_and_not_beyond(tmp_path: Path) -> None:
         fin, two, res = _two_view_fraction(run, syn, traj, syn.pairs, tol_px=1.0)
         cov[name] = fin[two].mean()
         if name == "new":
-            # nothing beyond the pairs' two-view part (half a pixel for the road height used)
+            # nothing beyond the pairs' two-view part (half a pixel for the road height used;
+            # this drive has no strip seen by one frame only between two pairs)
             _, two_wide, _ = _two_view_fraction(run, syn, traj, syn.pairs, tol_px=-0.5)
             assert not (fin & ~two_wide).any()
             assert np.abs(res[fin]).max() < 0.003  # flat road stays flat
     assert cov["old"] < 0.93
-    assert cov["new"] > 0.99
+    assert cov["new"] > 0.98
