@@ -63,7 +63,11 @@ class ReconstructionConfig:
     h_ransac_px: float = 3.0  # homography RANSAC reprojection threshold (px)
     h_ransac_frac: float = 0.03  # ... or this share of |d̄| if larger: depth relief up to ~3% of
     # the camera height still counts as planar (parallax scales with the displacement) (0-1)
-    planar_parallax_ratio: float = 2.0  # rotation_aware: keep the homography pose when the
+    pose_model: Literal["plane_parallax", "select"] = "plane_parallax"  # rotation_aware's
+    # final pose: plane_parallax = one generalised least squares over R, t and the road plane
+    # with the relief as a random effect of estimated variance κσ² (no threshold); select =
+    # the homography pose or the epipolar refinement, switched by planar_parallax_ratio
+    planar_parallax_ratio: float = 2.0  # pose_model=select: keep the homography pose when the
     # H transfer error² / (4 · Sampson error²) is below this (parallax ≲ noise), else refine
     h_ransac_iters: int = 2000  # homography RANSAC max iterations (count)
     near_planar_max_outlier: float = 0.5  # pair is near-planar when H outlier ratio < this (0-1)
