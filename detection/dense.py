@@ -384,7 +384,7 @@ def measure_defect_dense(
 ) -> DenseMeasure | None:
     """Dense measurement of the defect inside ``poly`` from every pair whose sparse points
     reach it (``measure_dense`` per pair, ``combine_dense`` over them); None when no pair gives
-    a dense reading or the readings cover less than ``cfg.min_coverage`` of the outline."""
+    a dense reading. The caller checks ``coverage`` (a partial reading may miss the bottom)."""
     from shapely import contains_xy
 
     x0, y0, x1, y1 = poly.bounds
@@ -411,6 +411,4 @@ def measure_defect_dense(
         poly, got, edge_m=cfg.edge_m, rim_k=cfg.rim_noise_k, rim_floor_m=rim_floor_m,
         extrapolate=cfg.area_extrapolate,
     )  # fmt: skip
-    if res is None or res.coverage < cfg.min_coverage:
-        return None
     return res

@@ -315,11 +315,13 @@ def _measure_regions(
             continue
         m = measure(reg, seg.grid, mc.frame_depth_m)
         poly = Polygon(m.outline_xy_m)
-        dm = None
+        dm = part = None
         if dense is not None:
             from detection.dense import measure_defect_dense
 
             dm = measure_defect_dense(poly, dense, cfg.dense, mc.rim_threshold_m)
+            if dm is not None and dm.coverage < cfg.dense.min_coverage:
+                dm, part = None, dm  # too partial to measure the defect by; see below
         if dm is not None:
             log.debug(
                 "detection: dense %s: max %.1f mm (raster %.1f), area %.4f (raster %.4f) m²",
@@ -345,6 +347,9 @@ def _measure_regions(
                     # Both read low: the pairs sample the bottom sparsely, a pose error smears
                     # the map's copy (shallower). Neither can invent depth, so the larger wins.
                     pt_max = max(pr_max, pt_max or 0.0)
+            if part is not None:
+                # A partial dense reading still measured the part it saw: the same rule.
+                pt_max = max(part.max_depth_m, pt_max or 0.0)
             if pt_max is not None and pt_max > 0:
                 # The raster's bottom is shaved by interpolation: scale its depths to the
                 # points' before measuring the area deeper than the frame-label depth.

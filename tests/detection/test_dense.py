@@ -62,3 +62,13 @@ def test_no_dense_reading_without_the_pair_geometry(tmp_path):
     assert (
         measure_defect_dense(Point(0.05, 0.12).buffer(RADIUS_M), ctx, DenseConfig(), 0.002) is None
     )
+
+
+def test_partial_dense_reading_still_counts_for_max_depth(tmp_path):
+    """Below ``min_coverage`` the dense reading does not measure area and volume, but the
+    bottom it did see still beats the sparse points (the deeper reading is kept)."""
+    drive, pairs, traj = _scene_and_run(tmp_path)
+    cfg = DetectionConfig(dense=DenseConfig(min_coverage=1.01))  # every reading "partial"
+    res = stage.run(cfg, drive, pairs, traj, tmp_path / "run")
+    assert len(res.defects) == 1
+    assert res.defects[0].max_depth_m == pytest.approx(DEPTH_M, abs=0.003)
