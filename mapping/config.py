@@ -70,12 +70,14 @@ class MappingConfig:
         2  # interpolate/smooth the surface on a grid this much coarser (px)
     )
     surface_edge_factor: float = 4.0  # ... nor wider than this × the median point spacing (−)
-    # extend the surface from its measured points by at most this distance (m), only inside the
-    # part of the road seen by BOTH frames of an ok pair (projected with the fused poses); the
-    # filled height is the local road fit plus a Gaussian-weighted mean of the nearby measured
-    # residuals (σ = half this), like GDAL fillnodata with a max distance: it continues the
-    # measured surface and cannot create a depression; 0 = off. Half of surface_max_edge_m: a
-    # gap the interpolation would bridge with points on both sides, with points on one side
+    # extend the surface from its measured points by at most this distance (m), only where BOTH
+    # frames of an ok pair saw the road (projected with the fused poses), and only in the strip
+    # of this width along the border of that two-view part (matches stop short of the image
+    # borders) or in whole holes no wider than twice this (larger holes, e.g. unmatched pothole
+    # floors, stay holes). The filled height is the local road fit plus a Gaussian-weighted mean
+    # of the nearby measured residuals (σ = half this), like GDAL fillnodata with a max distance:
+    # it continues the measured surface, never creates a depression; 0 = off. Half of
+    # surface_max_edge_m: a gap the interpolation would bridge with points on both sides
     surface_fill_max_m: float = 0.05
     # ... and only where the measured surface around is road: its residual within
     # max(surface_detail_sigmas × point noise, this) (m); deeper relief (a defect running off
