@@ -8,11 +8,11 @@
    continuous, robust to defects), negative below.
 4. Rasters on ONE grid (export CRS, GSD ``gsd_m``), only on tiles of a global lattice that the
    corridor passes: the residual surface (Delaunay interpolation of the fused points, extended
-   by at most ``surface_fill_max_m`` within the part seen by both frames of an ok pair, holes
-   elsewhere; NaN outside that two-view part) and an RGB orthomosaic made by projecting every posed frame onto the fitted
-   surface (``cv2.remap``) and blending with feathered weights, so seams do not show. Tiles are
-   processed one at a time (memory grows with the tile size, not with the drive), written to
-   ``tiles/`` + ``surface.vrt``/``mosaic.vrt``, and window by window into sparse
+   by at most ``surface_fill_max_m`` towards the border of the part seen by both frames of an
+   ok pair, holes elsewhere) and an RGB orthomosaic made by projecting every posed frame onto
+   the fitted surface (``cv2.remap``) and blending with feathered weights, so seams do not
+   show. Tiles are processed one at a time (memory grows with the tile size, not with the
+   drive), written to ``tiles/`` + ``surface.vrt``/``mosaic.vrt``, and window by window into sparse
    ``surface.tif``/``mosaic.tif`` while the bounding grid stays below ``max_raster_px``.
 5. ``cloud.ply`` (export CRS), ``map_points.npz`` (ENU, for detection), PNG previews.
 """
@@ -615,9 +615,11 @@ def _surface_tile_filled(
     (flat road: noise averaged); in relief (defect edges and bottoms) a lightly smoothed version
     (σ = surface_smooth_defect_m) keeps the depth, with a soft transition. The padding
     keeps tile borders seamless. With ``fill_mask`` (GridSpec -> (H, W) bool: where the road
-    was seen by both frames of an ok pair), holes within ``surface_fill_max_m`` of the smoothed
-    surface and inside that mask are filled (``raster.fill_nodata_capped``): the sparse points
-    stop short of the image borders, the two-view depth does not. Returns the (H, W) float32
+    was seen by both frames of an ok pair), pixels within ``surface_fill_max_m`` of the smoothed
+    surface, inside that mask, in the strip along its border or in holes no wider than twice
+    the cap, and whose fill is road (not relief) are filled (``_fill_region``,
+    ``raster.fill_nodata_capped``): the sparse points stop short of the image borders, the
+    two-view depth does not. Returns the (H, W) float32
     residual and the (H, W) bool mask of its filled (not interpolated) pixels."""
     # interpolate and smooth on a grid `step` times coarser (the points are ~cm apart and the
     # smoothing is >= 1 cm), then upsample: 4x fewer Delaunay look-ups per tile
