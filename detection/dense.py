@@ -102,6 +102,22 @@ def grid_to_image_h(
     return H
 
 
+def road_homography(pair: Any, road: np.ndarray) -> np.ndarray | None:
+    """The pair's road homography a -> b (3, 3): its own H, else (estimators that do not
+    store one, e.g. colmap) fitted with RANSAC on its road matches; None without a metric
+    baseline (t = 0) or too few road matches."""
+    H = np.asarray(pair.H, float)
+    if np.all(np.isfinite(H)):
+        return H
+    t = np.asarray(pair.t_b_from_a_m, float)
+    if not np.all(np.isfinite(t)) or np.linalg.norm(t) <= 0 or road.sum() < 8:
+        return None
+    pa = np.asarray(pair.px_a, float)[road]
+    pb = np.asarray(pair.px_b, float)[road]
+    H, _ = cv2.findHomography(pa, pb, cv2.RANSAC, 2.0)
+    return H
+
+
 def measure_dense(
     poly: Any,
     gray_a: np.ndarray,
@@ -129,8 +145,8 @@ def measure_dense(
 
     origin = np.asarray(poly.centroid.coords[0], float)
     Hg = grid_to_image_h(grid_xy, np.asarray(pair.px_a, float), road, origin)
-    H = np.asarray(pair.H, float)
-    if Hg is None or not np.all(np.isfinite(H)):
+    H = road_homography(pair, road)
+    if Hg is None or H is None:
         return _none("no homography")
     core = poly.buffer(edge_m)
     outer = poly.buffer(edge_m + ring_m)

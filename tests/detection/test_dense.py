@@ -48,20 +48,30 @@ def test_without_dense_measurement_the_sparse_floor_reads_shallow(tmp_path):
     assert res.defects[0].max_depth_m < DEPTH_M - 0.010
 
 
+def test_road_homography_is_fitted_when_the_estimator_stores_none(tmp_path):
+    """Estimators without a stored H (colmap) still get dense readings: H is fitted on the
+    pair's road matches."""
+    drive, pairs, traj = _scene_and_run(tmp_path)
+    pairs[0].H = np.full((3, 3), np.nan)
+    res = stage.run(DetectionConfig(), drive, pairs, traj, tmp_path / "run")
+    assert len(res.defects) == 1
+    assert res.defects[0].max_depth_m == pytest.approx(DEPTH_M, abs=0.003)
+
+
 def test_no_dense_reading_without_the_pair_geometry(tmp_path):
-    """Pairs without a road homography (H unknown) give no dense reading: the stage falls back
-    to the sparse points instead of failing."""
+    """Pairs without a homography and a metric baseline give no dense reading: the stage falls
+    back to the sparse points instead of failing."""
     from shapely.geometry import Point
 
     from detection.dense import DenseContext, measure_defect_dense
 
     drive, pairs, traj = _scene_and_run(tmp_path)
     pairs[0].H = np.full((3, 3), np.nan)
+    pairs[0].t_b_from_a_m = np.zeros(3)
     xy = traj.world_from_cam[0][:2, 3] + pairs[0].points_cam_a_m[:, :2] * [1, -1]
     ctx = DenseContext(drive, pairs, [(0, xy, np.ones(len(xy), bool))], 0.0005)
-    assert (
-        measure_defect_dense(Point(0.05, 0.12).buffer(RADIUS_M), ctx, DenseConfig(), 0.002) is None
-    )
+    poly = Point(0.05, 0.12).buffer(RADIUS_M)
+    assert measure_defect_dense(poly, ctx, DenseConfig(), 0.002) is None
 
 
 def test_partial_dense_reading_still_counts_for_max_depth(tmp_path):
