@@ -82,3 +82,16 @@ def test_partial_dense_reading_still_counts_for_max_depth(tmp_path):
     res = stage.run(cfg, drive, pairs, traj, tmp_path / "run")
     assert len(res.defects) == 1
     assert res.defects[0].max_depth_m == pytest.approx(DEPTH_M, abs=0.003)
+
+
+def test_distort_undistort_round_trip():
+    """Tracks run on the raw (distorted) images; the pair's pixels are ideal pinhole ones."""
+    from detection.dense import _distort, _undistort
+    from roadsurf.drive import Camera
+
+    cam = Camera(640, 480, 600.0, 600.0, 319.5, 239.5, 1.1, 15.0, (-0.12, 0.03, 0.0005, -0.0005, 0))
+    rng = np.random.default_rng(3)
+    px = np.c_[rng.uniform(20, 620, 200), rng.uniform(20, 460, 200)]
+    raw = _distort(px, cam)
+    assert np.abs(raw - px).max() > 5.0  # the lens moves the corners by pixels
+    assert np.allclose(_undistort(raw, cam), px, atol=0.05)
