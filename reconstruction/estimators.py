@@ -330,10 +330,19 @@ def refine_pose_plane_parallax(
             a1 = d1 / l11[:, None]
             a2 = (d2 - l21[:, None] * a1) / l22[:, None]
             A = np.concatenate([a1, a2])
+            # t also turns the epipolar lines (û, the split into along/across components):
+            # with large κ that is where all of t's information is, so those two columns are
+            # differentiated through the whole whitened residual (forward differences).
+            for k, b in ((3, b1), (4, b2)):
+                t_h = t + 1e-7 * b
+                A[:, k] = (state(R, t_h / np.linalg.norm(t_h), m, kappa)["rw"] - st["rw"]) / 1e-7
             JtJ, Jtr = A.T @ A, A.T @ st["rw"]
             improved = False
+            # Marquardt damping on the diagonal, floored so that a parameter the data barely
+            # constrain (the plane m when κ is huge) cannot make the system singular.
+            dg = np.diag(JtJ) + 1e-12 * float(np.max(np.diag(JtJ)))
             while lam < 1e8:
-                delta = -np.linalg.solve(JtJ + lam * np.diag(np.diag(JtJ)), Jtr)
+                delta = -np.linalg.solve(JtJ + lam * np.diag(dg), Jtr)
                 R_n = g.rotation_from_axis_angle(delta[:3]) @ R
                 t_n = t + delta[3] * b1 + delta[4] * b2
                 t_n /= np.linalg.norm(t_n)
