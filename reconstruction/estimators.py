@@ -248,7 +248,7 @@ def refine_pose_plane_parallax(
     sampling scatter does not give away the plane, and re-estimated ``outer`` times. No
     threshold switches between the two models: the relief decides. Levenberg–Marquardt with
     an analytic Jacobian (covariance held at the linearisation point), ``max_iter`` steps
-    per κ; about 1 ms for 2000 matches.
+    per κ (the two t columns by forward differences); ~5-15 ms for 2000 matches.
     """
     xa = np.column_stack([g.normalised_from_px(px_a, K), np.ones(len(px_a))])
     xb = g.normalised_from_px(px_b, K)
