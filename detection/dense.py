@@ -132,6 +132,7 @@ def measure_dense(
     step_px: float,
     window_px: int = 15,
     road_cam_m: np.ndarray | None = None,
+    max_depth_m: float = 0.25,
 ) -> PairDense | None:
     """Dense depths of the defect inside ``poly`` (shapely Polygon, grid frame) seen by ``pair``.
 
@@ -212,6 +213,15 @@ def measure_dense(
         return _none("no road plane")
     d = -signed_distance(P, plane)  # positive below the road
     noise = max(robust_sigma(d[road_ok]), 1e-4)
+    # A track that slid along the epipolar line (weak texture along it, e.g. a rut running
+    # with the direction of travel) passes both checks above with a wildly wrong depth. Drop
+    # depths no road defect has (the plane fit's own mismatch bound) and spikes that disagree
+    # with their neighbours on the tracking grid: a real surface is continuous at 2 px.
+    ok &= np.abs(d) <= max_depth_m
+    ok &= _consistent(d, ok, use, U.shape, noise)
+    road_ok = ok & ring_u
+    if road_ok.sum() < 30 or (ok & ins_u).sum() < 10:
+        return _none("too few consistent tracks")
     spacing = float(np.sqrt(np.median(_cell_area(g, U.shape)[use])))
     sel = ok & ins_u
     return PairDense(gi[sel], d[sel], spacing, noise)
@@ -291,6 +301,29 @@ def combine_dense(
         cell_m=c,
         depth_grid_m=np.where(in_core, D, np.nan),
     )
+
+
+def _consistent(
+    d: np.ndarray, ok: np.ndarray, use: np.ndarray, shape: tuple[int, int], noise_m: float
+) -> np.ndarray:
+    """(K,) mask over the used tracks: depth within max(6 σ, 5 mm, 25 %) of the median of its
+    valid neighbours in a 5 x 5 window of the tracking grid (``shape``). A steep wall between
+    floor and rim may lose a cell or two; the floor and the rim, which set the measures, stay."""
+    import warnings
+
+    grid = np.full(shape[0] * shape[1], np.nan)
+    idx = np.flatnonzero(use)
+    grid[idx[ok]] = d[ok]
+    G = grid.reshape(shape)
+    pad = np.pad(G, 2, constant_values=np.nan)
+    win = np.lib.stride_tricks.sliding_window_view(pad, (5, 5)).reshape(*shape, 25)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        med = np.nanmedian(win, axis=-1).ravel()[idx]
+        n = np.isfinite(win).sum(axis=-1).ravel()[idx]
+    tol = np.maximum(np.maximum(6.0 * noise_m, 0.005), 0.25 * np.abs(med))
+    # Needs a few neighbours to judge; an isolated track has no support either way.
+    return (n >= 5) & (np.abs(d - med) <= tol)
 
 
 def _none(why: str) -> None:
@@ -396,7 +429,7 @@ class DenseContext:
 
 
 def measure_defect_dense(
-    poly: Any, ctx: DenseContext, cfg: Any, rim_floor_m: float
+    poly: Any, ctx: DenseContext, cfg: Any, rim_floor_m: float, max_depth_m: float = 0.25
 ) -> DenseMeasure | None:
     """Dense measurement of the defect inside ``poly`` from every pair whose sparse points
     reach it (``measure_dense`` per pair, ``combine_dense`` over them); None when no pair gives
@@ -419,8 +452,14 @@ def measure_defect_dense(
         m = measure_dense(
             poly, ga, gb, p, xy, road, ctx.camera,
             ring_m=cfg.ring_m, edge_m=cfg.edge_m, step_px=cfg.step_px, window_px=cfg.window_px,
-            road_cam_m=pair_road,
+            road_cam_m=pair_road, max_depth_m=max_depth_m,
         )  # fmt: skip
+        if m is not None:
+            log.debug(
+                "detection: dense pair %s-%s: %d tracks, depth %.1f..%.1f mm, noise %.2f mm",
+                p.frame_a, p.frame_b, len(m.depth_m), 1000 * m.depth_m.min(),
+                1000 * m.depth_m.max(), 1000 * m.noise_m,
+            )  # fmt: skip
         if m is not None and m.noise_m <= cfg.max_noise_k * ctx.sparse_noise_m:
             got.append(m)
     res = combine_dense(

@@ -319,7 +319,9 @@ def _measure_regions(
         if dense is not None:
             from detection.dense import measure_defect_dense
 
-            dm = measure_defect_dense(poly, dense, cfg.dense, mc.rim_threshold_m)
+            dm = measure_defect_dense(
+                poly, dense, cfg.dense, mc.rim_threshold_m, cfg.plane.max_depth_m
+            )
             if dm is not None and dm.coverage < cfg.dense.min_coverage:
                 dm, part = None, dm  # too partial to measure the defect by; see below
         if dm is not None:
@@ -350,6 +352,11 @@ def _measure_regions(
             if part is not None:
                 # A partial dense reading still measured the part it saw: the same rule.
                 pt_max = max(part.max_depth_m, pt_max or 0.0)
+            log.debug(
+                "detection: %s no full dense reading: map points %s, pairs %s, partial dense %s",
+                m.centroid_xy_m, pt_max, pr_max if pair_pts else None,
+                None if part is None else part.max_depth_m,
+            )  # fmt: skip
             if pt_max is not None and pt_max > 0:
                 # The raster's bottom is shaved by interpolation: scale its depths to the
                 # points' before measuring the area deeper than the frame-label depth.

@@ -95,3 +95,30 @@ def test_distort_undistort_round_trip():
     raw = _distort(px, cam)
     assert np.abs(raw - px).max() > 5.0  # the lens moves the corners by pixels
     assert np.allclose(_undistort(raw, cam), px, atol=0.05)
+
+
+def test_tracks_that_slid_along_the_epipolar_line_are_dropped():
+    """A rut running with the direction of travel gave tracks 0.3-4.5 m 'deep' that passed the
+    forward-backward and epipolar checks (they slide along the line); one such cluster set the
+    rut's max depth to 0.75 m. The neighbour check drops them and keeps a steep-walled bowl."""
+    from detection.dense import _consistent
+
+    rng = np.random.default_rng(3)
+    shape = (40, 60)
+    v, u = np.mgrid[: shape[0], : shape[1]]
+    r = np.hypot(u - 30, v - 20) / 12.0
+    # 40 mm bowl with a near-vertical 10 mm step at its rim, plus 1 mm noise
+    depth = np.where(r < 1, 0.010 + 0.030 * (1 - r**2), 0.0) + rng.normal(0, 0.001, shape)
+    d = depth.ravel().copy()
+    spikes = rng.choice(d.size, 40, replace=False)
+    d[spikes] = rng.uniform(0.3, 4.5, spikes.size)
+    d[np.ravel_multi_index((21, 31), shape)] = 0.9  # one inside the bowl, too
+    use = np.ones(d.size, bool)
+    ok = np.ones(d.size, bool)
+    keep = _consistent(d, ok, use, shape, 0.001)
+    assert not keep[spikes].any()
+    assert not keep[np.ravel_multi_index((21, 31), shape)]
+    good = np.setdiff1d(np.arange(d.size), spikes)
+    assert keep[good].mean() > 0.97
+    kept_max = d[keep].max()
+    assert kept_max == pytest.approx(0.040, abs=0.004)
