@@ -26,6 +26,28 @@ def robust_sigma(values: np.ndarray) -> float:
     return float(MAD_TO_SIGMA * np.median(np.abs(v - np.median(v))))
 
 
+def road_sigma(d_m: np.ndarray) -> float:
+    """σ of the road's distances (N,) when defects pull only one way (below, negative).
+
+    MAD over all points counts a pothole filling a third of the overlap as noise (σ 5 mm
+    instead of 1 mm, so T_d = 4σ hid a 29 mm pothole). Here the road level is the middle of the
+    shortest interval holding half the points (it lies in the road's own distribution while
+    defects are a minority), and σ comes from the points above that level only, which no
+    defect reaches: 1.4826 · median(d - level | d >= level) (half-normal). NaN when empty.
+    """
+    v = np.sort(np.asarray(d_m, float)[np.isfinite(d_m)])
+    n = v.size
+    if n == 0:
+        return float("nan")
+    if n < 8:
+        return robust_sigma(v)
+    h = (n + 1) // 2
+    i = int(np.argmin(v[h - 1 :] - v[: n - h + 1]))
+    level = float(np.median(v[i : i + h]))
+    up = v[v >= level] - level
+    return float(MAD_TO_SIGMA * np.median(up)) if up.size else robust_sigma(v)
+
+
 def fit_plane(points_m: np.ndarray) -> np.ndarray:
     """Least-squares plane Z = p0 X + p1 Y + p2 through (N, 3) points (N >= 3); returns (3,)."""
     P = check_shape("points_m", points_m, (None, 3))
@@ -54,6 +76,24 @@ class PlaneFitResult:
     iterations: int
 
 
+def _start_plane(P: np.ndarray, floor_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Plane and road mask to start the recursion from. A least-squares plane through every
+    point tilts toward a large pothole; the road then spreads over ±10 mm and σ (hence T_d)
+    swallows the pothole. Refits that drop the points more than the T_d floor below the plane
+    (defects only lie below) bring it back onto the road. On a noisy road this trims a little of
+    the lower tail; the recursion's own refits over |d| < T_d then restore the plane."""
+    plane = fit_plane(P)
+    road = np.ones(len(P), bool)
+    for _ in range(10):
+        d = signed_distance(P, plane)
+        keep = d > -floor_m
+        if keep.sum() < max(3, len(P) // 2) or np.array_equal(keep, road):
+            break
+        road = keep
+        plane = fit_plane(P[road])
+    return plane, road
+
+
 def recursive_plane_fit(points_m: np.ndarray, cfg: PlaneFitConfig) -> PlaneFitResult:
     """Split points into road X^rn and candidate defect points X^rd (eq. 4.8-4.10).
 
@@ -68,8 +108,7 @@ def recursive_plane_fit(points_m: np.ndarray, cfg: PlaneFitConfig) -> PlaneFitRe
         return PlaneFitResult(
             np.zeros(n, bool), np.zeros(n), np.full(3, np.nan), np.nan, np.nan, 1.0, 0
         )
-    plane = fit_plane(P)
-    road = np.ones(n, bool)
+    plane, road = _start_plane(P, cfg.depth_threshold_m)
     cand = np.zeros(n, bool)
     d = signed_distance(P, plane)
     T_d = cfg.depth_threshold_m
@@ -77,7 +116,7 @@ def recursive_plane_fit(points_m: np.ndarray, cfg: PlaneFitConfig) -> PlaneFitRe
     it = 0
     for it in range(1, cfg.max_iterations + 1):
         d = signed_distance(P, plane)
-        sigma = robust_sigma(d[road])
+        sigma = road_sigma(d[road])
         T_d = max(cfg.depth_threshold_m, cfg.noise_k * sigma)
         new_cand = (d < 0) & (np.abs(d) >= T_d) & (np.abs(d) <= cfg.max_depth_m)
         # Bumps far above the plane are not road either: keep them out of the refit.

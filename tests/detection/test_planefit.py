@@ -67,3 +67,21 @@ def test_robust_sigma_ignores_outliers():
     v = rng.normal(0, 1.0, 10000)
     v[:500] = 50.0
     assert robust_sigma(v) == pytest.approx(1.0, rel=0.1)
+
+
+def test_large_pothole_at_one_side_does_not_inflate_the_threshold():
+    """A 30 mm pothole filling a quarter of the overlap at one side tilted the first
+    least-squares plane, the road spread over ±10 mm, σ read 5 mm and T_d = 4σ = 21 mm hid the
+    pothole (long drive, frames 176-178). The trimmed start plane keeps σ at the road's."""
+    rng = np.random.default_rng(5)
+    P = _cloud(rng, n=800, noise=0.001)
+    r2 = (P[:, 0] - 0.35) ** 2 + P[:, 1] ** 2
+    depth = 0.030 * np.clip(1 - r2 / 0.35**2, 0, None)
+    P[:, 2] += depth
+    assert (depth > 0.008).mean() > 0.2
+    res = recursive_plane_fit(P, PlaneFitConfig())
+    assert res.noise_m < 0.002  # the shallow rim counts as road; the old start read 5.9 mm
+    assert res.threshold_m == pytest.approx(0.008)
+    truth = depth >= res.threshold_m + 0.004
+    assert res.candidate[truth].mean() > 0.9
+    assert not res.candidate[depth == 0].any()
