@@ -22,7 +22,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from detection.planefit import fit_plane, robust_sigma, signed_distance
+from detection.planefit import robust_plane, robust_sigma, signed_distance
 from reconstruction.geometry import normalised_from_px, triangulate
 from roadsurf.drive import Camera
 
@@ -208,7 +208,7 @@ def measure_dense(
     if road_ok.sum() < 30 or (ok & ins_u).sum() < 10:
         return _none("too few valid tracks")
     lev = P[road_ok] if road_cam_m is None else np.vstack([P[road_ok], road_cam_m])
-    plane = _robust_plane(lev)
+    plane = robust_plane(lev, iterations=4)
     if plane is None:
         return _none("no road plane")
     d = -signed_distance(P, plane)  # positive below the road
@@ -352,19 +352,6 @@ def _sampson(E: np.ndarray, na: np.ndarray, nb: np.ndarray) -> np.ndarray:
     num = np.sum(xb * Ea, axis=1)
     den = np.sqrt(Ea[:, 0] ** 2 + Ea[:, 1] ** 2 + Etb[:, 0] ** 2 + Etb[:, 1] ** 2) + 1e-300
     return num / den
-
-
-def _robust_plane(P: np.ndarray) -> np.ndarray | None:
-    keep = np.ones(len(P), bool)
-    plane = None
-    for _ in range(4):
-        if keep.sum() < 10:
-            return plane
-        plane = fit_plane(P[keep])
-        d = signed_distance(P, plane)
-        s = max(robust_sigma(d[keep]), 1e-4)
-        keep = np.abs(d - np.median(d[keep])) <= 3.0 * s
-    return plane
 
 
 def _nanmedian3(D: np.ndarray) -> np.ndarray:

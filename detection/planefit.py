@@ -76,6 +76,22 @@ class PlaneFitResult:
     iterations: int
 
 
+def robust_plane(points_m: np.ndarray, iterations: int = 3) -> np.ndarray | None:
+    """Plane (3,) through road points (N, 3) in camera coordinates, refit without the points
+    beyond 3 σ (MAD) of the previous fit, ``iterations`` fits in all; None with fewer than 10."""
+    P = check_shape("points_m", np.asarray(points_m, float), (None, 3))
+    keep = np.ones(len(P), bool)
+    plane = None
+    for _ in range(iterations):
+        if keep.sum() < 10:
+            return plane
+        plane = fit_plane(P[keep])
+        d = signed_distance(P, plane)
+        s = max(robust_sigma(d[keep]), 1e-4)
+        keep = np.abs(d - np.median(d[keep])) <= 3.0 * s
+    return plane
+
+
 def _start_plane(P: np.ndarray, floor_m: float) -> tuple[np.ndarray, np.ndarray]:
     """Plane and road mask to start the recursion from. A least-squares plane through every
     point tilts toward a large pothole; the road then spreads over ±10 mm and σ (hence T_d)

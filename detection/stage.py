@@ -613,23 +613,6 @@ def _pair_points(
     return out
 
 
-def _robust_plane(P: np.ndarray) -> np.ndarray | None:
-    """Plane (3,) through road points (N, 3) in camera coordinates, refit twice without the
-    points beyond 3 σ (MAD); None with fewer than 10 points."""
-    from detection.planefit import fit_plane, robust_sigma, signed_distance
-
-    keep = np.ones(len(P), bool)
-    plane = None
-    for _ in range(3):
-        if keep.sum() < 10:
-            return plane
-        plane = fit_plane(P[keep])
-        d = signed_distance(P, plane)
-        s = max(robust_sigma(d[keep]), 1e-4)
-        keep = np.abs(d - np.median(d[keep])) <= 3.0 * s
-    return plane
-
-
 def pair_max_depth(
     poly: Any, pair_pts: list[tuple[np.ndarray, np.ndarray]], mc: Any
 ) -> float | None:
@@ -643,7 +626,7 @@ def pair_max_depth(
     """
     from shapely import contains_xy
 
-    from detection.planefit import signed_distance
+    from detection.planefit import robust_plane, signed_distance
 
     x0, y0, x1, y1 = poly.bounds
     pad = mc.level_ring_m
@@ -659,7 +642,7 @@ def pair_max_depth(
         ring = contains_xy(outer, q[:, 0], q[:, 1]) & ~contains_xy(inner, q[:, 0], q[:, 1])
         if ins.sum() < max(3, mc.min_support_points) or ring.sum() < 20:
             continue
-        plane = _robust_plane(Q[ring])
+        plane = robust_plane(Q[ring])
         if plane is None:
             continue
         # The deepest point: the points sample a pothole's bottom sparsely, so lower
