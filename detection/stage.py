@@ -53,14 +53,19 @@ def run(
     run_dir: Path,
     *,
     frame_probs: dict[str, float] | None = None,
+    fusion: Any = None,
 ) -> DetectionResult:
     """Detect and measure defects; write the output files into ``run_dir``.
+
+    ``frame_probs`` (CNN p_defect per frame) are fused with the 3D frame labels by ``fusion``
+    (a ``detection.classifier.fusion.FusionRule``; None: ``cfg.fusion_threshold`` and the
+    default context rule).
 
     Resumes: when RUN/detection.json records the same inputs and config, the files are read
     back instead of recomputed (``cfg.overwrite`` forces a recompute).
     """
     run_dir = Path(run_dir)
-    signature = _signature(cfg, pairs, traj, run_dir, frame_probs)
+    signature = _signature(cfg, pairs, traj, run_dir, frame_probs, fusion)
     if not cfg.overwrite:
         cached = load_result(run_dir, signature)
         if cached is not None:
@@ -140,7 +145,7 @@ def run(
     use_map = surface is not None and cfg.frame_label == "map"
     pair_scores = _pair_frame_scores(cfg, drive, pairs, per_pair)
     frames = _frame_labels(cfg, drive, footprints, deep_xy, cell_m2, pair_scores, use_map)
-    frames = _fuse(cfg, frames, frame_probs, pairs)
+    frames = _fuse(cfg, frames, frame_probs, pairs, fusion)
 
     result = DetectionResult(
         defects=defects,
@@ -731,15 +736,26 @@ def _fuse(
     frames: list[FrameLabel],
     frame_probs: dict[str, float] | None,
     pairs: list[PairResult],
+    rule: Any = None,
 ) -> list[FrameLabel]:
     """Fig. 5.6: a confident CNN decides, otherwise 3D (frames no ok pair covers have no 3D)."""
     if not frame_probs:
         return frames
-    from detection.classifier.fusion import fuse_frames
+    from detection.classifier.fusion import FusionRule, fuse_frames
 
+    if rule is None:
+        rule = FusionRule(threshold=cfg.fusion_threshold)
     covered = {p.frame_a for p in pairs if p.ok} | {p.frame_b for p in pairs if p.ok}
     labels_3d = {f.filename: bool(f.defect) for f in frames if f.filename in covered}
-    fused = fuse_frames(frame_probs, labels_3d, [f.filename for f in frames], cfg.fusion_threshold)
+    fused = fuse_frames(
+        frame_probs,
+        labels_3d,
+        [f.filename for f in frames],
+        rule.threshold,
+        rule.confirm_defect_with_3d,
+        rule.context_frames,
+        rule.decide_3d,
+    )
     out = []
     for f in frames:
         d = fused[f.filename]
@@ -759,6 +775,7 @@ def _signature(
     traj: Trajectory,
     run_dir: Path,
     frame_probs: dict[str, float] | None,
+    fusion: Any = None,
 ) -> str:
     """Hash of everything the outputs depend on (config, pairs, poses, raster, CNN scores)."""
     h = hashlib.sha256()
@@ -775,4 +792,9 @@ def _signature(
             st = p.stat()
             h.update(f"{name}|{st.st_size}|{st.st_mtime_ns}".encode())
     h.update(json.dumps(sorted((frame_probs or {}).items())).encode())
+    if fusion is not None:
+        h.update(
+            repr((fusion.threshold, fusion.confirm_defect_with_3d, fusion.context_frames)).encode()
+        )
+        h.update(json.dumps(sorted(fusion.decide_3d)).encode())
     return h.hexdigest()

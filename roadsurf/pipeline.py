@@ -150,21 +150,31 @@ def run_drive(
             raise ConfigError(f"--method {method}: the reconstruction stage has no method option")
         rec_cfg = from_dict(type(rec_cfg), {**to_dict(rec_cfg), "method": method}, "--method")
     frame_probs: dict[str, float] | None = None
-    only_pairs: set[tuple[int, int]] | None = None
-    if classifier is not None:
+    fusion_rule: Any = None
+    rec = _stage("reconstruction.stage")
+    if classifier is None:
+        pairs = timed("reconstruction", lambda: rec.run(rec_cfg, drive, out))
+    else:
         screen = _stage("detection.classifier.screen")
         frame_probs = timed(
             "screening", lambda: screen.screen_drive(Path(classifier), drive, cfg.classifier)
         )
-        only_pairs = _pairs_to_reconstruct(drive, frame_probs, cfg.classifier)
-        log.info(
-            "CNN screening: %d of %d pairs need the 3D reconstruction",
-            len(only_pairs),
-            max(0, len(drive.frames) - 1),
-        )
+        guided = _stage("detection.classifier.guided")
 
-    rec = _stage("reconstruction.stage")
-    pairs = timed("reconstruction", lambda: rec.run(rec_cfg, drive, out, only_pairs=only_pairs))
+        def reconstruct_guided() -> list[Any]:
+            nonlocal fusion_rule
+            g = guided.run(
+                cfg.classifier,
+                [f.filename for f in drive.frames],
+                frame_probs,
+                drive.camera.height_m,
+                lambda only: rec.run(rec_cfg, drive, out, only_pairs=only),
+                out,
+            )
+            fusion_rule = g.rule
+            return g.pairs
+
+        pairs = timed("reconstruction", reconstruct_guided)
     poses = _stage("mapping.poses")
     traj = timed("poses", lambda: poses.run(cfg.mapping, drive, pairs, out))
     gmap = _stage("mapping.globalmap")
@@ -172,7 +182,9 @@ def run_drive(
     det = _stage("detection.stage")
     detections = timed(
         "detection",
-        lambda: det.run(cfg.detection, drive, pairs, traj, out, frame_probs=frame_probs),
+        lambda: det.run(
+            cfg.detection, drive, pairs, traj, out, frame_probs=frame_probs, fusion=fusion_rule
+        ),
     )
 
     timings["total"] = round(time.perf_counter() - t_start, 3)
@@ -297,18 +309,6 @@ def _with_overwrite(cfg: PipelineConfig) -> PipelineConfig:
         if any(g.name == "overwrite" for g in dataclasses.fields(sub)):
             repl[f.name] = dataclasses.replace(sub, overwrite=True)
     return dataclasses.replace(cfg, **repl)
-
-
-def _pairs_to_reconstruct(
-    drive: Any, frame_probs: dict[str, float], clf_cfg: Any
-) -> set[tuple[int, int]]:
-    """Pairs whose frames the CNN is unsure about or calls defect (Fig. 5.6)."""
-    from detection.classifier.fusion import pairs_to_reconstruct
-
-    threshold = float(getattr(clf_cfg, "fusion_threshold", 0.95))
-    context = int(getattr(clf_cfg, "context_frames", 1))
-    names = [f.filename for f in drive.frames]
-    return pairs_to_reconstruct(frame_probs, names, threshold, context_frames=context)
 
 
 def _build_report(

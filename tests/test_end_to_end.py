@@ -133,3 +133,37 @@ def test_rerun_resumes_without_recomputing(sample_run) -> None:
         assert st["computed_s"] == first["timings_s"][name]
         assert rep["timings_s"][name] == first["timings_s"][name]
     assert first["stages"]["globalmap"]["resumed"] == "no"
+
+
+@pytest.mark.slow
+def test_run_with_classifier_screens_audits_and_fuses(sample_run, tmp_path: Path) -> None:
+    """`roadsurf run --classifier`: a CNN sure that every frame is clear road leaves only the
+    sparse 3D audit (and growth along what it finds) to the physics pipeline; frames.csv says
+    which source decided each frame, screening.json why each frame got 3D."""
+    import torch
+
+    from detection.classifier.modelfile import save_model
+    from detection.classifier.network import DefectNet
+    from roadsurf.pipeline import run_drive
+
+    drive, _, _ = sample_run
+    net = DefectNet(48).eval()
+    with torch.no_grad():  # a constant "non-defect" network: p_defect ~ 1e-9 on every frame
+        net.fc8.weight.zero_()
+        net.fc8.bias.copy_(torch.tensor([10.0, -10.0]))
+    save_model(tmp_path / "model", net, {"architecture": {"dropout": 0.5, "width": 1}})
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text("classifier:\n  audit_every_frames: 4\n  grow_along_defects: false\n")
+    out = tmp_path / "fused"
+    rep = run_drive(drive, out, classifier=tmp_path / "model", config_path=cfg)
+    scr = json.loads((out / "screening.json").read_text())
+    # audit frames 2 and 6 of the 10 frames -> pairs (2, 3) and (6, 7) only
+    assert scr["frames_with_3d_by_reason"] == {"audit": 2}
+    assert rep["counts"]["pairs"] == scr["pairs_reconstructed"] == 2
+    rows = {r["filename"]: r for r in read_csv(out / "frames.csv")}
+    reason = {f["filename"]: f["3d_reason"] for f in scr["frames"]}
+    assert len(rows) == N_FRAMES
+    for fn, r in rows.items():
+        assert r["source"] == ("3d" if reason[fn] == "audit" else "cnn"), fn
+        if r["source"] == "cnn":
+            assert r["defect"] == "0" and float(r["p_defect"]) < 1e-3

@@ -72,6 +72,13 @@ class ClassifierConfig:
     # neighbours (frames) of an unsure/defect frame that are reconstructed too and decided by 3D
     # (temporal-context extension; 0 = the dissertation's per-frame rule)
     context_frames: int = 1
+    # sparse 3D audit: one pair every this many frames is reconstructed whatever the CNN says,
+    # so long defects a single image cannot show (a shallow rut under diffuse light) are met;
+    # 0 = off, the dissertation's rule (frames)
+    audit_every_frames: int = 10
+    # a frame whose 3D shows a defect gets its neighbours reconstructed, repeatedly, so a defect
+    # is followed along the drive to its ends (1)
+    grow_along_defects: bool = True
     screen_batch_size: int = 64  # images per inference batch (1)
     # test-time augmentation: CNN logits averaged over this many flips/quarter turns of each
     # frame (1, 2, 4 or 8; 1 = off). Set at training, stored in the model file, used by

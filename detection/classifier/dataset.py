@@ -24,6 +24,7 @@ from __future__ import annotations
 import csv
 import logging
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -104,18 +105,12 @@ def _hull_area_m2(xy: np.ndarray) -> float:
 def frame_figures(
     run_dir: Path, filenames: list[str], camera_height_m: float, cfg: ClassifierConfig
 ) -> dict[str, FrameFigures]:
-    """Depth and extent of each frame from RUN/pairs/*.npz (eq. 5.8-5.9).
-
-    Points are normalised by the camera height, X̄ = X / h; a point is deep when its signed
-    plane distance satisfies d / h < -α with α = Z^d / h. Frame i collects pair (i, i+1) (pixels
-    ``px_a``) and pair (i-1, i) (pixels ``px_b``). Frames with no successful pair are absent.
-    """
+    """Depth and extent of each frame from RUN/pairs/*.npz (eq. 5.8-5.9); see
+    ``figures_from_pairs``. ``filenames`` are the drive's valid frames in capture order."""
     from reconstruction.types import load_pair, pair_filename
 
-    h = float(camera_height_m)
-    alpha = cfg.depth_threshold_m(h) / h
     pair_dir = Path(run_dir) / "pairs"
-    per_frame: dict[int, list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = {}
+    pairs = []
     for i in range(len(filenames) - 1):
         p = pair_dir / pair_filename(i, i + 1)
         if not p.is_file():
@@ -125,14 +120,33 @@ def frame_figures(
         except Exception as e:  # noqa: BLE001 - a damaged cache file only loses this pair
             log.warning("%s: cannot read pair (%s); frames %d-%d get no 3D label", p, e, i, i + 1)
             continue
+        # the run folder's file name decides which frames the pair belongs to
+        res.frame_a, res.frame_b = filenames[i], filenames[i + 1]
+        pairs.append(res)
+    return figures_from_pairs(pairs, camera_height_m, cfg)
+
+
+def figures_from_pairs(
+    pairs: Iterable[Any], camera_height_m: float, cfg: ClassifierConfig
+) -> dict[str, FrameFigures]:
+    """Depth and extent of each frame seen by ``pairs`` (PairResults) -> {filename: figures}.
+
+    Points are normalised by the camera height, X̄ = X / h; a point is deep when its signed
+    plane distance satisfies d / h < -α with α = Z^d / h. Frame a of a pair collects its pixels
+    ``px_a``, frame b its ``px_b``. Frames with no successful pair are absent.
+    """
+    h = float(camera_height_m)
+    alpha = cfg.depth_threshold_m(h) / h
+    per_frame: dict[str, list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = {}
+    for res in pairs:
         if not res.ok or res.n_points == 0:
             continue
         d_bar = np.asarray(res.plane_dist_m, float) / h  # normalised depth, negative below road
         xy = np.asarray(res.points_cam_a_m, float)[:, :2]
-        per_frame.setdefault(i, []).append((d_bar, xy, np.asarray(res.px_a, float)))
-        per_frame.setdefault(i + 1, []).append((d_bar, xy, np.asarray(res.px_b, float)))
+        per_frame.setdefault(res.frame_a, []).append((d_bar, xy, np.asarray(res.px_a, float)))
+        per_frame.setdefault(res.frame_b, []).append((d_bar, xy, np.asarray(res.px_b, float)))
     out: dict[str, FrameFigures] = {}
-    for i, parts in per_frame.items():
+    for name, parts in per_frame.items():
         max_depth = 0.0
         extent = 0.0
         n_deep = 0
@@ -156,7 +170,7 @@ def frame_figures(
                 float(b[:, 2].max()),
                 float(b[:, 3].max()),
             )
-        out[filenames[i]] = FrameFigures(max(0.0, max_depth), extent, n_deep, n_pts, bbox)
+        out[name] = FrameFigures(max(0.0, max_depth), extent, n_deep, n_pts, bbox)
     return out
 
 

@@ -20,8 +20,8 @@ per-frame rule.
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Collection, Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
 from typing import Literal
 
 Source = Literal["cnn", "3d", "fused"]
@@ -101,6 +101,18 @@ def frames_needing_3d(
     return [flags[i] or any(lean[max(0, i - k) : min(n, i + k + 1)]) for i in range(n)]
 
 
+@dataclass(frozen=True)
+class FusionRule:
+    """The parameters of one fused run, shared by the pair selection and the frame fusion."""
+
+    threshold: float = 0.95  # the CNN decision stands when max(p) >= this (Fig. 5.6)
+    confirm_defect_with_3d: bool = False  # a sure CNN "defect" needs the 3D result to agree
+    context_frames: int = CONTEXT_FRAMES  # neighbours of defect-leaning frames decided by 3D
+    # frames reconstructed whatever the CNN said (audit, growth along a 3D defect): their 3D
+    # result, when there is one, decides over a CNN "non-defect"
+    decide_3d: frozenset[str] = field(default_factory=frozenset)
+
+
 def fuse_frames(
     frame_probs: Mapping[str, float] | None,
     labels_3d: Mapping[str, bool],
@@ -108,19 +120,22 @@ def fuse_frames(
     threshold: float = 0.95,
     confirm_defect_with_3d: bool = False,
     context_frames: int = CONTEXT_FRAMES,
+    decide_3d: Collection[str] = (),
 ) -> dict[str, FusedDecision]:
     """Fuse every frame in ``filenames`` (capture order); frames missing from a mapping count
-    as not available. A confident CNN "non-defect" next to a frame that needed 3D is decided
-    by 3D when its 3D result exists (temporal context, see the module docstring)."""
+    as not available. A confident CNN "non-defect" next to a frame that needed 3D (temporal
+    context, see the module docstring), or listed in ``decide_3d`` (audited or grown frames,
+    see ``detection.classifier.guided``), is decided by 3D when its 3D result exists."""
     probs = frame_probs or {}
     if not probs:
         return {fn: fuse(None, labels_3d.get(fn), threshold) for fn in filenames}
     ctx = frames_needing_3d(probs, filenames, threshold, context_frames)
+    forced = set(decide_3d)
     out: dict[str, FusedDecision] = {}
     for fn, need in zip(filenames, ctx, strict=True):
         p, d3 = probs.get(fn), labels_3d.get(fn)
         d = fuse(p, d3, threshold, confirm_defect_with_3d)
-        if need and d.source == "cnn" and d3 is not None and p is not None:
+        if (need or fn in forced) and d.source == "cnn" and d3 is not None and p is not None:
             d = FusedDecision(bool(d3), float(p), "3d")
         out[fn] = d
     return out
@@ -149,4 +164,31 @@ def pairs_to_reconstruct(
             out.add((i, i + 1))
         if i > 0:
             out.add((i - 1, i))
+    return out
+
+
+def frame_pairs(i: int, n: int) -> set[tuple[int, int]]:
+    """Both pairs that see frame ``i`` of ``n`` (its whole image): (i-1, i) and (i, i+1)."""
+    return {(j, j + 1) for j in (i - 1, i) if 0 <= j and j + 1 < n}
+
+
+def audit_pairs(n: int, every: int) -> dict[int, tuple[int, int]]:
+    """{frame: pair} for the sparse 3D audit: one pair (i, i+1) for every ``every``-th frame
+    (from ``every // 2``), whatever the CNN says; ``every <= 0`` means no audit."""
+    if every <= 0 or n < 2:
+        return {}
+    out = {}
+    for i in range(every // 2, n, every):
+        out[i] = (i, i + 1) if i + 1 < n else (i - 1, i)
+    return out
+
+
+def grow_pairs(defect_frames: Iterable[int], n: int) -> dict[int, set[tuple[int, int]]]:
+    """{frame: pairs} that give the neighbours i-1 and i+1 of each 3D defect frame i (and i
+    itself) their whole image, so that a defect is followed along the drive to its ends."""
+    out: dict[int, set[tuple[int, int]]] = {}
+    for i in defect_frames:
+        for j in (i - 1, i, i + 1):
+            if 0 <= j < n:
+                out.setdefault(j, set()).update(frame_pairs(j, n))
     return out

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import json
 import math
 from pathlib import Path
 
@@ -238,3 +239,70 @@ def test_labelling_a_rendered_drive_agrees_with_truth_on_clear_cases(tmp_path: P
     assert bal["after_augmentation"]["defect"] == bal["before_augmentation"]["defect"] + len(aug)
     img = cv2.imread(str(tmp_path / "ds" / orig[0]["image"]), cv2.IMREAD_UNCHANGED)
     assert img.shape == (64, 64) and img.dtype == np.uint8
+
+
+def test_audit_and_growth_follow_a_defect_the_cnn_cannot_see(tmp_path: Path) -> None:
+    """A long shallow defect (frames 9-15) the CNN is sure is clear road: the sparse audit meets
+    it, growth follows it to both ends, and 3D decides those frames (detection.classifier.guided).
+    """
+    from detection.classifier import guided
+    from detection.classifier.fusion import audit_pairs, grow_pairs
+
+    n = 30
+    names = [f"{i:04d}.png" for i in range(n)]
+    rut = set(range(9, 16))
+    rng = np.random.default_rng(3)
+    calls: list[set[tuple[int, int]]] = []
+
+    def reconstruct(only: set[tuple[int, int]]) -> list[PairResult]:
+        calls.append(set(only))
+        # pair (i, i+1) sees the rut when either frame is on it
+        return [_pair(a, 0.03 if {a, b} & rut else 0.0, 40 if {a, b} & rut else 0, rng)
+                for a, b in sorted(only)]  # fmt: skip
+
+    probs = dict.fromkeys(names, 0.001)  # the CNN is sure every frame is clear
+    cfg = ClassifierConfig(audit_every_frames=10)
+    assert audit_pairs(n, 10) == {5: (5, 6), 15: (15, 16), 25: (25, 26)}
+    assert grow_pairs([0], n) == {0: {(0, 1)}, 1: {(0, 1), (1, 2)}}
+    res = guided.run(cfg, names, probs, 1.0, reconstruct, tmp_path)
+    # round 1 is the audit only; growth walks the rut down from frame 15 and stops on clear road
+    assert calls[0] == {(5, 6), (15, 16), (25, 26)}
+    done = calls[-1]
+    assert all({(i - 1, i), (i, i + 1)} <= done for i in rut)
+    assert not any(p in done for p in [(0, 1), (3, 4), (20, 21), (28, 29)])
+    assert res.reasons["0015.png"] == "audit" and res.reasons["0009.png"] == "grown"
+    assert res.rounds > 2 and {"0009.png", "0015.png"} <= res.rule.decide_3d
+    # 3D decides the audited and grown frames; the CNN keeps the frames nobody checked
+    d3 = {fn: int(fn[:4]) in rut for fn in res.rule.decide_3d}
+    fused = fuse_frames(probs, d3, names, decide_3d=res.rule.decide_3d)
+    assert [i for i, fn in enumerate(names) if fused[fn].defect] == sorted(rut)
+    assert fused["0000.png"].source == "cnn" and fused["0012.png"].source == "3d"
+    rec = json.loads((tmp_path / guided.SCREENING_FILE).read_text())
+    assert rec["frames"][12] == {"filename": "0012.png", "p_defect": 0.001, "3d_reason": "grown"}
+    assert rec["pairs_reconstructed"] == len(done)
+
+    # without audit and growth it is the dissertation's rule: nothing to reconstruct, rut missed
+    calls.clear()
+    off = ClassifierConfig(audit_every_frames=0, grow_along_defects=False)
+    res = guided.run(off, names, probs, 1.0, reconstruct)
+    assert calls == [set()] and res.pairs == [] and not res.rule.decide_3d
+
+
+def test_growth_extends_the_cnn_context_along_a_long_defect(tmp_path: Path) -> None:
+    from detection.classifier import guided
+
+    n = 20
+    names = [f"{i:04d}.png" for i in range(n)]
+    rut = set(range(4, 12))
+    rng = np.random.default_rng(4)
+
+    def reconstruct(only: set[tuple[int, int]]) -> list[PairResult]:
+        return [_pair(a, 0.03 if {a, b} & rut else 0.0, 40 if {a, b} & rut else 0, rng)
+                for a, b in sorted(only)]  # fmt: skip
+
+    probs = dict.fromkeys(names, 0.001)
+    probs["0005.png"] = 0.99  # the CNN sees only the start of the defect
+    res = guided.run(ClassifierConfig(audit_every_frames=0), names, probs, 1.0, reconstruct)
+    assert res.reasons["0005.png"] == "defect" and res.reasons["0004.png"] == "context"
+    assert res.reasons["0011.png"] == "grown" and res.reasons["0012.png"] == "grown"
+    assert "0014.png" not in res.reasons  # growth stops one frame past the defect's end

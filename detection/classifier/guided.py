@@ -1,0 +1,157 @@
+"""CNN-guided reconstruction: which pairs a fused run reconstructs, and why.
+
+Fig. 5.6 reconstructs a pair only where the CNN is unsure or says "defect". Two additions make
+the fused run safe for defects a single image cannot show:
+
+1. **Sparse 3D audit** (``audit_every_frames``): one pair (i, i+1) every k-th frame, whatever
+   the CNN says. A shallow rut under diffuse light is invisible to the eye and to the CNN (the
+   bench's test_grey drive: a 20 mm deep, 6 m long rut over 11 frames, p_defect <= 0.01 in
+   every one), but it is long, so a sparse audit meets it.
+2. **Growth along 3D defects**: a frame whose own 3D shows a defect (the self-labelling rule,
+   eq. 5.8-5.9) gets its neighbours reconstructed, again and again, until the 3D shows clear
+   road on both sides. A defect the audit meets, or one that outlasts the CNN's context, is
+   followed to its ends.
+
+Audited and grown frames are decided by their 3D result (``FusionRule.decide_3d``).
+``RUN/screening.json`` records every frame's CNN probability and why it got 3D, if it did.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from detection.classifier.config import ClassifierConfig
+from detection.classifier.dataset import figures_from_pairs, label_frame
+from detection.classifier.fusion import (
+    FusionRule,
+    audit_pairs,
+    cnn_confident,
+    frame_pairs,
+    frames_needing_3d,
+    grow_pairs,
+)
+from roadsurf.io import write_json_atomic
+
+log = logging.getLogger(__name__)
+
+SCREENING_FILE = "screening.json"
+MAX_GROWTH_ROUNDS = 200  # safety bound; each round adds at least one pair
+
+
+@dataclass
+class GuidedResult:
+    """The pairs a fused run reconstructed and the fusion rule its detection stage applies."""
+
+    pairs: list[Any]  # PairResults in frame order
+    rule: FusionRule
+    reasons: dict[str, str]  # filename -> why 3D ran (unsure, defect, context, audit, grown)
+    rounds: int  # reconstruction rounds (1 + growth rounds)
+
+
+def initial_plan(
+    frame_probs: Mapping[str, float], filenames: list[str], cfg: ClassifierConfig
+) -> tuple[set[tuple[int, int]], dict[str, str]]:
+    """Pairs before any 3D result is known, and the reason of each frame that gets 3D."""
+    n = len(filenames)
+    thr = cfg.fusion_threshold
+    need = frames_needing_3d(frame_probs, filenames, thr, cfg.context_frames)
+    pairs: set[tuple[int, int]] = set()
+    reasons: dict[str, str] = {}
+    for i, (fn, nd) in enumerate(zip(filenames, need, strict=True)):
+        if not nd:
+            continue
+        p = frame_probs.get(fn)
+        if p is None or p != p:
+            reasons[fn] = "no_cnn"
+        elif not cnn_confident(p, thr):
+            reasons[fn] = "unsure"
+        elif p >= 0.5:
+            reasons[fn] = "defect"
+        else:
+            reasons[fn] = "context"
+        pairs |= frame_pairs(i, n)
+    for i, pr in audit_pairs(n, cfg.audit_every_frames).items():
+        if pr not in pairs:
+            pairs.add(pr)
+            reasons.setdefault(filenames[i], "audit")
+    return pairs, reasons
+
+
+def run(
+    cfg: ClassifierConfig,
+    filenames: list[str],
+    frame_probs: Mapping[str, float],
+    camera_height_m: float,
+    reconstruct: Callable[[set[tuple[int, int]]], list[Any]],
+    run_dir: Path | None = None,
+) -> GuidedResult:
+    """Reconstruct what the screened drive needs; ``reconstruct(only_pairs)`` runs the
+    reconstruction stage on those (index_a, index_b) pairs (cached pairs are reused) and
+    returns its PairResults. ``filenames`` are the drive's valid frames in capture order."""
+    n = len(filenames)
+    todo, reasons = initial_plan(frame_probs, filenames, cfg)
+    rounds = 0
+    while True:
+        rounds += 1
+        pairs = reconstruct(set(todo))
+        if not cfg.grow_along_defects or rounds > MAX_GROWTH_ROUNDS:
+            break
+        figs = figures_from_pairs(pairs, camera_height_m, cfg)
+        pos = {fn: i for i, fn in enumerate(filenames)}
+        defect = [pos[fn] for fn, f in figs.items() if fn in pos and label_frame(f, None, cfg)[0]]
+        new: set[tuple[int, int]] = set()
+        for j, prs in grow_pairs(defect, n).items():
+            add = prs - todo
+            if add:
+                new |= add
+                reasons.setdefault(filenames[j], "grown")
+        if not new:
+            break
+        todo |= new
+    decide = frozenset(fn for fn, r in reasons.items() if r in ("audit", "grown"))
+    rule = FusionRule(
+        threshold=cfg.fusion_threshold,
+        confirm_defect_with_3d=cfg.confirm_defect_with_3d,
+        context_frames=cfg.context_frames,
+        decide_3d=decide,
+    )
+    counts = {r: sum(1 for v in reasons.values() if v == r) for r in sorted(set(reasons.values()))}
+    log.info(
+        "CNN-guided reconstruction: %d of %d pairs in %d round(s); frames with 3D by reason %s",
+        len(todo),
+        max(0, n - 1),
+        rounds,
+        counts,
+    )
+    if run_dir is not None:
+        write_json_atomic(
+            Path(run_dir) / SCREENING_FILE,
+            {
+                "fusion_threshold": cfg.fusion_threshold,
+                "context_frames": cfg.context_frames,
+                "audit_every_frames": cfg.audit_every_frames,
+                "grow_along_defects": cfg.grow_along_defects,
+                "confirm_defect_with_3d": cfg.confirm_defect_with_3d,
+                "pairs_reconstructed": len(todo),
+                "pairs_total": max(0, n - 1),
+                "rounds": rounds,
+                "frames_with_3d_by_reason": counts,
+                "frames": [
+                    {
+                        "filename": fn,
+                        "p_defect": _num(frame_probs.get(fn)),
+                        "3d_reason": reasons.get(fn),
+                    }
+                    for fn in filenames
+                ],
+            },
+        )
+    return GuidedResult(pairs=pairs, rule=rule, reasons=reasons, rounds=rounds)
+
+
+def _num(p: float | None) -> float | None:
+    return None if p is None or p != p else round(float(p), 6)
