@@ -410,6 +410,19 @@ def bench_classifier(
             f: (phys_pred.get(f, v) if sources.get(f) == "fused" else v)
             for f, v in fused_pred.items()
         }
+        # ablation: the same run with the frames only the audit/growth sent to 3D decided by
+        # the CNN again (the dissertation's rule plus context; its time is not measured)
+        scr_path = work / "runs" / s.name / "fused" / "screening.json"
+        scr = read_json(scr_path) if scr_path.is_file() else {}
+        reason = {f["filename"]: f.get("3d_reason") for f in scr.get("frames", [])}
+        plain_pred = {
+            f: (
+                cnn_pred[f]
+                if reason.get(f) in ("audit", "grown") and f in probs and probs[f] <= 1 - thr
+                else v
+            )
+            for f, v in fused_pred.items()
+        }
         n = len(truth)
         results[s.name] = {
             "spec": dataclasses.asdict(s),
@@ -430,6 +443,14 @@ def bench_classifier(
                 **score(confirm_pred, truth, dis),
                 "s_per_frame": fused["s_per_frame"],
                 "cpu_s_per_frame": fused.get("cpu_s_per_frame", float("nan")),
+            },
+            "fused_no_audit": {
+                **score(plain_pred, truth, dis),
+                "s_per_frame": float("nan"),
+                "cpu_s_per_frame": float("nan"),
+            },
+            "screening": {
+                k: scr.get(k) for k in ("frames_with_3d_by_reason", "rounds", "pairs_reconstructed")
             },
             "physics": {
                 **score(phys_pred, truth, dis),
@@ -481,6 +502,10 @@ def _pct(v: Any) -> str:
         return "n/a"
 
 
+def _secs(v: Any) -> str:
+    return f"{float(v):.3f}" if isinstance(v, (int, float)) and v == v else "n/a"
+
+
 def to_markdown(res: dict[str, Any]) -> str:
     """Table 5.2-style markdown of ``bench_classifier`` results."""
     lines = [
@@ -493,6 +518,7 @@ def to_markdown(res: dict[str, Any]) -> str:
             ("cnn", "image-only CNN"),
             ("fused", "fused CNN+3D"),
             ("fused_3d_confirms", "fused, 3D confirms CNN defects"),
+            ("fused_no_audit", "fused without audit/growth (same run; time not measured)"),
             ("physics", "3D only"),
         ):
             if key not in r:
@@ -504,7 +530,7 @@ def to_markdown(res: dict[str, Any]) -> str:
                 f"{_pct(m['accuracy'])} | {_pct(m['precision'])} | {_pct(m['recall'])} | "
                 f"{m['TP']}/{m['TN']}/{m['FP']}/{m['FN']} | "
                 f"{fpd.get('lane_marking', 0)}/{fpd.get('shadow', 0)}/{fpd.get('oil_stain', 0)} | "
-                f"{m['s_per_frame']:.3f} | {m['cpu_s_per_frame']:.3f} |"
+                f"{_secs(m['s_per_frame'])} | {_secs(m['cpu_s_per_frame'])} |"
             )
     lines.append("")
     for name, r in res["tests"].items():
@@ -515,6 +541,12 @@ def to_markdown(res: dict[str, Any]) -> str:
             f"stage wall s {r.get('stage_timings_s')}; load avg (start, end) "
             f"{r.get('load_avg_1min')}"
         )
+        sc = r.get("screening") or {}
+        if sc.get("frames_with_3d_by_reason") is not None:
+            lines.append(
+                f"- {name}: frames sent to 3D by reason {sc['frames_with_3d_by_reason']} "
+                f"({sc.get('rounds')} reconstruction round(s), {sc.get('pairs_reconstructed')} pairs)"
+            )
         c = r.get("cnn_confidence")
         if c:
             lines.append(

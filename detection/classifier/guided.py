@@ -105,10 +105,9 @@ def run(
         defect = [pos[fn] for fn, f in figs.items() if fn in pos and label_frame(f, None, cfg)[0]]
         new: set[tuple[int, int]] = set()
         for j, prs in grow_pairs(defect, n).items():
-            add = prs - todo
-            if add:
-                new |= add
-                reasons.setdefault(filenames[j], "grown")
+            new |= prs - todo
+            # a neighbour of a 3D defect is decided by 3D, even when others' pairs cover it
+            reasons.setdefault(filenames[j], "grown")
         if not new:
             break
         todo |= new

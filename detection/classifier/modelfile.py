@@ -61,6 +61,7 @@ def save_model(out: str | Path, net: DefectNet, meta: dict[str, Any]) -> Path:
         class_names=list(CLASS_NAMES),
         input_size_px=net.input_size_px,
         temperature=float(net.temperature),
+        logit_bias=float(net.logit_bias),
         tta_views=int(net.tta_views),
         torch_version=torch.__version__,
     )
@@ -127,6 +128,9 @@ def load_model(model: str | Path, device: torch.device | str = "cpu") -> tuple[D
         net.temperature = float(meta.get("temperature", 1.0))  # older files: uncalibrated
         if not 0.0 < net.temperature < 1e3:
             raise ValueError(f"softmax temperature {net.temperature} outside (0, 1000)")
+        net.logit_bias = float(meta.get("logit_bias", 0.0))  # older files: no prior correction
+        if not abs(net.logit_bias) < 50.0:
+            raise ValueError(f"logit bias {net.logit_bias} outside (-50, 50)")
         net.tta_views = int(meta.get("tta_views", 1))  # older files: no test-time views
         if net.tta_views not in (1, 2, 4, 8):
             raise ValueError(f"tta_views {net.tta_views} is not 1, 2, 4 or 8")

@@ -59,6 +59,9 @@ class DefectNet(nn.Module):
         # temperature T of the softmax (calibration, fitted on the validation split after
         # training); a plain attribute, not a weight, so it lives in the model metadata
         self.temperature = 1.0
+        # added to the defect logit after the temperature: the prior correction from the class
+        # balance the net was trained at (balanced sampling: 1:1) to the data's (calibration)
+        self.logit_bias = 0.0
         # test-time augmentation: logits averaged over this many dihedral views (flips/quarter
         # turns) in ``logits``/``predict_proba``; 1 = the plain forward pass. Like the
         # temperature it is metadata, not a weight
@@ -123,9 +126,11 @@ class DefectNet(nn.Module):
 
     @torch.no_grad()
     def predict_proba(self, x: torch.Tensor) -> torch.Tensor:
-        """Calibrated softmax probabilities (N, 2), softmax(logits / T), class order
+        """Calibrated softmax probabilities (N, 2), softmax(logits / T + (0, b)), class order
         (non-defect, defect); logits with test-time augmentation (``tta_views``)."""
-        return torch.softmax(self.logits(x) / float(self.temperature), dim=1)
+        z = self.logits(x) / float(self.temperature)
+        z[:, 1] += float(self.logit_bias)
+        return torch.softmax(z, dim=1)
 
 
 def pick_device(name: str = "auto") -> torch.device:

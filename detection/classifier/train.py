@@ -153,8 +153,9 @@ def logits_of(
     return torch.cat(out).numpy() if out else np.zeros((0, 2), np.float32)
 
 
-def fit_temperature(logits: np.ndarray, labels: np.ndarray) -> float:
-    """Temperature T minimising the validation negative log-likelihood of softmax(logits / T).
+def fit_temperature(logits: np.ndarray, labels: np.ndarray, bias: float = 0.0) -> float:
+    """Temperature T minimising the validation negative log-likelihood of
+    softmax(logits / T + (0, bias)).
 
     A 1-D search over log T in [ln 0.25, ln 20] (robust for the few dozen validation frames
     here; no optimiser state). Returns 1.0 for an empty set.
@@ -167,17 +168,31 @@ def fit_temperature(logits: np.ndarray, labels: np.ndarray) -> float:
     sign = np.where(labels == 1, 1.0, -1.0)
 
     def nll(t: float) -> float:
-        return float(np.mean(np.logaddexp(0.0, -sign * z / t)))
+        return float(np.mean(np.logaddexp(0.0, -sign * (z / t + bias))))
 
     grid = np.exp(np.linspace(np.log(0.25), np.log(20.0), 200))
     vals = [nll(t) for t in grid]
     return float(grid[int(np.argmin(vals))])
 
 
+def _logit(p: float) -> float:
+    p = min(max(float(p), 1e-6), 1 - 1e-6)
+    return math.log(p / (1 - p))
+
+
+def prior_shift(prior_trained: float, prior_target: float) -> float:
+    """Log-odds shift moving a posterior from the class prior a net was trained at to another
+    (label-shift correction): logit(prior_target) - logit(prior_trained). Priors in (0, 1)."""
+    for name, v in (("prior_trained", prior_trained), ("prior_target", prior_target)):
+        if not 0.0 < v < 1.0:
+            raise RoadsurfError(f"{name} must be in (0, 1), got {v}")
+    return _logit(prior_target) - _logit(prior_trained)
+
+
 def _calibration_summary(
-    logits: np.ndarray, labels: np.ndarray, t: float, threshold: float
+    logits: np.ndarray, labels: np.ndarray, t: float, threshold: float, bias: float = 0.0
 ) -> dict[str, float]:
-    z = (logits[:, 1] - logits[:, 0]) / t
+    z = (logits[:, 1] - logits[:, 0]) / t + bias
     p = 1.0 / (1.0 + np.exp(-z))
     conf = np.maximum(p, 1 - p) >= threshold
     correct = (p >= 0.5) == (labels == 1)
@@ -193,31 +208,86 @@ def _calibration_summary(
 
 
 def _calibrate(
-    out: Path, images: np.ndarray, labels: np.ndarray, device: torch.device, cfg: ClassifierConfig
+    out: Path,
+    images: np.ndarray,
+    labels: np.ndarray,
+    device: torch.device,
+    cfg: ClassifierConfig,
+    prior_trained: float = 0.5,
+    prior_data: float = 0.5,
 ) -> None:
-    """Temperature scaling of the saved model on the validation split (rewrites the model)."""
+    """Prior correction and temperature scaling of the saved model on the validation split
+    (rewrites the model). ``prior_trained``: defect share the net saw in training (1/2 with
+    balanced sampling); ``prior_data``: defect share of the self-labelled frames."""
     from detection.classifier.modelfile import load_model
 
     net, meta = load_model(out, device)
     lg = logits_of(net, images, device)
-    t = fit_temperature(lg, labels)
+    b_data = prior_shift(prior_trained, prior_data) if cfg.prior_correction else 0.0
+    t = fit_temperature(lg, labels, b_data)  # the validation split has the data's prior
+    b = b_data
+    if cfg.prior_correction and cfg.defect_prior is not None:
+        b += prior_shift(prior_data, cfg.defect_prior)
     net.temperature = t
+    net.logit_bias = b
     meta["calibration"] = {
-        "method": "temperature scaling on the validation split (NLL)",
+        "method": "prior correction + temperature scaling on the validation split (NLL)",
         "temperature": t,
+        "logit_bias": b,
+        "prior_trained": prior_trained,
+        "prior_data": prior_data,
+        "defect_prior": cfg.defect_prior,
         "n_val": int(len(labels)),
         "fusion_threshold": cfg.fusion_threshold,
         "before": _calibration_summary(lg, labels, 1.0, cfg.fusion_threshold),
-        "after": _calibration_summary(lg, labels, t, cfg.fusion_threshold),
+        "after": _calibration_summary(lg, labels, t, cfg.fusion_threshold, b_data),
     }
-    log.info("calibration: T = %.2f, %s", t, meta["calibration"]["after"])
+    log.info("calibration: T = %.2f, bias %.2f, %s", t, b, meta["calibration"]["after"])
     save_model(out, net, meta)
+
+
+def training_priors(
+    labels: np.ndarray, augmented: np.ndarray, train_idx: np.ndarray, cfg: ClassifierConfig
+) -> tuple[float, float]:
+    """(defect share the net is trained at, defect share of the original self-labelled frames).
+
+    Balanced sampling and class weighting both train at 1:1; otherwise the training split's
+    share (augmented copies included). Shares are clipped to [0.001, 0.999].
+    """
+    lab = np.asarray(labels)
+    orig = lab[~np.asarray(augmented, bool)]
+    data = float(orig.mean()) if orig.size else 0.5
+    if cfg.balanced_sampling or cfg.class_weighting:
+        trained = 0.5
+    else:
+        tr = lab[np.asarray(train_idx, int)]
+        trained = float(tr.mean()) if tr.size else 0.5
+    return float(np.clip(trained, 1e-3, 1 - 1e-3)), float(np.clip(data, 1e-3, 1 - 1e-3))
+
+
+# settings that do not change the trained weights: a checkpoint stays resumable across them
+_NOT_TRAINING = frozenset(
+    {
+        "device",
+        "num_threads",
+        "epochs",
+        "calibrate",
+        "prior_correction",
+        "defect_prior",
+        "fusion_threshold",
+        "confirm_defect_with_3d",
+        "context_frames",
+        "audit_every_frames",
+        "grow_along_defects",
+        "screen_batch_size",
+    }
+)
 
 
 def _fingerprint(ds: Dataset, cfg: ClassifierConfig) -> str:
     h = hashlib.sha256()
     h.update((ds.root / "labels.csv").read_bytes())
-    keep = {k: v for k, v in to_dict(cfg).items() if k not in ("device", "num_threads", "epochs")}
+    keep = {k: v for k, v in to_dict(cfg).items() if k not in _NOT_TRAINING}
     h.update(repr(sorted(keep.items())).encode())
     return h.hexdigest()[:16]
 
@@ -381,7 +451,8 @@ def train(
     from roadsurf.io import read_json
 
     if cfg.calibrate and len(va):
-        _calibrate(out, ds.images[va], ds.labels[va], device, cfg)
+        pt, pd = training_priors(ds.labels, augmented, tr, cfg)
+        _calibrate(out, ds.images[va], ds.labels[va], device, cfg, pt, pd)
     meta = read_json(out / "model.json")
     # the final history/timing is recorded even if the best epoch was earlier
     meta["history"] = history

@@ -76,3 +76,40 @@ def test_cosine_schedule_warms_up_then_decays() -> None:
     assert back["optim"]["param_groups"][0]["lr"] == pytest.approx(opt.param_groups[0]["lr"])
     with pytest.raises(RoadsurfError, match="lr_schedule"):
         make_scheduler(opt, ClassifierConfig(lr_schedule="step"))
+
+
+def test_prior_correction_moves_the_posterior_to_the_data_prior(tmp_path: Path) -> None:
+    """Balanced sampling trains at 1:1; the bias moves p to the self-labelled data's prior."""
+    from detection.classifier.train import prior_shift, training_priors
+
+    assert prior_shift(0.5, 0.25) == pytest.approx(np.log(1 / 3))
+    assert prior_shift(0.2, 0.2) == 0.0
+    with pytest.raises(RoadsurfError):
+        prior_shift(0.5, 0.0)
+    labels = np.array([1, 1, 1, 0, 0, 0, 0, 0, 0, 0, 0, 1])
+    aug = np.array([0, 1, 1, 0, 0, 0, 0, 0, 0, 0, 0, 0], bool)  # 2 augmented copies
+    assert training_priors(labels, aug, np.arange(12), ClassifierConfig()) == (0.5, 0.2)
+    unbal = ClassifierConfig(balanced_sampling=False, class_weighting=False)
+    assert training_priors(labels, aug, np.arange(12), unbal) == (pytest.approx(4 / 12), 0.2)
+
+    # a net whose posterior is right at 1:1, validation drawn at a 1:4 prior: with the bias
+    # applied, the fitted temperature is the true one (1)
+    rng = np.random.default_rng(0)
+    z = rng.normal(0.0, 3.0, 6000)
+    b = prior_shift(0.5, 0.2)
+    y = (rng.random(z.size) < 1 / (1 + np.exp(-(z + b)))).astype(np.int64)
+    lg = np.column_stack([np.zeros_like(z), z])
+    assert fit_temperature(lg, y, b) == pytest.approx(1.0, rel=0.1)
+
+    # stored with the weights and applied by predict_proba: odds scale by exp(bias)
+    torch.manual_seed(0)
+    net = DefectNet(48).eval()
+    x = torch.randint(0, 256, (4, 1, 48, 48), dtype=torch.uint8)
+    p0 = net.predict_proba(x)[:, 1].double()
+    net.logit_bias = -2.0
+    save_model(tmp_path / "m", net, {})
+    net2, meta = load_model(tmp_path / "m")
+    assert meta["logit_bias"] == -2.0 and net2.logit_bias == -2.0
+    p1 = net2.predict_proba(x)[:, 1].double()
+    odds = (p1 / (1 - p1)) / (p0 / (1 - p0))
+    assert torch.allclose(odds, torch.full_like(odds, float(np.exp(-2.0))), rtol=1e-4)
