@@ -153,6 +153,56 @@ TRAIN_DRIVES = (
             "n_oil_stains": 2,
         },
     ),
+    # round 4: more long stretches of road (the CNN must be sure about plain road to save
+    # time), other seeds, sun positions and exposures; still no asphalt and no test lighting
+    DriveSpec(
+        "train_j",
+        "long",
+        1110,
+        120,
+        {
+            "sun_azimuth_deg": 250.0,
+            "sun_elevation_deg": 55.0,
+            "n_potholes": 3,
+            "n_cracks": 1,
+            "n_ruts": 1,
+            "n_lane_markings": 2,
+            "n_shadows": 3,
+            "n_oil_stains": 2,
+        },
+    ),
+    DriveSpec(
+        "train_k",
+        "long",
+        1111,
+        120,
+        {
+            "texture": "brick",
+            "greyscale": True,
+            "exposure": 0.9,
+            "ambient": 0.65,
+            "sun_azimuth_deg": 160.0,
+            "n_potholes": 3,
+            "n_cracks": 1,
+            "n_ruts": 1,
+            "n_lane_markings": 1,
+            "n_shadows": 2,
+            "n_oil_stains": 1,
+        },
+    ),
+    DriveSpec(
+        "train_l",
+        "potholes",
+        1112,
+        60,
+        {
+            "texture": "grass",
+            "image_format": "png",
+            "sun_elevation_deg": 25.0,
+            "cloud_shadow": 0.3,
+            "n_lane_markings": 2,
+        },
+    ),
 )
 # Testing: unseen seeds, another texture, other light, greyscale JPEG, more distractors.
 TEST_DRIVES = (

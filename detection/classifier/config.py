@@ -26,13 +26,14 @@ class ClassifierConfig:
     # fit the softmax temperature T on the validation split after training (temperature
     # scaling), so that p >= fusion_threshold means about that share of correct decisions
     calibrate: bool = True
-    # prior correction at calibration: balanced sampling (or class weighting) trains the net as
-    # if half the frames were defects; shift its log-odds by logit(π_data) - logit(1/2), π_data
-    # being the defect share of the self-labelled frames, so p is a probability for drives like
-    # those (Saerens et al. 2002). False keeps the 1:1 training prior (1)
-    prior_correction: bool = True
-    # expected share of defect frames on the drives to screen (π, 0-1); None = π_data. A lower
-    # π makes "non-defect" decisions surer: set it from real survey statistics, not to save time
+    # fit a logit bias b together with T (Platt scaling of the logit margin): balanced sampling
+    # trains the net as if half the frames were defects; b moves p toward the validation
+    # frames' class balance. False: temperature only (1)
+    calibrate_bias: bool = True
+    # expected share of defect frames on the drives to screen (π, 0-1): shifts the calibrated
+    # log-odds by logit(π) - logit(π_data), π_data the self-labelled frames' defect share
+    # (label-shift correction). None = π_data. Set it from survey statistics, not to save time:
+    # a lower π makes "non-defect" decisions surer
     defect_prior: float | None = None
     batch_size: int = 64  # images per step (dissertation default)
     epochs: int = 30  # passes over the training split

@@ -207,6 +207,28 @@ def _calibration_summary(
     }
 
 
+def fit_temperature_bias(logits: np.ndarray, labels: np.ndarray) -> tuple[float, float]:
+    """(T, b) minimising the validation negative log-likelihood of sigmoid(z / T + b), z the
+    defect-minus-clear logit margin (Platt scaling of the margin). b corrects the class prior
+    the net was trained at (balanced sampling: 1:1) toward the validation frames'. Grid search,
+    log T in [ln 0.25, ln 20] and b in [-4, 4]; (1, 0) for an empty set."""
+    logits = np.asarray(logits, np.float64)
+    labels = np.asarray(labels, np.int64)
+    if logits.shape[0] == 0:
+        return 1.0, 0.0
+    z = logits[:, 1] - logits[:, 0]
+    sign = np.where(labels == 1, 1.0, -1.0)
+    ts = np.exp(np.linspace(np.log(0.25), np.log(20.0), 200))
+    bs = np.linspace(-4.0, 4.0, 161)
+    best = (np.inf, 1.0, 0.0)
+    for t in ts:  # (161, n) per temperature: small enough for any validation split here
+        nll = np.mean(np.logaddexp(0.0, -sign[None, :] * (z[None, :] / t + bs[:, None])), axis=1)
+        k = int(np.argmin(nll))
+        if nll[k] < best[0] - 1e-12:
+            best = (float(nll[k]), float(t), float(bs[k]))
+    return best[1], best[2]
+
+
 def _calibrate(
     out: Path,
     images: np.ndarray,
@@ -216,23 +238,29 @@ def _calibrate(
     prior_trained: float = 0.5,
     prior_data: float = 0.5,
 ) -> None:
-    """Prior correction and temperature scaling of the saved model on the validation split
-    (rewrites the model). ``prior_trained``: defect share the net saw in training (1/2 with
-    balanced sampling); ``prior_data``: defect share of the self-labelled frames."""
+    """Calibrate the saved model on the validation split (rewrites the model): temperature T,
+    with ``calibrate_bias`` a logit bias b fitted jointly, plus the shift from the data's
+    defect share ``prior_data`` to ``cfg.defect_prior`` when that is set. ``prior_trained``
+    (defect share the net was trained at) is recorded for reference."""
     from detection.classifier.modelfile import load_model
 
     net, meta = load_model(out, device)
     lg = logits_of(net, images, device)
-    b_data = prior_shift(prior_trained, prior_data) if cfg.prior_correction else 0.0
-    t = fit_temperature(lg, labels, b_data)  # the validation split has the data's prior
-    b = b_data
-    if cfg.prior_correction and cfg.defect_prior is not None:
+    if cfg.calibrate_bias:
+        t, b_val = fit_temperature_bias(lg, labels)
+    else:
+        t, b_val = fit_temperature(lg, labels), 0.0
+    b = b_val
+    if cfg.defect_prior is not None:
         b += prior_shift(prior_data, cfg.defect_prior)
     net.temperature = t
     net.logit_bias = b
     meta["calibration"] = {
-        "method": "prior correction + temperature scaling on the validation split (NLL)",
+        "method": "temperature"
+        + (" and logit bias" if cfg.calibrate_bias else "")
+        + " scaling on the validation split (NLL)",
         "temperature": t,
+        "logit_bias_fitted": b_val,
         "logit_bias": b,
         "prior_trained": prior_trained,
         "prior_data": prior_data,
@@ -240,7 +268,7 @@ def _calibrate(
         "n_val": int(len(labels)),
         "fusion_threshold": cfg.fusion_threshold,
         "before": _calibration_summary(lg, labels, 1.0, cfg.fusion_threshold),
-        "after": _calibration_summary(lg, labels, t, cfg.fusion_threshold, b_data),
+        "after": _calibration_summary(lg, labels, t, cfg.fusion_threshold, b_val),
     }
     log.info("calibration: T = %.2f, bias %.2f, %s", t, b, meta["calibration"]["after"])
     save_model(out, net, meta)
@@ -272,7 +300,7 @@ _NOT_TRAINING = frozenset(
         "num_threads",
         "epochs",
         "calibrate",
-        "prior_correction",
+        "calibrate_bias",
         "defect_prior",
         "fusion_threshold",
         "confirm_defect_with_3d",

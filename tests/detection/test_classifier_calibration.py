@@ -78,8 +78,8 @@ def test_cosine_schedule_warms_up_then_decays() -> None:
         make_scheduler(opt, ClassifierConfig(lr_schedule="step"))
 
 
-def test_prior_correction_moves_the_posterior_to_the_data_prior(tmp_path: Path) -> None:
-    """Balanced sampling trains at 1:1; the bias moves p to the self-labelled data's prior."""
+def test_prior_shift_and_bias_calibration(tmp_path: Path) -> None:
+    """Balanced sampling trains at 1:1; a fitted logit bias moves p to the data's prior."""
     from detection.classifier.train import prior_shift, training_priors
 
     assert prior_shift(0.5, 0.25) == pytest.approx(np.log(1 / 3))
@@ -92,14 +92,19 @@ def test_prior_correction_moves_the_posterior_to_the_data_prior(tmp_path: Path) 
     unbal = ClassifierConfig(balanced_sampling=False, class_weighting=False)
     assert training_priors(labels, aug, np.arange(12), unbal) == (pytest.approx(4 / 12), 0.2)
 
-    # a net whose posterior is right at 1:1, validation drawn at a 1:4 prior: with the bias
-    # applied, the fitted temperature is the true one (1)
+    # a net whose posterior is right at 1:1 but too sharp (T = 2), validation drawn at a 1:4
+    # prior: the joint fit recovers both the temperature and the prior shift
+    from detection.classifier.train import fit_temperature_bias
+
     rng = np.random.default_rng(0)
-    z = rng.normal(0.0, 3.0, 6000)
+    z = rng.normal(0.0, 4.0, 8000)
     b = prior_shift(0.5, 0.2)
-    y = (rng.random(z.size) < 1 / (1 + np.exp(-(z + b)))).astype(np.int64)
+    y = (rng.random(z.size) < 1 / (1 + np.exp(-(z / 2.0 + b)))).astype(np.int64)
     lg = np.column_stack([np.zeros_like(z), z])
-    assert fit_temperature(lg, y, b) == pytest.approx(1.0, rel=0.1)
+    t_fit, b_fit = fit_temperature_bias(lg, y)
+    assert t_fit == pytest.approx(2.0, rel=0.15) and b_fit == pytest.approx(b, abs=0.2)
+    assert fit_temperature(lg, y, b) == pytest.approx(2.0, rel=0.15)
+    assert fit_temperature_bias(np.zeros((0, 2)), np.zeros(0)) == (1.0, 0.0)
 
     # stored with the weights and applied by predict_proba: odds scale by exp(bias)
     torch.manual_seed(0)
