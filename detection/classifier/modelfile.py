@@ -123,6 +123,7 @@ def load_model(model: str | Path, device: torch.device | str = "cpu") -> tuple[D
             input_size_px=int(meta["input_size_px"]),
             dropout=float(arch.get("dropout", 0.5)),
             width=int(arch.get("width", 1)),
+            highpass_frac=float(arch.get("highpass_frac", 0.0)),
         )
         net.load_state_dict(tensors, strict=True)
         net.temperature = float(meta.get("temperature", 1.0))  # older files: uncalibrated

@@ -12,7 +12,10 @@ camera) do not matter; only the relative pattern does.
 
 from __future__ import annotations
 
+import math
+
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from roadsurf.errors import RoadsurfError
@@ -34,10 +37,29 @@ DIHEDRAL_VIEWS: tuple[tuple[int, bool], ...] = (
 class DefectNet(nn.Module):
     """Binary road-defect CNN. ``forward`` returns logits (N, 2); ``predict_proba`` softmax."""
 
-    def __init__(self, input_size_px: int = 64, dropout: float = 0.5, width: int = 1) -> None:
+    def __init__(
+        self,
+        input_size_px: int = 64,
+        dropout: float = 0.5,
+        width: int = 1,
+        highpass_frac: float = 0.0,
+    ) -> None:
         super().__init__()
         if input_size_px < 32:
             raise RoadsurfError(f"input_size_px must be >= 32, got {input_size_px}")
+        if not 0.0 <= highpass_frac <= 1.0:
+            raise RoadsurfError(f"highpass_frac must be in [0, 1], got {highpass_frac}")
+        # subtract a Gaussian blur of σ = highpass_frac · side before standardising (0 = off):
+        # removes smooth illumination (cloud edges, vignetting, undulation shading) that a
+        # per-image standardisation blows up on plain, low-contrast road
+        self.highpass_frac = float(highpass_frac)
+        sigma = self.highpass_frac * input_size_px
+        if sigma > 0:
+            r = min(int(math.ceil(3 * sigma)), input_size_px - 1)  # reflect pad < side
+            g = torch.exp(-0.5 * (torch.arange(-r, r + 1, dtype=torch.float32) / sigma) ** 2)
+            self.register_buffer("_blur", (g / g.sum()).view(1, 1, 1, -1), persistent=False)
+        else:
+            self._blur = None
         c1, c2, c3, c4, c5 = (16 * width, 32 * width, 48 * width, 48 * width, 32 * width)
         fc = 128 * width
         self.input_size_px = int(input_size_px)
@@ -84,6 +106,13 @@ class DefectNet(nn.Module):
             s = (s + 2 - 3) // 2 + 1
         return s
 
+    def blur(self, x: torch.Tensor) -> torch.Tensor:
+        """Separable Gaussian blur of (N, 1, S, S) float images, reflected borders."""
+        k = self._blur
+        r = k.shape[-1] // 2
+        x = F.conv2d(F.pad(x, (r, r, 0, 0), mode="reflect"), k)
+        return F.conv2d(F.pad(x, (0, 0, r, r), mode="reflect"), k.transpose(-1, -2))
+
     @staticmethod
     def standardise(x: torch.Tensor) -> torch.Tensor:
         """uint8 grey levels (N, 1, S, S) -> float32, zero mean and unit std per image."""
@@ -100,6 +129,9 @@ class DefectNet(nn.Module):
                 f"got {tuple(x.shape)}"
             )
         r = self.relu
+        if self._blur is not None:
+            x = x.float() / 255.0
+            x = 255.0 * (x - self.blur(x)) + 128.0  # keeps the uint8-like scale standardise expects
         x = self.standardise(x)
         x = r(self.conv1(x))
         x = r(self.conv2(self.pool1(x)))

@@ -396,7 +396,7 @@ def train(
     class_weight = (counts.sum() / (2 * counts)).float() if cfg.class_weighting else None
 
     torch.manual_seed(cfg.seed)
-    net = DefectNet(cfg.input_size_px, cfg.dropout, cfg.width).to(device)
+    net = DefectNet(cfg.input_size_px, cfg.dropout, cfg.width, cfg.highpass_frac).to(device)
     if cfg.tta_views not in (1, 2, 4, 8):
         raise RoadsurfError(f"classifier.tta_views must be 1, 2, 4 or 8, got {cfg.tta_views}")
     net.tta_views = int(cfg.tta_views)
@@ -503,7 +503,12 @@ def _save(
     t0: float,
 ) -> None:
     meta = {
-        "architecture": {"name": "DefectNet", "dropout": cfg.dropout, "width": cfg.width},
+        "architecture": {
+            "name": "DefectNet",
+            "dropout": cfg.dropout,
+            "width": cfg.width,
+            "highpass_frac": cfg.highpass_frac,
+        },
         "store_size_px": int(ds.meta.get("store_size_px", cfg.store_size_px)),
         "config": dataclasses.asdict(cfg),
         "training_data": {

@@ -17,7 +17,7 @@ from detection.classifier.network import DefectNet
 from detection.classifier.screen import screen_drive
 from detection.classifier.train import metrics, train, train_steps
 from roadsurf.drive import Camera, Drive, Frame
-from roadsurf.errors import ModelFileError
+from roadsurf.errors import ModelFileError, RoadsurfError
 
 
 @pytest.fixture(autouse=True)
@@ -203,3 +203,28 @@ def test_train_command_and_model_error_exit(tmp_path: Path) -> None:
     assert meta["input_size_px"] == 48 and meta["config"]["epochs"] == 1
     with pytest.raises(ModelFileError):
         screen_drive(tmp_path / "missing", tmp_path / "ds")
+
+
+def test_highpass_input_ignores_smooth_illumination_and_round_trips(tmp_path: Path) -> None:
+    """highpass_frac > 0: a smooth illumination ramp barely changes the logits; the setting
+    travels in the model metadata (it is not a weight)."""
+    torch.manual_seed(1)
+    net = DefectNet(64, highpass_frac=0.15).eval()
+    rng = np.random.default_rng(2)
+    tex = rng.normal(120, 20, (64, 64))
+    ramp = np.linspace(-40, 40, 64)[None, :] * np.ones((64, 1))
+    x0 = torch.from_numpy(np.clip(tex, 0, 255).astype(np.uint8))[None, None]
+    x1 = torch.from_numpy(np.clip(tex + ramp, 0, 255).astype(np.uint8))[None, None]
+    plain = DefectNet(64).eval()
+    plain.load_state_dict(net.state_dict())
+    with torch.no_grad():
+        d_hp = float((net(x0) - net(x1)).abs().max())
+        d_plain = float((plain(x0) - plain(x1)).abs().max())
+    assert d_hp < 0.5 * d_plain
+    save_model(
+        tmp_path / "m", net, {"architecture": {"dropout": 0.5, "width": 1, "highpass_frac": 0.15}}
+    )
+    net2, _ = load_model(tmp_path / "m")
+    assert net2.highpass_frac == 0.15 and torch.equal(net(x1), net2(x1))
+    with pytest.raises(RoadsurfError):
+        DefectNet(64, highpass_frac=2.0)
