@@ -16,8 +16,8 @@ class ClassifierConfig:
     dropout: float = 0.5  # dropout probability before FC6 and FC7
     width: int = 1  # channel multiplier of the conv layers (1 = small CPU-sized net)
     # high-pass input: subtract a Gaussian blur of σ = this × input side before the per-image
-    # standardisation, removing smooth illumination; 0 = off (1)
-    highpass_frac: float = 0.0
+    # standardisation, removing smooth illumination; 0 = off (round 4; 1)
+    highpass_frac: float = 0.12
 
     # --- training (§5.3) ---
     learning_rate: float = 5e-5  # initial learning rate (dissertation default)

@@ -122,17 +122,22 @@ class DefectNet(nn.Module):
         std = x.std(dim=(1, 2, 3), keepdim=True).clamp_min(0.01)
         return (x - mean) / std
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
+    def prepare(self, x: torch.Tensor) -> torch.Tensor:
+        """uint8 (N, 1, S, S) -> the standardised float input of the conv stack (high-pass
+        first when ``highpass_frac`` > 0). Commutes with flips and quarter turns."""
         if x.ndim != 4 or x.shape[1] != 1 or x.shape[2:] != (self.input_size_px,) * 2:
             raise RoadsurfError(
                 f"DefectNet expects (N, 1, {self.input_size_px}, {self.input_size_px}) input, "
                 f"got {tuple(x.shape)}"
             )
-        r = self.relu
         if self._blur is not None:
             x = x.float() / 255.0
             x = 255.0 * (x - self.blur(x)) + 128.0  # keeps the uint8-like scale standardise expects
-        x = self.standardise(x)
+        return self.standardise(x)
+
+    def head(self, x: torch.Tensor) -> torch.Tensor:
+        """Prepared input (N, 1, S, S) float -> logits (N, 2)."""
+        r = self.relu
         x = r(self.conv1(x))
         x = r(self.conv2(self.pool1(x)))
         x = r(self.conv3(self.pool2(x)))
@@ -143,17 +148,23 @@ class DefectNet(nn.Module):
         x = r(self.fc7(self.drop7(x)))
         return self.fc8(x)
 
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.head(self.prepare(x))
+
     def logits(self, x: torch.Tensor) -> torch.Tensor:
         """Logits (N, 2) averaged over the first ``tta_views`` dihedral views of each image
         (``DIHEDRAL_VIEWS``). A road seen from above has no 'up', so every view is a valid
-        image of the same road; averaging removes the net's orientation-dependent noise."""
+        image of the same road; averaging removes the net's orientation-dependent noise. The
+        input is prepared once: the isotropic blur and the per-image standardisation commute
+        with the views."""
         views = int(self.tta_views)
         if views <= 1:
             return self.forward(x)
+        x = self.prepare(x)
         out = torch.zeros((x.shape[0], 2), dtype=torch.float32, device=x.device)
         for k, flip in DIHEDRAL_VIEWS[:views]:
             xv = torch.rot90(x, k, dims=(2, 3))
-            out += self.forward(torch.flip(xv, dims=(3,)) if flip else xv)
+            out += self.head(torch.flip(xv, dims=(3,)) if flip else xv)
         return out / views
 
     @torch.no_grad()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import json
 import time
 from pathlib import Path
 
@@ -162,7 +163,8 @@ def test_train_few_steps_resume_and_screen(tmp_path: Path) -> None:
     )
     meta3 = train(ds, tmp_path / "model", cfg3, progress=False)
     assert [h["epoch"] for h in meta3["history"]] == [1, 2, 3]
-    assert meta3["history"][:2] == meta["history"]
+    # NaN-safe comparison (an untrained net may call nothing "defect": precision NaN)
+    assert json.dumps(meta3["history"][:2]) == json.dumps(meta["history"])
 
     # screening: batched p_defect per frame through the same preprocessing
     rng = np.random.default_rng(9)
