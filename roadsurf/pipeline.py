@@ -200,6 +200,13 @@ def run_drive(
         timings,
         out,
     )
+    if classifier is not None and (out / "screening.json").is_file():
+        # CNN screening summary of this run (per-frame details stay in screening.json)
+        scr = read_json(out / "screening.json")
+        report["screening"] = {"model": str(Path(classifier).resolve())} | {
+            k: v for k, v in scr.items() if k != "frames"
+        }
+        report["warnings"] += list(scr.get("warnings") or [])
     report["stages"] = stages
     report["resumed_stages"] = [k for k, v in stages.items() if v["resumed"] != "no"]
     report["timings_this_run_s"] = timings

@@ -160,6 +160,7 @@ def test_run_with_classifier_screens_audits_and_fuses(sample_run, tmp_path: Path
     # audit frames 2 and 6 of the 10 frames -> pairs (2, 3) and (6, 7) only
     assert scr["frames_with_3d_by_reason"] == {"audit": 2}
     assert rep["counts"]["pairs"] == scr["pairs_reconstructed"] == 2
+    assert rep["screening"]["frames_with_3d_by_reason"] == {"audit": 2}
     rows = {r["filename"]: r for r in read_csv(out / "frames.csv")}
     reason = {f["filename"]: f["3d_reason"] for f in scr["frames"]}
     assert len(rows) == N_FRAMES

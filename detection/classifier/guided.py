@@ -40,6 +40,7 @@ log = logging.getLogger(__name__)
 
 SCREENING_FILE = "screening.json"
 MAX_GROWTH_ROUNDS = 200  # safety bound; each round adds at least one pair
+UNSURE_WARN_SHARE = 0.5  # warn when the CNN is unsure about more than this share of frames
 
 
 @dataclass
@@ -126,6 +127,15 @@ def run(
         rounds,
         counts,
     )
+    warnings = []
+    n_unsure = counts.get("unsure", 0) + counts.get("no_cnn", 0)
+    if n and n_unsure > UNSURE_WARN_SHARE * n:
+        warnings.append(
+            f"the CNN was unsure about (or could not screen) {n_unsure} of {n} frames, so the "
+            "fused run saves little time: the model may not know this road, camera or light. "
+            "Label some of these drives (`roadsurf label`) and retrain (`roadsurf train`)."
+        )
+        log.warning(warnings[-1])
     if run_dir is not None:
         write_json_atomic(
             Path(run_dir) / SCREENING_FILE,
@@ -139,6 +149,7 @@ def run(
                 "pairs_total": max(0, n - 1),
                 "rounds": rounds,
                 "frames_with_3d_by_reason": counts,
+                "warnings": warnings,
                 "frames": [
                     {
                         "filename": fn,

@@ -281,6 +281,13 @@ def test_audit_and_growth_follow_a_defect_the_cnn_cannot_see(tmp_path: Path) -> 
     assert rec["frames"][12] == {"filename": "0012.png", "p_defect": 0.001, "3d_reason": "grown"}
     assert rec["pairs_reconstructed"] == len(done)
 
+    assert rec["warnings"] == []
+    unsure = guided.run(cfg, names, dict.fromkeys(names, 0.5), 1.0, reconstruct, tmp_path)
+    assert unsure.reasons["0000.png"] == "unsure"
+    assert (
+        "roadsurf label"
+        in json.loads((tmp_path / guided.SCREENING_FILE).read_text())["warnings"][0]
+    )
     # without audit and growth it is the dissertation's rule: nothing to reconstruct, rut missed
     calls.clear()
     off = ClassifierConfig(audit_every_frames=0, grow_along_defects=False)
