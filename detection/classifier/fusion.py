@@ -172,14 +172,22 @@ def frame_pairs(i: int, n: int) -> set[tuple[int, int]]:
     return {(j, j + 1) for j in (i - 1, i) if 0 <= j and j + 1 < n}
 
 
-def audit_pairs(n: int, every: int) -> dict[int, tuple[int, int]]:
-    """{frame: pair} for the sparse 3D audit: one pair (i, i+1) for every ``every``-th frame
-    (from ``every // 2``), whatever the CNN says; ``every <= 0`` means no audit."""
+def audit_pairs(n: int, every: int, have_3d: Collection[int] = ()) -> dict[int, tuple[int, int]]:
+    """{frame: pair} for the sparse 3D audit: frames get one pair (i, i+1) wherever needed so
+    that every ``every`` consecutive frames hold at least one frame with 3D, counting the
+    frames in ``have_3d`` (already reconstructed for another reason). A defect longer than
+    ``every`` frames therefore always meets a 3D sample. ``every <= 0`` means no audit."""
     if every <= 0 or n < 2:
         return {}
+    have = set(have_3d)
     out = {}
-    for i in range(every // 2, n, every):
-        out[i] = (i, i + 1) if i + 1 < n else (i - 1, i)
+    last = -1  # the last frame with 3D (virtual -1: the first window starts at frame 0)
+    for i in range(n):
+        if i in have:
+            last = i
+        elif i - last >= every:
+            out[i] = (i, i + 1) if i + 1 < n else (i - 1, i)
+            last = i
     return out
 
 

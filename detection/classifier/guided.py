@@ -3,8 +3,8 @@
 Fig. 5.6 reconstructs a pair only where the CNN is unsure or says "defect". Two additions make
 the fused run safe for defects a single image cannot show:
 
-1. **Sparse 3D audit** (``audit_every_frames``): one pair (i, i+1) every k-th frame, whatever
-   the CNN says. A shallow rut under diffuse light is invisible to the eye and to the CNN (the
+1. **Sparse 3D audit** (``audit_every_frames``): wherever k consecutive frames would hold no
+   frame with 3D, one pair (i, i+1) is added, whatever the CNN says. A shallow rut under diffuse light is invisible to the eye and to the CNN (the
    bench's test_grey drive: a 20 mm deep, 6 m long rut over 11 frames, p_defect <= 0.01 in
    every one), but it is long, so a sparse audit meets it.
 2. **Growth along 3D defects**: a frame whose own 3D shows a defect (the self-labelling rule,
@@ -75,7 +75,8 @@ def initial_plan(
         else:
             reasons[fn] = "context"
         pairs |= frame_pairs(i, n)
-    for i, pr in audit_pairs(n, cfg.audit_every_frames).items():
+    have = {i for i, fn in enumerate(filenames) if fn in reasons}
+    for i, pr in audit_pairs(n, cfg.audit_every_frames, have).items():
         if pr not in pairs:
             pairs.add(pr)
             reasons.setdefault(filenames[i], "audit")

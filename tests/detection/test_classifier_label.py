@@ -262,15 +262,18 @@ def test_audit_and_growth_follow_a_defect_the_cnn_cannot_see(tmp_path: Path) -> 
 
     probs = dict.fromkeys(names, 0.001)  # the CNN is sure every frame is clear
     cfg = ClassifierConfig(audit_every_frames=10)
-    assert audit_pairs(n, 10) == {5: (5, 6), 15: (15, 16), 25: (25, 26)}
+    assert audit_pairs(n, 10) == {9: (9, 10), 19: (19, 20), 29: (28, 29)}
+    # frames that already have 3D count: the audit only fills gaps of 10 frames
+    assert audit_pairs(n, 10, {4, 12}) == {22: (22, 23)}
+    assert audit_pairs(n, 0) == {}
     assert grow_pairs([0], n) == {0: {(0, 1)}, 1: {(0, 1), (1, 2)}}
     res = guided.run(cfg, names, probs, 1.0, reconstruct, tmp_path)
-    # round 1 is the audit only; growth walks the rut down from frame 15 and stops on clear road
-    assert calls[0] == {(5, 6), (15, 16), (25, 26)}
+    # round 1 is the audit only; growth walks the rut up from frame 9 and stops on clear road
+    assert calls[0] == {(9, 10), (19, 20), (28, 29)}
     done = calls[-1]
     assert all({(i - 1, i), (i, i + 1)} <= done for i in rut)
-    assert not any(p in done for p in [(0, 1), (3, 4), (20, 21), (28, 29)])
-    assert res.reasons["0015.png"] == "audit" and res.reasons["0009.png"] == "grown"
+    assert not any(p in done for p in [(0, 1), (3, 4), (21, 22), (26, 27)])
+    assert res.reasons["0009.png"] == "audit" and res.reasons["0015.png"] == "grown"
     assert res.rounds > 2 and {"0009.png", "0015.png"} <= res.rule.decide_3d
     # 3D decides the audited and grown frames; the CNN keeps the frames nobody checked
     d3 = {fn: int(fn[:4]) in rut for fn in res.rule.decide_3d}
