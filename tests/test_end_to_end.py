@@ -162,9 +162,12 @@ def test_run_with_classifier_screens_audits_and_fuses(sample_run, tmp_path: Path
     assert rep["counts"]["pairs"] == scr["pairs_reconstructed"] == 2
     assert rep["screening"]["frames_with_3d_by_reason"] == {"audit": 2}
     rows = {r["filename"]: r for r in read_csv(out / "frames.csv")}
-    reason = {f["filename"]: f["3d_reason"] for f in scr["frames"]}
+    overrules = {f["filename"]: f["3d_overrules_cnn"] for f in scr["frames"]}
     assert len(rows) == N_FRAMES
     for fn, r in rows.items():
-        assert r["source"] == ("3d" if reason[fn] == "audit" else "cnn"), fn
+        # 3D decides only audited frames where it sees a defect; the sure CNN keeps the rest
+        assert r["source"] == ("3d" if overrules[fn] else "cnn"), fn
         if r["source"] == "cnn":
             assert r["defect"] == "0" and float(r["p_defect"]) < 1e-3
+        else:
+            assert r["defect"] == "1"

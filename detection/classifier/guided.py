@@ -12,7 +12,8 @@ the fused run safe for defects a single image cannot show:
    road on both sides. A defect the audit meets, or one that outlasts the CNN's context, is
    followed to its ends.
 
-Audited and grown frames are decided by their 3D result (``FusionRule.decide_3d``).
+Audited and grown frames whose own 3D shows a defect by that rule are decided by their 3D
+result (``FusionRule.decide_3d``); the others keep the CNN's decision.
 ``RUN/screening.json`` records every frame's CNN probability and why it got 3D, if it did.
 """
 
@@ -113,7 +114,17 @@ def run(
         if not new:
             break
         todo |= new
-    decide = frozenset(fn for fn, r in reasons.items() if r in ("audit", "grown"))
+    # a sure CNN "non-defect" is overturned only by clear 3D evidence: the depth-and-extent rule
+    # that drives the growth (eq. 5.8-5.9) must see a defect in the frame; the detection
+    # stage's label then decides. A frame grown only because its neighbour is deep, or an
+    # audited frame on clear road, keeps the CNN's decision (borderline depressions near Z^d
+    # would otherwise flip with the map's global noise estimate)
+    figs = figures_from_pairs(pairs, camera_height_m, cfg)
+    decide = frozenset(
+        fn
+        for fn, r in reasons.items()
+        if r in ("audit", "grown") and fn in figs and label_frame(figs[fn], None, cfg)[0]
+    )
     rule = FusionRule(
         threshold=cfg.fusion_threshold,
         confirm_defect_with_3d=cfg.confirm_defect_with_3d,
@@ -156,6 +167,8 @@ def run(
                         "filename": fn,
                         "p_defect": _num(frame_probs.get(fn)),
                         "3d_reason": reasons.get(fn),
+                        # an audited/grown frame whose 3D shows a defect: 3D overrules the CNN
+                        "3d_overrules_cnn": fn in decide,
                     }
                     for fn in filenames
                 ],

@@ -275,6 +275,9 @@ def test_audit_and_growth_follow_a_defect_the_cnn_cannot_see(tmp_path: Path) -> 
     assert not any(p in done for p in [(0, 1), (3, 4), (21, 22), (26, 27)])
     assert res.reasons["0009.png"] == "audit" and res.reasons["0015.png"] == "grown"
     assert res.rounds > 2 and {"0009.png", "0015.png"} <= res.rule.decide_3d
+    # frames on clear road keep the CNN's decision even when audited or grown
+    assert res.reasons["0029.png"] == "audit" and "0029.png" not in res.rule.decide_3d
+    assert res.reasons["0017.png"] == "grown" and "0017.png" not in res.rule.decide_3d
     # 3D decides the audited and grown frames; the CNN keeps the frames nobody checked
     d3 = {fn: int(fn[:4]) in rut for fn in res.rule.decide_3d}
     fused = fuse_frames(probs, d3, names, decide_3d=res.rule.decide_3d)
