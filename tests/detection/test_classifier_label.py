@@ -284,7 +284,13 @@ def test_audit_and_growth_follow_a_defect_the_cnn_cannot_see(tmp_path: Path) -> 
     assert [i for i, fn in enumerate(names) if fused[fn].defect] == sorted(rut)
     assert fused["0000.png"].source == "cnn" and fused["0012.png"].source == "3d"
     rec = json.loads((tmp_path / guided.SCREENING_FILE).read_text())
-    assert rec["frames"][12] == {"filename": "0012.png", "p_defect": 0.001, "3d_reason": "grown"}
+    assert rec["frames"][12] == {
+        "filename": "0012.png",
+        "p_defect": 0.001,
+        "3d_reason": "grown",
+        "3d_overrules_cnn": True,
+    }
+    assert rec["frames"][29]["3d_overrules_cnn"] is False  # audited, clear road
     assert rec["pairs_reconstructed"] == len(done)
 
     assert rec["warnings"] == []
