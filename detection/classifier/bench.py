@@ -47,6 +47,15 @@ class DriveSpec:
     overrides: dict[str, Any] = field(default_factory=dict)
 
 
+# defects and distractors of the long training drives (plus their own potholes)
+_LONG_LAYOUT: dict[str, Any] = {
+    "n_cracks": 1,
+    "n_ruts": 1,
+    "n_lane_markings": 2,
+    "n_shadows": 3,
+    "n_oil_stains": 2,
+}
+
 # Training: the default gravel texture and lighting, several seeds and layouts.
 TRAIN_DRIVES = (
     DriveSpec("train_a", "potholes", 1101, 60),
@@ -104,16 +113,12 @@ TRAIN_DRIVES = (
         1107,
         100,
         {
+            **_LONG_LAYOUT,
             "texture": "grass",
             "sun_azimuth_deg": 20.0,
             "sun_elevation_deg": 50.0,
             "cloud_shadow": 0.4,
             "n_potholes": 2,
-            "n_cracks": 1,
-            "n_ruts": 1,
-            "n_lane_markings": 2,
-            "n_shadows": 3,
-            "n_oil_stains": 2,
         },
     ),
     DriveSpec(
@@ -160,16 +165,7 @@ TRAIN_DRIVES = (
         "long",
         1110,
         120,
-        {
-            "sun_azimuth_deg": 250.0,
-            "sun_elevation_deg": 55.0,
-            "n_potholes": 3,
-            "n_cracks": 1,
-            "n_ruts": 1,
-            "n_lane_markings": 2,
-            "n_shadows": 3,
-            "n_oil_stains": 2,
-        },
+        {**_LONG_LAYOUT, "sun_azimuth_deg": 250.0, "sun_elevation_deg": 55.0, "n_potholes": 3},
     ),
     DriveSpec(
         "train_k",
