@@ -158,12 +158,8 @@ def pairs_to_reconstruct(
     n = len(filenames)
     out: set[tuple[int, int]] = set()
     for i, need in enumerate(frames_needing_3d(frame_probs, filenames, threshold, context_frames)):
-        if not need:
-            continue
-        if i + 1 < n:
-            out.add((i, i + 1))
-        if i > 0:
-            out.add((i - 1, i))
+        if need:
+            out |= frame_pairs(i, n)
     return out
 
 

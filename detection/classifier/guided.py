@@ -4,9 +4,10 @@ Fig. 5.6 reconstructs a pair only where the CNN is unsure or says "defect". Two 
 the fused run safe for defects a single image cannot show:
 
 1. **Sparse 3D audit** (``audit_every_frames``): wherever k consecutive frames would hold no
-   frame with 3D, one pair (i, i+1) is added, whatever the CNN says. A shallow rut under diffuse light is invisible to the eye and to the CNN (the
-   bench's test_grey drive: a 20 mm deep, 6 m long rut over 11 frames, p_defect <= 0.01 in
-   every one), but it is long, so a sparse audit meets it.
+   frame with 3D, one pair (i, i+1) is added, whatever the CNN says. A shallow rut under
+   diffuse light is invisible to the eye and to the CNN (the bench's test_grey drive: a 20 mm
+   deep, 6 m long rut over 11 frames, p_defect <= 0.01 in most), but it is long, so a sparse
+   audit meets it.
 2. **Growth along 3D defects**: a frame whose own 3D shows a defect (the self-labelling rule,
    eq. 5.8-5.9) gets its neighbours reconstructed, again and again, until the 3D shows clear
    road on both sides. A defect the audit meets, or one that outlasts the CNN's context, is
@@ -31,9 +32,9 @@ from detection.classifier.fusion import (
     FusionRule,
     audit_pairs,
     cnn_confident,
-    frame_pairs,
     frames_needing_3d,
     grow_pairs,
+    pairs_to_reconstruct,
 )
 from roadsurf.io import write_json_atomic
 
@@ -60,10 +61,10 @@ def initial_plan(
     """Pairs before any 3D result is known, and the reason of each frame that gets 3D."""
     n = len(filenames)
     thr = cfg.fusion_threshold
+    pairs = pairs_to_reconstruct(frame_probs, filenames, thr, cfg.context_frames)
     need = frames_needing_3d(frame_probs, filenames, thr, cfg.context_frames)
-    pairs: set[tuple[int, int]] = set()
     reasons: dict[str, str] = {}
-    for i, (fn, nd) in enumerate(zip(filenames, need, strict=True)):
+    for fn, nd in zip(filenames, need, strict=True):
         if not nd:
             continue
         p = frame_probs.get(fn)
@@ -75,7 +76,6 @@ def initial_plan(
             reasons[fn] = "defect"
         else:
             reasons[fn] = "context"
-        pairs |= frame_pairs(i, n)
     have = {i for i, fn in enumerate(filenames) if fn in reasons}
     for i, pr in audit_pairs(n, cfg.audit_every_frames, have).items():
         if pr not in pairs:
@@ -96,15 +96,16 @@ def run(
     reconstruction stage on those (index_a, index_b) pairs (cached pairs are reused) and
     returns its PairResults. ``filenames`` are the drive's valid frames in capture order."""
     n = len(filenames)
+    pos = {fn: i for i, fn in enumerate(filenames)}
     todo, reasons = initial_plan(frame_probs, filenames, cfg)
     rounds = 0
     while True:
         rounds += 1
         pairs = reconstruct(set(todo))
+        # depth and extent per frame (eq. 5.8-5.9): the 3D evidence for growth and overruling
+        figs = figures_from_pairs(pairs, camera_height_m, cfg)
         if not cfg.grow_along_defects or rounds > MAX_GROWTH_ROUNDS:
             break
-        figs = figures_from_pairs(pairs, camera_height_m, cfg)
-        pos = {fn: i for i, fn in enumerate(filenames)}
         defect = [pos[fn] for fn, f in figs.items() if fn in pos and label_frame(f, None, cfg)[0]]
         new: set[tuple[int, int]] = set()
         for j, prs in grow_pairs(defect, n).items():
@@ -119,7 +120,6 @@ def run(
     # stage's label then decides. A frame grown only because its neighbour is deep, or an
     # audited frame on clear road, keeps the CNN's decision (borderline depressions near Z^d
     # would otherwise flip with the map's global noise estimate)
-    figs = figures_from_pairs(pairs, camera_height_m, cfg)
     decide = frozenset(
         fn
         for fn, r in reasons.items()
