@@ -588,18 +588,6 @@ def _surface_pad_m(cfg: MappingConfig) -> float:
     return max(3 * max(cfg.surface_smooth_flat_m, cfg.surface_smooth_m), 2.5 * fill)
 
 
-def _surface_tile(
-    cfg: MappingConfig,
-    xy: np.ndarray,
-    resid: np.ndarray,
-    grid: GridSpec,
-    noise_m: float,
-    fill_mask: Callable[[GridSpec], np.ndarray] | None = None,
-) -> np.ndarray:
-    """(H, W) residual raster of one tile (see ``_surface_tile_filled``)."""
-    return _surface_tile_filled(cfg, xy, resid, grid, noise_m, fill_mask)[0]
-
-
 def _surface_tile_filled(
     cfg: MappingConfig,
     xy: np.ndarray,

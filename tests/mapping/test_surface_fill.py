@@ -63,8 +63,10 @@ def test_surface_tile_fills_to_the_overlap_up_to_the_cap() -> None:
     xy = xy[np.linalg.norm(xy - SMALL_C, axis=1) > SMALL_R]
     noise = 0.001
     z = _truth(xy) + rng.normal(0, noise, len(xy))
-    old = globalmap._surface_tile(cfg, xy, z, grid, noise_m=noise)
-    new = globalmap._surface_tile(cfg, xy, z, grid, noise_m=noise, fill_mask=_overlap_mask)
+    old = globalmap._surface_tile_filled(cfg, xy, z, grid, noise_m=noise)[0]
+    new = globalmap._surface_tile_filled(cfg, xy, z, grid, noise_m=noise, fill_mask=_overlap_mask)[
+        0
+    ]
     rr, cc = np.mgrid[0 : grid.height, 0 : grid.width]
     pix = grid.xy_from_rowcol(rr.ravel(), cc.ravel())
     old, new = old.ravel(), new.ravel()
