@@ -20,11 +20,15 @@ class ClassifierConfig:
     highpass_frac: float = 0.12
 
     # --- training (§5.3) ---
-    learning_rate: float = 5e-5  # initial learning rate (dissertation default)
-    lr_decay: float = 0.95  # learning rate multiplied by this every epoch (dissertation default)
-    # "exponential": ×lr_decay per epoch (dissertation); "cosine": linear warm-up over
-    # warmup_epochs, then cosine decay to 1 % of learning_rate by the last epoch
-    lr_schedule: str = "exponential"
+    # initial learning rate (1). The dissertation's 5e-5 (a large GPU training) does not fit
+    # minutes on a CPU: on the sample data, 30 epochs at 5e-5 end at validation accuracy 0.5
+    # and no sure frame, at 2e-3 + cosine at 0.8 with 70 % of frames sure, all right
+    learning_rate: float = 2e-3
+    lr_decay: float = 0.95  # ×this per epoch for lr_schedule "exponential" (dissertation) (1)
+    # "cosine" (default): linear warm-up over warmup_epochs, then cosine decay to 1 % of
+    # learning_rate by the last epoch; "exponential": ×lr_decay per epoch (the dissertation's,
+    # with learning_rate 5e-5)
+    lr_schedule: str = "cosine"
     warmup_epochs: int = 2  # epochs of linear learning-rate warm-up ("cosine" only)
     # fit the softmax temperature T on the validation split after training (temperature
     # scaling), so that p >= fusion_threshold means about that share of correct decisions
