@@ -53,12 +53,23 @@ class CrackConfig:
 
     enabled: bool = True  # run the crack detector (needs the images)
     tophat_m: float = 0.025  # black top-hat disc: wider than a crack, narrower than a pothole (m)
-    contrast_k: float = 3.0  # top-hat response > median + k * 1.4826 MAD of the image's (-)
-    min_contrast: float = 0.15  # ... and > this share of the median grey level (0-1)
+    # Oriented line filter on the top-hat: segments much longer than texture grains (gravel
+    # pores: a few mm) and short enough to follow a curved crack (sagitta L² / 8R ≈ 1 mm at
+    # R = 0.2 m).
+    line_m: float = 0.04  # segment length (m)
+    # ... run at the coarsest integer downsampling with pixels <= this: a 3-8 mm crack stays
+    # about a pixel wide (area averaging keeps its darkness) and the kernels stay small (m).
+    line_gsd_m: float = 0.004
+    contrast_k: float = 3.0  # line response > median + k * 1.4826 MAD of the image's (-)
+    # ... and the line at least this much darker than its surroundings, as a share of their
+    # brightness: a crack is a shadowed void, tens of % darker at its centre (simulator: up to
+    # 60 %); shading ripples, JPEG and paint wear along a line stay below (0-1).
+    min_contrast: float = 0.03
     min_length_m: float = 0.08  # a crack piece is at least this long (m)
     max_width_m: float = 0.025  # ... and at most this wide on average (m; FHWA high > 19 mm)
     min_elongation: float = 8.0  # length / mean width at least (unitless)
-    near_px: float = 1.0  # 3D points within this distance of the crack pixels test it (px)
+    # 3D points within max(near_px, half the crack's width) of its centre line test it (px)
+    near_px: float = 1.0
     # 3D test pooled over all pairs whose pieces link up on the map:
     min_points: int = 5  # at least this many 3D points on the crack (count)
     min_below_share: float = 0.6  # share of them below the road plane (0-1)
