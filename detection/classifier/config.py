@@ -82,9 +82,11 @@ class ClassifierConfig:
 
     # --- screening and fusion (Fig. 5.6) ---
     fusion_threshold: float = 0.95  # the CNN decision stands when max(p) >= this (1)
-    # when True a confident CNN "defect" must be confirmed by the 3D result (which runs anyway to
-    # measure the defect); False is the dissertation's rule (the confident CNN decision stands)
-    confirm_defect_with_3d: bool = False
+    # a confident CNN "defect" must be confirmed by the 3D result, which runs anyway to measure
+    # the defect (a frame flagged with nothing to measure helps no one); False is the
+    # dissertation's rule (the confident CNN decision stands). Session 5: fixed the one fused
+    # false alarm on an unseen drive, changed no frame on 7 others (docs/classifier.md) (1)
+    confirm_defect_with_3d: bool = True
     # neighbours (frames) of an unsure/defect frame that are reconstructed too and decided by 3D
     # (temporal-context extension; 0 = the dissertation's per-frame rule)
     context_frames: int = 1

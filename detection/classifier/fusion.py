@@ -3,7 +3,9 @@
 The CNN gives p = (p_non_defect, p_defect) per frame. When max(p) >= threshold the CNN decision
 stands; otherwise the 3D physics result decides, which means reconstructing that pair. Frames the
 CNN calls "defect" are reconstructed as well, because a defect must be measured: their source is
-``fused`` (CNN decision, 3D measurement). Pure Python, no torch import.
+``fused``: CNN decision and 3D measurement; with ``confirm_defect_with_3d`` (the product's
+default) the 3D label, which exists anyway, confirms or overrules the sure CNN "defect".
+Pure Python, no torch import.
 
 Beyond the dissertation, ``context_frames`` (default 1) uses the drive's temporal context:
 consecutive frames overlap, so a defect the CNN sees in frame i usually enters the view in
@@ -106,7 +108,7 @@ class FusionRule:
     """The parameters of one fused run, shared by the pair selection and the frame fusion."""
 
     threshold: float = 0.95  # the CNN decision stands when max(p) >= this (Fig. 5.6)
-    confirm_defect_with_3d: bool = False  # a sure CNN "defect" needs the 3D result to agree
+    confirm_defect_with_3d: bool = True  # a sure CNN "defect" needs the 3D result to agree
     context_frames: int = CONTEXT_FRAMES  # neighbours of defect-leaning frames decided by 3D
     # frames reconstructed whatever the CNN said (audit, growth along a 3D defect): their 3D
     # result, when there is one, decides over a CNN "non-defect"
