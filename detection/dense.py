@@ -22,7 +22,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from detection.planefit import robust_plane, robust_sigma, signed_distance
+from detection.planefit import nanmedian_last, robust_plane, robust_sigma, signed_distance
 from reconstruction.geometry import normalised_from_px, triangulate
 from roadsurf.drive import Camera
 
@@ -309,18 +309,14 @@ def _consistent(
     """(K,) mask over the used tracks: depth within max(6 σ, 5 mm, 25 %) of the median of its
     valid neighbours in a 5 x 5 window of the tracking grid (``shape``). A steep wall between
     floor and rim may lose a cell or two; the floor and the rim, which set the measures, stay."""
-    import warnings
-
     grid = np.full(shape[0] * shape[1], np.nan)
     idx = np.flatnonzero(use)
     grid[idx[ok]] = d[ok]
     G = grid.reshape(shape)
     pad = np.pad(G, 2, constant_values=np.nan)
-    win = np.lib.stride_tricks.sliding_window_view(pad, (5, 5)).reshape(*shape, 25)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        med = np.nanmedian(win, axis=-1).ravel()[idx]
-        n = np.isfinite(win).sum(axis=-1).ravel()[idx]
+    win = np.lib.stride_tricks.sliding_window_view(pad, (5, 5)).reshape(-1, 25)[idx]
+    med = nanmedian_last(win)
+    n = np.isfinite(win).sum(axis=-1)
     tol = np.maximum(np.maximum(6.0 * noise_m, 0.005), 0.25 * np.abs(med))
     # Needs a few neighbours to judge; an isolated track has no support either way.
     return (n >= 5) & (np.abs(d - med) <= tol)
@@ -360,12 +356,7 @@ def _nanmedian3(D: np.ndarray) -> np.ndarray:
     h, w = D.shape
     stack = np.stack([p[i : i + h, j : j + w] for i in range(3) for j in range(3)])
     n = np.isfinite(stack).sum(axis=0)
-    with np.errstate(all="ignore"):
-        import warnings
-
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            m = np.nanmedian(stack, axis=0)
+    m = nanmedian_last(np.moveaxis(stack, 0, -1))
     m[(n < 5) | ~np.isfinite(D)] = np.nan
     return m
 

@@ -14,7 +14,6 @@ rather than the T_d contour (a bowl cut at T_d would lose a third of its area).
 from __future__ import annotations
 
 import logging
-import warnings
 from dataclasses import dataclass, field
 
 import cv2
@@ -23,7 +22,7 @@ from scipy import ndimage
 
 from detection.config import MapSegmentConfig, SeverityConfig
 from detection.meanshift import mean_shift_flat
-from detection.planefit import robust_sigma
+from detection.planefit import nanmedian_last, robust_sigma
 from roadsurf.formats import GridSpec
 
 log = logging.getLogger(__name__)
@@ -96,11 +95,11 @@ def road_level(
     a = np.full((hb * b, wb * b), np.nan, np.float32)
     a[:h, :w] = np.where(exclude, np.nan, res)
     blocks = a.reshape(hb, b, wb, b).transpose(0, 2, 1, 3).reshape(hb, wb, b * b)
-    with np.errstate(all="ignore"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        med = np.nanmedian(blocks, axis=2)
-        k = max(3, int(round(window_m / block_m)) | 1)
-        lvl = ndimage.generic_filter(med, np.nanmedian, size=k, mode="nearest", cval=np.nan)
+    med = nanmedian_last(blocks)
+    k = max(3, int(round(window_m / block_m)) | 1)
+    # k x k median ignoring NaN, edges repeated (ndimage's mode="nearest"), vectorised
+    win = np.lib.stride_tricks.sliding_window_view(np.pad(med, k // 2, mode="edge"), (k, k))
+    lvl = nanmedian_last(win.reshape(*med.shape, k * k))
     bad = ~np.isfinite(lvl)
     if bad.all():
         return np.zeros_like(res)

@@ -237,38 +237,32 @@ def merge_regions(regions: list[Region], width: int, ev_pair: np.ndarray) -> lis
     seen twice keep their first values; evidence points are counted once."""
     if not regions:
         return []
-    parent = list(range(len(regions)))
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
 
-    def find(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    owner: dict[int, int] = {}
-    for i, reg in enumerate(regions):
-        for key in (reg.rows.astype(np.int64) * width + reg.cols).tolist():
-            j = owner.setdefault(key, i)
-            if j != i:
-                a, b = find(i), find(j)
-                if a != b:
-                    parent[a] = b
-    # Touching (8-neighbour) cells of different regions.
-    for i, reg in enumerate(regions):
-        r, c = reg.rows.astype(np.int64), reg.cols.astype(np.int64)
-        for dr in (-1, 0, 1):
-            for dc in (-1, 0, 1):
-                if dr == 0 and dc == 0:
-                    continue
-                for key in ((r + dr) * width + (c + dc)).tolist():
-                    j = owner.get(key)
-                    if j is not None and j != i:
-                        a, b = find(i), find(j)
-                        if a != b:
-                            parent[a] = b
+    n_reg = len(regions)
+    keys = np.concatenate([r.rows.astype(np.int64) * width + r.cols for r in regions])
+    owner = np.concatenate([np.full(len(r.rows), i, np.int64) for i, r in enumerate(regions)])
+    # Each cell's first owner; a region sharing or 8-touching a cell of another is linked to it.
+    order = np.argsort(keys, kind="stable")
+    uk, first = np.unique(keys[order], return_index=True)
+    first_owner = owner[order][first]
+    src, dst = [owner], [first_owner[np.searchsorted(uk, keys)]]
+    for dr in (-1, 0, 1):
+        for dc in (-1, 0, 1):
+            if dr == 0 and dc == 0:
+                continue
+            nk = keys + dr * width + dc
+            pos = np.minimum(np.searchsorted(uk, nk), len(uk) - 1)
+            hit = uk[pos] == nk
+            src.append(owner[hit])
+            dst.append(first_owner[pos[hit]])
+    a, b = np.concatenate(src), np.concatenate(dst)
+    g = coo_matrix((np.ones(len(a)), (a, b)), shape=(n_reg, n_reg))
+    comp = connected_components(g, directed=False)[1]
     groups: dict[int, list[int]] = {}
-    for i in range(len(regions)):
-        groups.setdefault(find(i), []).append(i)
+    for i, c in enumerate(comp.tolist()):  # groups ordered by their first region
+        groups.setdefault(c, []).append(i)
     out: list[Region] = []
     for members in groups.values():
         if len(members) == 1:

@@ -4,7 +4,13 @@ import numpy as np
 import pytest
 
 from detection.config import PlaneFitConfig
-from detection.planefit import fit_plane, recursive_plane_fit, robust_sigma, signed_distance
+from detection.planefit import (
+    fit_plane,
+    nanmedian_last,
+    recursive_plane_fit,
+    robust_sigma,
+    signed_distance,
+)
 
 
 def _cloud(rng, n=3000, noise=0.0005, tilt=(0.02, -0.01), h=1.0):
@@ -85,3 +91,16 @@ def test_large_pothole_at_one_side_does_not_inflate_the_threshold():
     truth = depth >= res.threshold_m + 0.004
     assert res.candidate[truth].mean() > 0.9
     assert not res.candidate[depth == 0].any()
+
+
+def test_nanmedian_last_matches_numpy_with_nans_and_empty_rows() -> None:
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=(40, 7, 25))
+    a[rng.random(a.shape) < 0.6] = np.nan
+    a[0, 0] = np.nan  # a row without any finite value
+    with pytest.warns(RuntimeWarning):
+        ref = np.nanmedian(a, axis=-1)
+    got = nanmedian_last(a)
+    assert got.shape == ref.shape
+    np.testing.assert_allclose(got, ref, equal_nan=True)
+    assert np.isnan(got[0, 0])
