@@ -74,6 +74,13 @@ class CrackConfig:
     min_points: int = 5  # at least this many 3D points on the crack (count)
     min_below_share: float = 0.6  # share of them below the road plane (0-1)
     z_k: float = 3.0  # Σ depth / sqrt(Σ n σ²) >= z_k, σ: each pair's point noise (unitless)
+    # Dense depth across the crack (LK tracks of its centre line against a side road band):
+    dense: bool = True  # measure it when the pair's image b is at hand
+    dense_window_px: int = 7  # LK window (px): the crack and its two edges, little else
+    # parallax across the crack below this share of the full parallax (|sin| of the angle
+    # between crack and epipolar direction < 0.25, i.e. within ~15°): LK's aperture hides it (-)
+    dense_min_across: float = 0.25
+    dense_max_depth_m: float = 0.05  # |depth| beyond this: a failed track, not a crack floor (m)
     max_samples: int = 150  # samples per crack piece mapped onto the road (count)
     link_m: float = 0.08  # samples closer than this on the map are one crack (m)
     join_m: float = 0.2  # confirmed cracks closer than this are joined into one (m)

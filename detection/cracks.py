@@ -38,6 +38,8 @@ import cv2
 import numpy as np
 
 from detection.config import CrackConfig
+from reconstruction.types import PairResult
+from roadsurf.drive import Camera
 
 log = logging.getLogger(__name__)
 
@@ -54,6 +56,20 @@ class PairCracks:
     n_below: np.ndarray  # (C,) ... of which below the road plane
     var_m2: np.ndarray  # (C,) n · σ² (σ: the pair's point noise), for the pooled test
     max_depth_m: np.ndarray  # (C,) second-deepest point on it (m, positive; robust max)
+    # Dense depth across the crack (``dense_crack_depth``); zeros / NaN where not measured:
+    dense_sum_m: np.ndarray | None = None  # (C,) Σ depth over the independent samples (m)
+    dense_n: np.ndarray | None = None  # (C,) independent samples (float)
+    dense_below: np.ndarray | None = None  # (C,) ... of which below the road
+    dense_var_m2: np.ndarray | None = None  # (C,) variance of dense_sum_m (m²)
+    dense_depth_m: np.ndarray | None = None  # (C,) mean dense depth (m), NaN: none
+
+    def __post_init__(self) -> None:
+        c = len(self.width_m)
+        for f in ("dense_sum_m", "dense_n", "dense_below", "dense_var_m2"):
+            if getattr(self, f) is None:
+                setattr(self, f, np.zeros(c))
+        if self.dense_depth_m is None:
+            self.dense_depth_m = np.full(c, np.nan)
 
 
 def empty() -> PairCracks:
@@ -224,6 +240,207 @@ def equivalent_width_px(
     return float(np.clip((b[band] - base).sum() / (n * peak), 1.0, 2 * hw))
 
 
+@dataclass(frozen=True)
+class PairView:
+    """What the dense crack-depth measurement needs of a pair besides image a: image b (raw
+    pixels, like image a) and the pair's metric geometry. ``H`` (a -> b, ideal pixels) is
+    only the tracking's initial guess; depths come from R, t, K and the local road plane."""
+
+    gray_b: np.ndarray  # (H, W) image b, same camera as image a
+    camera: Camera  # intrinsics and distortion of both images
+    R_b_from_a: np.ndarray  # (3, 3) X_b = R X_a + t
+    t_b_from_a_m: np.ndarray  # (3,) metric translation (m)
+
+    @staticmethod
+    def of(pair: PairResult, gray_b: np.ndarray, camera: Camera) -> PairView | None:
+        """The view of an ok pair; None without a metric baseline (t = 0 or not finite)."""
+        R = np.asarray(pair.R_b_from_a, float)
+        t = np.asarray(pair.t_b_from_a_m, float)
+        if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))) or np.linalg.norm(t) <= 0:
+            return None
+        return PairView(gray_b, camera, R, t)
+
+
+@dataclass
+class DenseCrack:
+    """Dense depth of one crack piece in one pair, from the parallax across the crack."""
+
+    depth_m: np.ndarray  # (M,) depth below the local road of each valid centre-line track (m)
+    noise_m: float  # σ of one track's depth: robust spread of the side band about its fit (m)
+    n_eff: float  # independent samples along the line: valid tracks / LK window length
+    ref_var_m2: float  # variance of the local road reference (side-band fit) at the line (m²)
+
+    def summary(self) -> tuple[float, float, float, float, float]:
+        """(Σ depth, samples, samples below the road, variance of Σ, mean depth) for the pooled
+        test. The mean is what the LK windows (a crack and its rims) read: a lower bound."""
+        below = self.n_eff * float((self.depth_m > 0).mean())
+        return self.sum_m, self.n_eff, below, self.var_m2, float(self.depth_m.mean())
+
+    @property
+    def sum_m(self) -> float:
+        """Σ depth over the independent samples (n_eff · mean), for the pooled test (m)."""
+        return float(self.n_eff * self.depth_m.mean())
+
+    @property
+    def var_m2(self) -> float:
+        """Variance of ``sum_m``: n_eff σ² (samples) + n_eff² σ_ref² (shared reference)."""
+        return float(self.n_eff * self.noise_m**2 + self.n_eff**2 * self.ref_var_m2)
+
+
+def _ray_points(px: np.ndarray, K: np.ndarray, plane: np.ndarray, depth_m: float) -> np.ndarray:
+    """(N, 3) camera-a points on the rays of ideal pixels ``px`` at ``depth_m`` below the road
+    plane Z = p0 X + p1 Y + p2 (positive: farther from the camera)."""
+    v = np.c_[(px[:, 0] - K[0, 2]) / K[0, 0], (px[:, 1] - K[1, 2]) / K[1, 1], np.ones(len(px))]
+    a, b, c = plane
+    s = (c + depth_m * math.sqrt(a * a + b * b + 1.0)) / (v[:, 2] - a * v[:, 0] - b * v[:, 1])
+    return v * s[:, None]
+
+
+def _project(X: np.ndarray, view: PairView) -> np.ndarray:
+    Xb = X @ view.R_b_from_a.T + view.t_b_from_a_m
+    q = Xb @ view.camera.K.T
+    return q[:, :2] / q[:, 2:3]
+
+
+def _tangents(xy: np.ndarray, radius_px: float) -> np.ndarray:
+    """(N, 2) unit tangent of a centre line at each of its pixels: principal direction of the
+    line's pixels within ``radius_px``."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(xy)
+    out = np.zeros_like(xy, dtype=float)
+    for i, nb in enumerate(tree.query_ball_point(xy, radius_px)):
+        p = xy[nb] - xy[nb].mean(axis=0)
+        w, V = np.linalg.eigh(p.T @ p)
+        out[i] = V[:, 1]
+    return out
+
+
+def dense_crack_depth(
+    line: np.ndarray,
+    width_px: float,
+    gray_a: np.ndarray,
+    view: PairView,
+    plane: np.ndarray,
+    cfg: CrackConfig,
+) -> DenseCrack | None:
+    """Dense depth of one crack piece (centre line ``line``, (H, W) bool, in image a).
+
+    The centre-line pixels and a road band on both sides (from ``width_px`` + half the LK window
+    to one window farther, so the side windows hold no crack) are tracked into image b with a
+    small-window Lucas-Kanade from their road-plane prediction (forward-backward checked). A
+    point ``δ`` below the road plane ``plane`` (camera a, Z = p0 X + p1 Y + p2) moves in b by
+    J δ from its road prediction (J from R, t, K); only the residual's component across the
+    crack is used (LK cannot see a shift along a line): δ = c·r / c·J, c the crack normal in b.
+    Where the parallax runs nearly along the crack (|c·J| < ``dense_min_across`` |J|) there is
+    no depth to read and None is returned. The side band's δ, fitted by a plane in the image
+    (robust), is the local road; the centre's depth is its δ minus that fit and one track's
+    noise is the side band's robust spread about the fit (same pair, same direction, same
+    window). None when too few tracks survive.
+    """
+    from detection.dense import _as_u8, _distort, _undistort
+    from detection.planefit import robust_sigma
+
+    cam = view.camera
+    K = cam.K
+    win = int(cfg.dense_window_px) | 1
+    half = win // 2
+    r0 = width_px + half + 1.0  # side band: its LK windows stay off the crack's dark band
+    r1 = r0 + win
+    ys, xs = np.nonzero(line)
+    if len(xs) < 2 * win:
+        return None
+    h, w = line.shape
+    m = int(math.ceil(r1)) + 2
+    y0, y1 = max(0, ys.min() - m), min(h, ys.max() + m + 1)
+    x0, x1 = max(0, xs.min() - m), min(w, xs.max() + m + 1)
+    sub = ~line[y0:y1, x0:x1]
+    dist, lab = cv2.distanceTransformWithLabels(
+        sub.astype(np.uint8), cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL
+    )
+    # Label of each centre pixel (zero pixels get labels in scan order) -> its index in xs, ys.
+    lab_of = np.zeros(int(lab.max()) + 1, int)
+    lab_of[lab[ys - y0, xs - x0]] = np.arange(len(xs))
+    sv, su = np.nonzero((dist >= r0) & (dist <= r1))
+    keep = (su % 2 == 0) & (sv % 2 == 0)  # every second pixel: windows overlap anyway
+    sv, su = sv[keep], su[keep]
+    near = lab_of[lab[sv, su]]  # nearest centre pixel of each side pixel
+    raw = np.r_[np.c_[xs, ys], np.c_[su + x0, sv + y0]].astype(float)
+    n_c = len(xs)
+    owner = np.r_[np.arange(n_c), near]
+    # Geometry at each pixel: road prediction in b, its parallax per metre of depth, the
+    # crack's normal in b.
+    pa = _undistort(raw, cam)
+    X0 = _ray_points(pa, K, plane, 0.0)
+    if not np.all(X0[:, 2] > 0):
+        return None
+    pb0 = _project(X0, view)
+    J = (_project(_ray_points(pa, K, plane, 1e-3), view) - pb0) / 1e-3  # px per m of depth
+    tan_a = _tangents(pa[:n_c], float(win))
+    ends = [_project(_ray_points(pa[:n_c] + s * tan_a, K, plane, 0.0), view) for s in (-1, 1)]
+    tan_b = ends[1] - ends[0]
+    tan_b /= np.maximum(np.linalg.norm(tan_b, axis=1, keepdims=True), 1e-12)
+    nrm = np.c_[-tan_b[:, 1], tan_b[:, 0]][owner]
+    cj = np.sum(nrm * J, axis=1)
+    # LK's aperture: along the line the shift is unknown, so only the parallax across the
+    # crack carries depth; nearly parallel to the parallax there is none (report, no guess).
+    if np.median(np.abs(cj[:n_c])) < cfg.dense_min_across * np.median(np.linalg.norm(J, axis=1)):
+        return None
+    ga, gb = _as_u8(gray_a), _as_u8(view.gray_b)
+    ra = raw.astype(np.float32).reshape(-1, 1, 2)
+    rb0 = _distort(pb0, cam).astype(np.float32).reshape(-1, 1, 2)
+    lk = {
+        "winSize": (win, win),
+        "maxLevel": 2,
+        "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01),
+        "minEigThreshold": 1e-4,
+        "flags": cv2.OPTFLOW_USE_INITIAL_FLOW,
+    }
+    rb, st, _ = cv2.calcOpticalFlowPyrLK(ga, gb, ra, rb0.copy(), **lk)
+    ra2, st2, _ = cv2.calcOpticalFlowPyrLK(gb, ga, rb, ra.copy(), **lk)
+    ok = (st.ravel() == 1) & (st2.ravel() == 1)
+    ok &= (
+        (raw[:, 0] >= half) & (raw[:, 0] < w - half) & (raw[:, 1] >= half) & (raw[:, 1] < h - half)
+    )
+    rbv = rb.reshape(-1, 2)
+    hb, wb = gb.shape[:2]
+    ok &= (rbv[:, 0] >= half) & (rbv[:, 0] < wb - half) & (rbv[:, 1] >= half)
+    ok &= rbv[:, 1] < hb - half
+    if ok[:n_c].sum() < win or ok[n_c:].sum() < 2 * win:
+        return None
+    # Forward-backward error against its own robust spread (as in detection/dense.py).
+    fb = np.linalg.norm((ra2 - ra).reshape(-1, 2), axis=1)
+    ok &= fb <= np.median(fb[ok]) + 3.0 * max(robust_sigma(fb[ok]), 0.02)
+    pb = _undistort(rbv.astype(float), cam)
+    d = np.sum(nrm * (pb - pb0), axis=1) / np.where(np.abs(cj) > 1e-9, cj, np.nan)
+    # A crack floor deeper than this is a failed track (slid, or a shadow moving with the car).
+    ok &= np.isfinite(d) & (np.abs(d) <= cfg.dense_max_depth_m)
+    ok &= np.abs(cj) >= cfg.dense_min_across * np.linalg.norm(J, axis=1)
+    c_ok, s_ok = ok[:n_c], ok[n_c:]
+    if c_ok.sum() < win or s_ok.sum() < 2 * win:
+        return None
+    # Local road: a plane in the image through the side band's δ (robust: 3 σ trimmed).
+    A = np.c_[np.ones(len(raw)), (raw - raw[:n_c].mean(axis=0)) / max(w, h)]
+    As, ds = A[n_c:][s_ok], d[n_c:][s_ok]
+    use = np.ones(len(ds), bool)
+    for _ in range(3):
+        coef = np.linalg.lstsq(As[use], ds[use], rcond=None)[0]
+        res = ds - As @ coef
+        sig = max(robust_sigma(res[use]), 1e-5)
+        use = np.abs(res) <= 3.0 * sig
+        if use.sum() < 2 * win:
+            return None
+    # Floor: LK's sub-pixel precision (0.02 px, as the forward-backward floor in dense.py)
+    # over the parallax across the crack per metre of depth: a noiseless render is not exact.
+    floor = 0.02 / max(float(np.median(np.abs(cj[:n_c][c_ok]))), 1e-9)
+    sig = max(robust_sigma(res[use]), floor)
+    depth = d[:n_c][c_ok] - A[:n_c][c_ok] @ coef
+    # Independent samples: tracks closer than one LK window share their pixels.
+    n_eff = max(1.0, c_ok.sum() / win)
+    n_side = max(1.0, use.sum() * 4.0 / win**2)  # side pixels every 2nd: 4 px² each
+    return DenseCrack(depth, sig, n_eff, sig**2 / n_side)
+
+
 def detect_pair_cracks(
     gray: np.ndarray,
     px: np.ndarray,
@@ -233,12 +450,15 @@ def detect_pair_cracks(
     noise_m: float,
     m_per_px: float,
     cfg: CrackConfig,
+    view: PairView | None = None,
 ) -> PairCracks:
     """Cracks of one image confirmed by the pair's 3D points (see the module docstring).
 
     px: (N, 2) pixels of the points in ``gray``; points_cam_m: (N, 3) camera-a coordinates;
     dist_m: (N,) signed plane distances (negative below); road: (N,) bool road points (for the
-    pixel -> road-plane mapping); noise_m: σ of the road points' distances.
+    pixel -> road-plane mapping); noise_m: σ of the road points' distances. With ``view``
+    (image b and the pair's R, t, camera) each piece's depth is also measured densely across
+    the crack (``dense_crack_depth``).
     """
     px = np.asarray(px, float)
     P = np.asarray(points_cam_m, float)
@@ -256,6 +476,7 @@ def detect_pair_cracks(
     A = np.c_[P[road, :2], np.ones(int(road.sum()))]
     zcoef = np.linalg.lstsq(A, P[road, 2], rcond=None)[0]
     xyz, labels, wd, sd, nn, nb, vv, mx = [], [], [], [], [], [], [], []
+    dense: list[DenseCrack | None] = []
     for i, wpx in zip(keep, widths, strict=True):
         line = centre_line(lab == i)
         if not line.any():
@@ -283,12 +504,19 @@ def detect_pair_cracks(
         nb.append(int((d > 0).sum()))
         vv.append(n * noise_m**2)
         mx.append(float(np.sort(d)[-2]) if n >= 2 else float(d[0]))
+        dense.append(
+            None
+            if view is None or not cfg.dense
+            else dense_crack_depth(line, wpx, gray, view, np.asarray(zcoef, float), cfg)
+        )
     if not wd:
         return empty()
+    dd = [(0.0, 0.0, 0.0, 0.0, np.nan) if m is None else m.summary() for m in dense]
     return PairCracks(
         np.vstack(xyz),
         np.concatenate(labels),
         *(np.asarray(a, float) for a in (wd, sd, nn, nb, vv, mx)),
+        *(np.asarray(a, float) for a in zip(*dd, strict=True)),
     )
 
 

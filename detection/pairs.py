@@ -8,10 +8,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from detection.config import DetectionConfig
-from detection.cracks import PairCracks, detect_pair_cracks
+from detection.cracks import PairCracks, PairView, detect_pair_cracks
 from detection.planefit import recursive_plane_fit
 from detection.refine import binarise, correct_defects, refined_mask
 from reconstruction.types import PairResult
+from roadsurf.drive import Camera
 
 log = logging.getLogger(__name__)
 
@@ -43,10 +44,14 @@ def analyse_pair(
     gray: np.ndarray | None,
     cfg: DetectionConfig,
     m_per_px: float | None = None,
+    gray_b: np.ndarray | None = None,
+    camera: Camera | None = None,
 ) -> PairDefects | None:
     """Plane fit + CORRECT_DEFECTS for one ok pair; None when the pair has no usable points.
 
-    With ``gray`` and ``m_per_px`` (ground size of a pixel, m) cracks are detected too.
+    With ``gray`` and ``m_per_px`` (ground size of a pixel, m) cracks are detected too; with
+    image b (``gray_b``, raw pixels) and the ``camera`` their depth is also measured densely
+    from the parallax across each crack (``detection.cracks.dense_crack_depth``).
     """
     if not pair.ok or pair.n_points < max(3, cfg.plane.min_points):
         return None
@@ -66,8 +71,11 @@ def analyse_pair(
     cracks = None
     if cfg.crack.enabled and gray is not None and m_per_px:
         road = ~fit.candidate & (np.abs(fit.dist_m) < fit.threshold_m)
+        view = None
+        if gray_b is not None and camera is not None:
+            view = PairView.of(pair, gray_b, camera)
         cracks = detect_pair_cracks(
-            gray, pair.px_a, P, fit.dist_m, road, fit.noise_m, m_per_px, cfg.crack
+            gray, pair.px_a, P, fit.dist_m, road, fit.noise_m, m_per_px, cfg.crack, view
         )
     app = _area_per_point(P)
     deep = refined & (-fit.dist_m >= cfg.map.frame_depth_m)

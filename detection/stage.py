@@ -178,14 +178,30 @@ def analyse_pairs(
     frames = {f.filename: f for f in drive.frames}
     out: dict[int, PairDefects] = {}
     ok = [(k, p) for k, p in enumerate(pairs) if p.ok]
-    for k, p in tqdm(ok, desc="detection: pairs", unit="pair", disable=len(ok) < 20):
-        gray = None
-        if cfg.use_images and cfg.refine.enabled and p.frame_a in frames:
+    cache: dict[str, np.ndarray | None] = {}  # consecutive pairs share a frame: b, then a
+
+    def image(fn: str) -> np.ndarray | None:
+        if fn not in cache:
+            if len(cache) >= 2:
+                cache.pop(next(iter(cache)))
             try:
-                gray = read_gray(frames[p.frame_a])
+                cache[fn] = read_gray(frames[fn]) if fn in frames else None
             except FrameReadError as e:
-                log.warning("detection: %s; pair %s uses 3D only", e, p.frame_a)
-        res = analyse_pair(p, gray, cfg, m_per_px=drive.camera.height_m / drive.camera.fx)
+                log.warning("detection: %s; pair %s uses 3D only", e, fn)
+                cache[fn] = None
+        return cache[fn]
+
+    for k, p in tqdm(ok, desc="detection: pairs", unit="pair", disable=len(ok) < 20):
+        gray = gray_b = None
+        if cfg.use_images and cfg.refine.enabled:
+            gray = image(p.frame_a)
+            # Image b only for the dense crack depth (parallax across each crack).
+            if gray is not None and cfg.crack.enabled and cfg.crack.dense:
+                gray_b = image(p.frame_b)
+        res = analyse_pair(
+            p, gray, cfg, m_per_px=drive.camera.height_m / drive.camera.fx,
+            gray_b=gray_b, camera=drive.camera,
+        )  # fmt: skip
         if res is None:
             continue
         if masks_dir is not None and res.mask is not None:
@@ -424,6 +440,7 @@ def _crack_defects(
 ) -> list[Defect]:
     """Cracks confirmed per pair, placed in the map and clustered (one crack seen by several
     pairs is one defect); pieces inside a map defect's outline belong to that defect."""
+    from shapely import contains_xy, union_all
     from shapely.geometry import MultiPoint, Polygon
 
     from detection.cracks import cluster_cracks, crack_evidence
@@ -439,9 +456,17 @@ def _crack_defects(
         pair_l.append(np.full(len(c.label), k))
         piece_l.append(c.label + len(pieces))
         for j in range(len(c.width_m)):
+            # Sparse points and dense samples across the crack pool into one test, each sample
+            # weighted by its inverse variance (w = n / σ² per source: Σ w d = S n / V,
+            # Σ w = n² / V for a sum S of n samples with variance V).
+            wd = wsum = 0.0
+            for S, n, V in ((c.sum_depth_m[j], c.n_points[j], c.var_m2[j]),
+                            (c.dense_sum_m[j], c.dense_n[j], c.dense_var_m2[j])):  # fmt: skip
+                if n > 0 and V > 0:
+                    wd, wsum = wd + S * n / V, wsum + n * n / V
             pieces.append(
-                (c.width_m[j], c.sum_depth_m[j], c.n_points[j], c.n_below[j], c.var_m2[j],
-                 c.max_depth_m[j])
+                (c.width_m[j], wd, c.n_points[j] + c.dense_n[j], c.n_below[j] + c.dense_below[j],
+                 wsum, c.max_depth_m[j])
             )  # fmt: skip
     if not xy_l:
         return []
@@ -451,12 +476,17 @@ def _crack_defects(
     pc = np.asarray(pieces, float)
     lab = cluster_cracks(xy, cfg.crack.link_m)
     taken = [Polygon(d.outline_xy_m).buffer(0.01) for d in others]
+    taken_all = union_all(taken) if taken else None
     out: list[Defect] = []
 
     def evidence(sel: np.ndarray) -> tuple[bool, float]:
         ids = np.unique(piece[sel])
+        wsum = pc[ids, 4].sum()
+        if wsum <= 0:
+            return False, 0.0
+        # The weighted mean Σ w d / Σ w and its variance 1 / Σ w: z = Σ w d / √(Σ w).
         return crack_evidence(
-            pc[ids, 1].sum(), int(pc[ids, 2].sum()), int(pc[ids, 3].sum()), pc[ids, 4].sum(),
+            pc[ids, 1].sum() / wsum, int(pc[ids, 2].sum()), int(pc[ids, 3].sum()), 1.0 / wsum,
             cfg.crack,
         )  # fmt: skip
 
@@ -479,6 +509,10 @@ def _crack_defects(
         ids = np.unique(piece[sel])
         ok, z = evidence(sel)
         if not ok:
+            continue
+        # A crack sample inside a map defect's outline: the piece belongs to that defect.
+        # Checked on the samples before the costly buffer (pothole rims give many such pieces).
+        if taken_all is not None and contains_xy(taken_all, p[:, 0], p[:, 1]).any():
             continue
         w = float(np.median(pc[ids, 0]))
         geom = MultiPoint(p).buffer(max(0.5 * w, 0.003) + close).buffer(-close)

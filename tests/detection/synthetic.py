@@ -331,6 +331,15 @@ def render_relief(
     for p in scene.potholes:
         inside = ((x - p.x_m) ** 2 + (y - p.y_m) ** 2 < p.radius_m**2).reshape(u.shape)
         g = np.where(inside, g * p.darker, g)
+    for t in scene.troughs:  # dark grooves / painted lines: darkness on the surface hit
+        if t.darker != 1.0:
+            a, b = np.array([t.x0_m, t.y0_m]), np.array([t.x1_m, t.y1_m])
+            L = float(np.linalg.norm(b - a))
+            ux, uy = (b - a) / L
+            s_ = (x - a[0]) * ux + (y - a[1]) * uy
+            n_ = -(x - a[0]) * uy + (y - a[1]) * ux
+            inside = ((s_ >= 0) & (s_ <= L) & (np.abs(n_) < 0.5 * t.width_m)).reshape(u.shape)
+            g = np.where(inside, g * t.darker, g)
     return np.clip(g, 0, 255).astype(np.uint8)
 
 
