@@ -338,7 +338,7 @@ def dense_crack_depth(
     noise is the side band's robust spread about the fit (same pair, same direction, same
     window). None when too few tracks survive.
     """
-    from detection.dense import _as_u8, _distort, _undistort
+    from detection.dense import _as_u8, _distort, _undistort, track_forward_backward
     from detection.planefit import robust_sigma
 
     cam = view.camera
@@ -389,16 +389,7 @@ def dense_crack_depth(
     ga, gb = _as_u8(gray_a), _as_u8(view.gray_b)
     ra = raw.astype(np.float32).reshape(-1, 1, 2)
     rb0 = _distort(pb0, cam).astype(np.float32).reshape(-1, 1, 2)
-    lk = {
-        "winSize": (win, win),
-        "maxLevel": 2,
-        "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01),
-        "minEigThreshold": 1e-4,
-        "flags": cv2.OPTFLOW_USE_INITIAL_FLOW,
-    }
-    rb, st, _ = cv2.calcOpticalFlowPyrLK(ga, gb, ra, rb0.copy(), **lk)
-    ra2, st2, _ = cv2.calcOpticalFlowPyrLK(gb, ga, rb, ra.copy(), **lk)
-    ok = (st.ravel() == 1) & (st2.ravel() == 1)
+    rb, ra2, ok = track_forward_backward(ga, gb, ra, rb0, win, max_level=2, iterations=30)
     ok &= (
         (raw[:, 0] >= half) & (raw[:, 0] < w - half) & (raw[:, 1] >= half) & (raw[:, 1] < h - half)
     )

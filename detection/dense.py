@@ -102,6 +102,34 @@ def grid_to_image_h(
     return H
 
 
+def track_forward_backward(
+    a8: np.ndarray,
+    b8: np.ndarray,
+    ra: np.ndarray,
+    rb0: np.ndarray,
+    window_px: int,
+    *,
+    max_level: int,
+    iterations: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pyramidal Lucas-Kanade a -> b from the initial guesses ``rb0``, then b -> a back.
+
+    a8, b8: (H, W) uint8 images; ra, rb0: (N, 1, 2) float32 raw pixels. Returns (rb, ra2, ok):
+    the tracked pixels in b, the back-tracked pixels in a (both (N, 1, 2)) and (N,) bool, both
+    directions converged (the caller judges the forward-backward error against its spread).
+    """
+    lk = {
+        "winSize": (window_px, window_px),
+        "maxLevel": max_level,
+        "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, iterations, 0.01),
+        "minEigThreshold": 1e-4,
+        "flags": cv2.OPTFLOW_USE_INITIAL_FLOW,
+    }
+    rb, st, _ = cv2.calcOpticalFlowPyrLK(a8, b8, ra, rb0.copy(), **lk)
+    ra2, st2, _ = cv2.calcOpticalFlowPyrLK(b8, a8, rb, ra.copy(), **lk)
+    return rb, ra2, (st.ravel() == 1) & (st2.ravel() == 1)
+
+
 def road_homography(pair: Any, road: np.ndarray) -> np.ndarray | None:
     """The pair's road homography a -> b (3, 3): its own H, else (estimators that do not
     store one, e.g. colmap) fitted with RANSAC on its road matches; None without a metric
@@ -177,16 +205,7 @@ def measure_dense(
     a8, b8 = _as_u8(gray_a), _as_u8(gray_b)
     ra = _distort(pa[use], camera).astype(np.float32).reshape(-1, 1, 2)
     rb0 = _distort(pb0[use], camera).astype(np.float32).reshape(-1, 1, 2)
-    lk = {
-        "winSize": (window_px, window_px),
-        "maxLevel": 3,
-        "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 40, 0.01),
-        "minEigThreshold": 1e-4,
-        "flags": cv2.OPTFLOW_USE_INITIAL_FLOW,
-    }
-    rb, st, _ = cv2.calcOpticalFlowPyrLK(a8, b8, ra, rb0.copy(), **lk)
-    ra2, st2, _ = cv2.calcOpticalFlowPyrLK(b8, a8, rb, ra.copy(), **lk)
-    ok = (st.ravel() == 1) & (st2.ravel() == 1)
+    rb, ra2, ok = track_forward_backward(a8, b8, ra, rb0, window_px, max_level=3, iterations=40)
     if ok.sum() < 30:
         return _none("too few tracks")
     # Forward-backward error and epipolar residual, each against its own robust spread: LK is
