@@ -56,20 +56,17 @@ class PairCracks:
     n_below: np.ndarray  # (C,) ... of which below the road plane
     var_m2: np.ndarray  # (C,) n · σ² (σ: the pair's point noise), for the pooled test
     max_depth_m: np.ndarray  # (C,) second-deepest point on it (m, positive; robust max)
-    # Dense depth across the crack (``dense_crack_depth``); zeros / NaN where not measured:
+    # Dense depth across the crack (``dense_crack_depth``); zeros where not measured:
     dense_sum_m: np.ndarray | None = None  # (C,) Σ depth over the independent samples (m)
     dense_n: np.ndarray | None = None  # (C,) independent samples (float)
     dense_below: np.ndarray | None = None  # (C,) ... of which below the road
     dense_var_m2: np.ndarray | None = None  # (C,) variance of dense_sum_m (m²)
-    dense_depth_m: np.ndarray | None = None  # (C,) mean dense depth (m), NaN: none
 
     def __post_init__(self) -> None:
         c = len(self.width_m)
         for f in ("dense_sum_m", "dense_n", "dense_below", "dense_var_m2"):
             if getattr(self, f) is None:
                 setattr(self, f, np.zeros(c))
-        if self.dense_depth_m is None:
-            self.dense_depth_m = np.full(c, np.nan)
 
 
 def empty() -> PairCracks:
@@ -270,11 +267,10 @@ class DenseCrack:
     n_eff: float  # independent samples along the line: valid tracks / LK window length
     ref_var_m2: float  # variance of the local road reference (side-band fit) at the line (m²)
 
-    def summary(self) -> tuple[float, float, float, float, float]:
-        """(Σ depth, samples, samples below the road, variance of Σ, mean depth) for the pooled
-        test. The mean is what the LK windows (a crack and its rims) read: a lower bound."""
+    def summary(self) -> tuple[float, float, float, float]:
+        """(Σ depth, samples, samples below the road, variance of Σ) for the pooled test."""
         below = self.n_eff * float((self.depth_m > 0).mean())
-        return self.sum_m, self.n_eff, below, self.var_m2, float(self.depth_m.mean())
+        return self.sum_m, self.n_eff, below, self.var_m2
 
     @property
     def sum_m(self) -> float:
@@ -502,7 +498,7 @@ def detect_pair_cracks(
         )
     if not wd:
         return empty()
-    dd = [(0.0, 0.0, 0.0, 0.0, np.nan) if m is None else m.summary() for m in dense]
+    dd = [(0.0, 0.0, 0.0, 0.0) if m is None else m.summary() for m in dense]
     return PairCracks(
         np.vstack(xyz),
         np.concatenate(labels),
