@@ -57,6 +57,13 @@ class CrackConfig:
     # pores: a few mm) and short enough to follow a curved crack (sagitta L² / 8R ≈ 1 mm at
     # R = 0.2 m).
     line_m: float = 0.04  # segment length (m)
+    # ... and a second, longer segment (0 = off), thresholded on its own: on busy textures
+    # (brick, coarse chip seal) 4 cm segments of texture answer almost like a crack, while a
+    # crack's straight stretches keep their contrast over 12 cm and the texture's do not (m).
+    line_long_m: float = 0.12
+    long_contrast_k: float = 4.5  # ... its threshold: median + k * 1.4826 MAD (-)
+    line_long_gsd_m: float = 0.004  # ... run at pixels <= this (m; 0.008 is 2x faster, misses
+    # the thinnest cracks)
     # ... run at the coarsest integer downsampling with pixels <= this: a 3-8 mm crack stays
     # about a pixel wide (area averaging keeps its darkness) and the kernels stay small (m).
     line_gsd_m: float = 0.004

@@ -98,7 +98,11 @@ def _line_kernels(length_px: float) -> tuple[np.ndarray, ...]:
 
 
 def line_response(
-    gray: np.ndarray, m_per_px: float, cfg: CrackConfig
+    gray: np.ndarray,
+    m_per_px: float,
+    cfg: CrackConfig,
+    line_m: float | None = None,
+    gsd_m: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Oriented dark-line response: (z, contrast), both (H, W) float32.
 
@@ -119,10 +123,10 @@ def line_response(
     close = cv2.morphologyEx(g, cv2.MORPH_CLOSE, disc).astype(np.float32)
     d = (close - g) / np.maximum(close, 1.0)
     h, w = d.shape
-    f = max(1, int(cfg.line_gsd_m / m_per_px))
+    f = max(1, int((cfg.line_gsd_m if gsd_m is None else gsd_m) / m_per_px))
     if f > 1:
         d = cv2.resize(d, (max(1, w // f), max(1, h // f)), interpolation=cv2.INTER_AREA)
-    length = max(5.0, cfg.line_m / (m_per_px * f))
+    length = max(5.0, (cfg.line_m if line_m is None else line_m) / (m_per_px * f))
     c = None
     for kern in _line_kernels(round(length, 1)):
         x = cv2.filter2D(d, -1, kern, borderType=cv2.BORDER_REFLECT)
@@ -148,16 +152,51 @@ def thin_dark_components(
 
     Pixels whose oriented line response (``line_response``) exceeds the image's own median +
     ``contrast_k`` · 1.4826 MAD form components; those long (≥ ``min_length_m``), thin
-    (area / length ≤ ``max_width_m``) and elongated (≥ ``min_elongation``) are kept. The width
-    is the crack's equivalent width measured on the top-hat (``equivalent_width_px``).
+    (area / length ≤ ``max_width_m``) and elongated (≥ ``min_elongation``) are kept. A second,
+    longer segment (``line_long_m``, threshold ``long_contrast_k``) adds long lines away from
+    those pieces. The width is the crack's equivalent width measured on the top-hat
+    (``equivalent_width_px``).
     """
     z, contrast = line_response(gray, m_per_px, cfg)
+    mask = _above(z, cfg.contrast_k) & (contrast >= cfg.min_contrast)
+    lab, keep, mask_w = _thin_pieces(mask, m_per_px, cfg)
+    if cfg.line_long_m > cfg.line_m:
+        # Busy textures: the long segment finds the crack where the short one drowns in
+        # texture. Only its lines at least twice its length join (it smears each texture
+        # streak to its own length), thinned to their centre line and 1 px each side (it also
+        # answers beside a line), where the short segment too sees them darker than their
+        # surroundings (the long one overshoots a line's ends by half its length).
+        from skimage.morphology import skeletonize
+
+        z_long, c_long = line_response(gray, m_per_px, cfg, cfg.line_long_m, cfg.line_long_gsd_m)
+        extra = _above(z_long, cfg.long_contrast_k) & (c_long >= cfg.min_contrast)
+        extra = _long_components(extra, 2.0 * cfg.line_long_m / m_per_px)
+        if extra.any():
+            extra = cv2.dilate(skeletonize(extra).astype(np.uint8), np.ones((3, 3), np.uint8))
+            extra = extra.astype(bool) & (contrast >= cfg.min_contrast)
+        if extra.any():
+            lab, keep, mask_w = _thin_pieces(mask | extra, m_per_px, cfg)
+    if not keep:
+        return lab, keep, np.zeros(0)
+    g = cv2.GaussianBlur(np.asarray(gray, np.uint8), (3, 3), 0)
+    widths = [equivalent_width_px(g, lab == i, m_per_px, cfg) for i in keep]
+    # No measurable profile (e.g. at the image border): the component's own width.
+    widths = [w if np.isfinite(w) else mw for w, mw in zip(widths, mask_w, strict=True)]
+    return lab, keep, np.asarray(widths, float)
+
+
+def _above(z: np.ndarray, k: float) -> np.ndarray:
+    """z above the image's own median + k · 1.4826 MAD."""
     med = float(np.median(z))
     mad = 1.4826 * float(np.median(np.abs(z - med)))
-    mask = ((z > med + cfg.contrast_k * max(mad, 1e-6)) & (contrast >= cfg.min_contrast)).astype(
-        np.uint8
-    )
-    n, lab, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    return z > med + k * max(mad, 1e-6)
+
+
+def _thin_pieces(
+    mask: np.ndarray, m_per_px: float, cfg: CrackConfig
+) -> tuple[np.ndarray, list[int], list[float]]:
+    """Label image of ``mask`` and the ids and mask widths (px) of its long thin components."""
+    n, lab, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
     keep: list[int] = []
     mask_w: list[float] = []
     min_len_px = cfg.min_length_m / m_per_px
@@ -178,13 +217,16 @@ def thin_dark_components(
         if length >= min_len_px and width <= max_w_px and length >= cfg.min_elongation * width:
             keep.append(i)
             mask_w.append(width)
-    if not keep:
-        return lab, keep, np.zeros(0)
-    g = cv2.GaussianBlur(np.asarray(gray, np.uint8), (3, 3), 0)
-    widths = [equivalent_width_px(g, lab == i, m_per_px, cfg) for i in keep]
-    # No measurable profile (e.g. at the image border): the component's own width.
-    widths = [w if np.isfinite(w) else mw for w, mw in zip(widths, mask_w, strict=True)]
-    return lab, keep, np.asarray(widths, float)
+    return lab, keep, mask_w
+
+
+def _long_components(mask: np.ndarray, min_len_px: float) -> np.ndarray:
+    """Components of ``mask`` (8-connected) at least ``min_len_px`` long (bounding box)."""
+    _, lab, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    size = np.maximum(stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT])
+    ok = size >= min_len_px
+    ok[0] = False
+    return ok[lab]
 
 
 def centre_line(comp: np.ndarray) -> np.ndarray:
@@ -438,10 +480,13 @@ def detect_pair_cracks(
     m_per_px: float,
     cfg: CrackConfig,
     view: PairView | None = None,
+    camera: Camera | None = None,
 ) -> PairCracks:
     """Cracks of one image confirmed by the pair's 3D points (see the module docstring).
 
-    px: (N, 2) pixels of the points in ``gray``; points_cam_m: (N, 3) camera-a coordinates;
+    px: (N, 2) raw pixels of the points in ``gray`` (as captured; ``camera`` with lens
+    distortion maps them and the crack lines to ideal pixels before any geometry);
+    points_cam_m: (N, 3) camera-a coordinates;
     dist_m: (N,) signed plane distances (negative below); road: (N,) bool road points (for the
     pixel -> road-plane mapping); noise_m: σ of the road points' distances. With ``view``
     (image b and the pair's R, t, camera) each piece's depth is also measured densely across
@@ -457,7 +502,10 @@ def detect_pair_cracks(
     h, w = lab.shape
     u = np.clip(np.round(px[:, 0]).astype(int), 0, w - 1)
     v = np.clip(np.round(px[:, 1]).astype(int), 0, h - 1)
-    H, _ = cv2.findHomography(px[road].astype(np.float32), P[road, :2].astype(np.float32), 0)
+    cam = camera if camera is not None else (view.camera if view is not None else None)
+    distorted = cam is not None and cam.has_distortion
+    px_ideal = _ideal(px, cam) if distorted else px
+    H, _ = cv2.findHomography(px_ideal[road].astype(np.float32), P[road, :2].astype(np.float32), 0)
     if H is None:
         return empty()
     A = np.c_[P[road, :2], np.ones(int(road.sum()))]
@@ -480,7 +528,8 @@ def detect_pair_cracks(
         d = -np.asarray(dist_m, float)[near]  # depth below the road, positive down
         ys, xs = np.nonzero(line)
         step = max(1, len(xs) // cfg.max_samples)
-        q = np.c_[xs[::step], ys[::step]].astype(np.float32).reshape(-1, 1, 2)
+        q = np.c_[xs[::step], ys[::step]].astype(float)
+        q = (_ideal(q, cam) if distorted else q).astype(np.float32).reshape(-1, 1, 2)
         xy = cv2.perspectiveTransform(q, H).reshape(-1, 2).astype(float)
         zc = np.c_[xy, np.ones(len(xy))] @ zcoef
         xyz.append(np.c_[xy, zc])
@@ -505,6 +554,12 @@ def detect_pair_cracks(
         *(np.asarray(a, float) for a in (wd, sd, nn, nb, vv, mx)),
         *(np.asarray(a, float) for a in zip(*dd, strict=True)),
     )
+
+
+def _ideal(px: np.ndarray, camera: Camera) -> np.ndarray:
+    from detection.dense import _undistort
+
+    return _undistort(np.asarray(px, float), camera)
 
 
 def crack_evidence(

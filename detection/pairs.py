@@ -61,13 +61,16 @@ def analyse_pair(
         return None
     refined = fit.candidate.copy()
     mask = None if gray is None else np.zeros(np.asarray(gray).shape[:2], bool)
+    # The image is raw (as captured); the pair's pixels are ideal (undistorted). Image work
+    # reads the image where each point really is.
+    px_img = _raw_px(np.asarray(pair.px_a, float), camera) if gray is not None else None
     if cfg.refine.enabled and gray is not None and refined.any():
         road = ~fit.candidate & (np.abs(fit.dist_m) < fit.threshold_m)
-        dark = binarise(gray, cfg.refine, road_px=np.asarray(pair.px_a)[road])
+        dark = binarise(gray, cfg.refine, road_px=px_img[road])
         refined = correct_defects(
-            fit.dist_m, pair.px_a, fit.candidate, dark, fit.threshold_m, cfg.refine
+            fit.dist_m, px_img, fit.candidate, dark, fit.threshold_m, cfg.refine
         )
-        mask = refined_mask(dark, pair.px_a, refined, max(1, cfg.refine.window_px))
+        mask = refined_mask(dark, px_img, refined, max(1, cfg.refine.window_px))
     cracks = None
     if cfg.crack.enabled and gray is not None and m_per_px:
         road = ~fit.candidate & (np.abs(fit.dist_m) < fit.threshold_m)
@@ -75,7 +78,7 @@ def analyse_pair(
         if gray_b is not None and camera is not None:
             view = PairView.of(pair, gray_b, camera)
         cracks = detect_pair_cracks(
-            gray, pair.px_a, P, fit.dist_m, road, fit.noise_m, m_per_px, cfg.crack, view
+            gray, px_img, P, fit.dist_m, road, fit.noise_m, m_per_px, cfg.crack, view, camera
         )
     app = _area_per_point(P)
     deep = refined & (-fit.dist_m >= cfg.map.frame_depth_m)
@@ -95,6 +98,15 @@ def analyse_pair(
         mask=mask,
         cracks=cracks,
     )
+
+
+def _raw_px(px: np.ndarray, camera: Camera | None) -> np.ndarray:
+    """(N, 2) ideal pinhole pixels -> raw image pixels (unchanged without lens distortion)."""
+    if camera is None or not camera.has_distortion:
+        return px
+    from detection.dense import _distort
+
+    return _distort(px, camera)
 
 
 def _area_per_point(P: np.ndarray) -> float:
