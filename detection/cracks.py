@@ -153,8 +153,8 @@ def thin_dark_components(
     Pixels whose oriented line response (``line_response``) exceeds the image's own median +
     ``contrast_k`` · 1.4826 MAD form components; those long (≥ ``min_length_m``), thin
     (area / length ≤ ``max_width_m``) and elongated (≥ ``min_elongation``) are kept. A second,
-    longer segment (``line_long_m``, threshold ``long_contrast_k``) adds long lines away from
-    those pieces. The width is the crack's equivalent width measured on the top-hat
+    longer segment (``line_long_m``, threshold ``long_contrast_k``) adds its long lines,
+    thinned, where the short one also sees them darker. The width is the crack's equivalent width measured on the top-hat
     (``equivalent_width_px``).
     """
     z, contrast = line_response(gray, m_per_px, cfg)
@@ -481,11 +481,13 @@ def detect_pair_cracks(
     cfg: CrackConfig,
     view: PairView | None = None,
     camera: Camera | None = None,
+    px_ideal: np.ndarray | None = None,
 ) -> PairCracks:
     """Cracks of one image confirmed by the pair's 3D points (see the module docstring).
 
     px: (N, 2) raw pixels of the points in ``gray`` (as captured; ``camera`` with lens
-    distortion maps them and the crack lines to ideal pixels before any geometry);
+    distortion maps them and the crack lines to ideal pixels before any geometry; pass the
+    points' ideal pixels as ``px_ideal`` when at hand);
     points_cam_m: (N, 3) camera-a coordinates;
     dist_m: (N,) signed plane distances (negative below); road: (N,) bool road points (for the
     pixel -> road-plane mapping); noise_m: σ of the road points' distances. With ``view``
@@ -504,7 +506,9 @@ def detect_pair_cracks(
     v = np.clip(np.round(px[:, 1]).astype(int), 0, h - 1)
     cam = camera if camera is not None else (view.camera if view is not None else None)
     distorted = cam is not None and cam.has_distortion
-    px_ideal = _ideal(px, cam) if distorted else px
+    if px_ideal is None:
+        px_ideal = _ideal(px, cam) if distorted else px
+    px_ideal = np.asarray(px_ideal, float)
     H, _ = cv2.findHomography(px_ideal[road].astype(np.float32), P[road, :2].astype(np.float32), 0)
     if H is None:
         return empty()

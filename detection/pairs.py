@@ -78,8 +78,9 @@ def analyse_pair(
         if gray_b is not None and camera is not None:
             view = PairView.of(pair, gray_b, camera)
         cracks = detect_pair_cracks(
-            gray, px_img, P, fit.dist_m, road, fit.noise_m, m_per_px, cfg.crack, view, camera
-        )
+            gray, px_img, P, fit.dist_m, road, fit.noise_m, m_per_px, cfg.crack, view, camera,
+            px_ideal=np.asarray(pair.px_a, float),
+        )  # fmt: skip
     app = _area_per_point(P)
     deep = refined & (-fit.dist_m >= cfg.map.frame_depth_m)
     area = float(deep.sum()) * app if deep.sum() >= 3 else 0.0
