@@ -504,10 +504,11 @@ def detect_pair_cracks(
     h, w = lab.shape
     u = np.clip(np.round(px[:, 0]).astype(int), 0, w - 1)
     v = np.clip(np.round(px[:, 1]).astype(int), 0, h - 1)
+    from reconstruction.features import undistort_px
+
     cam = camera if camera is not None else (view.camera if view is not None else None)
-    distorted = cam is not None and cam.has_distortion
     if px_ideal is None:
-        px_ideal = _ideal(px, cam) if distorted else px
+        px_ideal = px if cam is None else undistort_px(px, cam)
     px_ideal = np.asarray(px_ideal, float)
     H, _ = cv2.findHomography(px_ideal[road].astype(np.float32), P[road, :2].astype(np.float32), 0)
     if H is None:
@@ -533,7 +534,7 @@ def detect_pair_cracks(
         ys, xs = np.nonzero(line)
         step = max(1, len(xs) // cfg.max_samples)
         q = np.c_[xs[::step], ys[::step]].astype(float)
-        q = (_ideal(q, cam) if distorted else q).astype(np.float32).reshape(-1, 1, 2)
+        q = (q if cam is None else undistort_px(q, cam)).astype(np.float32).reshape(-1, 1, 2)
         xy = cv2.perspectiveTransform(q, H).reshape(-1, 2).astype(float)
         zc = np.c_[xy, np.ones(len(xy))] @ zcoef
         xyz.append(np.c_[xy, zc])
@@ -558,12 +559,6 @@ def detect_pair_cracks(
         *(np.asarray(a, float) for a in (wd, sd, nn, nb, vv, mx)),
         *(np.asarray(a, float) for a in zip(*dd, strict=True)),
     )
-
-
-def _ideal(px: np.ndarray, camera: Camera) -> np.ndarray:
-    from detection.dense import _undistort
-
-    return _undistort(np.asarray(px, float), camera)
 
 
 def crack_evidence(
