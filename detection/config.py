@@ -160,6 +160,40 @@ class MapSegmentConfig:
 
 
 @dataclass(frozen=True)
+class RutConfig:
+    """Ruts traced on transverse profiles under a straightedge (see detection/ruts.py)."""
+
+    enabled: bool = True  # trace elongated regions as ruts (False: ruts are plain map regions)
+    straightedge_m: float = 1.2  # transverse profile length (m); FHWA LTPP's 1.2 m straightedge
+    strip_m: float = 0.10  # each profile averages the raster over this length along the rut (m)
+    step_m: float = 0.05  # station spacing along the rut (m)
+    profile_smooth_m: float = 0.01  # Gaussian σ along the profile (m)
+    trace_min_m: float = 0.003  # a station is in the rut when deeper than this (m) ...
+    trace_noise_k: float = 4.0  # ... and than k x its profile's σ (unitless)
+    min_width_m: float = 0.10  # trough width (at depth 0) at least (m): narrower is a crack
+    max_width_m: float = 1.0  # ... and at most (m): wider is a sag, not a wheel-path rut
+    min_road_side_m: float = 0.05  # observed road under the straightedge on each side (m)
+    follow_m: float = 0.10  # the trough centre is searched this far from the predicted one (m)
+    direction_stations: int = 6  # the direction follows the centre line over this many stations
+    max_gap_m: float = 0.25  # tracing stops after this length of stations out of the rut (m)
+    max_length_m: float = 100.0  # tracing stops after this length in each direction (m)
+    seed_min_length_m: float = 0.2  # regions at least this long (±2σ of their cells) seed (m)
+    seed_elongation: float = 2.0  # ... and this elongated (length / width) (unitless)
+    # A compact region seeds when some direction's trough is this much wider than the region
+    # (a piece of a shallow rut; a pothole is its own trough), directions tried over 180° (-)
+    seed_width_ratio: float = 2.0
+    seed_directions: int = 8  # (count)
+    depth_window_m: float = 0.25  # rut depth: largest median of the stations over this (m)
+    # Ruts too shallow to cross T_d anywhere are seeded by a scan of transverse profiles along
+    # the drive: a line every scan_step_m (m; 0 = no scan), stations up to scan_half_width_m
+    # either side of the footprint centres (m)
+    scan_step_m: float = 0.5
+    scan_half_width_m: float = 0.6
+    # report ruts at least this deep (m): ASTM D6433 rates rutting low from 6 mm (1/4 in)
+    min_depth_m: float = 0.006
+
+
+@dataclass(frozen=True)
 class DetectionConfig:
     """Defect detection: per pair (Ch. 4), on the global map (§5.4), outputs for GIS."""
 
@@ -169,6 +203,7 @@ class DetectionConfig:
     severity: SeverityConfig = field(default_factory=SeverityConfig)
     crack: CrackConfig = field(default_factory=CrackConfig)
     dense: DenseConfig = field(default_factory=DenseConfig)
+    rut: RutConfig = field(default_factory=RutConfig)
     use_images: bool = True  # read frames for the 2D refinement (False: 3D only)
     # Frame labels: "map" = deep area of vetted map defects in the frame's footprint (default);
     # "pair" = the dissertation's per-pair decision from the refined points alone.

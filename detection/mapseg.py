@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
+from typing import Any
 
 import cv2
 import numpy as np
@@ -50,6 +51,7 @@ class Region:
     support_idx: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # evidence ids
     noise_m: float = float("nan")  # σ of the raster window it was segmented in (m)
     seed_m: float = float("nan")  # T_d used in that window (m)
+    rut: Any = None  # detection.ruts.RutTrace when the region is a traced rut
 
 
 @dataclass

@@ -99,6 +99,14 @@ def run(
                 surface, cfg.map, seeds_xy, ev_xy, ev_pair,
                 min_points=cfg.map.min_support_points if per_pair else 1,
             )  # fmt: skip
+            if cfg.rut.enabled:
+                from detection.ruts import scan_seeds, trace_ruts
+
+                path = np.array([np.asarray(fp.centroid.coords[0]) for fp in footprints.values()])
+                seeds = scan_seeds(surface, path.reshape(-1, 2), cfg.rut, cfg.map)
+                seg.regions = trace_ruts(
+                    surface, seg.regions, cfg.rut, cfg.map, ev_xy, ev_pair, scan_seeds=seeds
+                )
         finally:
             surface.close()
         noise, seed = seg.noise_m, seg.seed_m
@@ -321,8 +329,11 @@ def _measure_regions(
         noise_m = reg.noise_m if math.isfinite(reg.noise_m) else seg.noise_m
         deep_area = float((reg.depth_smooth_m >= seed_m).sum() * gsd2)
         max_depth = float(np.nanmax(reg.depth_smooth_m))
+        rut = reg.rut
+        if rut is not None:  # traced on straightedge profiles: its own depth and floor
+            max_depth, deep_area = rut.max_depth_m, float(len(reg.rows) * gsd2)
         why = None
-        if max_depth < mc.min_depth_m:
+        if max_depth < (mc.min_depth_m if rut is None else cfg.rut.min_depth_m):
             why = f"shallow ({1000 * max_depth:.1f} mm)"
         elif deep_area < mc.min_area_m2:
             why = f"small ({1e4 * deep_area:.1f} cm²)"
@@ -337,7 +348,16 @@ def _measure_regions(
         m = measure(reg, seg.grid, mc.frame_depth_m)
         poly = Polygon(m.outline_xy_m)
         dm = part = None
-        if dense is not None:
+        if rut is not None:
+            # Depths from the stations' averaged profiles (a noisy cell's maximum reads deep);
+            # length along the centre line, width the median trough width.
+            prof = np.clip(np.nan_to_num(reg.depth_smooth_m, nan=0.0), 0.0, None)
+            m.max_depth_m = rut.max_depth_m
+            m.mean_depth_m = float(prof.mean())
+            m.volume_m3 = float(prof.sum() * gsd2)
+            m.length_m = rut.length_m
+            m.width_m = float(np.median(rut.width_m[rut.in_rut]))
+        elif dense is not None:
             from detection.dense import measure_defect_dense
 
             dm = measure_defect_dense(
@@ -362,7 +382,7 @@ def _measure_regions(
             k = max(1.0, dm.max_depth_m / max(float(np.nanmax(reg.depth_smooth_m)), 1e-6))
             d_reg = np.fmax(d_reg, reg.depth_smooth_m * k)
             m.deep_xy_m = xy_reg[d_reg >= mc.frame_depth_m]
-        elif points is not None:
+        elif points is not None and rut is None:
             pt_max = point_max_depth(poly, points[0], points[1], mc)
             if pair_pts:
                 pr_max = pair_max_depth(poly, pair_pts, mc)
@@ -387,7 +407,7 @@ def _measure_regions(
                 m.max_depth_m = pt_max
                 m.mean_depth_m *= k
                 m.volume_m3 *= k
-        kind = classify(m, mc)
+        kind = "rut" if rut is not None else classify(m, mc)
         seen = sorted(fn for fn, fp in footprints.items() if fp.intersects(poly))
         snr = max_depth / max(noise_m, 1e-6)
         n_views = len(reg.support_pairs) if have_pairs else len(seen)

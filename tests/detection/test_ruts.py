@@ -1,0 +1,158 @@
+"""Ruts traced on straightedge profiles (detection.ruts) on seeded synthetic residual rasters."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from detection.config import DetectionConfig
+from detection.mapseg import Region
+from detection.ruts import scan_seeds, trace_rut, trace_ruts
+from roadsurf.formats import GridSpec
+
+CFG = DetectionConfig()
+GSD = 0.005
+
+
+class ArraySource:
+    """An in-memory residual raster read by windows (the WindowSource protocol)."""
+
+    def __init__(self, res: np.ndarray) -> None:
+        self.res = res.astype(np.float32)
+        self.grid = GridSpec("LOCAL_ENU", 0.0, res.shape[0] * GSD, GSD, res.shape[1], res.shape[0])
+        self.source = "test"
+        self.reads = 0
+
+    def read(self, r0: int, c0: int, h: int, w: int) -> np.ndarray:
+        self.reads += 1
+        return self.res[r0 : r0 + h, c0 : c0 + w].copy()
+
+    def close(self) -> None:
+        pass
+
+
+def _road(width_m=2.0, length_m=9.0, noise_m=0.001, seed=0):
+    """Residual raster (rows = north, top row = largest y) and its cell centres (x, y)."""
+    h, w = int(length_m / GSD), int(width_m / GSD)
+    rng = np.random.default_rng(seed)
+    # Raster noise is spatially correlated (interpolated sparse points): white noise smoothed
+    # by one cell, rescaled to the requested σ.
+    n = ndimage.gaussian_filter(rng.normal(0, 1, (h, w)), 1.0)
+    res = noise_m * n / n.std()
+    rows, cols = np.mgrid[0:h, 0:w]
+    x = (cols + 0.5) * GSD
+    y = (h - rows - 0.5) * GSD
+    return res, x, y
+
+
+def _rut(x, y, depth_m, width_m, y0, y1, bend_m=0.15, taper_m=0.5):
+    """Depth of a gently curving rut along y from y0 to y1, (1 - q²)² cross-section."""
+    xc = 1.0 + bend_m * np.sin(np.pi * (y - y0) / (y1 - y0))
+    q = np.clip(2 * np.abs(x - xc) / width_m, 0, 1)
+    along = np.clip(np.minimum(y - y0, y1 - y) / taper_m, 0, 1)
+    return depth_m * (1 - q**2) ** 2 * along**2 * (3 - 2 * along)
+
+
+def _region(mask: np.ndarray, res: np.ndarray) -> Region:
+    r, c = np.nonzero(mask)
+    return Region(rows=r, cols=c, depth_m=-res[r, c], depth_smooth_m=-res[r, c])
+
+
+def test_a_shallow_rut_is_traced_whole_from_a_small_piece():
+    """A 9 mm rut, 0.45 m wide, 5 m long, curving by 15 cm, on 1 mm noise: a 6 cm blob where
+    noise crossed T_d seeds a trace that follows the whole rut and reads its depth within
+    1.5 mm; the deepest raster cell over the rut reads several mm too deep."""
+    res, x, y = _road()
+    d = _rut(x, y, 0.009, 0.45, 2.0, 7.0)
+    res = res - d
+    blob = (x - 1.0 - 0.15) ** 2 + (y - 4.5) ** 2 < 0.03**2
+    source = ArraySource(res)
+    tr = trace_rut(source, _region(blob, res), CFG.rut, CFG.map)
+    assert tr is not None
+    assert tr.length_m == pytest.approx(5.0, abs=0.8)  # tapered ends are shallower than 3 mm
+    assert tr.max_depth_m == pytest.approx(0.009, abs=0.0015)
+    w = float(np.median(tr.width_m[tr.in_rut]))
+    assert w == pytest.approx(0.45, rel=0.25)
+    # The cells follow the curve: their x is the rut's centre line at their y.
+    xy = source.grid.xy_from_rowcol(tr.rows, tr.cols)
+    xc = 1.0 + 0.15 * np.sin(np.pi * (xy[:, 1] - 2.0) / 5.0)
+    assert np.abs(xy[:, 0] - xc).max() < 0.3
+    assert np.median(np.abs(xy[:, 0] - xc)) < 0.1
+    # The old reading, deepest cell of the outline, is biased deep by the noise.
+    assert float((-res)[d > 0.002].max()) > 0.009 + 0.002
+
+
+def test_rut_pieces_become_one_rut_and_potholes_stay():
+    """Two pieces of one rut and a pothole: trace_ruts returns the pothole's region untouched
+    and one rut region (Region.rut set) that holds both pieces' cells."""
+    res, x, y = _road(seed=1)
+    d = _rut(x, y, 0.012, 0.5, 1.5, 7.5, bend_m=0.0)
+    pot = 0.03 * np.clip(1 - ((x - 1.0) ** 2 + (y - 8.4) ** 2) / 0.2**2, 0, None)
+    res = res - np.maximum(d, pot)
+    piece_a = (np.abs(x - 1.0) < 0.04) & (np.abs(y - 3.0) < 0.2)
+    piece_b = (np.abs(x - 1.0) < 0.04) & (np.abs(y - 6.0) < 0.15)
+    hole = pot > 0.008
+    regions = [_region(piece_a, res), _region(piece_b, res), _region(hole, res)]
+    ev = np.zeros((0, 2))
+    out = trace_ruts(ArraySource(res), regions, CFG.rut, CFG.map, ev, np.zeros(0, int))
+    ruts = [r for r in out if r.rut is not None]
+    others = [r for r in out if r.rut is None]
+    assert len(ruts) == 1 and len(others) == 1
+    assert others[0] is regions[2]
+    rut = ruts[0]
+    assert rut.rut.max_depth_m == pytest.approx(0.012, abs=0.0015)
+    assert rut.rut.length_m == pytest.approx(6.0, abs=0.8)
+    keys = set((rut.rows * 10_000 + rut.cols).tolist())
+    for piece in (piece_a, piece_b):
+        r, c = np.nonzero(piece)
+        assert len(keys & set((r * 10_000 + c).tolist())) >= 0.9 * len(r)
+
+
+def test_no_rut_on_flat_road_or_from_a_pothole():
+    """Noise blobs on flat road and a round pothole seed no trace; disabled, nothing changes."""
+    res, x, y = _road(seed=2)
+    pot = 0.04 * np.clip(1 - ((x - 1.0) ** 2 + (y - 4.0) ** 2) / 0.3**2, 0, None)
+    res = res - pot
+    source = ArraySource(res)
+    noise_blob = (x - 0.5) ** 2 + (y - 6.5) ** 2 < 0.03**2
+    long_blob = (np.abs(x - 1.5) < 0.02) & (np.abs(y - 2.0) < 0.3)  # elongated, on flat road
+    hole = pot > 0.008
+    for mask in (noise_blob, long_blob, hole):
+        assert trace_rut(source, _region(mask, res), CFG.rut, CFG.map) is None
+    regions = [_region(m, res) for m in (noise_blob, long_blob, hole)]
+    ev = np.zeros((0, 2))
+    out = trace_ruts(source, regions, CFG.rut, CFG.map, ev, np.zeros(0, int))
+    assert out == regions
+    off = dataclasses.replace(CFG.rut, enabled=False)
+    assert trace_ruts(source, regions, off, CFG.map, ev, np.zeros(0, int)) is regions
+
+
+def test_a_sag_wider_than_the_straightedge_is_not_a_rut():
+    """A 1.4 m wide, 10 mm deep depression along the road is a sag (wider than max_width_m
+    and than the straightedge): no rut is traced through it."""
+    res, x, y = _road(width_m=3.0, seed=3)
+    res = res - _rut(x, y, 0.010, 1.4, 1.5, 7.5, bend_m=0.0) * (x < 3.0)
+    blob = (np.abs(x - 1.0) < 0.05) & (np.abs(y - 4.0) < 0.05)
+    assert trace_rut(ArraySource(res), _region(blob, res), CFG.rut, CFG.map) is None
+
+
+def test_the_drive_scan_finds_a_rut_too_shallow_for_any_seed():
+    """A 7 mm rut never crosses T_d (8 mm), so segmentation gives no region; the scan of
+    transverse profiles along the drive seeds it and the trace measures it. On flat road the
+    scan finds no rut."""
+    path = np.column_stack([np.full(60, 1.0), np.linspace(0.3, 8.7, 60)])
+    res, x, y = _road(seed=4)
+    source = ArraySource(res - _rut(x, y, 0.007, 0.5, 2.0, 7.5, bend_m=0.1))
+    seeds = scan_seeds(source, path, CFG.rut, CFG.map)
+    assert seeds
+    ev = np.zeros((0, 2))
+    out = trace_ruts(source, [], CFG.rut, CFG.map, ev, np.zeros(0, int), scan_seeds=seeds)
+    assert len(out) == 1 and out[0].rut is not None
+    assert out[0].rut.max_depth_m == pytest.approx(0.007, abs=0.0015)
+    assert out[0].rut.length_m == pytest.approx(5.5, abs=1.0)
+    flat = ArraySource(_road(seed=5)[0])
+    seeds = scan_seeds(flat, path, CFG.rut, CFG.map)
+    assert trace_ruts(flat, [], CFG.rut, CFG.map, ev, np.zeros(0, int), scan_seeds=seeds) == []
+    with pytest.raises(ValueError, match="path_xy_m"):
+        scan_seeds(flat, path.ravel(), CFG.rut, CFG.map)
