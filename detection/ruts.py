@@ -37,7 +37,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import ndimage
-from scipy.spatial import cKDTree
 
 from detection.config import MapSegmentConfig, RutConfig
 from detection.mapseg import Region
@@ -61,8 +60,7 @@ class RutTrace:
     max_depth_m: float  # largest running median of the stations' depths (m)
     rows: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (K,) cells
     cols: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-    cell_depth_m: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (K,) raw, levelled
-    cell_profile_m: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (K,) strip mean
+    cell_profile_m: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (K,) depth (m)
 
 
 class _Reader:
@@ -122,7 +120,6 @@ class _Station:
     noise_m: float
     centroid_u_m: float  # trough centroid relative to the centre (m)
     extent_u_m: tuple[float, float]  # trough extent at depth 0 (extrapolated) (m)
-    line: tuple[float, float]  # road level a + b u under the straightedge (m)
     u_m: np.ndarray  # (U,) profile abscissae
     profile_depth_m: np.ndarray  # (U,) levelled, smoothed depth (positive down), NaN unobserved
     ok: bool  # in the rut
@@ -220,7 +217,6 @@ def _station(
         noise_m=noise,
         centroid_u_m=cu,
         extent_u_m=ext,
-        line=(float(a), float(b)),
         u_m=u,
         profile_depth_m=depth,
         ok=bool(ok),
@@ -314,6 +310,7 @@ def trace_rut(
     region: Region,
     cfg: RutConfig,
     mc: MapSegmentConfig,
+    reader: _Reader | None = None,
 ) -> RutTrace | None:
     """Trace the trough through a region (rows/cols on ``source.grid``).
 
@@ -336,7 +333,8 @@ def trace_rut(
     else:
         ang = np.arange(cfg.seed_directions) * math.pi / cfg.seed_directions
         dirs = list(np.column_stack([np.cos(ang), np.sin(ang)]))
-    reader = _Reader(source, half_m=max(1.5, cfg.straightedge_m))
+    if reader is None:
+        reader = _Reader(source, half_m=max(1.5, cfg.straightedge_m))
     st0, along = None, dirs[0]
     for d in dirs:
         st = _station(reader, c, d, cfg, mc, search_m=max(cfg.follow_m, 0.5 * width))
@@ -382,17 +380,6 @@ def trace_rut(
         cols=cols,
         cell_profile_m=prof,
     )
-    if len(rows):
-        # Raw depth of each cell below its station's straightedge (for volume / mean depth).
-        xy_c = grid.xy_from_rowcol(rows, cols)
-        near = cKDTree(centres).query(xy_c)[1]
-        z = reader.sample(xy_c)
-        lines = np.array([s.line for s in stations])
-        dirs = np.gradient(centres, axis=0) if len(centres) > 1 else np.array([[1.0, 0.0]])
-        dirs /= np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-9)
-        nrm = np.column_stack([-dirs[:, 1], dirs[:, 0]])
-        u = ((xy_c - centres[near]) * nrm[near]).sum(axis=1)
-        trace.cell_depth_m = lines[near, 0] + lines[near, 1] * u - z
     log.debug(
         "ruts: trace at %s: %d stations (%d in rut), %.2f m, depth %.1f mm, %d window read(s)",
         np.round(c, 2), len(stations), int(ok.sum()), length_m, 1000 * trace.max_depth_m,
@@ -430,10 +417,11 @@ def trace_ruts(
     todo = [(regions[i], keyset_of[i]) for i in order] + [
         (r, set((r.rows.astype(np.int64) * width + r.cols).tolist())) for r in seeds
     ]
+    reader = _Reader(source, half_m=max(1.5, cfg.straightedge_m))  # one cache for all traces
     for reg, keys in todo:
         if keys and len(keys & covered) >= 0.5 * len(keys):
             continue  # a piece of a rut traced already
-        tr = trace_rut(source, reg, cfg, mc)
+        tr = trace_rut(source, reg, cfg, mc, reader)
         if tr is None or not len(tr.rows):
             continue
         w_med = float(np.median(tr.width_m[tr.in_rut]))
@@ -468,25 +456,24 @@ def trace_ruts(
         else np.zeros((0, 2), np.int64)
     )
     ev_key = ev_rc[:, 0] * width + ev_rc[:, 1]
+    r_pad = max(0, int(round(mc.point_support_radius_m / grid.gsd_m)))
+    dr, dc = np.mgrid[-r_pad : r_pad + 1, -r_pad : r_pad + 1]
+    offsets = (dr * width + dc).ravel()
     for tr, tk in merged:
-        cells = np.zeros(0, np.int64)
-        if tk:
-            cells = np.fromiter(tk, np.int64)
-        # Support: defect points on the rut's cells (or within the support radius).
-        r_pad = max(0, int(round(mc.point_support_radius_m / grid.gsd_m)))
-        near = np.isin(ev_key, cells)
-        if r_pad and len(ev_key):
-            for dr in range(-r_pad, r_pad + 1):
-                for dc in range(-r_pad, r_pad + 1):
-                    if dr or dc:
-                        near |= np.isin(ev_key + dr * width + dc, cells)
-        idx = np.flatnonzero(near)
-        reg = Region(
-            rows=tr.rows,
-            cols=tr.cols,
-            depth_m=tr.cell_depth_m.astype(float),
-            depth_smooth_m=tr.cell_profile_m.astype(float),
+        # Support: defect points on the rut's cells or within the support radius.
+        cells = np.fromiter(tk, np.int64)
+        box = (
+            (ev_rc[:, 0] >= tr.rows.min() - r_pad)
+            & (ev_rc[:, 0] <= tr.rows.max() + r_pad)
+            & (ev_rc[:, 1] >= tr.cols.min() - r_pad)
+            & (ev_rc[:, 1] <= tr.cols.max() + r_pad)
         )
+        idx = np.flatnonzero(box)
+        idx = idx[np.isin(ev_key[idx, None] + offsets[None, :], cells).any(axis=1)]
+        prof = tr.cell_profile_m.astype(float)
+        # The profile depth stands for the cell's depth too: measure() reads both, and the
+        # station averages are what the rut is measured by (a single cell is noise).
+        reg = Region(rows=tr.rows, cols=tr.cols, depth_m=prof, depth_smooth_m=prof)
         reg.support_idx = idx
         reg.support_pairs = set(np.unique(ev_pair[idx]).tolist()) if len(idx) else set()
         reg.n_support_points = len(idx)
@@ -517,7 +504,6 @@ def _union(a: RutTrace, b: RutTrace, width: int) -> RutTrace:
         max_depth_m=max(a.max_depth_m, b.max_depth_m),
         rows=np.concatenate([a.rows, b.rows[extra]]),
         cols=np.concatenate([a.cols, b.cols[extra]]),
-        cell_depth_m=np.concatenate([a.cell_depth_m, b.cell_depth_m[extra]]),
         cell_profile_m=np.concatenate([a.cell_profile_m, b.cell_profile_m[extra]]),
     )
 
