@@ -526,7 +526,14 @@ def detect_pair_cracks(
         # the points' localisation); points beside it are road and only dilute the mean depth.
         near = dist_px[v, u] <= max(cfg.near_px, 0.5 * wpx)
         n = int(near.sum())
-        if n == 0:
+        dn = (
+            None
+            if view is None or not cfg.dense
+            else dense_crack_depth(line, wpx, gray, view, np.asarray(zcoef, float), cfg)
+        )
+        # A thin crack often has no sparse point on it (features straddle it); its dense
+        # reading alone then carries it.
+        if n == 0 and dn is None:
             continue
         # No decision here: one pair holds only a few points on a crack; the evidence of all
         # pairs that saw it is pooled on the map (``crack_evidence``).
@@ -544,12 +551,15 @@ def detect_pair_cracks(
         nn.append(n)
         nb.append(int((d > 0).sum()))
         vv.append(n * noise_m**2)
-        mx.append(float(np.sort(d)[-2]) if n >= 2 else float(d[0]))
-        dense.append(
-            None
-            if view is None or not cfg.dense
-            else dense_crack_depth(line, wpx, gray, view, np.asarray(zcoef, float), cfg)
-        )
+        # robust max: the second-deepest point; without points, the dense reading's 90th
+        # percentile (a lower bound, like every dense depth)
+        if n >= 2:
+            mx.append(float(np.sort(d)[-2]))
+        elif n == 1:
+            mx.append(float(d[0]))
+        elif dn is not None:
+            mx.append(float(np.percentile(dn.depth_m, 90)))
+        dense.append(dn)
     if not wd:
         return empty()
     dd = [(0.0, 0.0, 0.0, 0.0) if m is None else m.summary() for m in dense]

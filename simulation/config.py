@@ -48,6 +48,10 @@ class SimConfig:
     cross_slope: float = 0.02  # cross slope of the smooth road (m/m)
     undulation_m: float = 0.01  # amplitude of long-wave (>= 8 m) smooth road undulation (m)
     n_potholes: int = 3  # number of potholes (irregular bowls, 15-80 mm deep, 0.15-0.8 m across)
+    # pothole look and shape: albedo factor inside (< 1 darker, > 1 lighter, e.g. fresh
+    # aggregate) and the wall exponent p of D(1 - ρ^p) (larger = steeper wall, flatter bottom)
+    pothole_darken: tuple[float, float] = (0.55, 0.8)  # range of the albedo factor (ratio)
+    pothole_power: tuple[float, float] = (2.5, 5.0)  # range of the profile exponent p (-)
     n_cracks: int = 1  # number of cracks (grooves 3-8 mm wide, a few mm deep)
     n_ruts: int = 0  # number of ruts (long shallow troughs)
     n_lane_markings: int = 1  # number of lane-marking groups (white paint, no depth)

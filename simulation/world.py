@@ -81,7 +81,7 @@ class Pothole:
     power: float  # profile exponent: depth ∝ 1 - ρ^power (larger = flatter bottom, steeper wall)
     tilt: tuple[float, float]  # relative bottom tilt along x, y
     rough_m: float  # amplitude of the bottom roughness (m)
-    darken: float  # albedo factor inside (< 1)
+    darken: float  # albedo factor inside (< 1 darker)
     seed: int
 
     ragged: float = 0.05  # relative amplitude of the broken, ragged rim (fraction of ρ)
@@ -614,10 +614,10 @@ def _place_features(world: World, rng: np.random.Generator) -> None:
         pot = Pothole(
             shape=b,
             depth_m=float(depths[i]),
-            power=float(rng.uniform(2.5, 5.0)),
+            power=float(rng.uniform(*cfg.pothole_power)),
             tilt=(float(rng.uniform(-0.15, 0.15)), float(rng.uniform(-0.15, 0.15))),
             rough_m=float(0.06 * depths[i] + 0.001),
-            darken=float(rng.uniform(0.55, 0.8)),
+            darken=float(rng.uniform(*cfg.pothole_darken)),
             seed=int(rng.integers(0, 2**31)),
         )
         # Tilt and roughness add to the nominal depth: rescale so the true maximum is the drawn

@@ -42,6 +42,20 @@ class Trough:
     width_m: float
     depth_m: float
     darker: float = 1.0  # image intensity factor inside (cracks are dark lines)
+    # "flat": the same factor across the groove (a painted band); "floor": darkest at the
+    # floor and 1 at the rims, (1 - q²) like the depth (the walls shade the floor from the sky)
+    dark_profile: str = "flat"
+
+    def darkness(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Intensity factor at ENU x, y (1 outside the groove)."""
+        a, b = np.array([self.x0_m, self.y0_m]), np.array([self.x1_m, self.y1_m])
+        L = float(np.linalg.norm(b - a))
+        ux, uy = (b - a) / L
+        s_ = (x - a[0]) * ux + (y - a[1]) * uy
+        q = 2.0 * (-(x - a[0]) * uy + (y - a[1]) * ux) / self.width_m
+        inside = (s_ >= 0) & (s_ <= L) & (np.abs(q) < 1.0)
+        k = np.clip(1.0 - q * q, 0.0, 1.0) if self.dark_profile == "floor" else 1.0
+        return np.where(inside, 1.0 - (1.0 - self.darker) * k, 1.0)
 
 
 @dataclass
@@ -331,15 +345,21 @@ def render_relief(
     for p in scene.potholes:
         inside = ((x - p.x_m) ** 2 + (y - p.y_m) ** 2 < p.radius_m**2).reshape(u.shape)
         g = np.where(inside, g * p.darker, g)
-    for t in scene.troughs:  # dark grooves / painted lines: darkness on the surface hit
-        if t.darker != 1.0:
-            a, b = np.array([t.x0_m, t.y0_m]), np.array([t.x1_m, t.y1_m])
-            L = float(np.linalg.norm(b - a))
-            ux, uy = (b - a) / L
-            s_ = (x - a[0]) * ux + (y - a[1]) * uy
-            n_ = -(x - a[0]) * uy + (y - a[1]) * ux
-            inside = ((s_ >= 0) & (s_ <= L) & (np.abs(n_) < 0.5 * t.width_m)).reshape(u.shape)
-            g = np.where(inside, g * t.darker, g)
+    # Dark grooves / painted lines: darkness on the surface hit, averaged over 4 x 4 samples
+    # per pixel (a camera integrates over its pixel; a hard edge would snap a 4 px line to
+    # the pixel grid). The samples are placed with the local ground-per-pixel Jacobian.
+    dark = [t for t in scene.troughs if t.darker != 1.0]
+    if dark:
+        X, Y = x.reshape(u.shape), y.reshape(u.shape)
+        dxu, dxv = np.gradient(X, axis=1), np.gradient(X, axis=0)
+        dyu, dyv = np.gradient(Y, axis=1), np.gradient(Y, axis=0)
+        sub = (np.arange(4) + 0.5) / 4 - 0.5
+        for t in dark:
+            f = np.zeros(u.shape)
+            for du in sub:
+                for dv in sub:
+                    f += t.darkness(X + du * dxu + dv * dxv, Y + du * dyu + dv * dyv)
+            g = g * (f / 16.0)
     return np.clip(g, 0, 255).astype(np.uint8)
 
 

@@ -309,3 +309,22 @@ def test_rerun_into_same_folder_replaces_drive(tmp_path: Path) -> None:
     (tmp_path / "other" / "notes.txt").write_text("mine")
     with pytest.raises(RoadsurfError):
         simulate("flat", tmp_path / "other", n_frames=2, **TINY)
+
+
+def test_pothole_look_and_wall_ranges_are_drawn_from_the_config() -> None:
+    """pothole_darken / pothole_power: lighter-than-road potholes and steep walls on demand;
+    the defaults draw the same world as before the knobs existed (same random draws)."""
+    from simulation.scenarios import make_config
+    from simulation.world import build_world
+
+    base = build_world(make_config("potholes"), 202, 20)
+    same = build_world(
+        make_config("potholes", pothole_darken=(0.55, 0.8), pothole_power=(2.5, 5.0)), 202, 20
+    )
+    assert [p.darken for p in base.potholes] == [p.darken for p in same.potholes]
+    cfg = make_config("potholes", pothole_darken=(1.05, 1.15), pothole_power=(10.0, 12.0))
+    other = build_world(cfg, 202, 20)
+    assert other.potholes
+    assert all(1.05 <= p.darken <= 1.15 for p in other.potholes)
+    assert all(10.0 <= p.power <= 12.0 for p in other.potholes)
+    assert all(p.darken < 1.0 for p in base.potholes)
