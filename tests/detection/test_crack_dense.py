@@ -62,9 +62,10 @@ def test_crack_along_the_direction_of_travel_gives_no_dense_reading(tmp_path):
 
 @pytest.mark.parametrize("cam", [CAM, CAM_FINE], ids=["1.7mm_px", "0.9mm_px"])
 def test_groove_darkest_at_its_floor_reads_a_real_share_of_its_depth(tmp_path, cam):
-    """A groove shaded darkest at its floor: its valley follows the floor. Tracking the line
-    with a Lucas-Kanade window followed its road-level edges and read this 6 mm groove
-    0.15 mm deep (2.5 %); the valley reads about half of it (a lower bound still)."""
+    """A groove shaded darkest at its floor (its walls shade it from the sky), at coarse and
+    fine pixels: the dense reading is a lower bound (the LK window sees the rims) but a real
+    share of the depth, about 44 %. (The test renderer now integrates the darkness over each
+    pixel: with hard band edges the line snapped to the pixel grid and read 2.5 %.)"""
     groove = Trough(-0.15, 0.12, 0.15, 0.14, 0.007, 0.006, darker=0.5, dark_profile="floor")
     m = _measure(tmp_path, groove, cam)
     assert m is not None
