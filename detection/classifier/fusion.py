@@ -152,16 +152,26 @@ def pairs_to_reconstruct(
     """Consecutive pairs (i, i+1) the physics pipeline must reconstruct.
 
     ``filenames`` are the drive's valid frames in capture order (position = ``Frame.index``).
-    A frame that needs 3D gets both its pairs, (i-1, i) and (i, i+1), so one failed pair (e.g.
-    too little overlap) does not leave it without 3D; a run of k such frames costs k+1 pairs.
+    A frame that needs 3D gets its forward pair (i, i+1) (the last frame: (i-1, i)). Its
+    backward pair (i-1, i) is added as well when the frame leans "defect" (a defect is measured
+    over the whole image) or when frame i-1 needs 3D itself (the pair is then i-1's forward
+    pair anyway). Otherwise frame i-1 is one the CNN is sure is clear, and the part of frame i
+    that (i, i+1) misses (what leaves the view) is the part frame i-1 also showed, so a run of
+    k frames the CNN is unsure about costs k pairs, not k+1. When a frame's pairs all fail,
+    ``detection.classifier.guided`` adds its other pair in the next round.
     A frame without a CNN probability is always reconstructed, and so are the neighbours
     (``context_frames``) of frames the CNN leans "defect" on.
     """
     n = len(filenames)
+    need = frames_needing_3d(frame_probs, filenames, threshold, context_frames)
     out: set[tuple[int, int]] = set()
-    for i, need in enumerate(frames_needing_3d(frame_probs, filenames, threshold, context_frames)):
-        if need:
-            out |= frame_pairs(i, n)
+    for i, nd in enumerate(need):
+        if not nd:
+            continue
+        if i + 1 < n:
+            out.add((i, i + 1))
+        if i >= 1 and (i + 1 >= n or need[i - 1] or leans_defect(frame_probs.get(filenames[i]))):
+            out.add((i - 1, i))
     return out
 
 

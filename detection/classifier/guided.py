@@ -32,6 +32,7 @@ from detection.classifier.fusion import (
     FusionRule,
     audit_pairs,
     cnn_confident,
+    frame_pairs,
     frames_needing_3d,
     grow_pairs,
     pairs_to_reconstruct,
@@ -104,14 +105,23 @@ def run(
         pairs = reconstruct(set(todo))
         # depth and extent per frame (eq. 5.8-5.9): the 3D evidence for growth and overruling
         figs = figures_from_pairs(pairs, camera_height_m, cfg)
-        if not cfg.grow_along_defects or rounds > MAX_GROWTH_ROUNDS:
+        if rounds > MAX_GROWTH_ROUNDS:
             break
-        defect = [pos[fn] for fn, f in figs.items() if fn in pos and label_frame(f, None, cfg)[0]]
         new: set[tuple[int, int]] = set()
-        for j, prs in grow_pairs(defect, n).items():
-            new |= prs - todo
-            # a neighbour of a 3D defect is decided by 3D, even when others' pairs cover it
-            reasons.setdefault(filenames[j], "grown")
+        # a frame that needed 3D but whose pairs all failed (e.g. too little overlap on one
+        # side) gets its other pair: one pair per frame is the plan, not the limit
+        ok = {fn for p in pairs if p.ok for fn in (p.frame_a, p.frame_b)}
+        for fn in reasons:
+            if fn not in ok and fn in pos:
+                new |= frame_pairs(pos[fn], n) - todo
+        if cfg.grow_along_defects:
+            defect = [
+                pos[fn] for fn, f in figs.items() if fn in pos and label_frame(f, None, cfg)[0]
+            ]
+            for j, prs in grow_pairs(defect, n).items():
+                new |= prs - todo
+                # a neighbour of a 3D defect is decided by 3D, even when others' pairs cover it
+                reasons.setdefault(filenames[j], "grown")
         if not new:
             break
         todo |= new

@@ -48,26 +48,31 @@ def test_fuse_frames_and_pairs_to_reconstruct() -> None:
     fused = fuse_frames(probs, d3, names, 0.95, context_frames=0)
     assert [fused[n].source for n in names] == ["cnn", "3d", "cnn", "cnn", "cnn", "fused"]
     assert [fused[n].defect for n in names] == [False, True, False, False, False, True]
-    # temporal context: neighbours of b and f are reconstructed and 3D decides them
+    # temporal context: neighbours of b and f are reconstructed and 3D decides them. Context
+    # frame e gets only its forward pair: what (4, 5) misses of e, sure-clear d showed too
     assert pairs_to_reconstruct(probs, names, 0.95, context_frames=1) == {
         (0, 1),
         (1, 2),
         (2, 3),
-        (3, 4),
         (4, 5),
     }
     fused = fuse_frames(probs, d3, names, 0.95, context_frames=1)
     assert [fused[n].source for n in names] == ["cnn", "3d", "3d", "cnn", "3d", "fused"]
     assert [fused[n].defect for n in names] == [False, True, True, False, True, True]
     # a frame the CNN is unsure about but leans "clear" on (p < 0.5) gets 3D itself, but its
-    # neighbours are not pulled in: on plain road they would double the cost for nothing
+    # neighbours are not pulled in: on plain road they would double the cost for nothing. One
+    # pair is enough: the strip (1, 2) misses of b is in sure-clear a
     probs_u = {**probs, "b": 0.3}
-    assert pairs_to_reconstruct(probs_u, names, 0.95, context_frames=1) == {
-        (0, 1),
+    assert pairs_to_reconstruct(probs_u, names, 0.95, context_frames=1) == {(1, 2), (4, 5)}
+    # a run of unsure frames costs one pair per frame; one leaning "defect" keeps both
+    probs_r = {**probs_u, "c": 0.2, "d": 0.4}
+    assert pairs_to_reconstruct(probs_r, names, 0.95, context_frames=0) == {
         (1, 2),
+        (2, 3),
         (3, 4),
         (4, 5),
     }
+    assert (0, 1) in pairs_to_reconstruct({**probs_u, "b": 0.7}, names, 0.95, context_frames=0)
     fused = fuse_frames(probs_u, d3, names, 0.95, context_frames=1)
     assert [fused[n].source for n in names] == ["cnn", "3d", "cnn", "cnn", "3d", "fused"]
     # a frame the CNN could not read is reconstructed
@@ -305,6 +310,35 @@ def test_audit_and_growth_follow_a_defect_the_cnn_cannot_see(tmp_path: Path) -> 
     off = ClassifierConfig(audit_every_frames=0, grow_along_defects=False)
     res = guided.run(off, names, probs, 1.0, reconstruct)
     assert calls == [set()] and res.pairs == [] and not res.rule.decide_3d
+
+
+def test_a_frame_whose_pair_failed_gets_its_other_pair() -> None:
+    """An unsure frame is planned with one pair; when that pair fails, the next round adds
+    the other, so the frame still gets 3D (detection.classifier.guided)."""
+    from detection.classifier import guided
+
+    n = 12
+    names = [f"{i:04d}.png" for i in range(n)]
+    rng = np.random.default_rng(5)
+    calls: list[set[tuple[int, int]]] = []
+
+    def reconstruct(only: set[tuple[int, int]]) -> list[PairResult]:
+        calls.append(set(only))
+        out = []
+        for a, _ in sorted(only):
+            p = _pair(a, 0.0, 0, rng)
+            if a == 6:  # (6, 7): too little overlap
+                p.status = "geometry_failed"
+            out.append(p)
+        return out
+
+    probs = dict.fromkeys(names, 0.001)
+    probs["0006.png"] = 0.3  # unsure, leans clear
+    cfg = ClassifierConfig(audit_every_frames=0, grow_along_defects=False)
+    res = guided.run(cfg, names, probs, 1.0, reconstruct)
+    assert calls == [{(6, 7)}, {(5, 6), (6, 7)}]
+    assert res.rounds == 2 and res.reasons == {"0006.png": "unsure"}
+    assert any(p.ok and "0006.png" in (p.frame_a, p.frame_b) for p in res.pairs)
 
 
 def test_growth_extends_the_cnn_context_along_a_long_defect(tmp_path: Path) -> None:
