@@ -34,6 +34,11 @@ class MappingConfig:
     gps_bridge_s: float = 2.0  # fixes this close before and after a failed pair bridge it (s)
     gap_sigma_m: float = 1.0  # σ of the constant-velocity guess across a failed pair (m)
     gap_sigma_rot_deg: float = 10.0  # σ of its rotation (deg)
+    # σ of the vehicle's acceleration (m/s²) in the constant-velocity prior on the positions of
+    # frames next to a visual gap (a failed pair, or frames a fused run did not reconstruct):
+    # without it such a frame is held only by GPS (slower than the camera), OBD speed (a norm,
+    # blind across the track) and the 1 m gap guess, and the solver crawls (0 = off)
+    gap_accel_sigma_mps2: float = 3.0
     adapt_sigmas: bool = True  # rescale GPS/visual σ from the fit's own residuals (robust MAD)
     obd_sigma_mps: float = 0.2  # σ of OBD speed (m/s) for the optional speed constraint
     use_obd: bool = True  # add OBD speed constraints when obd.csv exists

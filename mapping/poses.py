@@ -600,6 +600,18 @@ class _PoseGraph:
         self.st = np.array(st, float)
         self.sr = np.array(sr, float)
 
+        # constant-velocity prior on frames beside a visual gap (triples i-1, i, i+1)
+        gap = np.zeros(self.n, bool)
+        if self.n >= 3 and cfg.gap_accel_sigma_mps2 > 0:
+            brk = comp[1:] != comp[:-1]  # no ok pair between i and i+1
+            gap[1:-1] = brk[:-1] | brk[1:]
+        self.cv_i = np.flatnonzero(gap)
+        dt1 = np.maximum(t[self.cv_i] - t[self.cv_i - 1], 1e-6) if len(self.cv_i) else t[:0]
+        dt2 = np.maximum(t[self.cv_i + 1] - t[self.cv_i], 1e-6) if len(self.cv_i) else t[:0]
+        self.cv_dt1, self.cv_dt2 = dt1, dt2
+        # velocity change over the triple vs σ_a × the time between the two velocity samples
+        self.cv_s = max(cfg.gap_accel_sigma_mps2, 1e-9) * 0.5 * (dt1 + dt2)
+
         # road-normal (tilt) prior per frame, in camera coordinates (pointing up, at the camera)
         n_up = np.tile([0.0, 0.0, -1.0], (self.n, 1))
         for p in ok_pairs if cfg.tilt_prior_axis == "road_normal" else []:
@@ -690,6 +702,10 @@ class _PoseGraph:
                 comp = np.arctan2(fwd[:, 0], fwd[:, 1])
                 dh = np.angle(np.exp(1j * (comp - self.hth)))
                 out.append(dh / self.hs)
+        if len(self.cv_i):
+            i = self.cv_i
+            dv = (p[i + 1] - p[i]) / self.cv_dt2[:, None] - (p[i] - p[i - 1]) / self.cv_dt1[:, None]
+            out.append((dv / self.cv_s[:, None]).ravel())
         if self.obd_v is not None and len(self.obd_idx):
             i = self.obd_idx
             sp_ = np.linalg.norm(p[i + 1] - p[i], axis=1) / np.maximum(
@@ -732,6 +748,8 @@ class _PoseGraph:
                 add([k[alt], k1[alt]], 1, slice(3, 6))
             if len(self.hk):
                 add([self.hk], 1, slice(0, 3))
+        if len(self.cv_i):
+            add([self.cv_i - 1, self.cv_i, self.cv_i + 1], 3, slice(3, 6))
         if self.obd_v is not None and len(self.obd_idx):
             add([self.obd_idx, self.obd_idx + 1], 1, slice(3, 6))
         if len(self.pin):
