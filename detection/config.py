@@ -176,6 +176,10 @@ class RutConfig:
     follow_m: float = 0.10  # the trough centre is searched this far from the predicted one (m)
     direction_stations: int = 6  # the direction follows the centre line over this many stations
     max_gap_m: float = 0.25  # tracing stops after this length of stations out of the rut (m)
+    # extend the traced length beyond each end by the depth ramp extrapolated to 0 (from where
+    # it crosses t and 2t, t the trace threshold), like the width; False: the length of the
+    # stations deeper than t only
+    extrapolate_ends: bool = True
     max_length_m: float = 100.0  # tracing stops after this length in each direction (m)
     seed_min_length_m: float = 0.2  # regions at least this long (±2σ of their cells) seed (m)
     seed_elongation: float = 2.0  # ... and this elongated (length / width) (unitless)

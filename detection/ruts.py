@@ -56,11 +56,28 @@ class RutTrace:
     width_m: np.ndarray  # (S,) trough width at depth 0, extrapolated (m)
     noise_m: np.ndarray  # (S,) σ of the station's levelled profile on the road (m)
     in_rut: np.ndarray  # (S,) bool
-    length_m: float  # along the centre line, first to last station in the rut (m)
+    length_m: float  # along the centre line, first to last station in the rut, plus ends (m)
     max_depth_m: float  # largest running median of the stations' depths (m)
+    # length added beyond the first and the last station in the rut: the rut's depth ramp
+    # extrapolated to depth 0, like its width (m)
+    end_extension_m: tuple[float, float] = (0.0, 0.0)
     rows: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (K,) cells
     cols: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     cell_profile_m: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (K,) depth (m)
+
+    @property
+    def measured_length_m(self) -> float:
+        """Length of the stations in the rut, without the extrapolated ends (m)."""
+        return self.length_m - sum(self.end_extension_m)
+
+    @property
+    def body_width_m(self) -> float:
+        """Median trough width of the stations at least half as deep as the rut (m): the
+        tapered ends read narrow, because the rim threshold cuts a shallow trough higher up."""
+        sel = self.in_rut & (self.depth_m >= 0.5 * self.max_depth_m)
+        if not sel.any():
+            sel = self.in_rut
+        return float(np.median(self.width_m[sel])) if sel.any() else float("nan")
 
 
 class _Reader:
@@ -297,12 +314,73 @@ def _cells(stations: list[_Station], grid: GridSpec, step_m: float) -> tuple[np.
     if not rows:
         e = np.zeros(0, np.int64)
         return e, e, np.zeros(0)
-    r, c = np.concatenate(rows), np.concatenate(cols)
-    p = np.concatenate(prof_d)
-    key = r.astype(np.int64) * grid.width + c
+    return _dedupe_cells(
+        np.concatenate(rows), np.concatenate(cols), np.concatenate(prof_d), grid.width
+    )
+
+
+def _dedupe_cells(
+    r: np.ndarray, c: np.ndarray, p: np.ndarray, width: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each cell once (its first occurrence): rows, cols, profile depth."""
+    key = r.astype(np.int64) * width + c
     _, first = np.unique(key, return_index=True)
     first = np.sort(first)
     return r[first], c[first], p[first]
+
+
+def _end_extension(stations: list[_Station], cfg: RutConfig, end: int) -> float:
+    """Length (m) to add beyond the end station (``end`` 0: first, -1: last): the depth ramp
+    extrapolated to 0 from where it crosses the trace threshold t and 2t, as the width is
+    (w(0) ≈ 2 w(t) − w(2t)). A rut's ends taper; the trace stops where the taper crosses t, a
+    third of a 10 mm rut, so without this the length reads short (0.3 m per end on a 0.8 m
+    smoothstep taper). An abrupt end (already deeper than 2t) gets nothing; a rut never
+    2t deep gets nothing. Depths are a running median over 3 stations (one noisy station
+    does not move the end)."""
+    if not cfg.extrapolate_ends or len(stations) < 3:
+        return 0.0
+    seq = stations if end == 0 else stations[::-1]
+    d = np.array([s.depth_m for s in seq])
+    sm = np.array([np.median(d[max(0, k - 1) : k + 2]) for k in range(len(d))])
+    t = max(cfg.trace_min_m, cfg.trace_noise_k * seq[0].noise_m)
+    deep = np.flatnonzero(sm >= 2.0 * t)
+    if not len(deep) or deep[0] == 0:
+        return 0.0
+    j = int(deep[0])
+    centres = np.array([s.centre for s in seq[: j + 1]])
+    return float(np.linalg.norm(np.diff(centres, axis=0), axis=1).sum())
+
+
+def _extension_stations(
+    stations: list[_Station], cfg: RutConfig, end: int, length_m: float
+) -> list[_Station]:
+    """Virtual stations (cells only) continuing the trace ``length_m`` beyond its ``end``
+    station, with that station's trough extent and its profile ramped linearly to 0."""
+    n = int(round(length_m / cfg.step_m))
+    if n <= 0 or len(stations) < 2:
+        return []
+    seq = stations if end == 0 else stations[::-1]
+    e = seq[0]
+    back = seq[min(len(seq) - 1, cfg.direction_stations)]
+    d = e.centre - back.centre
+    d = d / max(float(np.linalg.norm(d)), 1e-9)
+    out = []
+    for k in range(1, n + 1):
+        f = 1.0 - k / (n + 1)
+        out.append(
+            _Station(
+                centre=e.centre + k * cfg.step_m * d,
+                depth_m=f * e.depth_m,
+                width_m=e.width_m,
+                noise_m=e.noise_m,
+                centroid_u_m=0.0,
+                extent_u_m=e.extent_u_m,
+                u_m=e.u_m,
+                profile_depth_m=f * e.profile_depth_m,
+                ok=True,
+            )
+        )
+    return out if end == -1 else out[::-1]
 
 
 def trace_rut(
@@ -367,23 +445,35 @@ def trace_rut(
         med = np.median(np.lib.stride_tricks.sliding_window_view(depths, k), axis=1)
     else:
         med = np.array([np.median(depths)])
+    ext_b, ext_f = (_end_extension(stations, cfg, end) for end in (0, -1))
+    virtual = _extension_stations(stations, cfg, 0, ext_b) + _extension_stations(
+        stations, cfg, -1, ext_f
+    )
     rows, cols, prof = _cells(stations, grid, cfg.step_m)
+    if virtual:
+        rv, cv, pv = _cells(virtual, grid, cfg.step_m)
+        rows, cols, prof = _dedupe_cells(
+            np.concatenate([rows, rv]), np.concatenate([cols, cv]), np.concatenate([prof, pv]),
+            grid.width,
+        )  # fmt: skip
     trace = RutTrace(
         centres_xy_m=centres,
         depth_m=depths,
         width_m=np.array([s.width_m for s in stations]),
         noise_m=np.array([s.noise_m for s in stations]),
         in_rut=ok,
-        length_m=length_m,
+        length_m=length_m + ext_b + ext_f,
         max_depth_m=float(med.max()),
+        end_extension_m=(ext_b, ext_f),
         rows=rows,
         cols=cols,
         cell_profile_m=prof,
     )
     log.debug(
-        "ruts: trace at %s: %d stations (%d in rut), %.2f m, depth %.1f mm, %d window read(s)",
-        np.round(c, 2), len(stations), int(ok.sum()), length_m, 1000 * trace.max_depth_m,
-        reader.reads,
+        "ruts: trace at %s: %d stations (%d in rut), %.2f m (+ %.2f, %.2f m ends), depth %.1f mm, "
+        "%d window read(s)",
+        np.round(c, 2), len(stations), int(ok.sum()), length_m, ext_b, ext_f,
+        1000 * trace.max_depth_m, reader.reads,
     )  # fmt: skip
     return trace
 
@@ -425,7 +515,7 @@ def trace_ruts(
         if tr is None or not len(tr.rows):
             continue
         w_med = float(np.median(tr.width_m[tr.in_rut]))
-        if tr.length_m < max(mc.rut_min_length_m, mc.elongation_min * w_med):
+        if tr.measured_length_m < max(mc.rut_min_length_m, mc.elongation_min * w_med):
             log.debug("ruts: trace of %.2f x %.2f m is too short for a rut", tr.length_m, w_med)
             continue
         tkeys = set((tr.rows.astype(np.int64) * width + tr.cols).tolist())
@@ -490,7 +580,8 @@ def trace_ruts(
 
 
 def _union(a: RutTrace, b: RutTrace, width: int) -> RutTrace:
-    """Two traces of one rut: the longer trace's stations, both traces' cells."""
+    """Two traces of one rut: the stations of ``a`` (the longer, see ``trace_ruts``), both
+    traces' cells."""
     key_a = a.rows.astype(np.int64) * width + a.cols
     key_b = b.rows.astype(np.int64) * width + b.cols
     extra = ~np.isin(key_b, key_a)
@@ -500,8 +591,9 @@ def _union(a: RutTrace, b: RutTrace, width: int) -> RutTrace:
         width_m=a.width_m,
         noise_m=a.noise_m,
         in_rut=a.in_rut,
-        length_m=max(a.length_m, b.length_m),
+        length_m=a.length_m,
         max_depth_m=max(a.max_depth_m, b.max_depth_m),
+        end_extension_m=a.end_extension_m,
         rows=np.concatenate([a.rows, b.rows[extra]]),
         cols=np.concatenate([a.cols, b.cols[extra]]),
         cell_profile_m=np.concatenate([a.cell_profile_m, b.cell_profile_m[extra]]),

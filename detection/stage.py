@@ -356,7 +356,7 @@ def _measure_regions(
             m.mean_depth_m = float(prof.mean())
             m.volume_m3 = float(prof.sum() * gsd2)
             m.length_m = rut.length_m
-            m.width_m = float(np.median(rut.width_m[rut.in_rut]))
+            m.width_m = rut.body_width_m
         elif dense is not None:
             from detection.dense import measure_defect_dense
 

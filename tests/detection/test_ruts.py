@@ -157,3 +157,28 @@ def test_the_drive_scan_finds_a_rut_too_shallow_for_any_seed():
     assert trace_ruts(flat, [], CFG.rut, CFG.map, ev, np.zeros(0, int), scan_seeds=seeds) == []
     with pytest.raises(ValueError, match="path_xy_m"):
         scan_seeds(flat, path.ravel(), CFG.rut, CFG.map)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_tapered_rut_ends_are_extrapolated_to_depth_zero(seed):
+    """A 10 mm rut, 5 m long, whose depth ramps up over 0.8 m at each end (smoothstep): the
+    trace stops where the ramp crosses its threshold (~3 mm), 0.25-0.3 m short of each end.
+    The ends are extrapolated from the threshold and twice it, like the width, which brings
+    the length within 0.25 m; an abrupt end gains at most a station."""
+    res, x, y = _road(seed=seed)
+    blob = (x - 1.0 - 0.15) ** 2 + (y - 4.5) ** 2 < 0.03**2
+    tapered = res - _rut(x, y, 0.010, 0.5, 2.0, 7.0, taper_m=0.8)
+    off = dataclasses.replace(CFG.rut, extrapolate_ends=False)
+    tr0 = trace_rut(ArraySource(tapered), _region(blob, tapered), off, CFG.map)
+    tr = trace_rut(ArraySource(tapered), _region(blob, tapered), CFG.rut, CFG.map)
+    assert tr0 is not None and tr is not None
+    assert tr0.length_m < 4.6
+    assert abs(tr.length_m - 5.0) < 0.25
+    assert tr.measured_length_m == pytest.approx(tr0.length_m)
+    assert min(tr.end_extension_m) > 0.05
+    assert len(tr.rows) > len(tr0.rows)  # the ends' cells are part of the rut's area
+    abrupt = res - _rut(x, y, 0.010, 0.5, 2.0, 7.0, taper_m=0.01)
+    tra = trace_rut(ArraySource(abrupt), _region(blob, abrupt), CFG.rut, CFG.map)
+    assert tra is not None
+    assert max(tra.end_extension_m) <= 1.5 * CFG.rut.step_m
+    assert tra.length_m < 5.2
