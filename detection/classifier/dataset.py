@@ -174,6 +174,36 @@ def figures_from_pairs(
     return out
 
 
+def read_defect_types(run_dir: Path) -> dict[str, set[str]]:
+    """RUN/defects.geojson -> {filename: types of the physics defects seen in that frame}
+    (the features' ``frames`` property); {} when the file does not exist."""
+    from roadsurf.formats import read_geojson
+
+    path = Path(run_dir) / "defects.geojson"
+    if not path.is_file():
+        return {}
+    out: dict[str, set[str]] = {}
+    for k, feat in enumerate(read_geojson(path).get("features") or []):
+        props = feat.get("properties") or {}
+        frames, kind = props.get("frames", []), props.get("type")
+        if not isinstance(frames, list) or not isinstance(kind, str):
+            raise RoadsurfError(
+                f"{path}: feature {k} has a 'frames' that is not a list or no 'type'; re-run "
+                "the detection stage (`roadsurf run DRIVE --out RUN --overwrite`) to rewrite it"
+            )
+        for fn in frames:
+            out.setdefault(str(fn), set()).add(kind)
+    return out
+
+
+def skip_for_cnn(label: int | None, types: set[str] | None, cfg: ClassifierConfig) -> str | None:
+    """The drop rule when a defect frame's physics defects are all of ``cnn_skip_types``."""
+    skip = set(cfg.cnn_skip_types)
+    if label != 1 or not skip or not types or not types <= skip:
+        return None
+    return f"left_to_3d({','.join(sorted(types))})"
+
+
 def read_physics_labels(run_dir: Path) -> dict[str, tuple[bool, str]] | None:
     """RUN/frames.csv -> {filename: (defect, source)}; None when the file does not exist."""
     path = Path(run_dir) / "frames.csv"
@@ -289,6 +319,7 @@ def label_drives(
         names = [f.filename for f in drive.frames]
         figs = frame_figures(run_dir, names, drive.camera.height_m, cfg)
         phys = read_physics_labels(run_dir)
+        kinds = read_defect_types(run_dir)
         if phys is None:
             log.warning(
                 "%s: no frames.csv (detection stage did not run); labels use depth+extent only",
@@ -311,6 +342,9 @@ def label_drives(
             fig = figs.get(fr.filename)
             p = phys.get(fr.filename) if phys is not None else None
             label, rule = label_frame(fig, p, cfg)
+            skipped = skip_for_cnn(label, kinds.get(fr.filename), cfg)
+            if skipped is not None:
+                label, rule = None, skipped
             if label is None:
                 dropped[rule] = dropped.get(rule, 0) + 1
                 continue

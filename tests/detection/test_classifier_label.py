@@ -16,6 +16,8 @@ from detection.classifier.config import ClassifierConfig
 from detection.classifier.dataset import FrameFigures, frame_figures, label_frame
 from detection.classifier.fusion import fuse, fuse_frames, needs_3d, pairs_to_reconstruct
 from reconstruction.types import PairResult, pair_filename, save_pair
+from roadsurf.errors import RoadsurfError
+from roadsurf.formats import read_geojson, write_geojson
 
 
 @pytest.mark.parametrize("thr", [0.8, 0.95])
@@ -244,6 +246,64 @@ def test_labelling_a_rendered_drive_agrees_with_truth_on_clear_cases(tmp_path: P
     assert bal["after_augmentation"]["defect"] == bal["before_augmentation"]["defect"] + len(aug)
     img = cv2.imread(str(tmp_path / "ds" / orig[0]["image"]), cv2.IMREAD_UNCHANGED)
     assert img.shape == (64, 64) and img.dtype == np.uint8
+
+    # cnn_skip_types: a defect frame whose physics defects are all ruts is left to 3D. Relabel
+    # the same run with its defects retyped as ruts (real files, real readers)
+    run = Path(orig[0]["run"])
+    gj = read_geojson(run / "defects.geojson")
+    seen = {fn for f in gj["features"] for fn in f["properties"]["frames"]}
+    for f in gj["features"]:
+        f["properties"]["type"] = "rut"
+    write_geojson(run / "defects.geojson", gj["features"])
+    cfg = ClassifierConfig(store_size_px=64, augment=False)
+    bal2 = label_drives([drive], tmp_path / "ds2", cfg, runs=[run])
+    defect_frames = {r["frame"] for r in orig if r["label"] == "1"}
+    skipped = defect_frames & seen
+    assert skipped, "the physics defects list their frames"
+    assert bal2["dropped_frames"].get("left_to_3d(rut)") == len(skipped)
+    assert bal2["before_augmentation"]["defect"] == len(defect_frames - seen)
+    assert bal2["before_augmentation"]["non-defect"] == bal["before_augmentation"]["non-defect"]
+    bal3 = label_drives(
+        [drive], tmp_path / "ds3", ClassifierConfig(store_size_px=64, augment=False, cnn_skip_types=()),
+        runs=[run],
+    )  # fmt: skip
+    assert bal3["before_augmentation"] == bal["before_augmentation"]
+
+
+def test_defect_types_per_frame_and_the_cnn_skip_rule(tmp_path: Path) -> None:
+    from detection.classifier.dataset import read_defect_types, skip_for_cnn
+
+    def feat(kind: str, frames: list[str]) -> dict:
+        ring = [[0.0, 0.0], [1e-5, 0.0], [1e-5, 1e-5], [0.0, 0.0]]
+        return {
+            "type": "Feature",
+            "geometry": {"type": "Polygon", "coordinates": [ring]},
+            "properties": {"type": kind, "frames": frames},
+        }
+
+    write_geojson(
+        tmp_path / "defects.geojson",
+        [feat("rut", ["a.png", "b.png"]), feat("pothole", ["b.png", "c.png"])],
+    )
+    types = read_defect_types(tmp_path)
+    assert types == {"a.png": {"rut"}, "b.png": {"rut", "pothole"}, "c.png": {"pothole"}}
+    cfg = ClassifierConfig()
+    assert cfg.cnn_skip_types == ("rut",)
+    assert skip_for_cnn(1, types["a.png"], cfg) == "left_to_3d(rut)"
+    assert skip_for_cnn(1, types["b.png"], cfg) is None  # a pothole shows: taught
+    assert skip_for_cnn(0, types["a.png"], cfg) is None  # clear frames stay clear
+    assert skip_for_cnn(1, None, cfg) is None  # defect depth without a typed defect: taught
+    assert skip_for_cnn(1, types["a.png"], ClassifierConfig(cnn_skip_types=())) is None
+    assert read_defect_types(tmp_path / "nowhere") == {}
+    old = feat("rut", ["a.png"])
+    del old["properties"]["frames"]  # a defect without frames (older run folders): no types
+    write_geojson(tmp_path / "old" / "defects.geojson", [old])
+    assert read_defect_types(tmp_path / "old") == {}
+    bad = feat("rut", ["a.png"])
+    bad["properties"]["frames"] = "a.png"
+    write_geojson(tmp_path / "bad" / "defects.geojson", [bad])
+    with pytest.raises(RoadsurfError, match="frames"):
+        read_defect_types(tmp_path / "bad")
 
 
 def test_audit_and_growth_follow_a_defect_the_cnn_cannot_see(tmp_path: Path) -> None:
