@@ -176,6 +176,9 @@ class RutConfig:
     follow_m: float = 0.10  # the trough centre is searched this far from the predicted one (m)
     direction_stations: int = 6  # the direction follows the centre line over this many stations
     max_gap_m: float = 0.25  # tracing stops after this length of stations out of the rut (m)
+    # ... or after this length of unobserved road (a hole in the map: no evidence either way;
+    # frames overlapping by less than half leave such holes between the pairs) (m)
+    max_unobserved_m: float = 1.0
     # extend the traced length beyond each end by the depth ramp extrapolated to 0 (from where
     # it crosses t and 2t, t the trace threshold), like the width; False: the length of the
     # stations deeper than t only

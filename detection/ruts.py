@@ -250,15 +250,24 @@ def _march(
     """Stations from ``start`` in direction ``along`` until the trough ends."""
     out: list[_Station] = []
     centre, d = start.astype(float), along / np.linalg.norm(along)
-    gap, path = 0.0, [centre.copy()]
+    gap, unseen, path = 0.0, 0.0, [centre.copy()]
     max_steps = int(cfg.max_length_m / cfg.step_m)
     for _ in range(max_steps):
         centre = centre + cfg.step_m * d
         st = _station(reader, centre, d, cfg, mc, search_m=cfg.follow_m)
-        if st is None or not st.ok:
+        if st is None:
+            # Unobserved road (a hole in the map, e.g. between the pairs of a drive whose
+            # frames overlap by less than half): no evidence either way, so the trace goes on
+            # straight and stops only when the road is seen and the trough is gone, or after
+            # max_unobserved_m.
+            unseen += cfg.step_m
+            if unseen > cfg.max_unobserved_m:
+                break
+            continue
+        unseen = 0.0
+        if not st.ok:
             gap += cfg.step_m
-            if st is not None:
-                out.append(st)
+            out.append(st)
             if gap > cfg.max_gap_m:
                 break
             continue
@@ -351,6 +360,39 @@ def _end_extension(stations: list[_Station], cfg: RutConfig, end: int) -> float:
     return float(np.linalg.norm(np.diff(centres, axis=0), axis=1).sum())
 
 
+def _bridge_stations(stations: list[_Station], cfg: RutConfig) -> list[_Station]:
+    """Virtual stations (cells only) across the unobserved stretches a trace went through
+    (consecutive stations more than 1.5 steps apart), between two stations in the rut: the
+    rut's outline is continuous where the map has a hole, its depth and extent interpolated."""
+    out = []
+    for a, b in zip(stations[:-1], stations[1:], strict=True):
+        dist = float(np.linalg.norm(b.centre - a.centre))
+        if not (a.ok and b.ok) or dist <= 1.5 * cfg.step_m:
+            continue
+        n = int(round(dist / cfg.step_m)) - 1
+        for k in range(1, n + 1):
+            f = k / (n + 1)
+            pa = np.nan_to_num(a.profile_depth_m, nan=0.0)
+            pb = np.interp(a.u_m, b.u_m, np.nan_to_num(b.profile_depth_m, nan=0.0))
+            out.append(
+                _Station(
+                    centre=(1 - f) * a.centre + f * b.centre,
+                    depth_m=(1 - f) * a.depth_m + f * b.depth_m,
+                    width_m=(1 - f) * a.width_m + f * b.width_m,
+                    noise_m=max(a.noise_m, b.noise_m),
+                    centroid_u_m=0.0,
+                    extent_u_m=(
+                        (1 - f) * a.extent_u_m[0] + f * b.extent_u_m[0],
+                        (1 - f) * a.extent_u_m[1] + f * b.extent_u_m[1],
+                    ),
+                    u_m=a.u_m,
+                    profile_depth_m=(1 - f) * pa + f * pb,
+                    ok=True,
+                )
+            )
+    return out
+
+
 def _extension_stations(
     stations: list[_Station], cfg: RutConfig, end: int, length_m: float
 ) -> list[_Station]:
@@ -418,6 +460,16 @@ def trace_rut(
         st = _station(reader, c, d, cfg, mc, search_m=max(cfg.follow_m, 0.5 * width))
         if st is not None and (st0 is None or (st.ok, st.depth_m) > (st0.ok, st0.depth_m)):
             st0, along = st, d
+    if elongated and st0 is None:
+        # The profile across the long axis is unobserved: the region is a piece of a trough cut
+        # short by holes in the map (a map of narrow strips, frames overlapping by less than
+        # half), elongated across the trough. Try every direction; whether the trough goes on
+        # beyond the holes (a rut) or not (a pothole) is decided by the trace's length.
+        ang = np.arange(cfg.seed_directions) * math.pi / cfg.seed_directions
+        for d in np.column_stack([np.cos(ang), np.sin(ang)]):
+            st = _station(reader, c, d, cfg, mc, search_m=max(cfg.follow_m, 0.5 * length))
+            if st is not None and (st0 is None or (st.ok, st.depth_m) > (st0.ok, st0.depth_m)):
+                st0, along = st, d
     if st0 is not None and st0.ok and not elongated and st0.width_m < cfg.seed_width_ratio * length:
         st0.ok = False  # the trough is the region itself: a pothole, not a piece of a rut
     if st0 is None or not st0.ok:
@@ -446,8 +498,10 @@ def trace_rut(
     else:
         med = np.array([np.median(depths)])
     ext_b, ext_f = (_end_extension(stations, cfg, end) for end in (0, -1))
-    virtual = _extension_stations(stations, cfg, 0, ext_b) + _extension_stations(
-        stations, cfg, -1, ext_f
+    virtual = (
+        _extension_stations(stations, cfg, 0, ext_b)
+        + _extension_stations(stations, cfg, -1, ext_f)
+        + _bridge_stations(stations, cfg)
     )
     rows, cols, prof = _cells(stations, grid, cfg.step_m)
     if virtual:

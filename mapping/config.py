@@ -47,6 +47,9 @@ class MappingConfig:
     gps_outlier_sigmas: float = 5.0  # a fix with |residual| > this × σ after fusion is an outlier
     max_nfev: int = 60  # least-squares iteration cap (function evaluations)
     # ---------------------------------------------------------------- global map
+    # warn when consecutive frames' road footprints overlap by less than this share (0-1): below
+    # half, the pairs' two-view parts no longer touch and the map has gaps between them
+    min_frame_overlap: float = 0.5
     voxel_m: float = 0.004  # voxel edge for fusing points seen in several pairs (m)
     max_point_depth_m: float = 5.0  # drop points further than this from camera a (m)
     local_fit_window_m: float = 1.5  # side of the window for the local road-surface fit (m)

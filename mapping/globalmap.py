@@ -74,6 +74,8 @@ class MapProducts:
     surface_px: int = 0  # observed pixels in surface.tif
     mosaic_px: int = 0  # imaged pixels in mosaic.tif
     patch_alignment: dict[str, float] = field(default_factory=dict)
+    # share of each frame's road footprint the next frame also sees: median, 10th percentile
+    frame_overlap: dict[str, float] = field(default_factory=dict)
     # non-empty tiles: row, col, bounds [x_min, y_min, x_max, y_max] in the grid CRS, and the
     # per-tile files when written, so readers can stay within the corridor (window by window)
     tiles: list[dict[str, Any]] = field(default_factory=list)
@@ -347,6 +349,45 @@ def project(camera: Camera, X_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return camera.fx * x + camera.cx, camera.fy * y + camera.cy
 
 
+def consecutive_overlap(footprints_xy_m: list[np.ndarray]) -> np.ndarray:
+    """(N-1,) share of frame i's road footprint that frame i+1 also sees (0-1; NaN where a
+    footprint is missing). ``footprints_xy_m``: N arrays (K, 2) of footprint points (m), e.g.
+    ``footprint_enu``'s grid; each footprint is their convex hull."""
+    import shapely
+
+    hulls = [
+        shapely.MultiPoint(np.asarray(f, float)).convex_hull if len(f) >= 3 else None
+        for f in footprints_xy_m
+    ]
+    out = np.full(max(0, len(hulls) - 1), np.nan)
+    for i in range(len(out)):
+        a, b = hulls[i], hulls[i + 1]
+        if a is not None and b is not None and a.area > 0:
+            out[i] = a.intersection(b).area / a.area
+    return out
+
+
+def _check_frame_overlap(cfg: MappingConfig, fp_grid: list[np.ndarray], prod: MapProducts) -> None:
+    """Record the consecutive-frame overlap and warn when it is below ``min_frame_overlap``:
+    below half, the two-view parts of consecutive pairs no longer touch and the map is strips."""
+    ov = consecutive_overlap(fp_grid)
+    ov = ov[np.isfinite(ov)]
+    if not len(ov):
+        return
+    med = float(np.median(ov))
+    prod.frame_overlap = {"median": round(med, 3), "p10": round(float(np.percentile(ov, 10)), 3)}
+    if med < cfg.min_frame_overlap:
+        msg = (
+            f"consecutive frames overlap by only {med:.0%} (median; below "
+            f"{cfg.min_frame_overlap:.0%}): 3D comes from the overlaps, so the map is strips "
+            "with unmeasured road between them, defects there are missed and long ones are "
+            "measured in pieces. Drive slower or raise the frame rate (overlap = 1 - speed / "
+            "(frame rate x footprint length along the drive))"
+        )
+        log.warning("globalmap: %s", msg)
+        prod.warnings.append(msg)
+
+
 def footprint_enu(camera: Camera, W: np.ndarray, road_z: float, n: int = 5) -> np.ndarray:
     """(n*n, 3) ENU points where an n×n grid of image pixels meets the plane z = road_z."""
     u = np.linspace(0, camera.width - 1, n)
@@ -423,6 +464,7 @@ def _rasters(
         road_z[i] = zr[i] if np.isfinite(zr[i]) else W[2, 3] - cam.height_m
         fp = footprint_enu(cam, W, road_z[i])
         fp_grid.append(export_xyz(fp, ef)[:, :2] if len(fp) else np.zeros((0, 2)))
+    _check_frame_overlap(cfg, fp_grid, prod)
     samples = [f for f in fp_grid if len(f)]
     pts_grid = export_xyz(xyz, ef)[:, :2] if len(xyz) else np.zeros((0, 2))
     if not samples and not len(pts_grid):

@@ -188,6 +188,11 @@ def run(
     typer.echo(f"Outputs in {out}/ ({this_run['total']:.1f} s{note}):")
     for name in sorted(p.name for p in Path(out).iterdir() if p.is_file()):
         typer.echo(f"  {name}")
+    warnings = report.get("warnings") or []
+    if warnings:
+        typer.echo(f"Warnings ({len(warnings)}, also in {out}/report.json):")
+        for w in warnings:
+            typer.echo(f"  - {w}")
 
 
 @app.command()

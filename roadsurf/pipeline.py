@@ -363,6 +363,7 @@ def _build_report(
         report["counts"]["gps_outliers"] = len(report["poses"].get("gps_outliers", []))
     if products is not None and hasattr(products, "to_report"):
         report["map"] = products.to_report()
+        report["warnings"] += list(report["map"].get("warnings") or [])
     if detections is not None and hasattr(detections, "to_report"):
         report["detection"] = detections.to_report()
     return report

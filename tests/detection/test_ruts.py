@@ -182,3 +182,35 @@ def test_tapered_rut_ends_are_extrapolated_to_depth_zero(seed):
     assert tra is not None
     assert max(tra.end_extension_m) <= 1.5 * CFG.rut.step_m
     assert tra.length_m < 5.2
+
+
+def test_a_rut_across_a_striped_map_is_one_rut():
+    """Frames overlapping by less than half leave a map of strips: here 0.2 m observed every
+    0.6 m along a 12 mm rut. Its pieces are elongated across the track (the strip is narrower
+    than the rut is wide). trace_ruts follows the rut through the unobserved stretches and
+    returns one rut, its outline bridged across the holes; without that (max_unobserved_m 0)
+    each strip stays a separate region."""
+    res, x, y = _road(seed=4)
+    res = res - _rut(x, y, 0.012, 0.5, 1.5, 7.5, bend_m=0.0, taper_m=0.3)
+    strip = np.mod(y, 0.6) < 0.2
+    res = np.where(strip, res, np.nan)
+    d = -res
+    pieces = []
+    for y0 in np.arange(1.8, 7.2, 0.6):
+        m = strip & (y > y0) & (y < y0 + 0.3) & (np.nan_to_num(d) > 0.008)
+        if m.sum() > 20:
+            pieces.append(_region(m, res))
+    assert len(pieces) >= 8
+    ev = np.zeros((0, 2))
+    out = trace_ruts(ArraySource(res), pieces, CFG.rut, CFG.map, ev, np.zeros(0, int))
+    ruts = [r for r in out if r.rut is not None]
+    assert len(ruts) == 1 and len(out) == 1
+    tr = ruts[0].rut
+    assert tr.length_m == pytest.approx(6.0, abs=0.6)
+    assert tr.max_depth_m == pytest.approx(0.012, abs=0.0015)
+    # the outline is continuous: cells between the strips too
+    cy = ArraySource(res).grid.xy_from_rowcol(ruts[0].rows, ruts[0].cols)[:, 1]
+    assert np.mean(np.mod(cy, 0.6) >= 0.2) > 0.5
+    off = dataclasses.replace(CFG.rut, max_unobserved_m=0.0)
+    out0 = trace_ruts(ArraySource(res), pieces, off, CFG.map, ev, np.zeros(0, int))
+    assert not any(r.rut is not None and r.rut.length_m > 3.0 for r in out0)
