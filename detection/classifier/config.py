@@ -75,7 +75,7 @@ class ClassifierConfig:
     # "defect", it teaches the CNN that plain-looking road may be defective, so it is unsure
     # about plain road and every unsure frame costs a pair. Ruts are long: the sparse 3D audit
     # meets them and the growth follows them (classifier bench, session 10: validation accuracy
-    # 0.907 -> 0.974, unsure frames on the long drive 31 -> 5). () teaches every type
+    # 0.907 -> 0.974, unsure frames on the long drive 31 -> 2). () teaches every type
     cnn_skip_types: tuple[str, ...] = ("rut",)
 
     # --- augmentation of defect images (§5.3.2) ---
