@@ -30,6 +30,7 @@ reports a 1.2 m straightedge rut depth). This module does the same on the residu
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
@@ -410,14 +411,11 @@ def _extension_stations(
     for k in range(1, n + 1):
         f = 1.0 - k / (n + 1)
         out.append(
-            _Station(
+            dataclasses.replace(
+                e,
                 centre=e.centre + k * cfg.step_m * d,
                 depth_m=f * e.depth_m,
-                width_m=e.width_m,
-                noise_m=e.noise_m,
                 centroid_u_m=0.0,
-                extent_u_m=e.extent_u_m,
-                u_m=e.u_m,
                 profile_depth_m=f * e.profile_depth_m,
                 ok=True,
             )
@@ -639,15 +637,9 @@ def _union(a: RutTrace, b: RutTrace, width: int) -> RutTrace:
     key_a = a.rows.astype(np.int64) * width + a.cols
     key_b = b.rows.astype(np.int64) * width + b.cols
     extra = ~np.isin(key_b, key_a)
-    return RutTrace(
-        centres_xy_m=a.centres_xy_m,
-        depth_m=a.depth_m,
-        width_m=a.width_m,
-        noise_m=a.noise_m,
-        in_rut=a.in_rut,
-        length_m=a.length_m,
+    return dataclasses.replace(
+        a,
         max_depth_m=max(a.max_depth_m, b.max_depth_m),
-        end_extension_m=a.end_extension_m,
         rows=np.concatenate([a.rows, b.rows[extra]]),
         cols=np.concatenate([a.cols, b.cols[extra]]),
         cell_profile_m=np.concatenate([a.cell_profile_m, b.cell_profile_m[extra]]),
