@@ -32,6 +32,12 @@ class MappingConfig:
     # (2 % cross-fall, 1.1 m: 22 mm)
     tilt_prior_axis: Literal["optical_axis", "road_normal"] = "optical_axis"
     gps_bridge_s: float = 2.0  # fixes this close before and after a failed pair bridge it (s)
+    # fixes up to this long before the first frame or after the last are used too, through the
+    # end frames extrapolated at constant velocity; their σ grows by ½·a·Δt² (a =
+    # gap_accel_sigma_mps2, Δt = time outside the frames). A short drive's heading rests on its
+    # few fixes: with 1 Hz GPS, one dropout and one bad fix, the ends are what let the outlier
+    # test see it (s; 0 = only fixes within half a frame interval of the frames)
+    gps_extrapolate_s: float = 1.5
     gap_sigma_m: float = 1.0  # σ of the constant-velocity guess across a failed pair (m)
     gap_sigma_rot_deg: float = 10.0  # σ of its rotation (deg)
     # σ of the vehicle's acceleration (m/s²) in the constant-velocity prior on the positions of

@@ -226,10 +226,13 @@ def _gps_enu(
     hdop = np.asarray(g.hdop, float)
     sigma = np.where(np.isfinite(hdop), hdop * cfg.gps_sigma_per_hdop_m, cfg.gps_sigma_m)
     sigma = np.maximum(sigma, cfg.gps_sigma_min_m)
-    # fixes usable as measurements: inside the frame time span (small margin for extrapolation)
-    dt_frame = float(np.median(np.diff(t))) if len(t) > 1 else 1.0
-    margin = 0.5 * dt_frame
-    keep = (g.timestamp_s >= t[0] - margin) & (g.timestamp_s <= t[-1] + margin)
+    # fixes usable as measurements: inside the frame time span, or close enough to its ends
+    # for the end frames' constant-velocity extrapolation (σ inflated by the acceleration)
+    margin = _gps_margin_s(cfg, t)
+    ts = np.asarray(g.timestamp_s, float)
+    keep = (ts >= t[0] - margin) & (ts <= t[-1] + margin)
+    outside_s = np.maximum(np.maximum(t[0] - ts, ts - t[-1]), 0.0)
+    sigma = np.hypot(sigma, 0.5 * cfg.gap_accel_sigma_mps2 * outside_s**2)
     idx = np.flatnonzero(keep)
     if idx.size == 0:
         msg = "GPS does not overlap the frame times: local frame only"
@@ -244,6 +247,12 @@ def _gps_enu(
         orig_index=idx,
     )
     return ref, gps
+
+
+def _gps_margin_s(cfg: MappingConfig, t: np.ndarray) -> float:
+    """How far (s) before the first frame / after the last a GPS fix is still used."""
+    dt_frame = float(np.median(np.diff(t))) if len(t) > 1 else 1.0
+    return max(0.5 * dt_frame, float(cfg.gps_extrapolate_s))
 
 
 def _interp_weights(t: np.ndarray, tq: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -332,7 +341,10 @@ def _initial_poses(
         if gps is None:
             continue
         dt = float(np.median(np.diff(t))) if n > 1 else 1.0
-        sel = (gps.t_s >= t[fr[0]] - 0.5 * dt) & (gps.t_s <= t[fr[-1]] + 0.5 * dt)
+        # the drive's end components also take the fixes just outside the frames
+        lo = _gps_margin_s(cfg, t) if fr[0] == 0 else 0.5 * dt
+        hi = _gps_margin_s(cfg, t) if fr[-1] == n - 1 else 0.5 * dt
+        sel = (gps.t_s >= t[fr[0]] - lo) & (gps.t_s <= t[fr[-1]] + hi)
         if not sel.any():
             continue
         g_en = gps.enu_m[sel]

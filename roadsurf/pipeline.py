@@ -104,7 +104,7 @@ def run_drive(
     ``rerun`` streams results live to the Rerun viewer; ``overwrite`` recomputes finished
     artifacts instead of resuming.
     """
-    from roadsurf.drive import load_drive
+    from roadsurf.drive import along_track_m, load_drive
 
     t_start = time.perf_counter()
     out = Path(out_dir)
@@ -170,6 +170,7 @@ def run_drive(
                 drive.camera.height_m,
                 lambda only: rec.run(rec_cfg, drive, out, only_pairs=only),
                 out,
+                along_m=along_track_m(drive),
             )
             fusion_rule = g.rule
             return g.pairs

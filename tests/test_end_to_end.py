@@ -153,11 +153,15 @@ def test_run_with_classifier_screens_audits_and_fuses(sample_run, tmp_path: Path
         net.fc8.bias.copy_(torch.tensor([10.0, -10.0]))
     save_model(tmp_path / "model", net, {"architecture": {"dropout": 0.5, "width": 1}})
     cfg = tmp_path / "cfg.yaml"
-    cfg.write_text("classifier:\n  audit_every_frames: 4\n  grow_along_defects: false\n")
+    cfg.write_text("classifier:\n  audit_every_m: 1.5\n  grow_along_defects: false\n")
     out = tmp_path / "fused"
     rep = run_drive(drive, out, classifier=tmp_path / "model", config_path=cfg)
     scr = json.loads((out / "screening.json").read_text())
-    # audit frames 2 and 6 of the 10 frames -> pairs (2, 3) and (6, 7) only
+    # the audit is spaced in metres (GPS/OBD): frames ~0.39 m apart, so a pair every 4 frames
+    # of the 10: frames 3 and 7 -> pairs (3, 4) and (7, 8) only
+    audited = [f["filename"] for f in scr["frames"] if f["3d_reason"] == "audit"]
+    names = [f["filename"] for f in scr["frames"]]
+    assert audited == [names[3], names[7]] and scr["audit_every_m"] == 1.5
     assert scr["frames_with_3d_by_reason"] == {"audit": 2}
     assert rep["counts"]["pairs"] == scr["pairs_reconstructed"] == 2
     assert rep["screening"]["frames_with_3d_by_reason"] == {"audit": 2}

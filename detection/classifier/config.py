@@ -98,9 +98,14 @@ class ClassifierConfig:
     # neighbours (frames) of an unsure/defect frame that are reconstructed too and decided by 3D
     # (temporal-context extension; 0 = the dissertation's per-frame rule)
     context_frames: int = 1
-    # sparse 3D audit: one pair every this many frames is reconstructed whatever the CNN says,
-    # so long defects a single image cannot show (a shallow rut under diffuse light) are met;
-    # 0 = off, the dissertation's rule (frames)
+    # sparse 3D audit: one pair every this far along the drive is reconstructed whatever the
+    # CNN says, so long defects a single image cannot show (a shallow rut under diffuse light)
+    # are met. Distance from OBD speed, else GPS (roadsurf.drive.along_track_m), so the cost
+    # does not grow with the frame rate; 4 m = 10 frames at 15 fps and 6 m/s (m).
+    # 0 = count frames instead (audit_every_frames)
+    audit_every_m: float = 4.0
+    # the audit spacing in frames when audit_every_m is 0 or the drive has no OBD and no GPS;
+    # audit_every_m: 0 with audit_every_frames: 0 = no audit, the dissertation's rule (frames)
     audit_every_frames: int = 10
     # a frame whose 3D shows a defect gets its neighbours reconstructed, repeatedly, so a defect
     # is followed along the drive to its ends (1)

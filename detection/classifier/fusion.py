@@ -26,6 +26,8 @@ from collections.abc import Collection, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
+import numpy as np
+
 Source = Literal["cnn", "3d", "fused"]
 
 CONTEXT_FRAMES = 1  # default neighbourhood (frames) of the temporal-context extension
@@ -180,22 +182,32 @@ def frame_pairs(i: int, n: int) -> set[tuple[int, int]]:
     return {(j, j + 1) for j in (i - 1, i) if 0 <= j and j + 1 < n}
 
 
-def audit_pairs(n: int, every: int, have_3d: Collection[int] = ()) -> dict[int, tuple[int, int]]:
+def audit_pairs(
+    n: int,
+    every: float,
+    have_3d: Collection[int] = (),
+    along: Sequence[float] | np.ndarray | None = None,
+) -> dict[int, tuple[int, int]]:
     """{frame: pair} for the sparse 3D audit: frames get one pair (i, i+1) wherever needed so
-    that every ``every`` consecutive frames hold at least one frame with 3D, counting the
-    frames in ``have_3d`` (already reconstructed for another reason). A defect longer than
-    ``every`` frames therefore always meets a 3D sample. ``every <= 0`` means no audit."""
+    that every stretch of ``every`` along the drive holds at least one frame with 3D, counting
+    the frames in ``have_3d`` (already reconstructed for another reason). A defect longer than
+    ``every`` therefore always meets a 3D sample. ``along`` (n,) is each frame's position
+    along the drive (m, non-decreasing) and ``every`` is then in metres; without it both count
+    frames. ``every <= 0`` means no audit."""
     if every <= 0 or n < 2:
         return {}
+    pos = np.arange(n, dtype=float) if along is None else np.asarray(along, dtype=float)
+    if pos.shape != (n,):
+        raise ValueError(f"along has shape {pos.shape}, expected ({n},)")
     have = set(have_3d)
     out = {}
-    last = -1  # the last frame with 3D (virtual -1: the first window starts at frame 0)
+    last = pos[0] - max(pos[1] - pos[0], 0.0)  # a virtual frame before the first
     for i in range(n):
         if i in have:
-            last = i
-        elif i - last >= every:
+            last = pos[i]
+        elif pos[i] - last >= every - 1e-9:  # 10 steps of 0.4 m are 4 m
             out[i] = (i, i + 1) if i + 1 < n else (i - 1, i)
-            last = i
+            last = pos[i]
     return out
 
 

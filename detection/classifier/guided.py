@@ -3,11 +3,11 @@
 Fig. 5.6 reconstructs a pair only where the CNN is unsure or says "defect". Two additions make
 the fused run safe for defects a single image cannot show:
 
-1. **Sparse 3D audit** (``audit_every_frames``): wherever k consecutive frames would hold no
-   frame with 3D, one pair (i, i+1) is added, whatever the CNN says. A shallow rut under
-   diffuse light is invisible to the eye and to the CNN (the bench's test_grey drive: a 20 mm
-   deep, 6 m long rut over 11 frames, p_defect <= 0.01 in most), but it is long, so a sparse
-   audit meets it.
+1. **Sparse 3D audit** (``audit_every_m``, or ``audit_every_frames`` for a drive without OBD
+   and GPS): wherever a stretch of the drive that long would hold no frame with 3D, one pair
+   (i, i+1) is added, whatever the CNN says. A shallow rut under diffuse light is invisible to
+   the eye and to the CNN (the bench's test_grey drive: a 20 mm deep, 6 m long rut over 11
+   frames, p_defect <= 0.01 in most), but it is long, so a sparse audit meets it.
 2. **Growth along 3D defects**: a frame whose own 3D shows a defect (the self-labelling rule,
    eq. 5.8-5.9) gets its neighbours reconstructed, again and again, until the 3D shows clear
    road on both sides. A defect the audit meets, or one that outlasts the CNN's context, is
@@ -21,7 +21,7 @@ result (``FusionRule.decide_3d``); the others keep the CNN's decision.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -57,9 +57,14 @@ class GuidedResult:
 
 
 def initial_plan(
-    frame_probs: Mapping[str, float], filenames: list[str], cfg: ClassifierConfig
+    frame_probs: Mapping[str, float],
+    filenames: list[str],
+    cfg: ClassifierConfig,
+    along_m: Sequence[float] | None = None,
 ) -> tuple[set[tuple[int, int]], dict[str, str]]:
-    """Pairs before any 3D result is known, and the reason of each frame that gets 3D."""
+    """Pairs before any 3D result is known, and the reason of each frame that gets 3D.
+    ``along_m`` (n,): each frame's distance along the drive (m) for the audit's spacing
+    (``audit_every_m``); None counts frames (``audit_every_frames``)."""
     n = len(filenames)
     thr = cfg.fusion_threshold
     pairs = pairs_to_reconstruct(frame_probs, filenames, thr, cfg.context_frames)
@@ -77,8 +82,13 @@ def initial_plan(
             reasons[fn] = "defect"
         else:
             reasons[fn] = "context"
-    have = {i for i, fn in enumerate(filenames) if fn in reasons}
-    for i, pr in audit_pairs(n, cfg.audit_every_frames, have).items():
+    # frames with 3D: both frames of every planned pair
+    have = {i for pr in pairs for i in pr}
+    if along_m is not None and cfg.audit_every_m > 0:
+        audit = audit_pairs(n, cfg.audit_every_m, have, along_m)
+    else:
+        audit = audit_pairs(n, cfg.audit_every_frames, have)
+    for i, pr in audit.items():
         if pr not in pairs:
             pairs.add(pr)
             reasons.setdefault(filenames[i], "audit")
@@ -92,13 +102,18 @@ def run(
     camera_height_m: float,
     reconstruct: Callable[[set[tuple[int, int]]], list[Any]],
     run_dir: Path | None = None,
+    along_m: Sequence[float] | None = None,
 ) -> GuidedResult:
     """Reconstruct what the screened drive needs; ``reconstruct(only_pairs)`` runs the
     reconstruction stage on those (index_a, index_b) pairs (cached pairs are reused) and
-    returns its PairResults. ``filenames`` are the drive's valid frames in capture order."""
+    returns its PairResults. ``filenames`` are the drive's valid frames in capture order;
+    ``along_m`` their distances along the drive (m, ``roadsurf.drive.along_track_m``), which
+    space the audit in metres (None: in frames)."""
     n = len(filenames)
     pos = {fn: i for i, fn in enumerate(filenames)}
-    todo, reasons = initial_plan(frame_probs, filenames, cfg)
+    if along_m is not None and len(along_m) != n:
+        raise ValueError(f"along_m has {len(along_m)} values for {n} frames")
+    todo, reasons = initial_plan(frame_probs, filenames, cfg, along_m)
     rounds = 0
     while True:
         rounds += 1
@@ -164,7 +179,8 @@ def run(
             {
                 "fusion_threshold": cfg.fusion_threshold,
                 "context_frames": cfg.context_frames,
-                "audit_every_frames": cfg.audit_every_frames,
+                "audit_every_m": cfg.audit_every_m if along_m is not None else None,
+                "audit_every_frames": cfg.audit_every_frames if along_m is None else None,
                 "grow_along_defects": cfg.grow_along_defects,
                 "confirm_defect_with_3d": cfg.confirm_defect_with_3d,
                 "pairs_reconstructed": len(todo),

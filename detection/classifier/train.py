@@ -305,6 +305,7 @@ _NOT_TRAINING = frozenset(
         "fusion_threshold",
         "confirm_defect_with_3d",
         "context_frames",
+        "audit_every_m",
         "audit_every_frames",
         "grow_along_defects",
         "screen_batch_size",

@@ -155,6 +155,7 @@ def make_synthetic(
     gps_sigma_m: float = 0.02,
     gps_time_offset_s: float = 0.37,
     gps_gap_s: tuple[float, float] | None = None,
+    gps_margin_s: float = 0.0,
     gps_outliers: dict[int, tuple[float, float]] | None = None,
     with_gps: bool = True,
     hdop: float | None = None,
@@ -178,11 +179,12 @@ def make_synthetic(
     g_true = np.zeros((0, 3))
     if with_gps:
         tg = np.arange(gps_time_offset_s - 1.0, t[-1] + 1.0, 1.0 / gps_hz)
-        tg = tg[(tg >= t[0]) & (tg <= t[-1])]
+        tg = tg[(tg >= t[0] - gps_margin_s) & (tg <= t[-1] + gps_margin_s)]
         if gps_gap_s is not None:
             tg = tg[(tg < gps_gap_s[0]) | (tg > gps_gap_s[1])]
         # true camera centre at fix time: interpolate the true path (dense frames, tiny error)
-        g_true = np.column_stack([np.interp(tg, t, W[:, j, 3]) for j in range(3)])
+        # (outside the frames: extrapolated at the end frames' velocity, i.e. constant speed)
+        g_true = np.column_stack([_interp_extrap(tg, t, W[:, j, 3]) for j in range(3)])
         meas = g_true + rng.normal(0, gps_sigma_m, g_true.shape) * [1, 1, 1.5]
         for k, (de, dn) in (gps_outliers or {}).items():
             meas[k, :2] += [de, dn]
@@ -199,6 +201,14 @@ def make_synthetic(
         obd = ObdLog(timestamp_s=t.copy(), speed_mps=np.full(n, speed_mps) + rng.normal(0, 0.05, n))
     drive = Drive(root=root, camera=cam, frames=frames, gps=gps, obd=obd)
     return Synthetic(drive, pairs, W, REF, g_true)
+
+
+def _interp_extrap(tq: np.ndarray, t: np.ndarray, v: np.ndarray) -> np.ndarray:
+    out = np.interp(tq, t, v)
+    lo, hi = tq < t[0], tq > t[-1]
+    out[lo] = v[0] + (v[1] - v[0]) / (t[1] - t[0]) * (tq[lo] - t[0])
+    out[hi] = v[-1] + (v[-1] - v[-2]) / (t[-1] - t[-2]) * (tq[hi] - t[-1])
+    return out
 
 
 def texture(x: np.ndarray, y: np.ndarray) -> np.ndarray:

@@ -124,6 +124,26 @@ def test_consumer_gps_keeps_relative_drift_below_one_percent() -> None:
     assert _h_rmse(traj, syn) < 1.0  # no worse than the GPS noise
 
 
+def test_fixes_just_outside_a_short_drive_are_used() -> None:
+    """A 3 s drive with 1 Hz consumer GPS has 3 fixes among its frames; the log's fixes up to
+    1.5 s before and after (gps_extrapolate_s) lengthen the heading baseline from 2 s to 5 s.
+    Over 12 seeded drives (measured: RMSE 0.73 -> 0.63 m, heading 4.7 -> 3.8 deg)."""
+    rmse: dict[float, list[float]] = {0.0: [], 1.5: []}
+    head: dict[float, list[float]] = {0.0: [], 1.5: []}
+    for seed in range(12):
+        syn = make_synthetic(n=60, seed=seed, gps_sigma_m=1.0, gps_margin_s=1.5, hdop=2.0)
+        for ext in rmse:
+            cfg = MappingConfig(gps_extrapolate_s=ext)
+            traj, rep = poses.estimate_trajectory(cfg, syn.drive, syn.pairs)
+            assert rep.n_gps_used == (len(syn.drive.gps) if ext else 3)
+            rmse[ext].append(_h_rmse(traj, syn))
+            e, t = _true_frame_positions(traj, syn)
+            de, dt = e[-1] - e[0], t[-1] - t[0]
+            head[ext].append(abs(np.arctan2(de[1], de[0]) - np.arctan2(dt[1], dt[0])))
+    assert np.mean(rmse[1.5]) < 0.92 * np.mean(rmse[0.0])
+    assert np.mean(head[1.5]) < 0.9 * np.mean(head[0.0])
+
+
 def test_gps_noisier_than_its_hdop_is_loosened() -> None:
     # HDOP 0.4 claims σ 0.2 m, the fixes scatter with σ 1.5 m: their weight must drop
     syn = make_synthetic(n=300, seed=8, gps_hz=2.0, gps_sigma_m=1.5, hdop=0.4)
