@@ -52,6 +52,9 @@ class SimConfig:
     # aggregate) and the wall exponent p of D(1 - ρ^p) (larger = steeper wall, flatter bottom)
     pothole_darken: tuple[float, float] = (0.55, 0.8)  # range of the albedo factor (ratio)
     pothole_power: tuple[float, float] = (2.5, 5.0)  # range of the profile exponent p (-)
+    pothole_size_m: tuple[float, float] = (0.15, 0.8)  # range of the sizes across (m), drawn
+    # stratified so a drive holds small and large ones
+    pothole_depth_m: tuple[float, float] = (0.015, 0.08)  # range of the maximum depths (m)
     n_cracks: int = 1  # number of cracks (grooves 3-8 mm wide, a few mm deep)
     n_ruts: int = 0  # number of ruts (long shallow troughs)
     n_lane_markings: int = 1  # number of lane-marking groups (white paint, no depth)

@@ -599,8 +599,10 @@ def _place_features(world: World, rng: np.random.Generator) -> None:
 
     # Potholes: stratified sizes and depths so a drive holds small/large, shallow/deep ones.
     n = cfg.n_potholes
-    sizes = 0.15 + 0.65 * (np.arange(n) + rng.uniform(0.1, 0.9, n)) / max(n, 1)
-    depths = 0.015 + 0.065 * (rng.permutation(n) + rng.uniform(0.1, 0.9, n)) / max(n, 1)
+    s0, s1 = cfg.pothole_size_m
+    d0, d1 = cfg.pothole_depth_m
+    sizes = s0 + (s1 - s0) * (np.arange(n) + rng.uniform(0.1, 0.9, n)) / max(n, 1)
+    depths = d0 + (d1 - d0) * (rng.permutation(n) + rng.uniform(0.1, 0.9, n)) / max(n, 1)
     for i in range(n):
         irregular = rng.uniform(0.15, 0.35)
         r = sizes[i] / 2 / (1 + 0.3 * irregular)

@@ -328,3 +328,14 @@ def test_pothole_look_and_wall_ranges_are_drawn_from_the_config() -> None:
     assert all(1.05 <= p.darken <= 1.15 for p in other.potholes)
     assert all(10.0 <= p.power <= 12.0 for p in other.potholes)
     assert all(p.darken < 1.0 for p in base.potholes)
+    # pothole_size_m / pothole_depth_m: bigger, shallower potholes on demand
+    big = build_world(
+        make_config("potholes", pothole_size_m=(0.9, 1.3), pothole_depth_m=(0.02, 0.03)), 202, 40
+    )
+
+    def extent(p) -> float:  # noqa: ANN001 - a Pothole
+        x0, y0, x1, y1 = p.bbox(0.002)
+        return max(x1 - x0, y1 - y0)
+
+    assert big.potholes and min(map(extent, big.potholes)) > 0.8
+    assert max(map(extent, base.potholes)) < 0.9
