@@ -334,7 +334,11 @@ def test_audit_and_growth_follow_a_defect_the_cnn_cannot_see(tmp_path: Path) -> 
     # in metres: the same plan at 0.4 m per frame; at twice the frame rate, half the pairs per
     # frame (the audit's cost follows the road, not the frame rate)
     assert audit_pairs(n, 4.0, (), 0.4 * np.arange(n)) == audit_pairs(n, 10)
-    assert audit_pairs(2 * n, 4.0, (), 0.2 * np.arange(2 * n)) == {19: (19, 20), 39: (39, 40), 59: (58, 59)}
+    assert audit_pairs(2 * n, 4.0, (), 0.2 * np.arange(2 * n)) == {
+        19: (19, 20),
+        39: (39, 40),
+        59: (58, 59),
+    }
     with pytest.raises(ValueError, match="shape"):
         audit_pairs(n, 4.0, (), np.arange(n - 1))
     assert grow_pairs([0], n) == {0: {(0, 1)}, 1: {(0, 1), (1, 2)}}
