@@ -130,8 +130,10 @@ def run(
             if fn not in ok and fn in pos:
                 new |= frame_pairs(pos[fn], n) - todo
         if cfg.grow_along_defects:
+            # a frame with some depth but too little for the rule (ambiguous) grows too: a rut
+            # tapers at its ends, and with low overlap a frame's pair may see only its edge
             defect = [
-                pos[fn] for fn, f in figs.items() if fn in pos and label_frame(f, None, cfg)[0]
+                pos[fn] for fn, f in figs.items() if fn in pos and label_frame(f, None, cfg)[0] != 0
             ]
             for j, prs in grow_pairs(defect, n).items():
                 new |= prs - todo
@@ -141,14 +143,27 @@ def run(
             break
         todo |= new
     # a sure CNN "non-defect" is overturned only by clear 3D evidence: the depth-and-extent rule
-    # that drives the growth (eq. 5.8-5.9) must see a defect in the frame; the detection
-    # stage's label then decides. A frame grown only because its neighbour is deep, or an
-    # audited frame on clear road, keeps the CNN's decision (borderline depressions near Z^d
-    # would otherwise flip with the map's global noise estimate)
+    # that drives the growth (eq. 5.8-5.9) must see a defect in the frame, or some depth in a
+    # frame next to an anchor (below); the detection stage's label then decides. A
+    # frame grown only because its neighbour is deep, or an audited frame on clear road, keeps
+    # the CNN's decision (borderline depressions near Z^d would otherwise flip with the map's
+    # global noise estimate)
+    lab = {fn: label_frame(f, None, cfg)[0] for fn, f in figs.items()}
+    # frames that anchor a defect: the rule sees one, or the CNN was not sure the frame is
+    # clear and its 3D has some depth too
+    anchor = {pos[fn] for fn, v in lab.items() if v == 1 and fn in pos} | {
+        pos[fn]
+        for fn, r in reasons.items()
+        if r in ("unsure", "defect", "no_cnn") and lab.get(fn, 0) != 0 and fn in pos
+    }
     decide = frozenset(
         fn
         for fn, r in reasons.items()
-        if r in ("audit", "grown") and fn in figs and label_frame(figs[fn], None, cfg)[0]
+        if r in ("audit", "grown")
+        and fn in lab
+        # the rule sees a defect, or some depth right next to an anchor (the tapered end or
+        # the rim of the same defect, not an isolated borderline depression)
+        and (lab[fn] == 1 or (lab[fn] is None and {pos[fn] - 1, pos[fn] + 1} & anchor))
     )
     rule = FusionRule(
         threshold=cfg.fusion_threshold,

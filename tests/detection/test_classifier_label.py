@@ -306,6 +306,39 @@ def test_defect_types_per_frame_and_the_cnn_skip_rule(tmp_path: Path) -> None:
         read_defect_types(tmp_path / "bad")
 
 
+def test_growth_goes_through_a_tapered_end_and_an_isolated_depression_stays_cnn(
+    tmp_path: Path,
+) -> None:
+    """With low overlap a rut's frame may have only some depth in its pairs (the rule's
+    "ambiguous": 3 deep points). Growth goes on through it and finds the rest of the rut
+    beyond; that frame is decided by 3D because its neighbour is a 3D defect. So are ambiguous
+    neighbours of a frame the CNN was unsure about whose 3D shows some depth (a small pothole's
+    rim). An ambiguous audited frame with no such anchor beside it keeps the CNN's decision."""
+    from detection.classifier import guided
+
+    n = 30
+    names = [f"{i:04d}.png" for i in range(n)]
+    deep = {(9, 10), (10, 11), (11, 12), (12, 13), (13, 14), (16, 17)}
+    some = {(14, 15), (19, 20), (23, 24), (24, 25), (25, 26)}
+    rng = np.random.default_rng(4)
+    calls: list[set[tuple[int, int]]] = []
+
+    def reconstruct(only: set[tuple[int, int]]) -> list[PairResult]:
+        calls.append(set(only))
+        return [_pair(a, 0.03, 40 if (a, b) in deep else 3 if (a, b) in some else 0, rng)
+                for a, b in sorted(only)]  # fmt: skip
+
+    probs = dict.fromkeys(names, 0.001)
+    probs["0024.png"] = 0.3  # the CNN is unsure here and the 3D shows some depth: an anchor
+    res = guided.run(ClassifierConfig(audit_every_frames=10), names, probs, 1.0, reconstruct)
+    done = calls[-1]
+    assert {"0023.png", "0025.png"} <= res.rule.decide_3d and "0022.png" not in res.rule.decide_3d
+    assert {(14, 15), (15, 16), (16, 17), (17, 18)} <= done  # through frame 15 to the rest
+    assert {"0015.png", "0016.png", "0017.png"} <= res.rule.decide_3d
+    assert res.reasons["0019.png"] == "audit" and "0019.png" not in res.rule.decide_3d
+    assert (7, 8) in done and (6, 7) not in done  # growth stops on clear road
+
+
 def test_audit_and_growth_follow_a_defect_the_cnn_cannot_see(tmp_path: Path) -> None:
     """A long shallow defect (frames 9-15) the CNN is sure is clear road: the sparse audit meets
     it, growth follows it to both ends, and 3D decides those frames (detection.classifier.guided).
