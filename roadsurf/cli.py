@@ -352,6 +352,23 @@ def bench_classifier(
     typer.echo(f"Total {res['total_s']} s; details in {work}/results.json")
 
 
+@bench_app.command("probe")
+def bench_probe(
+    drives: Annotated[list[Path], typer.Argument(help="Drive folders.")],
+    step: Annotated[int, typer.Option(help="Compare every step-th pair.")] = 1,
+    config: Annotated[
+        Path | None, typer.Option(help="YAML config (reconstruction and classifier sections).")
+    ] = None,
+) -> None:
+    """The fused run's audit probe against a full pair on every pair: misses and time."""
+    from detection.classifier.bench_probe import bench_probe as _bench
+    from detection.classifier.bench_probe import report
+    from roadsurf.pipeline import load_pipeline_config
+
+    cfg = load_pipeline_config(config)
+    typer.echo(report(_bench(drives, step, cfg.reconstruction, cfg.classifier)))
+
+
 @bench_app.command("detection")
 def bench_detection(
     work: Annotated[

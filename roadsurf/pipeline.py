@@ -160,6 +160,7 @@ def run_drive(
             "screening", lambda: screen.screen_drive(Path(classifier), drive, cfg.classifier)
         )
         guided = _stage("detection.classifier.guided")
+        probe = _stage("reconstruction.probe")
 
         def reconstruct_guided() -> list[Any]:
             nonlocal fusion_rule
@@ -171,6 +172,7 @@ def run_drive(
                 lambda only: rec.run(rec_cfg, drive, out, only_pairs=only),
                 out,
                 along_m=along_track_m(drive),
+                probe=lambda only: probe.run(rec_cfg, drive, out, only),
             )
             fusion_rule = g.rule
             return g.pairs

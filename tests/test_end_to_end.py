@@ -154,15 +154,31 @@ def test_run_with_classifier_screens_audits_and_fuses(sample_run, tmp_path: Path
     save_model(tmp_path / "model", net, {"architecture": {"dropout": 0.5, "width": 1}})
     cfg = tmp_path / "cfg.yaml"
     cfg.write_text("classifier:\n  audit_every_m: 1.5\n  grow_along_defects: false\n")
+    # by default each audit pair is probed first: frames 3 and 7 are clear road, so the
+    # probes settle them and no full pair runs
+    probed = tmp_path / "probed"
+    rep = run_drive(drive, probed, classifier=tmp_path / "model", config_path=cfg)
+    scr = json.loads((probed / "screening.json").read_text())
+    names = [f["filename"] for f in scr["frames"]]
+    assert scr["audit_probes"] == scr["audit_probes_clear"] == 2
+    assert [f["filename"] for f in scr["frames"] if f["audit_probe"]] == [names[3], names[7]]
+    assert all(scr["frames"][i]["audit_probe"]["status"] == "ok" for i in (3, 7))
+    assert all(scr["frames"][i]["audit_probe"]["points"] > 100 for i in (3, 7))
+    assert len(list((probed / "probes").glob("000003_000004_*.npz"))) == 1
+    assert rep["counts"]["pairs"] == scr["pairs_reconstructed"] == 0
+    assert {r["source"] for r in read_csv(probed / "frames.csv")} == {"cnn"}
+    # without the probe the audit pairs are full pairs
+    cfg.write_text(
+        "classifier:\n  audit_every_m: 1.5\n  grow_along_defects: false\n  audit_probe: false\n"
+    )
     out = tmp_path / "fused"
     rep = run_drive(drive, out, classifier=tmp_path / "model", config_path=cfg)
     scr = json.loads((out / "screening.json").read_text())
     # the audit is spaced in metres (GPS/OBD): frames ~0.39 m apart, so a pair every 4 frames
     # of the 10: frames 3 and 7 -> pairs (3, 4) and (7, 8) only
     audited = [f["filename"] for f in scr["frames"] if f["3d_reason"] == "audit"]
-    names = [f["filename"] for f in scr["frames"]]
     assert audited == [names[3], names[7]] and scr["audit_every_m"] == 1.5
-    assert scr["frames_with_3d_by_reason"] == {"audit": 2}
+    assert scr["frames_with_3d_by_reason"] == {"audit": 2} and scr["audit_probes"] == 0
     assert rep["counts"]["pairs"] == scr["pairs_reconstructed"] == 2
     assert rep["screening"]["frames_with_3d_by_reason"] == {"audit": 2}
     rows = {r["filename"]: r for r in read_csv(out / "frames.csv")}

@@ -15,6 +15,13 @@ the fused run safe for defects a single image cannot show:
 
 Audited and grown frames whose own 3D shows a defect by that rule are decided by their 3D
 result (``FusionRule.decide_3d``); the others keep the CNN's decision.
+
+With ``audit_probe`` (the default) an audit pair is first *probed* (``reconstruction.probe``:
+corners tracked by Lucas-Kanade through the same estimator chain, ~60 ms of CPU against ~450
+ms for a full pair) and becomes a full pair only when the probe fails or shows some depth
+(more than ``audit_probe_max_deep_points`` points deeper than ``audit_probe_depth_frac`` x
+Z^d). A probe that shows clear road settles the frame the way a clear full pair did: the CNN's
+decision stands. Probes are not map pairs; they are kept in ``RUN/probes``.
 ``RUN/screening.json`` records every frame's CNN probability and why it got 3D, if it did.
 """
 
@@ -22,9 +29,11 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from detection.classifier.config import ClassifierConfig
 from detection.classifier.dataset import figures_from_pairs, label_frame
@@ -54,6 +63,8 @@ class GuidedResult:
     rule: FusionRule
     reasons: dict[str, str]  # filename -> why 3D ran (unsure, defect, context, audit, grown)
     rounds: int  # reconstruction rounds (1 + growth rounds)
+    probes: list[Any] = field(default_factory=list)  # audit probes (PairResults), frame order
+    cleared: frozenset[str] = frozenset()  # audited frames a probe showed clear (no full pair)
 
 
 def initial_plan(
@@ -65,6 +76,18 @@ def initial_plan(
     """Pairs before any 3D result is known, and the reason of each frame that gets 3D.
     ``along_m`` (n,): each frame's distance along the drive (m) for the audit's spacing
     (``audit_every_m``); None counts frames (``audit_every_frames``)."""
+    pairs, audit, reasons = plan_pairs(frame_probs, filenames, cfg, along_m)
+    return pairs | set(audit.values()), reasons
+
+
+def plan_pairs(
+    frame_probs: Mapping[str, float],
+    filenames: list[str],
+    cfg: ClassifierConfig,
+    along_m: Sequence[float] | None = None,
+) -> tuple[set[tuple[int, int]], dict[int, tuple[int, int]], dict[str, str]]:
+    """``initial_plan`` split in two: (pairs the CNN's decisions need, {audited frame: its
+    audit pair} for pairs only the audit needs, reasons)."""
     n = len(filenames)
     thr = cfg.fusion_threshold
     pairs = pairs_to_reconstruct(frame_probs, filenames, thr, cfg.context_frames)
@@ -88,11 +111,28 @@ def initial_plan(
         audit = audit_pairs(n, cfg.audit_every_m, have, along_m)
     else:
         audit = audit_pairs(n, cfg.audit_every_frames, have)
+    own = {}
     for i, pr in audit.items():
         if pr not in pairs:
-            pairs.add(pr)
+            own[i] = pr
             reasons.setdefault(filenames[i], "audit")
-    return pairs, reasons
+    return pairs, own, reasons
+
+
+def probe_depth_points(probe: Any, camera_height_m: float, cfg: ClassifierConfig) -> int:
+    """Points of a probe PairResult deeper than ``audit_probe_depth_frac`` x Z^d (count)."""
+    zd = cfg.audit_probe_depth_frac * cfg.depth_threshold_m(camera_height_m)
+    return int(np.count_nonzero(np.asarray(probe.plane_dist_m, float) < -zd))
+
+
+def _probe_summary(probe: Any, n_deep: int | None) -> dict[str, Any]:
+    d = np.asarray(probe.plane_dist_m, float)
+    return {
+        "status": probe.status,
+        "points": int(probe.n_points),
+        "deep_points": n_deep,
+        "max_depth_mm": round(float(-d.min()) * 1e3, 2) if probe.ok and d.size else None,
+    }
 
 
 def run(
@@ -103,17 +143,43 @@ def run(
     reconstruct: Callable[[set[tuple[int, int]]], list[Any]],
     run_dir: Path | None = None,
     along_m: Sequence[float] | None = None,
+    probe: Callable[[set[tuple[int, int]]], list[Any]] | None = None,
 ) -> GuidedResult:
     """Reconstruct what the screened drive needs; ``reconstruct(only_pairs)`` runs the
     reconstruction stage on those (index_a, index_b) pairs (cached pairs are reused) and
     returns its PairResults. ``filenames`` are the drive's valid frames in capture order;
     ``along_m`` their distances along the drive (m, ``roadsurf.drive.along_track_m``), which
-    space the audit in metres (None: in frames)."""
+    space the audit in metres (None: in frames). ``probe(only_pairs)`` (``reconstruction.probe``)
+    returns cheap PairResults for the audit pairs; None (or ``audit_probe: false``) makes every
+    audit pair a full pair."""
     n = len(filenames)
     pos = {fn: i for i, fn in enumerate(filenames)}
     if along_m is not None and len(along_m) != n:
         raise ValueError(f"along_m has {len(along_m)} values for {n} frames")
-    todo, reasons = initial_plan(frame_probs, filenames, cfg, along_m)
+    todo, audit, reasons = plan_pairs(frame_probs, filenames, cfg, along_m)
+    probes: list[Any] = []
+    probe_info: dict[str, dict[str, Any]] = {}
+    cleared: set[str] = set()
+    if probe is not None and cfg.audit_probe and audit:
+        probes = list(probe(set(audit.values())))
+        by_pair = {(p.index_a, p.index_b): p for p in probes}
+        for i, pr in audit.items():
+            p = by_pair.get(pr)
+            n_deep = probe_depth_points(p, camera_height_m, cfg) if p is not None and p.ok else None
+            if p is not None:
+                probe_info[filenames[i]] = _probe_summary(p, n_deep)
+            if n_deep is not None and n_deep <= cfg.audit_probe_max_deep_points:
+                cleared.add(filenames[i])
+            else:  # failed, or some depth: the full pair decides
+                todo.add(pr)
+        log.info(
+            "3D audit: %d probe(s), %d clear, %d to full pairs",
+            len(audit),
+            len(cleared),
+            len(audit) - len(cleared),
+        )
+    else:
+        todo |= set(audit.values())
     rounds = 0
     while True:
         rounds += 1
@@ -125,7 +191,7 @@ def run(
         new: set[tuple[int, int]] = set()
         # a frame that needed 3D but whose pairs all failed (e.g. too little overlap on one
         # side) gets its other pair: one pair per frame is the plan, not the limit
-        ok = {fn for p in pairs if p.ok for fn in (p.frame_a, p.frame_b)}
+        ok = {fn for p in pairs if p.ok for fn in (p.frame_a, p.frame_b)} | cleared
         for fn in reasons:
             if fn not in ok and fn in pos:
                 new |= frame_pairs(pos[fn], n) - todo
@@ -196,6 +262,9 @@ def run(
                 "context_frames": cfg.context_frames,
                 "audit_every_m": cfg.audit_every_m if along_m is not None else None,
                 "audit_every_frames": cfg.audit_every_frames if along_m is None else None,
+                "audit_probe": bool(probe is not None and cfg.audit_probe),
+                "audit_probes": len(probes),
+                "audit_probes_clear": len(cleared),
                 "grow_along_defects": cfg.grow_along_defects,
                 "confirm_defect_with_3d": cfg.confirm_defect_with_3d,
                 "pairs_reconstructed": len(todo),
@@ -210,12 +279,21 @@ def run(
                         "3d_reason": reasons.get(fn),
                         # an audited/grown frame whose 3D shows a defect: 3D overrules the CNN
                         "3d_overrules_cnn": fn in decide,
+                        # the audit probe of this frame, if it had one (RUN/probes)
+                        "audit_probe": probe_info.get(fn),
                     }
                     for fn in filenames
                 ],
             },
         )
-    return GuidedResult(pairs=pairs, rule=rule, reasons=reasons, rounds=rounds)
+    return GuidedResult(
+        pairs=pairs,
+        rule=rule,
+        reasons=reasons,
+        rounds=rounds,
+        probes=probes,
+        cleared=frozenset(cleared),
+    )
 
 
 def _num(p: float | None) -> float | None:

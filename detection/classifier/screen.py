@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import os
 import time
 from pathlib import Path
 
@@ -34,8 +35,31 @@ def screen_drive(
     Raises ``ModelFileError`` when the model file is missing, corrupt or incompatible.
     """
     cfg = cfg or ClassifierConfig()
-    if cfg.num_threads > 0:
-        torch.set_num_threads(cfg.num_threads)
+    threads = screen_threads(cfg)
+    before = torch.get_num_threads()
+    if threads > 0:
+        torch.set_num_threads(threads)
+    try:
+        return _screen(model_path, drive, cfg, progress)
+    finally:
+        torch.set_num_threads(before)
+
+
+def screen_threads(cfg: ClassifierConfig) -> int:
+    """torch threads for screening: ``screen_num_threads`` capped at the usable cores, else
+    ``num_threads`` (0 = torch's default)."""
+    if cfg.screen_num_threads > 0:
+        try:
+            cores = len(os.sched_getaffinity(0))
+        except AttributeError:  # not on Linux
+            cores = os.cpu_count() or 1
+        return max(1, min(int(cfg.screen_num_threads), cores))
+    return max(0, int(cfg.num_threads))
+
+
+def _screen(
+    model_path: str | Path, drive: Drive | str | Path, cfg: ClassifierConfig, progress: bool
+) -> dict[str, float]:
     device = pick_device(cfg.device)
     net, meta = load_model(model_path, device)
     if not isinstance(drive, Drive):

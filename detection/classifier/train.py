@@ -298,6 +298,7 @@ _NOT_TRAINING = frozenset(
     {
         "device",
         "num_threads",
+        "screen_num_threads",
         "epochs",
         "calibrate",
         "calibrate_bias",
@@ -307,6 +308,9 @@ _NOT_TRAINING = frozenset(
         "context_frames",
         "audit_every_m",
         "audit_every_frames",
+        "audit_probe",
+        "audit_probe_depth_frac",
+        "audit_probe_max_deep_points",
         "grow_along_defects",
         "screen_batch_size",
     }

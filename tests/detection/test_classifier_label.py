@@ -397,6 +397,7 @@ def test_audit_and_growth_follow_a_defect_the_cnn_cannot_see(tmp_path: Path) -> 
         "p_defect": 0.001,
         "3d_reason": "grown",
         "3d_overrules_cnn": True,
+        "audit_probe": None,
     }
     assert rec["frames"][29]["3d_overrules_cnn"] is False  # audited, clear road
     assert rec["pairs_reconstructed"] == len(done)
@@ -413,6 +414,78 @@ def test_audit_and_growth_follow_a_defect_the_cnn_cannot_see(tmp_path: Path) -> 
     off = ClassifierConfig(audit_every_frames=0, grow_along_defects=False)
     res = guided.run(off, names, probs, 1.0, reconstruct)
     assert calls == [set()] and res.pairs == [] and not res.rule.decide_3d
+
+
+def test_audit_probes_settle_clear_road_and_send_depth_to_full_pairs(tmp_path: Path) -> None:
+    """With a probe, an audit pair becomes a full pair only when its probe fails or shows some
+    depth (> audit_probe_max_deep_points points below audit_probe_depth_frac x Z^d); a clear
+    probe settles the frame (the CNN's decision stands, no full pair, no "pair failed" retry).
+    The rut the audit meets is still followed to its ends by full pairs."""
+    from detection.classifier import guided
+
+    n = 30
+    names = [f"{i:04d}.png" for i in range(n)]
+    rut = set(range(9, 16))
+    rng = np.random.default_rng(8)
+    full: list[set[tuple[int, int]]] = []
+    probed: list[set[tuple[int, int]]] = []
+
+    def reconstruct(only: set[tuple[int, int]]) -> list[PairResult]:
+        full.append(set(only))
+        return [_pair(a, 0.03 if {a, b} & rut else 0.0, 40 if {a, b} & rut else 0, rng)
+                for a, b in sorted(only)]  # fmt: skip
+
+    def probe(only: set[tuple[int, int]]) -> list[PairResult]:
+        probed.append(set(only))
+        out = []
+        for a, b in sorted(only):
+            # the probe of (19, 20) sees 2 points 5.4-9 mm deep: some depth at half of Z^d = 10 mm
+            p = _pair(
+                a, 0.03 if {a, b} & rut else 0.009, 40 if {a, b} & rut else 2 * (a == 19), rng
+            )
+            if a == 28:
+                p.status, p.reason = "too_few_matches", "coarse alignment: 3 mutual matches"
+            out.append(p)
+        return out
+
+    probs = dict.fromkeys(names, 0.001)
+    cfg = ClassifierConfig(audit_every_frames=10)
+    res = guided.run(cfg, names, probs, 1.0, reconstruct, tmp_path, probe=probe)
+    assert probed == [{(9, 10), (19, 20), (28, 29)}]
+    # the rut's probe, the probe with some depth and the failed one go to full pairs
+    assert full[0] == {(9, 10), (19, 20), (28, 29)}
+    assert all({(i - 1, i), (i, i + 1)} <= full[-1] for i in rut)
+    assert {"0009.png", "0015.png"} <= res.rule.decide_3d and not res.cleared
+    # a stricter count clears (19, 20): it is never reconstructed, and keeps the CNN's decision
+    full.clear()
+    strict = ClassifierConfig(audit_every_frames=10, audit_probe_max_deep_points=2)
+    res = guided.run(strict, names, probs, 1.0, reconstruct, tmp_path, probe=probe)
+    assert res.cleared == {"0019.png"} and (19, 20) not in full[-1] and (18, 19) not in full[-1]
+    assert res.reasons["0019.png"] == "audit" and "0019.png" not in res.rule.decide_3d
+    assert [(p.index_a, p.index_b) for p in res.probes] == [(9, 10), (19, 20), (28, 29)]
+    rec = json.loads((tmp_path / guided.SCREENING_FILE).read_text())
+    assert (
+        rec["audit_probe"] is True and rec["audit_probes"] == 3 and rec["audit_probes_clear"] == 1
+    )
+    assert rec["frames"][19]["audit_probe"]["deep_points"] == 2
+    assert rec["frames"][29]["audit_probe"] == {  # frame 29 is audited with (28, 29)
+        "status": "too_few_matches",
+        "points": 300,
+        "deep_points": None,
+        "max_depth_mm": None,
+    }
+    assert rec["frames"][12]["audit_probe"] is None
+    fused = fuse_frames(
+        probs, {fn: int(fn[:4]) in rut for fn in res.rule.decide_3d}, names,
+        decide_3d=res.rule.decide_3d,
+    )  # fmt: skip
+    assert [i for i, fn in enumerate(names) if fused[fn].defect] == sorted(rut)
+    # audit_probe: false makes every audit pair a full pair again
+    probed.clear()
+    full.clear()
+    off = ClassifierConfig(audit_every_frames=10, audit_probe=False)
+    guided.run(off, names, probs, 1.0, reconstruct, probe=probe)
+    assert probed == [] and full[0] == {(9, 10), (19, 20), (28, 29)}
 
 
 def test_a_frame_whose_pair_failed_gets_its_other_pair() -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import time
 from pathlib import Path
 
@@ -15,7 +16,7 @@ import torch
 from detection.classifier.config import ClassifierConfig
 from detection.classifier.modelfile import load_model, save_model
 from detection.classifier.network import DefectNet
-from detection.classifier.screen import screen_drive
+from detection.classifier.screen import screen_drive, screen_threads
 from detection.classifier.train import metrics, train, train_steps
 from roadsurf.drive import Camera, Drive, Frame
 from roadsurf.errors import ModelFileError, RoadsurfError
@@ -176,9 +177,18 @@ def test_train_few_steps_resume_and_screen(tmp_path: Path) -> None:
         frames.append(Frame(i, p.name, p, i * 0.1))
     cam = Camera(120, 120, 100.0, 100.0, 60.0, 60.0, 1.0, 10.0)
     drive = Drive(tmp_path / "drive", cam, frames, None, None)
+    before = torch.get_num_threads()
     probs = screen_drive(tmp_path / "model", drive, ClassifierConfig(screen_batch_size=2))
     assert sorted(probs) == [f.filename for f in frames]
     assert all(0.0 <= p <= 1.0 for p in probs.values())
+    # the same probabilities on one thread; screening leaves torch's thread count as it was
+    one = screen_drive(
+        tmp_path / "model", drive, ClassifierConfig(screen_batch_size=2, screen_num_threads=1)
+    )
+    assert one == pytest.approx(probs, abs=1e-5) and torch.get_num_threads() == before
+    cores = len(os.sched_getaffinity(0))
+    assert screen_threads(ClassifierConfig(screen_num_threads=64)) == min(64, cores)
+    assert screen_threads(ClassifierConfig(screen_num_threads=0, num_threads=3)) == 3
 
 
 def test_metrics_counts() -> None:
