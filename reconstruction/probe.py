@@ -180,6 +180,11 @@ def run(
         except FrameReadError as e:
             res = PairResult("", "", -1, -1, cfg.method, "unreadable_frame", str(e))
             res.config_name = "probe"
+        except Exception as e:  # noqa: BLE001 - a probe must never stop the drive run
+            log.exception("probe %s -> %s failed unexpectedly", fa.filename, fb.filename)
+            reason = f"unexpected {type(e).__name__}: {e}"
+            res = PairResult("", "", -1, -1, cfg.method, "geometry_failed", reason)
+            res.config_name = "probe"
         res.frame_a, res.frame_b, res.index_a, res.index_b = (
             fa.filename,
             fb.filename,

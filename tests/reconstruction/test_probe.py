@@ -152,3 +152,7 @@ def test_probe_stage_caches_resumes_and_reports_unreadable_frames(
     assert again[1].ok and again[1].index_a == 1
     with pytest.raises(ValueError, match="frames this drive does not have"):
         probe.run(CFG, drive, run_dir, {(3, 4)})
+    # a frame of another size fails that probe (the fused run then makes it a full pair)
+    cv2.imwrite(str(root / "frames" / "001.png"), np.zeros((100, 100), np.uint8))
+    odd = probe.run(ReconstructionConfig(overwrite=True), drive, run_dir, {(1, 2)})
+    assert odd[0].status == "geometry_failed" and "differ in size" in odd[0].reason
