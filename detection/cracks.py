@@ -376,8 +376,9 @@ def dense_crack_depth(
     noise is the side band's robust spread about the fit (same pair, same direction, same
     window). None when too few tracks survive.
     """
-    from detection.dense import _as_u8, _distort, _undistort, track_forward_backward
+    from detection.dense import _as_u8, _distort, _undistort
     from detection.planefit import robust_sigma
+    from reconstruction.features import track_forward_backward
 
     cam = view.camera
     K = cam.K

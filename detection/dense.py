@@ -23,6 +23,7 @@ import cv2
 import numpy as np
 
 from detection.planefit import nanmedian_last, robust_plane, robust_sigma, signed_distance
+from reconstruction.features import track_forward_backward
 from reconstruction.geometry import normalised_from_px, triangulate
 from roadsurf.drive import Camera
 
@@ -100,34 +101,6 @@ def grid_to_image_h(
         (grid_xy[road] - origin).astype(np.float64), px_a[road].astype(np.float64), 0
     )
     return H
-
-
-def track_forward_backward(
-    a8: np.ndarray,
-    b8: np.ndarray,
-    ra: np.ndarray,
-    rb0: np.ndarray,
-    window_px: int,
-    *,
-    max_level: int,
-    iterations: int,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Pyramidal Lucas-Kanade a -> b from the initial guesses ``rb0``, then b -> a back.
-
-    a8, b8: (H, W) uint8 images; ra, rb0: (N, 1, 2) float32 raw pixels. Returns (rb, ra2, ok):
-    the tracked pixels in b, the back-tracked pixels in a (both (N, 1, 2)) and (N,) bool, both
-    directions converged (the caller judges the forward-backward error against its spread).
-    """
-    lk = {
-        "winSize": (window_px, window_px),
-        "maxLevel": max_level,
-        "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, iterations, 0.01),
-        "minEigThreshold": 1e-4,
-        "flags": cv2.OPTFLOW_USE_INITIAL_FLOW,
-    }
-    rb, st, _ = cv2.calcOpticalFlowPyrLK(a8, b8, ra, rb0.copy(), **lk)
-    ra2, st2, _ = cv2.calcOpticalFlowPyrLK(b8, a8, rb, ra.copy(), **lk)
-    return rb, ra2, (st.ravel() == 1) & (st2.ravel() == 1)
 
 
 def road_homography(pair: Any, road: np.ndarray) -> np.ndarray | None:

@@ -152,6 +152,34 @@ def match(fa: Features, fb: Features, cfg: FeatureConfig) -> tuple[np.ndarray, n
     return ia_a[keep], ib_a[keep]
 
 
+def track_forward_backward(
+    a8: np.ndarray,
+    b8: np.ndarray,
+    ra: np.ndarray,
+    rb0: np.ndarray,
+    window_px: int,
+    *,
+    max_level: int,
+    iterations: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pyramidal Lucas-Kanade a -> b from the initial guesses ``rb0``, then b -> a back.
+
+    a8, b8: (H, W) uint8 images; ra, rb0: (N, 1, 2) float32 raw pixels. Returns (rb, ra2, ok):
+    the tracked pixels in b, the back-tracked pixels in a (both (N, 1, 2)) and (N,) bool, both
+    directions converged (the caller judges the forward-backward error against its spread).
+    """
+    lk = {
+        "winSize": (window_px, window_px),
+        "maxLevel": max_level,
+        "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, iterations, 0.01),
+        "minEigThreshold": 1e-4,
+        "flags": cv2.OPTFLOW_USE_INITIAL_FLOW,
+    }
+    rb, st, _ = cv2.calcOpticalFlowPyrLK(a8, b8, ra, rb0.copy(), **lk)
+    ra2, st2, _ = cv2.calcOpticalFlowPyrLK(b8, a8, rb, ra.copy(), **lk)
+    return rb, ra2, (st.ravel() == 1) & (st2.ravel() == 1)
+
+
 def undistort_px(px: np.ndarray, camera: Camera) -> np.ndarray:
     """(N, 2) raw pixels -> ideal pinhole pixels (identity when the camera has no distortion)."""
     px = np.asarray(px, dtype=np.float64).reshape(-1, 2)

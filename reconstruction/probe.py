@@ -32,7 +32,7 @@ from tqdm import tqdm
 
 from reconstruction.api import reconstruct_matches
 from reconstruction.config import ProbeConfig, ReconstructionConfig
-from reconstruction.features import to_gray
+from reconstruction.features import to_gray, track_forward_backward
 from reconstruction.types import PairResult, load_pair, save_pair
 from roadsurf.drive import Camera, Drive, read_gray
 from roadsurf.errors import FrameReadError
@@ -74,8 +74,9 @@ def probe_pair(
 ) -> PairResult:
     """Two frames ((H, W) grey or (H, W, 3) RGB) -> PairResult from tracked corners.
 
-    Never raises for bad images: a failure is a PairResult with status and reason, like a full
-    pair's. ``timings_s`` has ``tracking`` (coarse alignment + corners + LK) besides the
+    A frame the probe cannot use is a PairResult with status and reason, like a full pair's;
+    frames of different sizes raise ValueError (``run`` turns any exception into a failed
+    probe). ``timings_s`` has ``tracking`` (coarse alignment + corners + LK) besides the
     estimator's own timings.
     """
     pcfg = cfg.probe
@@ -110,17 +111,12 @@ def probe_pair(
         return _failed(cfg, "too_few_features", f"{n} trackable corners in the overlap", t0)
     pa = corners.astype(np.float32).reshape(-1, 1, 2)
     guess = cv2.perspectiveTransform(pa, H).astype(np.float32)
-    lk = {
-        "winSize": (int(pcfg.window_px), int(pcfg.window_px)),
-        "maxLevel": int(pcfg.pyramid_levels),
-        "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01),
-        "flags": cv2.OPTFLOW_USE_INITIAL_FLOW,
-    }
-    pb, st, _ = cv2.calcOpticalFlowPyrLK(ga, gb, pa, guess.copy(), **lk)
-    pa2, st2, _ = cv2.calcOpticalFlowPyrLK(gb, ga, pb, pa.copy(), **lk)
+    pb, pa2, ok = track_forward_backward(
+        ga, gb, pa, guess, int(pcfg.window_px), max_level=int(pcfg.pyramid_levels), iterations=30
+    )
     fb = np.linalg.norm((pa2 - pa).reshape(-1, 2), axis=1)
     pa, pb = pa.reshape(-1, 2), pb.reshape(-1, 2)
-    keep = (st.ravel() == 1) & (st2.ravel() == 1) & (fb <= pcfg.max_fb_error_px)
+    keep = ok & (fb <= pcfg.max_fb_error_px)
     keep &= (pb[:, 0] >= 0) & (pb[:, 0] <= w - 1) & (pb[:, 1] >= 0) & (pb[:, 1] <= h - 1)
     t_track = time.perf_counter() - t0
     if keep.sum() < cfg.min_matches:
