@@ -14,8 +14,8 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from roadsurf.errors import RoadsurfError
@@ -55,9 +55,9 @@ class DefectNet(nn.Module):
         self.highpass_frac = float(highpass_frac)
         sigma = self.highpass_frac * input_size_px
         if sigma > 0:
-            r = min(int(math.ceil(3 * sigma)), input_size_px - 1)  # reflect pad < side
-            g = torch.exp(-0.5 * (torch.arange(-r, r + 1, dtype=torch.float32) / sigma) ** 2)
-            self.register_buffer("_blur", (g / g.sum()).view(1, 1, 1, -1), persistent=False)
+            self.register_buffer(
+                "_blur", _reflect_blur_matrix(input_size_px, sigma), persistent=False
+            )
         else:
             self._blur = None
         c1, c2, c3, c4, c5 = (16 * width, 32 * width, 48 * width, 48 * width, 32 * width)
@@ -89,6 +89,10 @@ class DefectNet(nn.Module):
         # temperature it is metadata, not a weight
         self.tta_views = 1
         self._init_weights()
+        # NHWC conv weights (and inputs, in ``head``): oneDNN's fast CPU kernels want this
+        # layout; on 2 cores the forward pass is ~2x and a training step ~1.4x faster than NCHW.
+        # The values are the same; safetensors files store contiguous copies (modelfile)
+        self.to(memory_format=torch.channels_last)
 
     def _init_weights(self) -> None:
         # He initialisation suits the ReLU stack; without batch norm the default init leaves the
@@ -107,11 +111,11 @@ class DefectNet(nn.Module):
         return s
 
     def blur(self, x: torch.Tensor) -> torch.Tensor:
-        """Separable Gaussian blur of (N, 1, S, S) float images, reflected borders."""
-        k = self._blur
-        r = k.shape[-1] // 2
-        x = F.conv2d(F.pad(x, (r, r, 0, 0), mode="reflect"), k)
-        return F.conv2d(F.pad(x, (0, 0, r, r), mode="reflect"), k.transpose(-1, -2))
+        """Separable Gaussian blur of (N, 1, S, S) float images, reflected borders: B x Bᵀ
+        with the (S, S) blur matrix B (two small matrix products; a 1-D convolution with a
+        ~70-tap kernel was 20x slower on a CPU)."""
+        b = self._blur
+        return b @ x @ b.transpose(0, 1)
 
     @staticmethod
     def standardise(x: torch.Tensor) -> torch.Tensor:
@@ -138,7 +142,7 @@ class DefectNet(nn.Module):
     def head(self, x: torch.Tensor) -> torch.Tensor:
         """Prepared input (N, 1, S, S) float -> logits (N, 2)."""
         r = self.relu
-        x = r(self.conv1(x))
+        x = r(self.conv1(x.contiguous(memory_format=torch.channels_last)))
         x = r(self.conv2(self.pool1(x)))
         x = r(self.conv3(self.pool2(x)))
         x = r(self.conv4(x))
@@ -174,6 +178,22 @@ class DefectNet(nn.Module):
         z = self.logits(x) / float(self.temperature)
         z[:, 1] += float(self.logit_bias)
         return torch.softmax(z, dim=1)
+
+
+def _reflect_blur_matrix(side: int, sigma: float) -> torch.Tensor:
+    """(side, side) float32 matrix B with (B v)[i] = Σ_k g[k] v[reflect(i + k)]: a normalised
+    Gaussian of σ ``sigma`` (px), radius min(⌈3σ⌉, side - 1), borders reflected without
+    repeating the edge pixel (numpy/torch "reflect")."""
+    r = min(int(math.ceil(3 * sigma)), side - 1)
+    k = np.arange(-r, r + 1)
+    g = np.exp(-0.5 * (k / sigma) ** 2)
+    g /= g.sum()
+    j = np.arange(side)[:, None] + k[None, :]  # (side, 2r + 1) source index of each tap
+    j = np.where(j < 0, -j, j)
+    j = np.where(j > side - 1, 2 * (side - 1) - j, j)  # r < side: one reflection suffices
+    b = np.zeros((side, side))
+    np.add.at(b, (np.repeat(np.arange(side), len(k)), j.ravel()), np.tile(g, side))
+    return torch.from_numpy(b.astype(np.float32))
 
 
 def pick_device(name: str = "auto") -> torch.device:

@@ -5,6 +5,8 @@ from __future__ import annotations
 import logging
 import os
 import time
+from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +17,7 @@ from detection.classifier.config import ClassifierConfig
 from detection.classifier.dataset import thumbnail, to_input
 from detection.classifier.modelfile import load_model
 from detection.classifier.network import pick_device
-from roadsurf.drive import Drive, load_drive, read_image
+from roadsurf.drive import Drive, Frame, load_drive, read_image
 from roadsurf.errors import RoadsurfError
 
 log = logging.getLogger(__name__)
@@ -81,16 +83,34 @@ def _screen(
         names.clear()
         batch.clear()
 
-    for fr in tqdm(drive.frames, desc="CNN screening", unit="frame", disable=not progress):
+    def prepare(fr: Frame) -> np.ndarray | RoadsurfError:
         try:
-            img = read_image(fr)
+            return to_input(thumbnail(read_image(fr), store), side)
         except RoadsurfError as e:
-            log.warning("%s: not screened (%s)", fr.path, e)
-            continue
-        batch.append(to_input(thumbnail(img, store), side))
-        names.append(fr.filename)
-        if len(batch) >= cfg.screen_batch_size:
-            flush()
+            return e
+
+    # frames are decoded and thumbnailed by worker threads (OpenCV releases the GIL) up to two
+    # batches ahead of the network, so decoding overlaps inference; memory stays bounded
+    ahead = 2 * max(1, cfg.screen_batch_size)
+    queue: deque[tuple[Frame, Future[np.ndarray | RoadsurfError]]] = deque()
+    frames = iter(drive.frames)
+    bar = tqdm(total=len(drive.frames), desc="CNN screening", unit="frame", disable=not progress)
+    with bar, ThreadPoolExecutor(max_workers=max(1, screen_threads(cfg))) as pool:
+        while True:
+            while len(queue) < ahead and (fr := next(frames, None)) is not None:
+                queue.append((fr, pool.submit(prepare, fr)))
+            if not queue:
+                break
+            fr, fut = queue.popleft()
+            x = fut.result()
+            bar.update(1)
+            if isinstance(x, RoadsurfError):
+                log.warning("%s: not screened (%s)", fr.path, x)
+                continue
+            batch.append(x)
+            names.append(fr.filename)
+            if len(batch) >= cfg.screen_batch_size:
+                flush()
     flush()
     dt = time.perf_counter() - t0
     log.info(

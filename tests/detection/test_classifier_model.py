@@ -188,6 +188,17 @@ def test_train_few_steps_resume_and_screen(tmp_path: Path) -> None:
     assert one == pytest.approx(probs, abs=1e-5) and torch.get_num_threads() == before
     cores = len(os.sched_getaffinity(0))
     assert screen_threads(ClassifierConfig(screen_num_threads=64)) == min(64, cores)
+    # an unreadable frame in the middle is left out; the others keep their own p (frames are
+    # decoded ahead of the net by worker threads: order and batching must not mix them up)
+    bad = tmp_path / "drive" / "frames" / "bad.png"
+    bad.write_bytes(b"not a png")
+    frames_bad = [*frames[:2], Frame(9, bad.name, bad, 0.25), *frames[2:]]
+    with_bad = screen_drive(
+        tmp_path / "model",
+        Drive(tmp_path / "drive", cam, frames_bad, None, None),
+        ClassifierConfig(screen_batch_size=2),
+    )
+    assert with_bad == pytest.approx(probs, abs=1e-6) and bad.name not in with_bad
     assert screen_threads(ClassifierConfig(screen_num_threads=0, num_threads=3)) == 3
 
 
@@ -215,6 +226,28 @@ def test_train_command_and_model_error_exit(tmp_path: Path) -> None:
     assert meta["input_size_px"] == 48 and meta["config"]["epochs"] == 1
     with pytest.raises(ModelFileError):
         screen_drive(tmp_path / "missing", tmp_path / "ds")
+
+
+@pytest.mark.parametrize(("side", "frac"), [(48, 0.12), (64, 0.4), (32, 1.0)])
+def test_highpass_blur_is_the_reflect_padded_separable_gaussian(side: int, frac: float) -> None:
+    """The blur as two matrix products equals the plain definition: a normalised Gaussian of
+    σ = frac · side, radius min(⌈3σ⌉, side - 1), convolved along rows then columns of the
+    reflect-padded image (with σ = side the radius is clamped)."""
+    import math
+
+    import torch.nn.functional as F
+
+    net = DefectNet(side, highpass_frac=frac)
+    sigma = frac * side
+    r = min(int(math.ceil(3 * sigma)), side - 1)
+    g = torch.exp(-0.5 * (torch.arange(-r, r + 1, dtype=torch.float64) / sigma) ** 2)
+    k = (g / g.sum()).view(1, 1, 1, -1)
+    x = torch.from_numpy(np.random.default_rng(4).random((3, 1, side, side)))
+    ref = F.conv2d(F.pad(x, (r, r, 0, 0), mode="reflect"), k)
+    ref = F.conv2d(F.pad(ref, (0, 0, r, r), mode="reflect"), k.transpose(-1, -2))
+    got = net.blur(x.float()).double()
+    assert got.shape == x.shape
+    assert float((got - ref).abs().max()) < 1e-5
 
 
 def test_highpass_input_ignores_smooth_illumination_and_round_trips(tmp_path: Path) -> None:
