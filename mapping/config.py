@@ -71,6 +71,7 @@ class MappingConfig:
     feather_px: int = 40  # feathering ramp width at image edges for mosaic blending (px)
     max_raster_px: int = 20_000_000_000  # bounding grid above this (px): tiles + VRT only
     preview_max_px: int = 2000  # longest side of the PNG previews (px)
+    raster_workers: int = 2  # threads computing raster tiles (count); tiles are written in order
     surface_max_edge_m: float = (
         0.10  # never interpolate the surface across a gap wider than this (m)
     )

@@ -23,9 +23,11 @@ import hashlib
 import json
 import logging
 import math
+import threading
 import time
-from collections import OrderedDict
-from collections.abc import Callable
+from collections import OrderedDict, deque
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -415,17 +417,21 @@ def footprint_enu(camera: Camera, W: np.ndarray, road_z: float, n: int = 5) -> n
 
 
 class _ImageCache:
-    """A few decoded (and pyramid-reduced) images; tiles are visited in drive order."""
+    """A few decoded (and pyramid-reduced) images; tiles are visited in drive order. Shared by
+    the tile threads: decoding happens outside the lock (two threads may decode the same
+    frame once each, never a wrong one)."""
 
     def __init__(self, size: int = 12) -> None:
         self.size = size
         self._d: OrderedDict[tuple[str, int], np.ndarray | None] = OrderedDict()
+        self._lock = threading.Lock()
 
     def get(self, frame: Frame, level: int) -> np.ndarray | None:
         k = (frame.filename, level)
-        if k in self._d:
-            self._d.move_to_end(k)
-            return self._d[k]
+        with self._lock:
+            if k in self._d:
+                self._d.move_to_end(k)
+                return self._d[k]
         try:
             img = read_image(frame)
             for _ in range(level):
@@ -433,9 +439,11 @@ class _ImageCache:
         except (FrameReadError, OSError) as e:
             log.warning("globalmap: %s not used in the mosaic (%s)", frame.filename, e)
             img = None
-        self._d[k] = img
-        if len(self._d) > self.size:
-            self._d.popitem(last=False)
+        with self._lock:
+            self._d[k] = img
+            self._d.move_to_end(k)
+            while len(self._d) > self.size:
+                self._d.popitem(last=False)
         return img
 
 
@@ -537,14 +545,16 @@ def _rasters(
         mw = TiledWriter(prod.run_dir, "mosaic", lat, 3, "uint8", 0, write_tiles, write_full)
         writers.append(mw)
         prev = _Previews(fg, cfg.preview_max_px)
-        cache = _ImageCache()
+        workers = max(1, int(cfg.raster_workers))
+        # each thread works on its own tile, a few frames apart in drive order
+        cache = _ImageCache(12 * workers)
         frame_list = [frames_by_index.get(int(k)) for k in traj.frame_indices]
         pf = list(pair_frames or [])
 
         def two_view(g: GridSpec, resid_g: np.ndarray | None = None) -> np.ndarray:
             return _two_view_mask(cam, traj, surf, g2e, g, pf, fp_grid, road_z, resid_g)
 
-        for t in tqdm(tiles, desc="rasters", unit="tile", leave=False):
+        def compute(t: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             grid = lat.tile_grid(*t)
             sel = _points_in(pts_grid, grid, margin)
             res_t, filled = _surface_tile_filled(
@@ -574,6 +584,17 @@ def _rasters(
             # strip seen by one frame between two pairs (a short Delaunay edge bridges it)
             if filled.any():
                 res_t[filled & ~two_view(grid, res_t)] = np.nan
+            return res_t, mos_t, wsum
+
+        # tiles are computed by worker threads (OpenCV and numpy release the GIL) and written
+        # here, in order, a bounded number ahead (GDAL datasets are not shared across threads)
+        for t, (res_t, mos_t, wsum) in tqdm(
+            zip(tiles, _ordered_map(compute, tiles, workers), strict=True),
+            total=len(tiles),
+            desc="rasters",
+            unit="tile",
+            leave=False,
+        ):
             has_s = bool(np.isfinite(res_t).any())
             has_m = bool((wsum > 0).any())
             if not (has_s or has_m):
@@ -614,6 +635,31 @@ def _rasters(
     prev.write(prod.run_dir)
     prod.files["mosaic_preview"] = "mosaic_preview.png"
     prod.files["surface_preview"] = "surface_preview.png"
+
+
+def _ordered_map(fn: Callable[[Any], Any], items: list[Any], workers: int) -> Iterator[Any]:
+    """fn over items, results in order; with workers > 1 computed by that many threads, at most
+    2 × workers ahead of the consumer (memory stays bounded). An exception is raised when its
+    item's turn comes; the items not started yet are then cancelled."""
+    if workers <= 1:
+        yield from map(fn, items)
+        return
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        queue: deque[Future[Any]] = deque()
+        it = iter(items)
+        try:
+            while True:
+                while len(queue) < 2 * workers and (item := next(it, _END)) is not _END:
+                    queue.append(pool.submit(fn, item))
+                if not queue:
+                    return
+                yield queue.popleft().result()
+        finally:
+            for f in queue:
+                f.cancel()
+
+
+_END = object()
 
 
 def _masked_gauss(r: np.ndarray, m: np.ndarray, sig_px: float) -> np.ndarray:
