@@ -9,6 +9,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
+# settings that change how a result is computed, never the result: a run resumes across them
+NOT_IN_FINGERPRINT = ("overwrite", "raster_workers")
+
 
 @dataclass(frozen=True)
 class MappingConfig:

@@ -36,7 +36,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from mapping.config import MappingConfig
+from mapping.config import NOT_IN_FINGERPRINT, MappingConfig
 from mapping.export import export_xyz, write_cloud_ply
 from mapping.raster import (
     LOCAL_CRS,
@@ -124,7 +124,7 @@ def run(
 
 def _fingerprint(cfg: MappingConfig, pairs: list[Any], traj: Trajectory) -> str:
     h = hashlib.sha256()
-    c = {k: v for k, v in to_dict(cfg).items() if k != "overwrite"}
+    c = {k: v for k, v in to_dict(cfg).items() if k not in NOT_IN_FINGERPRINT}
     h.update(json.dumps(c, sort_keys=True, default=str).encode())
     h.update(np.ascontiguousarray(traj.world_from_cam, float).tobytes())
     for p in pairs:

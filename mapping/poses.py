@@ -35,7 +35,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.spatial.transform import Rotation
 
-from mapping.config import MappingConfig
+from mapping.config import NOT_IN_FINGERPRINT, MappingConfig
 from mapping.types import Trajectory, load_trajectory, save_trajectory
 from roadsurf.config import to_dict
 from roadsurf.drive import Drive
@@ -113,7 +113,7 @@ def run(
 
 def _fingerprint(cfg: MappingConfig, drive: Drive, pairs: list[Any]) -> str:
     h = hashlib.sha256()
-    c = {k: v for k, v in to_dict(cfg).items() if k != "overwrite"}
+    c = {k: v for k, v in to_dict(cfg).items() if k not in NOT_IN_FINGERPRINT}
     h.update(json.dumps(c, sort_keys=True, default=str).encode())
     h.update(json.dumps([(f.filename, f.timestamp_s) for f in drive.frames]).encode())
     if drive.gps is not None:

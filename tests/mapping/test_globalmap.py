@@ -180,6 +180,10 @@ def test_raster_tiles_on_one_or_more_threads_are_identical(mapped, tmp_path: Pat
     for name in ("surface.tif", "mosaic.tif"):
         with rasterio.open(run / name) as a, rasterio.open(tmp_path / "run1" / name) as b:
             np.testing.assert_array_equal(a.read(), b.read())
+    # and a finished map is not rebuilt because the thread count changed
+    m0 = os.stat(tmp_path / "run1" / "surface.tif").st_mtime_ns
+    globalmap.run(CFG, syn.drive, syn.pairs, load_trajectory(run), tmp_path / "run1")
+    assert os.stat(tmp_path / "run1" / "surface.tif").st_mtime_ns == m0
 
 
 def test_ordered_map_keeps_order_bounds_lookahead_and_raises_in_turn() -> None:
