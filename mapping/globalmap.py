@@ -25,9 +25,8 @@ import logging
 import math
 import threading
 import time
-from collections import OrderedDict, deque
-from collections.abc import Callable, Iterator
-from concurrent.futures import Future, ThreadPoolExecutor
+from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -53,6 +52,7 @@ from roadsurf.drive import Camera, Drive, Frame, read_image
 from roadsurf.errors import FrameReadError
 from roadsurf.formats import GridSpec
 from roadsurf.io import atomic_path, read_json, write_json_atomic, write_npz_atomic
+from roadsurf.parallel import ordered_map
 
 log = logging.getLogger(__name__)
 
@@ -589,7 +589,7 @@ def _rasters(
         # tiles are computed by worker threads (OpenCV and numpy release the GIL) and written
         # here, in order, a bounded number ahead (GDAL datasets are not shared across threads)
         for t, (res_t, mos_t, wsum) in tqdm(
-            zip(tiles, _ordered_map(compute, tiles, workers), strict=True),
+            zip(tiles, ordered_map(compute, tiles, workers), strict=True),
             total=len(tiles),
             desc="rasters",
             unit="tile",
@@ -635,31 +635,6 @@ def _rasters(
     prev.write(prod.run_dir)
     prod.files["mosaic_preview"] = "mosaic_preview.png"
     prod.files["surface_preview"] = "surface_preview.png"
-
-
-def _ordered_map(fn: Callable[[Any], Any], items: list[Any], workers: int) -> Iterator[Any]:
-    """fn over items, results in order; with workers > 1 computed by that many threads, at most
-    2 × workers ahead of the consumer (memory stays bounded). An exception is raised when its
-    item's turn comes; the items not started yet are then cancelled."""
-    if workers <= 1:
-        yield from map(fn, items)
-        return
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        queue: deque[Future[Any]] = deque()
-        it = iter(items)
-        try:
-            while True:
-                while len(queue) < 2 * workers and (item := next(it, _END)) is not _END:
-                    queue.append(pool.submit(fn, item))
-                if not queue:
-                    return
-                yield queue.popleft().result()
-        finally:
-            for f in queue:
-                f.cancel()
-
-
-_END = object()
 
 
 def _masked_gauss(r: np.ndarray, m: np.ndarray, sig_px: float) -> np.ndarray:

@@ -5,8 +5,6 @@ from __future__ import annotations
 import logging
 import os
 import time
-from collections import deque
-from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +17,7 @@ from detection.classifier.modelfile import load_model
 from detection.classifier.network import pick_device
 from roadsurf.drive import Drive, Frame, load_drive, read_image
 from roadsurf.errors import RoadsurfError
+from roadsurf.parallel import ordered_map
 
 log = logging.getLogger(__name__)
 
@@ -91,18 +90,13 @@ def _screen(
 
     # frames are decoded and thumbnailed by worker threads (OpenCV releases the GIL) up to two
     # batches ahead of the network, so decoding overlaps inference; memory stays bounded
+    workers = max(1, screen_threads(cfg))
     ahead = 2 * max(1, cfg.screen_batch_size)
-    queue: deque[tuple[Frame, Future[np.ndarray | RoadsurfError]]] = deque()
-    frames = iter(drive.frames)
     bar = tqdm(total=len(drive.frames), desc="CNN screening", unit="frame", disable=not progress)
-    with bar, ThreadPoolExecutor(max_workers=max(1, screen_threads(cfg))) as pool:
-        while True:
-            while len(queue) < ahead and (fr := next(frames, None)) is not None:
-                queue.append((fr, pool.submit(prepare, fr)))
-            if not queue:
-                break
-            fr, fut = queue.popleft()
-            x = fut.result()
+    with bar:
+        for fr, x in zip(
+            drive.frames, ordered_map(prepare, drive.frames, workers, ahead), strict=True
+        ):
             bar.update(1)
             if isinstance(x, RoadsurfError):
                 log.warning("%s: not screened (%s)", fr.path, x)

@@ -186,40 +186,6 @@ def test_raster_tiles_on_one_or_more_threads_are_identical(mapped, tmp_path: Pat
     assert os.stat(tmp_path / "run1" / "surface.tif").st_mtime_ns == m0
 
 
-def test_ordered_map_keeps_order_bounds_lookahead_and_raises_in_turn() -> None:
-    import threading
-    import time
-
-    started: list[int] = []
-    lock = threading.Lock()
-
-    def slow_square(i: int) -> int:
-        with lock:
-            started.append(i)
-        time.sleep(0.02 if i % 3 == 0 else 0.0)  # later items finish first
-        return i * i
-
-    got = []
-    for v in globalmap._ordered_map(slow_square, list(range(20)), 2):
-        got.append(v)
-        if len(got) == 1:
-            time.sleep(0.1)
-            assert len(started) <= 1 + 2 * 2  # at most 2 x workers ahead of the consumer
-    assert got == [i * i for i in range(20)]
-    assert list(globalmap._ordered_map(slow_square, [3, 1], 1)) == [9, 1]
-
-    def fails_at_5(i: int) -> int:
-        if i == 5:
-            raise ValueError("tile 5")
-        return i
-
-    out = []
-    with pytest.raises(ValueError, match="tile 5"):
-        for v in globalmap._ordered_map(fails_at_5, list(range(10)), 2):
-            out.append(v)
-    assert out == [0, 1, 2, 3, 4]
-
-
 def test_broken_frame_mid_drive_is_skipped(tmp_path: Path) -> None:
     syn = make_synthetic(n=24, seed=31, gps_hz=5.0)
     write_drive(syn, tmp_path / "drive", broken=(12,))

@@ -1,0 +1,48 @@
+"""roadsurf.parallel.ordered_map: order, bounded look-ahead, errors in turn."""
+
+from __future__ import annotations
+
+import pytest
+
+from roadsurf.parallel import ordered_map
+
+
+def test_ordered_map_keeps_order_bounds_lookahead_and_raises_in_turn() -> None:
+    import threading
+    import time
+
+    started: list[int] = []
+    lock = threading.Lock()
+
+    def slow_square(i: int) -> int:
+        with lock:
+            started.append(i)
+        time.sleep(0.02 if i % 3 == 0 else 0.0)  # later items finish first
+        return i * i
+
+    got = []
+    for v in ordered_map(slow_square, list(range(20)), 2):
+        got.append(v)
+        if len(got) == 1:
+            time.sleep(0.1)
+            assert len(started) <= 1 + 2 * 2  # at most 2 x workers ahead of the consumer
+    assert got == [i * i for i in range(20)]
+    assert list(ordered_map(slow_square, [3, 1], 1)) == [9, 1]
+
+    def fails_at_5(i: int) -> int:
+        if i == 5:
+            raise ValueError("tile 5")
+        return i
+
+    out = []
+    with pytest.raises(ValueError, match="tile 5"):
+        for v in ordered_map(fails_at_5, list(range(10)), 2):
+            out.append(v)
+    assert out == [0, 1, 2, 3, 4]
+    # an explicit look-ahead bounds the work in flight the same way
+    started.clear()
+    for i, v in enumerate(ordered_map(slow_square, list(range(12)), 2, ahead=3)):
+        if i == 0:
+            time.sleep(0.1)
+            assert len(started) <= 1 + 3
+        assert v == i * i
