@@ -62,6 +62,45 @@ def _stage(module: str) -> Any:
     return importlib.import_module(module)
 
 
+# What a fused run imports after screening: the stage modules and the heavy libraries they
+# import inside functions. A stale entry only costs overlap, never correctness
+_FUSED_RUN_IMPORTS = (
+    "reconstruction.stage",
+    "reconstruction.probe",
+    "detection.classifier.guided",
+    "mapping.poses",
+    "mapping.globalmap",
+    "detection.stage",
+    "detection.cracks",
+    "detection.dense",
+    "detection.ruts",
+    "rasterio",
+    "rasterio.windows",
+    "shapely",
+    "matplotlib.tri",
+    "matplotlib.path",
+    "skimage.morphology",
+    "scipy.sparse.csgraph",
+    "scipy.spatial",
+)
+
+
+def _screen(model: Path, drive: Any, cfg: ClassifierConfig, job: Any) -> dict[str, float]:
+    """CNN screening of every frame -> {filename: p_defect}: by the worker process ``job``
+    (``screen_job``, started with the run) while this process imports what the rest of the
+    run needs (imports hold the GIL, so a thread could not overlap them), or in this process
+    when ``job`` is None."""
+    if job is None:
+        return _stage("detection.classifier.screen").screen_drive(model, drive, cfg)
+    job.send(drive.frames)
+    for name in _FUSED_RUN_IMPORTS:
+        try:
+            importlib.import_module(name)
+        except ImportError as e:  # the stage that needs it reports it when it runs
+            log.debug("warm-up import of %s failed: %s", name, e)
+    return job.result()
+
+
 def _versions() -> dict[str, str]:
     out = {"python": platform.python_version()}
     for name in (
@@ -104,12 +143,41 @@ def run_drive(
     ``rerun`` streams results live to the Rerun viewer; ``overwrite`` recomputes finished
     artifacts instead of resuming.
     """
+    t_start = time.perf_counter()
+    cfg = load_pipeline_config(config_path)
+    job = None
+    if classifier is not None and cfg.classifier.screen_in_subprocess:
+        # a fused run starts its CNN worker first: torch's import and the model's loading run
+        # on another core while this process reads the drive and imports the stages
+        from detection.classifier.screen_job import ScreeningJob
+
+        job = ScreeningJob(Path(classifier), cfg.classifier)
+    try:
+        return _run_drive(
+            drive_dir, Path(out_dir), cfg, method, classifier, rerun, overwrite, observers, job,
+            t_start,
+        )  # fmt: skip
+    finally:
+        if job is not None:
+            job.close()  # kills the worker if the run stopped before its result
+
+
+def _run_drive(
+    drive_dir: str | Path,
+    out: Path,
+    cfg: PipelineConfig,
+    method: str | None,
+    classifier: str | Path | None,
+    rerun: bool,
+    overwrite: bool,
+    observers: list[Observer] | None,
+    job: Any,
+    t_start: float,
+) -> dict[str, Any]:
+    """``run_drive`` with its config loaded and its screening worker (``job``, or None) started."""
     from roadsurf.drive import along_track_m, load_drive
 
-    t_start = time.perf_counter()
-    out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    cfg = load_pipeline_config(config_path)
     obs: list[Observer] = list(observers or [])
     if rerun:
         try:
@@ -151,14 +219,14 @@ def run_drive(
         rec_cfg = from_dict(type(rec_cfg), {**to_dict(rec_cfg), "method": method}, "--method")
     frame_probs: dict[str, float] | None = None
     fusion_rule: Any = None
-    rec = _stage("reconstruction.stage")
     if classifier is None:
+        rec = _stage("reconstruction.stage")
         pairs = timed("reconstruction", lambda: rec.run(rec_cfg, drive, out))
     else:
-        screen = _stage("detection.classifier.screen")
         frame_probs = timed(
-            "screening", lambda: screen.screen_drive(Path(classifier), drive, cfg.classifier)
+            "screening", lambda: _screen(Path(classifier), drive, cfg.classifier, job)
         )
+        rec = _stage("reconstruction.stage")
         guided = _stage("detection.classifier.guided")
         probe = _stage("reconstruction.probe")
 

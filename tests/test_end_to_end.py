@@ -12,6 +12,7 @@ import pytest
 import rasterio
 from plyfile import PlyData
 
+from roadsurf.errors import ModelFileError
 from roadsurf.formats import read_csv, read_geojson
 
 SAMPLE = Path(__file__).resolve().parents[1] / "data_samples" / "drive"
@@ -191,3 +192,13 @@ def test_run_with_classifier_screens_audits_and_fuses(sample_run, tmp_path: Path
             assert r["defect"] == "0" and float(r["p_defect"]) < 1e-3
         else:
             assert r["defect"] == "1"
+    # screening in the pipeline's own process instead of its worker: the same probabilities
+    cfg.write_text(cfg.read_text() + "  screen_in_subprocess: false\n")
+    run_drive(drive, out, classifier=tmp_path / "model", config_path=cfg)
+    scr2 = json.loads((out / "screening.json").read_text())
+    assert [f["p_defect"] for f in scr2["frames"]] == [f["p_defect"] for f in scr["frames"]]
+    # a corrupt model stops a fused run with the worker's ModelFileError, naming the file
+    bad = tmp_path / "bad.safetensors"
+    bad.write_bytes(b"\x00garbage" * 8)
+    with pytest.raises(ModelFileError, match="bad.safetensors"):
+        run_drive(drive, tmp_path / "bad", classifier=bad)

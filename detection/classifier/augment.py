@@ -10,10 +10,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
-import torch
+
+if TYPE_CHECKING:  # torch is imported where it is used: the pipeline imports this module
+    import torch  # (via dataset -> guided) and a fused run imports torch only to screen
 
 Bbox = tuple[float, float, float, float]
 Transform = Callable[[np.ndarray, Bbox | None], np.ndarray]
@@ -121,6 +124,8 @@ def photometric(x: torch.Tensor, gen: torch.Generator, strength: float = 1.0) ->
     defect's shape and shading rather than one camera's rendering. ``strength`` scales every
     range (0 = identity). Geometric changes are elsewhere (``augment_image``, dihedral turns).
     """
+    import torch
+
     if strength <= 0:
         return x.float()
     n, _, s, _ = x.shape

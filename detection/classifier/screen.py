@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import os
 import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -35,13 +36,41 @@ def screen_drive(
     ``thumbnail``/``to_input`` preprocessing as the training set, at the model's own sizes.
     Raises ``ModelFileError`` when the model file is missing, corrupt or incompatible.
     """
+
+    def frames() -> list[Frame]:  # after the model: a bad model file is reported first
+        return list((drive if isinstance(drive, Drive) else load_drive(drive)).frames)
+
+    return _with_threads(cfg, lambda c: _screen(model_path, frames, c, progress))
+
+
+def screen_frames(
+    model_path: str | Path,
+    frames: Sequence[Frame] | Callable[[], Sequence[Frame]],
+    cfg: ClassifierConfig | None = None,
+    *,
+    progress: bool = True,
+) -> dict[str, float]:
+    """``screen_drive`` on frames in capture order -> {filename: p_defect}. ``frames`` may be
+    a callable, called once the model is loaded (the screening worker process loads the model
+    while its parent is still reading the drive)."""
+
+    def get() -> list[Frame]:
+        return list(frames() if callable(frames) else frames)
+
+    return _with_threads(cfg, lambda c: _screen(model_path, get, c, progress))
+
+
+def _with_threads(
+    cfg: ClassifierConfig | None, fn: Callable[[ClassifierConfig], dict[str, float]]
+) -> dict[str, float]:
+    """Run ``fn(cfg)`` with torch's thread count set for screening, then restore it."""
     cfg = cfg or ClassifierConfig()
     threads = screen_threads(cfg)
     before = torch.get_num_threads()
     if threads > 0:
         torch.set_num_threads(threads)
     try:
-        return _screen(model_path, drive, cfg, progress)
+        return fn(cfg)
     finally:
         torch.set_num_threads(before)
 
@@ -59,12 +88,14 @@ def screen_threads(cfg: ClassifierConfig) -> int:
 
 
 def _screen(
-    model_path: str | Path, drive: Drive | str | Path, cfg: ClassifierConfig, progress: bool
+    model_path: str | Path,
+    get_frames: Callable[[], list[Frame]],
+    cfg: ClassifierConfig,
+    progress: bool,
 ) -> dict[str, float]:
     device = pick_device(cfg.device)
     net, meta = load_model(model_path, device)
-    if not isinstance(drive, Drive):
-        drive = load_drive(drive)
+    frames = get_frames()
     store = int(meta.get("store_size_px", cfg.store_size_px))
     side = int(meta["input_size_px"])
     t0 = time.perf_counter()
@@ -92,11 +123,9 @@ def _screen(
     # batches ahead of the network, so decoding overlaps inference; memory stays bounded
     workers = max(1, screen_threads(cfg))
     ahead = 2 * max(1, cfg.screen_batch_size)
-    bar = tqdm(total=len(drive.frames), desc="CNN screening", unit="frame", disable=not progress)
+    bar = tqdm(total=len(frames), desc="CNN screening", unit="frame", disable=not progress)
     with bar:
-        for fr, x in zip(
-            drive.frames, ordered_map(prepare, drive.frames, workers, ahead), strict=True
-        ):
+        for fr, x in zip(frames, ordered_map(prepare, frames, workers, ahead), strict=True):
             bar.update(1)
             if isinstance(x, RoadsurfError):
                 log.warning("%s: not screened (%s)", fr.path, x)

@@ -299,6 +299,7 @@ _NOT_TRAINING = frozenset(
         "device",
         "num_threads",
         "screen_num_threads",
+        "screen_in_subprocess",
         "epochs",
         "calibrate",
         "calibrate_bias",

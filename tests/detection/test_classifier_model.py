@@ -17,6 +17,7 @@ from detection.classifier.config import ClassifierConfig
 from detection.classifier.modelfile import load_model, save_model
 from detection.classifier.network import DefectNet
 from detection.classifier.screen import screen_drive, screen_threads
+from detection.classifier.screen_job import ScreeningJob
 from detection.classifier.train import metrics, train, train_steps
 from roadsurf.drive import Camera, Drive, Frame
 from roadsurf.errors import ModelFileError, RoadsurfError
@@ -200,6 +201,27 @@ def test_train_few_steps_resume_and_screen(tmp_path: Path) -> None:
     )
     assert with_bad == pytest.approx(probs, abs=1e-6) and bad.name not in with_bad
     assert screen_threads(ClassifierConfig(screen_num_threads=0, num_threads=3)) == 3
+
+    # in a worker process, as a fused run screens: the same probabilities, and the worker's
+    # errors come back as the same exception class, naming the file
+    scfg = ClassifierConfig(screen_batch_size=2)
+    with ScreeningJob(tmp_path / "model", scfg, progress=False) as job:
+        job.send(frames_bad)
+        assert job.result() == pytest.approx(with_bad, abs=1e-6)
+    corrupt = tmp_path / "corrupt.safetensors"
+    corrupt.write_bytes(b"\x00garbage" * 10)
+    with ScreeningJob(corrupt, scfg, progress=False) as job:
+        job.send(frames)
+        with pytest.raises(ModelFileError, match="corrupt.safetensors"):
+            job.result()
+    # a job that never got its frames (the drive failed to load) is killed on close: a failed
+    # or interrupted run leaves no worker behind
+    job = ScreeningJob(tmp_path / "model", scfg, progress=False)
+    proc = job._proc
+    job.close()
+    assert proc is not None and proc.poll() is not None
+    with pytest.raises(RoadsurfError, match="closed"):
+        job.result()
 
 
 def test_metrics_counts() -> None:

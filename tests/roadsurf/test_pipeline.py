@@ -30,3 +30,25 @@ def test_bad_keys_and_values_are_rejected(tmp_path: Path, text: str) -> None:
     p.write_text(text)
     with pytest.raises(ConfigError, match="bad.yaml"):
         load_pipeline_config(p)
+
+
+def test_fused_run_warm_up_imports_name_real_modules_and_not_torch() -> None:
+    """The modules a fused run imports while the CNN screens in its worker must exist (a
+    renamed module would silently stop overlapping), and none may pull in torch: the pipeline
+    process of a fused run never imports it."""
+    import importlib.util
+    import subprocess
+    import sys
+
+    from roadsurf.pipeline import _FUSED_RUN_IMPORTS
+
+    for name in _FUSED_RUN_IMPORTS:
+        assert importlib.util.find_spec(name) is not None, name
+    code = (
+        "import importlib, sys\n"
+        "from roadsurf.pipeline import _FUSED_RUN_IMPORTS\n"
+        "for n in _FUSED_RUN_IMPORTS: importlib.import_module(n)\n"
+        "print('torch' in sys.modules)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"

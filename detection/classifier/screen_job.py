@@ -1,0 +1,185 @@
+"""CNN screening in a worker process, started first thing in a fused run.
+
+Importing torch takes 1.5-2 s of one core on the 2-core bench machine, longer than screening a
+200-frame drive. In its own process that import, and the screening after it, run on the second
+core while the pipeline imports its stages (SciPy, rasterio, Shapely, scikit-image: another
+1.5-2 s) and plans the run; threads cannot overlap them, since imports hold the GIL. The
+pipeline itself never imports torch in a fused run.
+
+The worker is ``python -m detection.classifier.screen_job RESULT HEADER``: the header (JSON:
+model path, classifier settings) comes on the command line, so the worker imports torch and
+loads the model while the pipeline reads the drive; the frames follow on stdin. It logs and
+shows its progress bar on the shared stderr, and writes ``{"probs": {filename: p_defect}}`` or
+``{"error": {...}}`` to the result file the parent names. ``ScreeningJob.result`` turns an error back into the same exception class (a
+corrupt model file stays a ``ModelFileError``); the result is exactly what ``screen_frames``
+gives in-process.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import subprocess
+import sys
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from detection.classifier.config import ClassifierConfig
+from roadsurf import errors
+from roadsurf.config import from_dict, to_dict
+from roadsurf.drive import Frame
+from roadsurf.errors import RoadsurfError
+from roadsurf.io import write_json_atomic
+
+log = logging.getLogger(__name__)
+
+# exception classes a worker error may name; anything else comes back as RoadsurfError
+_ERRORS: dict[str, type[RoadsurfError]] = {
+    c.__name__: c
+    for c in vars(errors).values()
+    if isinstance(c, type) and issubclass(c, RoadsurfError)
+}
+_LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
+
+
+class ScreeningJob:
+    """A screening in a worker process: start it (the worker imports torch and loads the model
+    at once), ``send`` it the frames when the drive is read, and ``result()`` waits for it.
+
+    Use it as a context manager (or call ``close``): a job that is not waited for is killed, so
+    an interrupted or failed run leaves no worker behind.
+    """
+
+    def __init__(
+        self, model_path: str | Path, cfg: ClassifierConfig | None = None, *, progress: bool = True
+    ) -> None:
+        cfg = cfg or ClassifierConfig()
+        self.model_path = Path(model_path)
+        self._tmp = tempfile.TemporaryDirectory(prefix="roadsurf-screen-")
+        self._out = Path(self._tmp.name) / "result.json"
+        header = {
+            "model": str(self.model_path),
+            "config": to_dict(cfg),
+            "progress": bool(progress),
+            "log_level": logging.getLogger().getEffectiveLevel(),
+        }
+        # the worker imports this very checkout, whatever the current directory or sys.path
+        root = str(Path(__file__).resolve().parents[2])
+        env = dict(os.environ)
+        env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH")) if p)
+        self._proc: subprocess.Popen[bytes] | None = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "detection.classifier.screen_job",
+                str(self._out),
+                json.dumps(header),
+            ],
+            stdin=subprocess.PIPE,
+            env=env,
+        )
+        self._sent = False
+
+    def send(self, frames: Sequence[Frame]) -> None:
+        """The frames to screen, in capture order (once)."""
+        if self._proc is None or self._sent:
+            raise RoadsurfError("this screening job is closed or already has its frames")
+        self._sent = True
+        rows = [[f.index, f.filename, str(f.path), f.timestamp_s] for f in frames]
+        try:
+            if self._proc.stdin is not None:
+                self._proc.stdin.write(json.dumps(rows).encode())
+                self._proc.stdin.close()
+        except OSError:  # the worker stopped early (e.g. a bad model file): result() says why
+            pass
+
+    def result(self) -> dict[str, float]:
+        """{filename: p_defect} once the worker is done; raises its error (ModelFileError, ...)
+        or a RoadsurfError when it died without one."""
+        if self._proc is None or not self._sent:
+            raise RoadsurfError("this screening job is closed or was never sent its frames")
+        rc = self._proc.wait()
+        self._proc = None
+        try:
+            data = json.loads(self._out.read_text()) if self._out.is_file() else None
+        finally:
+            self._tmp.cleanup()
+        if isinstance(data, dict) and isinstance(data.get("probs"), dict):
+            return {str(k): float(v) for k, v in data["probs"].items()}
+        err = data.get("error") if isinstance(data, dict) else None
+        if isinstance(err, dict):
+            cls = _ERRORS.get(str(err.get("type")), RoadsurfError)
+            raise cls(str(err.get("message")))
+        raise RoadsurfError(
+            f"CNN screening with {self.model_path} stopped (worker exit status {rc}) without a "
+            "result; its messages are above. Set `classifier: {screen_in_subprocess: false}` "
+            "in the run config to screen in the pipeline's own process."
+        )
+
+    def close(self) -> None:
+        """Kill the worker if it still runs, and remove its files."""
+        if self._proc is not None and self._proc.poll() is None:
+            self._proc.kill()
+            self._proc.wait()
+        self._proc = None
+        self._tmp.cleanup()
+
+    def __enter__(self) -> ScreeningJob:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _work(out: Path, header: dict[str, Any]) -> int:
+    def frames() -> list[Frame]:  # blocks until the parent has read the drive
+        rows = json.loads(sys.stdin.read())
+        return [Frame(int(i), str(fn), Path(p), float(t)) for i, fn, p, t in rows]
+
+    try:
+        from detection.classifier.screen import screen_frames
+
+        cfg = from_dict(ClassifierConfig, header["config"], "classifier")
+        probs = screen_frames(header["model"], frames, cfg, progress=bool(header["progress"]))
+    except RoadsurfError as e:
+        write_json_atomic(out, {"error": {"type": type(e).__name__, "message": str(e)}})
+        return 2
+    except Exception as e:  # noqa: BLE001 - reported to the parent, which raises it
+        log.exception("CNN screening failed")
+        msg = f"CNN screening failed: {type(e).__name__}: {e} (traceback above)"
+        write_json_atomic(out, {"error": {"type": "RoadsurfError", "message": msg}})
+        return 1
+    write_json_atomic(out, {"probs": probs})
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Worker entry point: ``python -m detection.classifier.screen_job RESULT_JSON HEADER_JSON``,
+    then the frames on stdin."""
+    args = sys.argv[1:] if argv is None else argv
+    if len(args) != 2:
+        sys.stderr.write(
+            "usage: python -m detection.classifier.screen_job RESULT HEADER < frames\n"
+        )
+        return 2
+    header = json.loads(args[1])
+    logging.basicConfig(
+        level=int(header.get("log_level", logging.INFO)), format=_LOG_FORMAT, datefmt="%H:%M:%S"
+    )
+    try:
+        return _work(Path(args[0]), header)
+    except KeyboardInterrupt:  # Ctrl-C reaches the whole process group; the parent reports it
+        return 130
+
+
+if __name__ == "__main__":
+    code = main()
+    # the result is on disk: skip the interpreter's teardown (unloading torch takes ~0.6 s,
+    # which the parent would wait for, or share a core with)
+    logging.shutdown()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
