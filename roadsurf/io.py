@@ -78,9 +78,13 @@ def read_json(path: str | os.PathLike[str]) -> Any:
         return json.load(f)
 
 
-def write_npz_atomic(path: str | os.PathLike[str], **arrays: Any) -> Path:
-    """Write a compressed .npz atomically. Values are converted with ``np.asarray``."""
+def write_npz_atomic(
+    path: str | os.PathLike[str], *, compressed: bool = True, **arrays: Any
+) -> Path:
+    """Write an .npz atomically (zlib-compressed unless ``compressed`` is False). Values are
+    converted with ``np.asarray``."""
+    save = np.savez_compressed if compressed else np.savez
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
-            np.savez_compressed(f, **{k: np.asarray(v) for k, v in arrays.items()})
+            save(f, **{k: np.asarray(v) for k, v in arrays.items()})
     return Path(path)

@@ -53,3 +53,32 @@ def test_detection_cap_returns_full_resolution_pixels() -> None:
     assert len(ia) > 50
     err = np.linalg.norm(f_full.keypoints_px[ia] - f_half.keypoints_px[ib], axis=1)
     assert np.median(err) < 1.0
+
+
+def test_feature_cache_round_trips_bit_for_bit_and_stores_sift_as_bytes(tmp_path) -> None:
+    """SIFT descriptors (float32 holding whole numbers 0-255) are stored as uint8, losslessly
+    and uncompressed; other descriptors as they are. Older zlib files with float descriptors
+    still load."""
+    from roadsurf.io import write_npz_atomic
+
+    sift = feat.detect(texture((240, 320), 5), FeatureConfig(max_features=300))
+    assert sift.descriptors.dtype == np.float32 and len(sift.descriptors) > 50
+    rng = np.random.default_rng(0)
+    frac = feat.Features(sift.keypoints_px, sift.descriptors + 0.25, "sift")  # not whole
+    binary = feat.Features(
+        sift.keypoints_px, rng.integers(0, 256, (len(sift.descriptors), 32), np.uint8), "orb"
+    )
+    for f, stored in ((sift, np.uint8), (frac, np.float32), (binary, np.uint8)):
+        path = feat.save_features(tmp_path / f"{f.kind}{stored.__name__}.npz", f)
+        with np.load(path) as z:
+            assert z["descriptors"].dtype == stored
+        back = feat.load_features(path)
+        assert back.descriptors.dtype == f.descriptors.dtype and back.kind == f.kind
+        assert np.array_equal(back.descriptors, f.descriptors)
+        assert np.array_equal(back.keypoints_px, f.keypoints_px)
+    # a cache file of the earlier layout (zlib, float32 descriptors, no dtype entry)
+    old = write_npz_atomic(
+        tmp_path / "old.npz", keypoints_px=sift.keypoints_px, descriptors=sift.descriptors,
+        kind=np.asarray("sift"),
+    )  # fmt: skip
+    assert np.array_equal(feat.load_features(old).descriptors, sift.descriptors)
