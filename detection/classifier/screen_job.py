@@ -1,18 +1,19 @@
 """CNN screening in a worker process, started first thing in a fused run.
 
-Importing torch takes 1.5-2 s of one core on the 2-core bench machine, longer than screening a
-200-frame drive. In its own process that import, and the screening after it, run on the second
-core while the pipeline imports its stages (SciPy, rasterio, Shapely, scikit-image: another
-1.5-2 s) and plans the run; threads cannot overlap them, since imports hold the GIL. The
-pipeline itself never imports torch in a fused run.
+Importing torch takes 1.3-2 s of one core on the 2-core bench machine, more than screening a
+200-frame drive (~1 s). In its own process that import and the model load run on the second
+core while the pipeline reads the drive and imports its own stages (SciPy, rasterio, Shapely,
+scikit-image: ~1 s); threads could not overlap them, since imports hold the GIL. The pipeline
+process of a fused run never imports torch.
 
 The worker is ``python -m detection.classifier.screen_job RESULT HEADER``: the header (JSON:
 model path, classifier settings) comes on the command line, so the worker imports torch and
-loads the model while the pipeline reads the drive; the frames follow on stdin. It logs and
-shows its progress bar on the shared stderr, and writes ``{"probs": {filename: p_defect}}`` or
-``{"error": {...}}`` to the result file the parent names. ``ScreeningJob.result`` turns an error back into the same exception class (a
-corrupt model file stays a ``ModelFileError``); the result is exactly what ``screen_frames``
-gives in-process.
+loads the model at once; the frames follow on stdin when the pipeline has read the drive. It
+logs and shows its progress bar on the shared stderr, and writes
+``{"probs": {filename: p_defect}}`` or ``{"error": {...}}`` to the result file the parent
+names. ``ScreeningJob.result`` raises an error as the same exception class (a corrupt model
+file stays a ``ModelFileError``). The probabilities are those of ``screen_frames`` in-process
+(same code; test).
 """
 
 from __future__ import annotations
