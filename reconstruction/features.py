@@ -195,7 +195,7 @@ def save_features(path: str | Path, f: Features) -> Path:
     """Cache ``f`` as an uncompressed .npz; ``load_features`` gives it back bit for bit.
 
     OpenCV's SIFT descriptors are float32 holding whole numbers 0-255: they are stored as
-    uint8 (lossless) with their dtype. zlib on the float32 descriptors took ~150 ms a frame,
+    uint8 (lossless) with their dtype. zlib on the float32 descriptors took ~130 ms a frame,
     about as long as detecting them; the uint8 file is also smaller (~0.34 against 0.43 MB).
     """
     d = np.asarray(f.descriptors)

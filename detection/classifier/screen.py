@@ -37,10 +37,10 @@ def screen_drive(
     Raises ``ModelFileError`` when the model file is missing, corrupt or incompatible.
     """
 
-    def frames() -> list[Frame]:  # after the model: a bad model file is reported first
-        return list((drive if isinstance(drive, Drive) else load_drive(drive)).frames)
+    def frames() -> Sequence[Frame]:  # after the model: a bad model file is reported first
+        return (drive if isinstance(drive, Drive) else load_drive(drive)).frames
 
-    return _with_threads(cfg, lambda c: _screen(model_path, frames, c, progress))
+    return screen_frames(model_path, frames, cfg, progress=progress)
 
 
 def screen_frames(
@@ -53,24 +53,13 @@ def screen_frames(
     """``screen_drive`` on frames in capture order -> {filename: p_defect}. ``frames`` may be
     a callable, called once the model is loaded (the screening worker process loads the model
     while its parent is still reading the drive)."""
-
-    def get() -> list[Frame]:
-        return list(frames() if callable(frames) else frames)
-
-    return _with_threads(cfg, lambda c: _screen(model_path, get, c, progress))
-
-
-def _with_threads(
-    cfg: ClassifierConfig | None, fn: Callable[[ClassifierConfig], dict[str, float]]
-) -> dict[str, float]:
-    """Run ``fn(cfg)`` with torch's thread count set for screening, then restore it."""
     cfg = cfg or ClassifierConfig()
     threads = screen_threads(cfg)
     before = torch.get_num_threads()
     if threads > 0:
         torch.set_num_threads(threads)
     try:
-        return fn(cfg)
+        return _screen(model_path, frames, cfg, progress)
     finally:
         torch.set_num_threads(before)
 
@@ -89,13 +78,13 @@ def screen_threads(cfg: ClassifierConfig) -> int:
 
 def _screen(
     model_path: str | Path,
-    get_frames: Callable[[], list[Frame]],
+    frames_or_get: Sequence[Frame] | Callable[[], Sequence[Frame]],
     cfg: ClassifierConfig,
     progress: bool,
 ) -> dict[str, float]:
     device = pick_device(cfg.device)
     net, meta = load_model(model_path, device)
-    frames = get_frames()
+    frames = list(frames_or_get() if callable(frames_or_get) else frames_or_get)
     store = int(meta.get("store_size_px", cfg.store_size_px))
     side = int(meta["input_size_px"])
     t0 = time.perf_counter()
