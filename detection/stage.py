@@ -21,6 +21,7 @@ import hashlib
 import json
 import logging
 import math
+import time
 from pathlib import Path
 from typing import Any
 
@@ -73,7 +74,10 @@ def run(
             return cached
 
     # ---- 1. per pair
+    steps_s: dict[str, float] = {}  # wall time of the main steps, logged (docs/benchmarks.md)
+    t0 = time.perf_counter()
     per_pair = analyse_pairs(cfg, drive, pairs, masks_dir=run_dir / "masks")
+    steps_s["pairs"] = time.perf_counter() - t0
     pose_of = {fn: i for i, fn in enumerate(traj.filenames)}
     ev_enu, ev_pair = _evidence_points(pairs, per_pair, traj, pose_of)
 
@@ -95,10 +99,12 @@ def run(
             deep = -pts[1] >= cfg.map.depth_threshold_m
             seeds_xy = pts[0][deep]
         try:
+            t0 = time.perf_counter()
             seg = segment_windows(
                 surface, cfg.map, seeds_xy, ev_xy, ev_pair,
                 min_points=cfg.map.min_support_points if per_pair else 1, workers=cfg.workers,
             )  # fmt: skip
+            steps_s["windows"] = time.perf_counter() - t0
             if cfg.rut.enabled:
                 from detection.ruts import scan_seeds, trace_ruts
 
@@ -125,6 +131,7 @@ def run(
             ]
             sparse_noise = float(np.median([pd.noise_m for pd in per_pair.values()]))
             dense = DenseContext(drive, pairs, grid, sparse_noise)
+        t0 = time.perf_counter()
         defects, deep_xy = _measure_regions(
             cfg,
             seg,
@@ -134,6 +141,7 @@ def run(
             pair_pts=pair_pts,
             dense=dense,
         )
+        steps_s["measurement"] = time.perf_counter() - t0
         cracks = _crack_defects(cfg, per_pair, traj, pose_of, mframe, footprints, defects)
         if cracks:
             defects = _renumber(defects + cracks, footprints)
@@ -147,6 +155,7 @@ def run(
         )
     else:
         log.warning("detection: no surface raster and no points to rasterise; frame labels only")
+    log.info("detection: steps (s) %s", ", ".join(f"{k} {v:.2f}" for k, v in steps_s.items()))
 
     # ---- 3. frame labels
     cell_m2 = surface.grid.gsd_m**2 if surface is not None else 0.0
