@@ -217,6 +217,3 @@ class DetectionConfig:
     frame_label: FrameLabelMode = "map"
     fusion_threshold: float = 0.95  # CNN decision stands when max(p) >= this (Fig. 5.6), 0.5-1
     overwrite: bool = False  # recompute even when RUN/defects.geojson exists
-    # threads measuring each defect's pairs densely and segmenting the map windows (count);
-    # results are the same for any count (resume ignores it)
-    workers: int = 2

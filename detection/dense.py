@@ -16,7 +16,6 @@ error, epipolar residual, plane residual), so no setting is tied to one render.
 from __future__ import annotations
 
 import logging
-import threading
 from dataclasses import dataclass
 from typing import Any
 
@@ -382,70 +381,49 @@ class DenseContext:
         # than the sparse matches of the same images have failed (wrong LK minima).
         self.sparse_noise_m = sparse_noise_m
         self._cache: dict[str, np.ndarray | None] = {}
-        self._lock = threading.Lock()  # pairs are measured by several threads
 
     def gray(self, filename: str) -> np.ndarray | None:
         from roadsurf.drive import read_gray
         from roadsurf.errors import FrameReadError
 
-        with self._lock:
-            if filename in self._cache:
-                return self._cache[filename]
-        f = self.frames.get(filename)
-        img = None
-        try:  # decoded outside the lock; two threads may both decode a frame, never mix them
-            img = None if f is None else read_gray(f)
-        except FrameReadError as e:
-            log.warning("detection: dense measurement skips %s: %s", filename, e)
-        with self._lock:
-            if filename not in self._cache:
-                if len(self._cache) > 8:  # bounded memory: a defect is seen by a few pairs
-                    self._cache.pop(next(iter(self._cache)))
-                self._cache[filename] = img
-        return img
+        if filename not in self._cache:
+            if len(self._cache) > 8:  # bounded memory: a defect is seen by a few pairs
+                self._cache.pop(next(iter(self._cache)))
+            f = self.frames.get(filename)
+            try:
+                self._cache[filename] = None if f is None else read_gray(f)
+            except FrameReadError as e:
+                log.warning("detection: dense measurement skips %s: %s", filename, e)
+                self._cache[filename] = None
+        return self._cache[filename]
 
 
 def measure_defect_dense(
-    poly: Any,
-    ctx: DenseContext,
-    cfg: Any,
-    rim_floor_m: float,
-    max_depth_m: float = 0.25,
-    workers: int = 1,
+    poly: Any, ctx: DenseContext, cfg: Any, rim_floor_m: float, max_depth_m: float = 0.25
 ) -> DenseMeasure | None:
     """Dense measurement of the defect inside ``poly`` from every pair whose sparse points
     reach it (``measure_dense`` per pair, ``combine_dense`` over them); None when no pair gives
-    a dense reading. The caller checks ``coverage`` (a partial reading may miss the bottom).
-    The pairs are measured by ``workers`` threads (Lucas-Kanade releases the GIL) and combined
-    in pair order, so the result does not depend on the count."""
+    a dense reading. The caller checks ``coverage`` (a partial reading may miss the bottom)."""
     from shapely import contains_xy
 
-    from roadsurf.parallel import ordered_map
-
     x0, y0, x1, y1 = poly.bounds
-    seeing = []
+    got: list[PairDense] = []
     for k, xy, road in ctx.pair_grid:
         near = (xy[:, 0] >= x0) & (xy[:, 0] <= x1) & (xy[:, 1] >= y0) & (xy[:, 1] <= y1)
-        if near.sum() >= 3 and contains_xy(poly, xy[near, 0], xy[near, 1]).any():
-            seeing.append((k, xy, road))
-
-    def one(item: tuple[int, np.ndarray, np.ndarray]) -> tuple[Any, PairDense | None]:
-        k, xy, road = item
+        if near.sum() < 3 or not contains_xy(poly, xy[near, 0], xy[near, 1]).any():
+            continue
         p = ctx.pairs[k]
         ga, gb = ctx.gray(p.frame_a), ctx.gray(p.frame_b)
         if ga is None or gb is None:
-            return p, None
+            continue
         # Level on the dense ring and the pair's sparse road points: a pair seeing part of a
         # large defect sees part of its ring only, the sparse road spans its whole overlap.
         pair_road = np.asarray(p.points_cam_a_m, float)[road]
-        return p, measure_dense(
+        m = measure_dense(
             poly, ga, gb, p, xy, road, ctx.camera,
             ring_m=cfg.ring_m, edge_m=cfg.edge_m, step_px=cfg.step_px, window_px=cfg.window_px,
             road_cam_m=pair_road, max_depth_m=max_depth_m,
         )  # fmt: skip
-
-    got: list[PairDense] = []
-    for p, m in ordered_map(one, seeing, workers if len(seeing) > 1 else 1):
         if m is not None:
             log.debug(
                 "detection: dense pair %s-%s: %d tracks, depth %.1f..%.1f mm, noise %.2f mm",

@@ -102,7 +102,7 @@ def run(
             t0 = time.perf_counter()
             seg = segment_windows(
                 surface, cfg.map, seeds_xy, ev_xy, ev_pair,
-                min_points=cfg.map.min_support_points if per_pair else 1, workers=cfg.workers,
+                min_points=cfg.map.min_support_points if per_pair else 1,
             )  # fmt: skip
             steps_s["windows"] = time.perf_counter() - t0
             if cfg.rut.enabled:
@@ -370,7 +370,7 @@ def _measure_regions(
             from detection.dense import measure_defect_dense
 
             dm = measure_defect_dense(
-                poly, dense, cfg.dense, mc.rim_threshold_m, cfg.plane.max_depth_m, cfg.workers
+                poly, dense, cfg.dense, mc.rim_threshold_m, cfg.plane.max_depth_m
             )
             if dm is not None and dm.coverage < cfg.dense.min_coverage:
                 dm, part = None, dm  # too partial to measure the defect by; see below
@@ -846,8 +846,7 @@ def _signature(
 ) -> str:
     """Hash of everything the outputs depend on (config, pairs, poses, raster, CNN scores)."""
     h = hashlib.sha256()
-    keep = {k: v for k, v in to_dict(cfg).items() if k != "workers"}  # never changes a result
-    h.update(json.dumps(keep, sort_keys=True).encode())
+    h.update(json.dumps(to_dict(cfg), sort_keys=True).encode())
     for p in pairs:
         h.update(f"{p.frame_a}|{p.frame_b}|{p.status}|{p.n_points}|{p.method}".encode())
         if p.n_points:

@@ -161,18 +161,13 @@ def segment_windows(
     evidence_xy_m: np.ndarray | None = None,
     evidence_pair: np.ndarray | None = None,
     min_points: int = 1,
-    workers: int = 1,
 ) -> Segmentation:
     """Segment the windows around the seed points and merge the regions into one
     ``Segmentation`` on the full grid (rows/cols in the full grid; ``smoothed`` is empty).
 
     noise_m / seed_m of the result are the medians over the windows; each region keeps its own
-    window's values (``Region.noise_m``, ``Region.seed_m``). Windows are read on the calling
-    thread (a raster dataset is not shared across threads), segmented by ``workers`` threads
-    and merged in window order, so the result does not depend on the count.
+    window's values (``Region.noise_m``, ``Region.seed_m``).
     """
-    from roadsurf.parallel import ordered_map
-
     grid = source.grid
     # The margin must hold enough road for the re-levelling window, or a wide defect filling
     # the window would become its own road level.
@@ -184,11 +179,10 @@ def segment_windows(
     pad = int(math.ceil(cfg.point_support_radius_m / grid.gsd_m)) + 1
     regions: list[Region] = []
     noises, seeds = [], []
-
-    def one(item: tuple[Window, np.ndarray]) -> tuple[np.ndarray, Segmentation] | None:
-        win, data = item
+    for win in windows:
+        data = source.read(win.r0, win.c0, win.h, win.w)
         if not np.isfinite(data).any():
-            return None
+            continue
         wgrid = GridSpec(
             grid.crs,
             grid.x0_m + win.c0 * grid.gsd_m,
@@ -205,13 +199,8 @@ def segment_windows(
                 & (ev_rc[:, 1] >= win.c0 - pad)
                 & (ev_rc[:, 1] < win.c0 + win.w + pad)
             )
-        return sel, segment(Surface(data, wgrid, source.source), cfg, ev_xy[sel], ev_pair[sel])
-
-    reads = ((win, source.read(win.r0, win.c0, win.h, win.w)) for win in windows)
-    for done in ordered_map(one, reads, workers if len(windows) > 1 else 1):
-        if done is None:
-            continue
-        sel, seg = done
+        seg = segment(Surface(data, wgrid, source.source), cfg, ev_xy[sel], ev_pair[sel])
+        del data
         if not np.isfinite(seg.noise_m):
             continue
         noises.append(seg.noise_m)

@@ -128,24 +128,3 @@ def test_refined_masks_are_written_per_frame(tmp_path):
     # The pothole is seen in frames 2 and 3 (as in test_stage); the lane marking never counts.
     assert area["000002"] > 0 and area["000003"] > 0
     assert area["000000"] == 0 and area["000001"] == 0
-
-
-def test_window_and_dense_threads_do_not_change_the_result(tmp_path, caplog):
-    """Windows are segmented, and each defect's pairs measured densely, by ``workers``
-    threads, merged in order: the defects are identical for any thread count."""
-    scene = Scene(
-        potholes=[Pothole(0.15, 0.9, 0.15, 0.045), Pothole(-0.25, 0.3, 0.1, 0.03)],
-        troughs=[Trough(-0.3, 0.2, -0.3, 1.9, 0.25, 0.018)],
-    )
-    small_map = dataclasses.replace(CFG.map, window_core_m=0.15, window_margin_m=0.1)
-    runs = []
-    for workers in (1, 3):
-        cfg = dataclasses.replace(CFG, map=small_map, workers=workers)
-        with caplog.at_level("INFO", logger="detection.windows"):
-            runs.append(_surface_run(tmp_path / f"w{workers}", scene, cfg))
-    assert "window(s)" in caplog.text and " 1 window(s)" not in caplog.text
-    one, three = runs
-    assert len(one.defects) >= 2 and one.table() == three.table()
-    for a, b in zip(one.defects, three.defects, strict=True):
-        assert np.array_equal(a.outline_xy_m, b.outline_xy_m)
-        assert (a.max_depth_m, a.area_m2, a.volume_m3) == (b.max_depth_m, b.area_m2, b.volume_m3)
