@@ -295,3 +295,60 @@ def test_highpass_input_ignores_smooth_illumination_and_round_trips(tmp_path: Pa
     assert net2.highpass_frac == 0.15 and torch.equal(net(x1), net2(x1))
     with pytest.raises(RoadsurfError):
         DefectNet(64, highpass_frac=2.0)
+
+
+def test_frame_prefetch_keeps_order_reports_bad_frames_and_errors(tmp_path: Path) -> None:
+    """The screening input threads: inputs in capture order, equal to the direct preparation, an
+    unreadable frame as its error, an error in listing the frames raised to the consumer, and
+    the worker's side of it (model header, input threads) imports no torch."""
+    import subprocess
+    import sys
+
+    from detection.classifier.modelfile import read_metadata
+    from detection.classifier.screen_input import FramePrefetch, frame_input
+
+    rng = np.random.default_rng(3)
+    (tmp_path / "f").mkdir()
+    frames = []
+    for i in range(7):
+        p = tmp_path / "f" / f"{i}.png"
+        cv2.imwrite(str(p), cv2.cvtColor(road_image(rng, i % 3 == 0, 80), cv2.COLOR_GRAY2BGR))
+        frames.append(Frame(i, p.name, p, 0.1 * i))
+    bad = tmp_path / "f" / "bad.png"
+    bad.write_bytes(b"not a png")
+    frames.insert(3, Frame(9, bad.name, bad, 0.25))
+    pre = FramePrefetch(lambda: frames, 64, 48, workers=2, ahead=2)
+    got = list(pre)
+    pre.close()
+    assert pre.frames() == frames and [f for f, _ in got] == frames
+    for fr, x in got:
+        if fr.path == bad:
+            assert isinstance(x, RoadsurfError)
+        else:
+            assert x.shape == (48, 48) and np.array_equal(x, frame_input(fr, 64, 48))
+
+    def broken() -> list[Frame]:
+        raise RoadsurfError("no frames here")
+
+    pre = FramePrefetch(broken, 64, 48, workers=2, ahead=2)
+    with pytest.raises(RoadsurfError, match="no frames here"):
+        pre.frames()
+    with pytest.raises(RoadsurfError, match="no frames here"):
+        list(pre)
+    # a consumer that stops early does not leave the threads blocked
+    pre = FramePrefetch(frames, 64, 48, workers=2, ahead=1)
+    next(iter(pre))
+    pre.close()
+    assert not pre._thread.is_alive()
+
+    path = save_model(tmp_path / "m", DefectNet(64).eval(), {"store_size_px": 80})
+    assert read_metadata(tmp_path / "m")[1]["input_size_px"] == 64
+    code = (
+        "import sys\n"
+        "from detection.classifier.modelfile import read_metadata\n"
+        "import detection.classifier.screen_input, detection.classifier.screen_job\n"
+        f"read_metadata({str(path)!r})\n"
+        "print('torch' in sys.modules)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
