@@ -11,16 +11,14 @@ import json
 import logging
 import math
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
+
+import torch
 
 from detection.classifier.config import CLASS_NAMES
+from detection.classifier.network import DefectNet
 from roadsurf.errors import ModelFileError
 from roadsurf.io import atomic_path, write_json_atomic
-
-if TYPE_CHECKING:
-    import torch
-
-    from detection.classifier.network import DefectNet
 
 log = logging.getLogger(__name__)
 
@@ -52,7 +50,6 @@ def save_model(out: str | Path, net: DefectNet, meta: dict[str, Any]) -> Path:
 
     ``meta`` must be JSON-serialisable; the architecture fields are added here.
     """
-    import torch
     from safetensors.torch import save_file
 
     out = Path(out)
@@ -77,12 +74,14 @@ def save_model(out: str | Path, net: DefectNet, meta: dict[str, Any]) -> Path:
     return path
 
 
-def read_metadata(model: str | Path) -> tuple[Path, dict[str, Any]]:
-    """(weights path, metadata) of a model folder or ``.safetensors`` file, without torch and
-    without reading the weights (the screening worker sizes its inputs with it while torch
-    imports). Raises ``ModelFileError`` naming the file and saying what to do when it is
-    missing, unreadable, or of another format or class order."""
-    from safetensors import SafetensorError, safe_open
+def load_model(model: str | Path, device: torch.device | str = "cpu") -> tuple[DefectNet, dict]:
+    """Load a model folder or ``.safetensors`` file -> (net in eval mode, metadata).
+
+    Raises ``ModelFileError`` naming the file and saying what to do when it is missing, corrupt
+    or incompatible with this version of roadsurf.
+    """
+    from safetensors import SafetensorError
+    from safetensors.torch import load_file
 
     path = model_weights_path(model)
     if not path.is_file():
@@ -91,10 +90,16 @@ def read_metadata(model: str | Path) -> tuple[Path, dict[str, Any]]:
             "and pass the MODEL folder (or its model.safetensors)."
         )
     try:
-        with safe_open(str(path), framework="numpy") as f:
+        from safetensors import safe_open
+
+        with safe_open(str(path), framework="pt") as f:
             header = f.metadata() or {}
+        tensors = load_file(str(path), device="cpu")
     except (SafetensorError, OSError, ValueError, RuntimeError) as e:
-        raise _corrupt(path, e) from e
+        raise ModelFileError(
+            f"{path}: not a readable safetensors model file ({e}). The file is corrupt or "
+            "truncated; retrain with `roadsurf train` or copy the file again."
+        ) from e
     try:
         meta = json.loads(header["roadsurf"])
     except (KeyError, json.JSONDecodeError) as e:
@@ -112,32 +117,6 @@ def read_metadata(model: str | Path) -> tuple[Path, dict[str, Any]]:
             f"{path}: class order {meta.get('class_names')} differs from {list(CLASS_NAMES)}; "
             "retrain the model."
         )
-    return path, meta
-
-
-def _corrupt(path: Path, e: Exception) -> ModelFileError:
-    return ModelFileError(
-        f"{path}: not a readable safetensors model file ({e}). The file is corrupt or "
-        "truncated; retrain with `roadsurf train` or copy the file again."
-    )
-
-
-def load_model(model: str | Path, device: torch.device | str = "cpu") -> tuple[DefectNet, dict]:
-    """Load a model folder or ``.safetensors`` file -> (net in eval mode, metadata).
-
-    Raises ``ModelFileError`` naming the file and saying what to do when it is missing, corrupt
-    or incompatible with this version of roadsurf.
-    """
-    from safetensors import SafetensorError
-    from safetensors.torch import load_file
-
-    from detection.classifier.network import DefectNet
-
-    path, meta = read_metadata(model)
-    try:
-        tensors = load_file(str(path), device="cpu")
-    except (SafetensorError, OSError, ValueError, RuntimeError) as e:
-        raise _corrupt(path, e) from e
     arch = meta.get("architecture", {})
     try:
         net = DefectNet(

@@ -3,21 +3,22 @@
 from __future__ import annotations
 
 import logging
+import os
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
 from tqdm import tqdm
 
 from detection.classifier.config import ClassifierConfig
+from detection.classifier.dataset import thumbnail, to_input
 from detection.classifier.modelfile import load_model
 from detection.classifier.network import pick_device
-from detection.classifier.screen_input import FramePrefetch, model_input_sizes, screen_threads
-from roadsurf.drive import Drive, Frame, load_drive
+from roadsurf.drive import Drive, Frame, load_drive, read_image
 from roadsurf.errors import RoadsurfError
+from roadsurf.parallel import ordered_map
 
 log = logging.getLogger(__name__)
 
@@ -44,14 +45,14 @@ def screen_drive(
 
 def screen_frames(
     model_path: str | Path,
-    frames: Sequence[Frame] | Callable[[], Sequence[Frame]] | FramePrefetch,
+    frames: Sequence[Frame] | Callable[[], Sequence[Frame]],
     cfg: ClassifierConfig | None = None,
     *,
     progress: bool = True,
 ) -> dict[str, float]:
     """``screen_drive`` on frames in capture order -> {filename: p_defect}. ``frames`` may be
-    a callable, called once the model is loaded, or a ``FramePrefetch`` already preparing them
-    (the screening worker process starts one before it imports torch)."""
+    a callable, called once the model is loaded (the screening worker process loads the model
+    while its parent is still reading the drive)."""
     cfg = cfg or ClassifierConfig()
     threads = screen_threads(cfg)
     before = torch.get_num_threads()
@@ -63,45 +64,29 @@ def screen_frames(
         torch.set_num_threads(before)
 
 
+def screen_threads(cfg: ClassifierConfig) -> int:
+    """torch threads for screening: ``screen_num_threads`` capped at the usable cores, else
+    ``num_threads`` (0 = torch's default)."""
+    if cfg.screen_num_threads > 0:
+        try:
+            cores = len(os.sched_getaffinity(0))
+        except AttributeError:  # not on Linux
+            cores = os.cpu_count() or 1
+        return max(1, min(int(cfg.screen_num_threads), cores))
+    return max(0, int(cfg.num_threads))
+
+
 def _screen(
     model_path: str | Path,
-    frames_in: Sequence[Frame] | Callable[[], Sequence[Frame]] | FramePrefetch,
+    frames_or_get: Sequence[Frame] | Callable[[], Sequence[Frame]],
     cfg: ClassifierConfig,
     progress: bool,
 ) -> dict[str, float]:
     device = pick_device(cfg.device)
     net, meta = load_model(model_path, device)
-    sizes = model_input_sizes(meta, cfg)
-    pre = frames_in if isinstance(frames_in, FramePrefetch) else None
-    if pre is not None and pre.sizes != sizes:  # the model file changed since it was started
-        log.warning("screening: the model's input sizes changed; preparing the frames again")
-        pre.close()
-        pre = None
-        frames_in = frames_in.frames()
-    if pre is None:
-        # frames are decoded and thumbnailed by threads (OpenCV releases the GIL) up to two
-        # batches ahead of the network, so decoding overlaps inference; memory stays bounded
-        pre = FramePrefetch(
-            frames_in,  # type: ignore[arg-type]
-            *sizes,
-            workers=max(1, screen_threads(cfg)),
-            ahead=2 * max(1, cfg.screen_batch_size),
-        )
-    try:
-        return _run_net(net, pre, device, cfg, progress, model_path)
-    finally:
-        pre.close()
-
-
-def _run_net(
-    net: Any,
-    pre: FramePrefetch,
-    device: Any,
-    cfg: ClassifierConfig,
-    progress: bool,
-    model_path: str | Path,
-) -> dict[str, float]:
-    frames = pre.frames()
+    frames = list(frames_or_get() if callable(frames_or_get) else frames_or_get)
+    store = int(meta.get("store_size_px", cfg.store_size_px))
+    side = int(meta["input_size_px"])
     t0 = time.perf_counter()
     out: dict[str, float] = {}
     names: list[str] = []
@@ -117,9 +102,19 @@ def _run_net(
         names.clear()
         batch.clear()
 
+    def prepare(fr: Frame) -> np.ndarray | RoadsurfError:
+        try:
+            return to_input(thumbnail(read_image(fr), store), side)
+        except RoadsurfError as e:
+            return e
+
+    # frames are decoded and thumbnailed by worker threads (OpenCV releases the GIL) up to two
+    # batches ahead of the network, so decoding overlaps inference; memory stays bounded
+    workers = max(1, screen_threads(cfg))
+    ahead = 2 * max(1, cfg.screen_batch_size)
     bar = tqdm(total=len(frames), desc="CNN screening", unit="frame", disable=not progress)
     with bar:
-        for fr, x in pre:
+        for fr, x in zip(frames, ordered_map(prepare, frames, workers, ahead), strict=True):
             bar.update(1)
             if isinstance(x, RoadsurfError):
                 log.warning("%s: not screened (%s)", fr.path, x)

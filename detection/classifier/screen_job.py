@@ -8,9 +8,7 @@ process of a fused run never imports torch.
 
 The worker is ``python -m detection.classifier.screen_job RESULT HEADER``: the header (JSON:
 model path, classifier settings) comes on the command line, so the worker imports torch and
-loads the model at once; the frames follow on stdin when the pipeline has read the drive.
-Threads decode and thumbnail them while torch imports (``screen_input.FramePrefetch``, sized
-from the model file's header), so the net starts on ready inputs. It
+loads the model at once; the frames follow on stdin when the pipeline has read the drive. It
 logs and shows its progress bar on the shared stderr, and writes
 ``{"probs": {filename: p_defect}}`` or ``{"error": {...}}`` to the result file the parent
 names. ``ScreeningJob.result`` raises an error as the same exception class (a corrupt model
@@ -31,8 +29,6 @@ from pathlib import Path
 from typing import Any
 
 from detection.classifier.config import ClassifierConfig
-from detection.classifier.modelfile import read_metadata
-from detection.classifier.screen_input import FramePrefetch, model_input_sizes, screen_threads
 from roadsurf import errors
 from roadsurf.config import from_dict, to_dict
 from roadsurf.drive import Frame
@@ -48,8 +44,6 @@ _ERRORS: dict[str, type[RoadsurfError]] = {
     if isinstance(c, type) and issubclass(c, RoadsurfError)
 }
 _LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
-# frames the worker prepares ahead of the net while torch imports (96 px inputs: 9 kB each)
-PREFETCH_FRAMES = 4096
 
 
 class ScreeningJob:
@@ -147,19 +141,10 @@ def _work(out: Path, header: dict[str, Any]) -> int:
         return [Frame(int(i), str(fn), Path(p), float(t)) for i, fn, p, t in rows]
 
     try:
-        cfg = from_dict(ClassifierConfig, header["config"], "classifier")
-        # the model's input sizes come from its header (no torch): the frames are decoded and
-        # thumbnailed by threads while torch imports, and a bad model file is reported at once
-        _, meta = read_metadata(header["model"])
-        pre = FramePrefetch(
-            frames,
-            *model_input_sizes(meta, cfg),
-            workers=max(1, screen_threads(cfg)),
-            ahead=PREFETCH_FRAMES,
-        )
-        from detection.classifier.screen import screen_frames  # imports torch
+        from detection.classifier.screen import screen_frames
 
-        probs = screen_frames(header["model"], pre, cfg, progress=bool(header["progress"]))
+        cfg = from_dict(ClassifierConfig, header["config"], "classifier")
+        probs = screen_frames(header["model"], frames, cfg, progress=bool(header["progress"]))
     except RoadsurfError as e:
         write_json_atomic(out, {"error": {"type": type(e).__name__, "message": str(e)}})
         return 2
