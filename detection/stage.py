@@ -21,7 +21,9 @@ import hashlib
 import json
 import logging
 import math
+import threading
 import time
+from collections import OrderedDict
 from pathlib import Path
 from typing import Any
 
@@ -42,6 +44,7 @@ from reconstruction.types import PairResult
 from roadsurf.config import to_dict
 from roadsurf.drive import Drive, read_gray
 from roadsurf.errors import FrameReadError
+from roadsurf.parallel import ordered_map
 
 log = logging.getLogger(__name__)
 
@@ -195,36 +198,52 @@ def analyse_pairs(
     frames = {f.filename: f for f in drive.frames}
     out: dict[int, PairDefects] = {}
     ok = [(k, p) for k, p in enumerate(pairs) if p.ok]
-    cache: dict[str, np.ndarray | None] = {}  # consecutive pairs share a frame: b, then a
+    workers = max(1, int(cfg.pair_workers))
+    # consecutive pairs share a frame (b, then a); each thread is a pair or two apart
+    cache: OrderedDict[str, np.ndarray | None] = OrderedDict()
+    lock = threading.Lock()
 
     def image(fn: str) -> np.ndarray | None:
-        if fn not in cache:
-            if len(cache) >= 2:
-                cache.pop(next(iter(cache)))
-            try:
-                cache[fn] = read_gray(frames[fn]) if fn in frames else None
-            except FrameReadError as e:
-                log.warning("detection: %s; pair %s uses 3D only", e, fn)
-                cache[fn] = None
-        return cache[fn]
+        with lock:
+            if fn in cache:
+                return cache[fn]
+        try:  # decoded outside the lock: two threads may read one frame, never a wrong one
+            img = read_gray(frames[fn]) if fn in frames else None
+        except FrameReadError as e:
+            log.warning("detection: %s; pair %s uses 3D only", e, fn)
+            img = None
+        with lock:
+            cache[fn] = img
+            while len(cache) > 2 * workers + 2:
+                cache.popitem(last=False)
+        return img
 
-    for k, p in tqdm(ok, desc="detection: pairs", unit="pair", disable=len(ok) < 20):
+    def one(kp: tuple[int, PairResult]) -> PairDefects | None:
+        _, p = kp
         gray = gray_b = None
         if cfg.use_images and cfg.refine.enabled:
             gray = image(p.frame_a)
             # Image b only for the dense crack depth (parallax across each crack).
             if gray is not None and cfg.crack.enabled and cfg.crack.dense:
                 gray_b = image(p.frame_b)
-        res = analyse_pair(
+        return analyse_pair(
             p, gray, cfg, m_per_px=drive.camera.height_m / drive.camera.fx,
             gray_b=gray_b, camera=drive.camera,
         )  # fmt: skip
-        if res is None:
-            continue
-        if masks_dir is not None and res.mask is not None:
-            _write_mask(Path(masks_dir) / f"{Path(res.frame_a).stem}.png", res.mask)
-        res.mask = None  # bounded memory: one image mask at a time
-        out[k] = res
+
+    # pairs are independent: threads analyse them (NumPy and OpenCV release the GIL), and the
+    # results are taken in pair order, so they are the same on any thread count
+    results = ordered_map(one, ok, workers)
+    bar = tqdm(total=len(ok), desc="detection: pairs", unit="pair", disable=len(ok) < 20)
+    with bar:
+        for (k, _), res in zip(ok, results, strict=True):
+            bar.update(1)
+            if res is None:
+                continue
+            if masks_dir is not None and res.mask is not None:
+                _write_mask(Path(masks_dir) / f"{Path(res.frame_a).stem}.png", res.mask)
+            res.mask = None  # bounded memory: a few image masks at a time
+            out[k] = res
     return out
 
 

@@ -258,3 +258,40 @@ def _write_map_points(run_dir, xy, res_m):
         residual_m=res_m,
         frame_index=np.zeros(len(xy), int),
     )
+
+
+def test_pairs_analysed_by_threads_match_one_thread(tmp_path):
+    """analyse_pairs on 1 and 3 threads: the same refined points, distances, scores, cracks and
+    mask files, in pair order; an unreadable frame leaves its pairs to 3D only on both."""
+    from detection.pairs import PairDefects
+
+    scene = Scene(
+        potholes=[Pothole(0.1, 1.0, 0.15, 0.030), Pothole(-0.1, 2.0, 0.1, 0.02)],
+        troughs=[Trough(-0.2, 0.4, -0.2, 2.6, 0.3, 0.012)],
+        shadow_x_m=0.3,
+    )
+    drive, pairs, _ = build(scene, tmp_path / "drive", n_frames=8)
+    (tmp_path / "drive" / "frames" / "000005.png").write_bytes(b"not a png")
+
+    def analyse(workers: int) -> tuple[dict[int, PairDefects], dict[str, bytes]]:
+        masks = tmp_path / f"masks{workers}"
+        masks.mkdir()
+        out = stage.analyse_pairs(
+            dataclasses.replace(CFG, pair_workers=workers), drive, pairs, masks
+        )
+        return out, {p.name: p.read_bytes() for p in sorted(masks.iterdir())}
+
+    one, masks1 = analyse(1)
+    three, masks3 = analyse(3)
+    assert list(one) == list(three) == sorted(one) and len(one) == len(pairs)
+    assert masks1 == masks3 and len(masks1) >= 4
+    for k in one:
+        a, b = one[k], three[k]
+        assert np.array_equal(a.refined, b.refined) and np.array_equal(a.dist_m, b.dist_m)
+        assert (a.score, a.threshold_m, a.deep_area_m2) == (b.score, b.threshold_m, b.deep_area_m2)
+        assert (a.cracks is None) == (b.cracks is None)
+        if a.cracks is not None:
+            for f in dataclasses.fields(a.cracks):
+                va, vb = getattr(a.cracks, f.name), getattr(b.cracks, f.name)
+                assert (va is None and vb is None) or np.array_equal(va, vb), f.name
+    assert any(one[k].refined.any() for k in one)
