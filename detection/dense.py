@@ -134,6 +134,7 @@ def measure_dense(
     window_px: int = 15,
     road_cam_m: np.ndarray | None = None,
     max_depth_m: float = 0.25,
+    patch_window_m: float = 0.04,
 ) -> PairDense | None:
     """Dense depths of the defect inside ``poly`` (shapely Polygon, grid frame) seen by ``pair``.
 
@@ -142,6 +143,8 @@ def measure_dense(
     sparse points in the grid frame (they place the outline in image a); ``road`` (N,): which
     of them are road. Only the part of the defect inside both images is measured. None when
     too few tracks survive or the visible road ring is too small to level against.
+    ``patch_window_m``: the window (m on the road) of the island / deep-patch check
+    (``_no_deep_patch``).
     """
     from shapely import contains_xy
 
@@ -211,10 +214,14 @@ def measure_dense(
     # with their neighbours on the tracking grid: a real surface is continuous at 2 px.
     ok &= np.abs(d) <= max_depth_m
     ok &= _consistent(d, ok, use, U.shape, noise)
+    # A small patch of tracks that slid together agrees with itself in the 5 x 5 check; against
+    # the road around it (patch_window_m) it stands out as a narrow, far deeper hole.
+    spacing = float(np.sqrt(np.median(_cell_area(g, U.shape)[use])))
+    half = int(np.clip(round(patch_window_m / max(spacing, 1e-6) / 2), 2, 10))
+    ok &= _no_deep_patch(d, ok, use, U.shape, noise, half)
     road_ok = ok & ring_u
     if road_ok.sum() < 30 or (ok & ins_u).sum() < 10:
         return _none("too few consistent tracks")
-    spacing = float(np.sqrt(np.median(_cell_area(g, U.shape)[use])))
     sel = ok & ins_u
     return PairDense(gi[sel], d[sel], spacing, noise)
 
@@ -312,6 +319,62 @@ def _consistent(
     tol = np.maximum(np.maximum(6.0 * noise_m, 0.005), 0.25 * np.abs(med))
     # Needs a few neighbours to judge; an isolated track has no support either way.
     return (n >= 5) & (np.abs(d - med) <= tol)
+
+
+def _no_deep_patch(
+    d: np.ndarray,
+    ok: np.ndarray,
+    use: np.ndarray,
+    shape: tuple[int, int],
+    noise_m: float,
+    half: int,
+    min_support: float = 0.2,
+) -> np.ndarray:
+    """(K,) mask over the used tracks, judged in a (2 half + 1)² window of the tracking grid:
+    False for a track
+
+    - in an island: fewer than ``min_support`` of the window's tracked pixels kept a valid
+      track. Where LK failed around it (motion blur, a steep wall's occlusion), the few tracks
+      that survived slid there together and agree with each other, not with the road;
+    - or deeper than the 75th percentile of the window's valid tracks by more than
+      max(6 σ, 5 mm, 25 %): a patch of wrong tracks covering less than a quarter of the window
+      cannot move that percentile. A pothole floor wider than that sets it, so the floor stays,
+      also next to a vertical wall.
+
+    Only the deep side is judged, from 5 mm down (a deep patch sets the max depth; a shallow
+    one is bounded by the rim). Losing a low-texture floor to the island rule leaves a partial reading, and the
+    sparse points measure it instead: shallow, never invented depth."""
+    grid = np.full(shape[0] * shape[1], np.nan)
+    idx = np.flatnonzero(use)
+    grid[idx[ok]] = d[ok]
+    G = grid.reshape(shape)
+    w = 2 * half + 1
+
+    def box(m: np.ndarray) -> np.ndarray:  # window sums, zero outside the grid
+        return cv2.boxFilter(m, -1, (w, w), normalize=False, borderType=cv2.BORDER_CONSTANT)
+
+    used = np.zeros(shape[0] * shape[1], np.float32)
+    used[idx] = 1.0
+    n_used = box(used.reshape(shape)).ravel()[idx]
+    n_ok = box(np.isfinite(G).astype(np.float32)).ravel()[idx]
+    island = ok & (n_ok < min_support * np.maximum(n_used, 1.0))
+    # The percentile only for tracks that could fail it (tol >= 5 mm), on at most 11 x 11
+    # samples of the window (a stride on wide windows): a sort per track is the cost here.
+    cand = np.flatnonzero(ok & ~island & (d > 0.005))
+    deep = np.zeros(len(idx), bool)
+    if len(cand):
+        step = max(1, int(round(half / 5)))
+        pad = np.pad(G, half, constant_values=np.nan)
+        win = np.lib.stride_tricks.sliding_window_view(pad, (w, w))[:, :, ::step, ::step]
+        rc = np.unravel_index(idx[cand], shape)
+        v = win[rc[0], rc[1]].reshape(len(cand), -1)
+        n = np.isfinite(v).sum(axis=-1)
+        srt = np.sort(np.where(np.isfinite(v), v, np.inf), axis=-1)  # NaN last
+        q = srt[np.arange(len(srt)), np.maximum(np.floor(0.75 * (n - 1)).astype(int), 0)]
+        tol = np.maximum(np.maximum(6.0 * noise_m, 0.005), 0.25 * np.abs(q))
+        deep[cand] = (n >= 8) & (d[cand] > q + tol)
+    bad = island | deep
+    return ~bad
 
 
 def _none(why: str) -> None:
@@ -422,7 +485,7 @@ def measure_defect_dense(
         m = measure_dense(
             poly, ga, gb, p, xy, road, ctx.camera,
             ring_m=cfg.ring_m, edge_m=cfg.edge_m, step_px=cfg.step_px, window_px=cfg.window_px,
-            road_cam_m=pair_road, max_depth_m=max_depth_m,
+            road_cam_m=pair_road, max_depth_m=max_depth_m, patch_window_m=cfg.patch_window_m,
         )  # fmt: skip
         if m is not None:
             log.debug(

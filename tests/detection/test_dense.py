@@ -122,3 +122,48 @@ def test_tracks_that_slid_along_the_epipolar_line_are_dropped():
     assert keep[good].mean() > 0.97
     kept_max = d[keep].max()
     assert kept_max == pytest.approx(0.040, abs=0.004)
+
+
+def test_patches_of_tracks_that_slid_together_are_dropped():
+    """Motion blur along the direction of travel (9 m/s, 2 ms shutter) left patches of 4-12
+    tracks 94-215 mm 'deep' in a 38 mm pothole, where LK failed around them: they agree with
+    each other, so the 5 x 5 neighbour check keeps them, and one set the depth to 122 mm. An island of tracks
+    where LK failed all around, and a small patch far deeper than the valid tracks around it,
+    are dropped; a steep-walled floor and a narrow crack groove stay."""
+    from detection.dense import _consistent, _no_deep_patch
+
+    rng = np.random.default_rng(5)
+    shape = (60, 80)
+    v, u = np.mgrid[: shape[0], : shape[1]]
+    r = np.hypot(u - 40, v - 30) / 20.0
+    # 38 mm flat-floored pothole with near-vertical walls (profile 1 - r^6), a 4 mm deep crack
+    # groove 2 tracks wide across the road beside it, 1 mm noise
+    depth = np.where(r < 1, 0.038 * (1 - r**6), 0.0)
+    depth[:, 4:6] = 0.004
+    depth = depth + rng.normal(0, 0.001, shape)
+    d = depth.ravel().copy()
+    ok = np.ones(d.size, bool)
+    # (a) a 5 x 5 patch of tracks at 120-150 mm inside the floor, among valid tracks
+    patch = np.ravel_multi_index(np.mgrid[28:33, 44:49].reshape(2, -1), shape)
+    d[patch] = rng.uniform(0.12, 0.15, patch.size)
+    # (b) an island: LK failed on a 15 x 15 block of the floor but for 9 tracks at ~140 mm
+    block = np.zeros(shape, bool)
+    block[15:30, 20:35] = True
+    ok[np.flatnonzero(block)] = False
+    island = np.ravel_multi_index(np.mgrid[21:24, 26:29].reshape(2, -1), shape)
+    ok[island] = True
+    d[island] = rng.uniform(0.13, 0.15, island.size)
+    use = np.ones(d.size, bool)
+    keep = ok & _consistent(d, ok, use, shape, 0.001)
+    # the neighbour check alone keeps the patch's core and the whole island
+    assert keep[patch].sum() >= 9 and keep[island].all()
+    keep &= _no_deep_patch(d, keep, use, shape, 0.001, half=6)
+    assert not keep[patch].any()
+    assert not keep[island].any()
+    floor = ok & (r.ravel() < 0.9)
+    floor[patch] = False
+    assert keep[floor].mean() > 0.97  # the floor, walls included, stays
+    groove = np.zeros(shape, bool)
+    groove[:, 4:6] = True
+    assert keep[groove.ravel()].mean() > 0.97
+    assert d[keep].max() == pytest.approx(0.038, abs=0.004)
