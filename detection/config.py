@@ -105,8 +105,9 @@ class DenseConfig:
     rim_noise_k: float = 2.0  # a dense point is in the defect when deeper than k σ_dense (-)
     min_coverage: float = 0.6  # dense depths must cover this share of the outline (0-1)
     max_noise_k: float = 3.0  # a pair's dense road σ above k x the sparse σ: its tracks failed (-)
-    # a track deeper than the 75th percentile of the tracks within this window (by > 6 σ, 5 mm
-    # and 25 %) is a wrong-track patch, not a hole narrower than a quarter of it (m)
+    # wrong-track check window (m): a track is dropped where < 20 % of the window's tracks are
+    # valid (an island), or 6 σ, 5 mm and 25 % deeper than the window's 75th percentile (a
+    # patch narrower than a quarter of it)
     patch_window_m: float = 0.04
     # area at depth 0 (the rim) extrapolated from the areas deeper than 1x and 2x the rim threshold
     area_extrapolate: bool = True

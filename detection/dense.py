@@ -308,10 +308,7 @@ def _consistent(
     """(K,) mask over the used tracks: depth within max(6 σ, 5 mm, 25 %) of the median of its
     valid neighbours in a 5 x 5 window of the tracking grid (``shape``). A steep wall between
     floor and rim may lose a cell or two; the floor and the rim, which set the measures, stay."""
-    grid = np.full(shape[0] * shape[1], np.nan)
-    idx = np.flatnonzero(use)
-    grid[idx[ok]] = d[ok]
-    G = grid.reshape(shape)
+    G, idx = _track_grid(d, ok, use, shape)
     pad = np.pad(G, 2, constant_values=np.nan)
     win = np.lib.stride_tricks.sliding_window_view(pad, (5, 5)).reshape(-1, 25)[idx]
     med = nanmedian_last(win)
@@ -342,12 +339,9 @@ def _no_deep_patch(
       also next to a vertical wall.
 
     Only the deep side is judged, from 5 mm down (a deep patch sets the max depth; a shallow
-    one is bounded by the rim). Losing a low-texture floor to the island rule leaves a partial reading, and the
-    sparse points measure it instead: shallow, never invented depth."""
-    grid = np.full(shape[0] * shape[1], np.nan)
-    idx = np.flatnonzero(use)
-    grid[idx[ok]] = d[ok]
-    G = grid.reshape(shape)
+    one is bounded by the rim). Losing a low-texture floor to the island rule leaves a partial
+    reading, and the sparse points measure it instead: shallow, never invented depth."""
+    G, idx = _track_grid(d, ok, use, shape)
     w = 2 * half + 1
 
     def box(m: np.ndarray) -> np.ndarray:  # window sums, zero outside the grid
@@ -373,8 +367,18 @@ def _no_deep_patch(
         q = srt[np.arange(len(srt)), np.maximum(np.floor(0.75 * (n - 1)).astype(int), 0)]
         tol = np.maximum(np.maximum(6.0 * noise_m, 0.005), 0.25 * np.abs(q))
         deep[cand] = (n >= 8) & (d[cand] > q + tol)
-    bad = island | deep
-    return ~bad
+    return ~(island | deep)
+
+
+def _track_grid(
+    d: np.ndarray, ok: np.ndarray, use: np.ndarray, shape: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray]:
+    """The valid depths on the tracking grid, (H, W) with NaN elsewhere, and the flat grid
+    index of each used track (K,)."""
+    grid = np.full(shape[0] * shape[1], np.nan)
+    idx = np.flatnonzero(use)
+    grid[idx[ok]] = d[ok]
+    return grid.reshape(shape), idx
 
 
 def _none(why: str) -> None:

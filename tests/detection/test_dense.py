@@ -127,9 +127,9 @@ def test_tracks_that_slid_along_the_epipolar_line_are_dropped():
 def test_patches_of_tracks_that_slid_together_are_dropped():
     """Motion blur along the direction of travel (9 m/s, 2 ms shutter) left patches of 4-12
     tracks 94-215 mm 'deep' in a 38 mm pothole, where LK failed around them: they agree with
-    each other, so the 5 x 5 neighbour check keeps them, and one set the depth to 122 mm. An island of tracks
-    where LK failed all around, and a small patch far deeper than the valid tracks around it,
-    are dropped; a steep-walled floor and a narrow crack groove stay."""
+    each other, so the 5 x 5 neighbour check keeps them, and one set the depth to 122 mm. An
+    island of tracks where LK failed all around, and a small patch far deeper than the valid
+    tracks around it, are dropped; a steep-walled floor and a narrow crack groove stay."""
     from detection.dense import _consistent, _no_deep_patch
 
     rng = np.random.default_rng(5)
