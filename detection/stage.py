@@ -21,9 +21,7 @@ import hashlib
 import json
 import logging
 import math
-import threading
 import time
-from collections import OrderedDict
 from pathlib import Path
 from typing import Any
 
@@ -44,7 +42,7 @@ from reconstruction.types import PairResult
 from roadsurf.config import to_dict
 from roadsurf.drive import Drive, read_gray
 from roadsurf.errors import FrameReadError
-from roadsurf.parallel import ordered_map
+from roadsurf.parallel import SharedCache, ordered_map
 
 log = logging.getLogger(__name__)
 
@@ -200,23 +198,17 @@ def analyse_pairs(
     ok = [(k, p) for k, p in enumerate(pairs) if p.ok]
     workers = max(1, int(cfg.pair_workers))
     # consecutive pairs share a frame (b, then a); each thread is a pair or two apart
-    cache: OrderedDict[str, np.ndarray | None] = OrderedDict()
-    lock = threading.Lock()
+    cache: SharedCache[str, np.ndarray | None] = SharedCache(2 * workers + 2)
 
     def image(fn: str) -> np.ndarray | None:
-        with lock:
-            if fn in cache:
-                return cache[fn]
-        try:  # decoded outside the lock: two threads may read one frame, never a wrong one
-            img = read_gray(frames[fn]) if fn in frames else None
-        except FrameReadError as e:
-            log.warning("detection: %s; pair %s uses 3D only", e, fn)
-            img = None
-        with lock:
-            cache[fn] = img
-            while len(cache) > 2 * workers + 2:
-                cache.popitem(last=False)
-        return img
+        def load() -> np.ndarray | None:
+            try:
+                return read_gray(frames[fn]) if fn in frames else None
+            except FrameReadError as e:
+                log.warning("detection: %s; pair %s uses 3D only", e, fn)
+                return None
+
+        return cache.get(fn, load)
 
     def one(kp: tuple[int, PairResult]) -> PairDefects | None:
         _, p = kp

@@ -23,9 +23,7 @@ import hashlib
 import json
 import logging
 import math
-import threading
 import time
-from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -52,7 +50,7 @@ from roadsurf.drive import Camera, Drive, Frame, read_image
 from roadsurf.errors import FrameReadError
 from roadsurf.formats import GridSpec
 from roadsurf.io import atomic_path, read_json, write_json_atomic, write_npz_atomic
-from roadsurf.parallel import ordered_map
+from roadsurf.parallel import SharedCache, ordered_map
 
 log = logging.getLogger(__name__)
 
@@ -417,34 +415,24 @@ def footprint_enu(camera: Camera, W: np.ndarray, road_z: float, n: int = 5) -> n
 
 
 class _ImageCache:
-    """A few decoded (and pyramid-reduced) images; tiles are visited in drive order. Shared by
-    the tile threads: decoding happens outside the lock (two threads may decode the same
-    frame once each, never a wrong one)."""
+    """A few decoded (and pyramid-reduced) images, shared by the tile threads; tiles are
+    visited in drive order."""
 
     def __init__(self, size: int = 12) -> None:
-        self.size = size
-        self._d: OrderedDict[tuple[str, int], np.ndarray | None] = OrderedDict()
-        self._lock = threading.Lock()
+        self._c: SharedCache[tuple[str, int], np.ndarray | None] = SharedCache(size)
 
     def get(self, frame: Frame, level: int) -> np.ndarray | None:
-        k = (frame.filename, level)
-        with self._lock:
-            if k in self._d:
-                self._d.move_to_end(k)
-                return self._d[k]
-        try:
-            img = read_image(frame)
-            for _ in range(level):
-                img = cv2.pyrDown(img)
-        except (FrameReadError, OSError) as e:
-            log.warning("globalmap: %s not used in the mosaic (%s)", frame.filename, e)
-            img = None
-        with self._lock:
-            self._d[k] = img
-            self._d.move_to_end(k)
-            while len(self._d) > self.size:
-                self._d.popitem(last=False)
-        return img
+        def load() -> np.ndarray | None:
+            try:
+                img = read_image(frame)
+                for _ in range(level):
+                    img = cv2.pyrDown(img)
+                return img
+            except (FrameReadError, OSError) as e:
+                log.warning("globalmap: %s not used in the mosaic (%s)", frame.filename, e)
+                return None
+
+        return self._c.get((frame.filename, level), load)
 
 
 def _rasters(

@@ -1,15 +1,18 @@
 """A bounded, ordered thread map for stages whose per-item work is mostly OpenCV/numpy (which
-release the GIL): decoding frames ahead of the CNN, computing raster tiles ahead of the writer."""
+release the GIL): decoding frames ahead of the CNN, computing raster tiles ahead of the writer.
+``SharedCache``: the few decoded frames such threads share."""
 
 from __future__ import annotations
 
-from collections import deque
+import threading
+from collections import OrderedDict, deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
-from typing import Any, TypeVar
+from typing import Any, Generic, TypeVar
 
 T = TypeVar("T")
 R = TypeVar("R")
+K = TypeVar("K")
 _END: Any = object()
 
 
@@ -37,3 +40,27 @@ def ordered_map(
         finally:
             for f in queue:
                 f.cancel()
+
+
+class SharedCache(Generic[K, R]):
+    """The ``size`` most recently used values, shared by threads. ``get`` loads a missing value
+    outside the lock, so one slow decode does not block the other threads; two threads may load
+    the same key once each, never a wrong value."""
+
+    def __init__(self, size: int) -> None:
+        self.size = max(1, int(size))
+        self._d: OrderedDict[K, R] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def get(self, key: K, load: Callable[[], R]) -> R:
+        with self._lock:
+            if key in self._d:
+                self._d.move_to_end(key)
+                return self._d[key]
+        value = load()
+        with self._lock:
+            self._d[key] = value
+            self._d.move_to_end(key)
+            while len(self._d) > self.size:
+                self._d.popitem(last=False)
+        return value

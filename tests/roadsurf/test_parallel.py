@@ -46,3 +46,33 @@ def test_ordered_map_keeps_order_bounds_lookahead_and_raises_in_turn() -> None:
             time.sleep(0.1)
             assert len(started) <= 1 + 3
         assert v == i * i
+
+
+def test_shared_cache_keeps_the_most_recent_values_and_loads_each_once():
+    from roadsurf.parallel import SharedCache
+
+    loads: list[int] = []
+
+    def loader(k: int):
+        def load() -> int:
+            loads.append(k)
+            return k * k
+
+        return load
+
+    c: SharedCache[int, int] = SharedCache(2)
+    assert [c.get(k, loader(k)) for k in (1, 2, 1, 3, 1, 2)] == [1, 4, 1, 9, 1, 4]
+    # 1 stays (used again before 3 came), 2 was evicted by 3 and is loaded again
+    assert loads == [1, 2, 3, 2]
+
+
+def test_shared_cache_under_threads_gives_every_key_its_own_value():
+    from concurrent.futures import ThreadPoolExecutor
+
+    from roadsurf.parallel import SharedCache
+
+    c: SharedCache[int, int] = SharedCache(3)
+    keys = [k % 7 for k in range(500)]
+    with ThreadPoolExecutor(4) as pool:
+        got = list(pool.map(lambda k: c.get(k, lambda: 10 * k), keys))
+    assert got == [10 * k for k in keys]
