@@ -216,8 +216,9 @@ class DetectionConfig:
     dense: DenseConfig = field(default_factory=DenseConfig)
     rut: RutConfig = field(default_factory=RutConfig)
     use_images: bool = True  # read frames for the 2D refinement (False: 3D only)
-    # threads analysing the pairs (plane fit, 2D refinement, cracks; count): results are taken
-    # in pair order, identical on any count
+    # threads analysing the pairs (plane fit, 2D refinement, cracks) and measuring a defect
+    # from the pairs that see it (dense; count): results are taken in pair order, identical
+    # on any count
     pair_workers: int = 2
     # Frame labels: "map" = deep area of vetted map defects in the frame's footprint (default);
     # "pair" = the dissertation's per-pair decision from the refined points alone.

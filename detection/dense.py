@@ -26,6 +26,7 @@ from detection.planefit import nanmedian_last, robust_plane, robust_sigma, signe
 from reconstruction.features import track_forward_backward
 from reconstruction.geometry import normalised_from_px, triangulate
 from roadsurf.drive import Camera
+from roadsurf.parallel import SharedCache, ordered_map
 
 log = logging.getLogger(__name__)
 
@@ -439,6 +440,7 @@ class DenseContext:
         pairs: list[Any],
         pair_grid: list[tuple[int, np.ndarray, np.ndarray]],
         sparse_noise_m: float,
+        workers: int = 1,
     ) -> None:
         self.camera: Camera = drive.camera
         self.frames = {f.filename: f for f in drive.frames}
@@ -447,22 +449,24 @@ class DenseContext:
         # σ of the pairs' sparse road points (median over the run): dense tracks much noisier
         # than the sparse matches of the same images have failed (wrong LK minima).
         self.sparse_noise_m = sparse_noise_m
-        self._cache: dict[str, np.ndarray | None] = {}
+        self.workers = max(1, int(workers))  # threads over the pairs that see one defect
+        # bounded memory: a defect is seen by a few pairs, a neighbour shares their frames
+        self._cache: SharedCache[str, np.ndarray | None] = SharedCache(9)
 
     def gray(self, filename: str) -> np.ndarray | None:
+        """The frame's grey image, or None when it is not in the drive or cannot be read."""
         from roadsurf.drive import read_gray
         from roadsurf.errors import FrameReadError
 
-        if filename not in self._cache:
-            if len(self._cache) > 8:  # bounded memory: a defect is seen by a few pairs
-                self._cache.pop(next(iter(self._cache)))
+        def load() -> np.ndarray | None:
             f = self.frames.get(filename)
             try:
-                self._cache[filename] = None if f is None else read_gray(f)
+                return None if f is None else read_gray(f)
             except FrameReadError as e:
                 log.warning("detection: dense measurement skips %s: %s", filename, e)
-                self._cache[filename] = None
-        return self._cache[filename]
+                return None
+
+        return self._cache.get(filename, load)
 
 
 def measure_defect_dense(
@@ -474,15 +478,18 @@ def measure_defect_dense(
     from shapely import contains_xy
 
     x0, y0, x1, y1 = poly.bounds
-    got: list[PairDense] = []
+    seeing = []
     for k, xy, road in ctx.pair_grid:
         near = (xy[:, 0] >= x0) & (xy[:, 0] <= x1) & (xy[:, 1] >= y0) & (xy[:, 1] <= y1)
-        if near.sum() < 3 or not contains_xy(poly, xy[near, 0], xy[near, 1]).any():
-            continue
+        if near.sum() >= 3 and contains_xy(poly, xy[near, 0], xy[near, 1]).any():
+            seeing.append((k, xy, road))
+
+    def one(item: tuple[int, np.ndarray, np.ndarray]) -> PairDense | None:
+        k, xy, road = item
         p = ctx.pairs[k]
         ga, gb = ctx.gray(p.frame_a), ctx.gray(p.frame_b)
         if ga is None or gb is None:
-            continue
+            return None
         # Level on the dense ring and the pair's sparse road points: a pair seeing part of a
         # large defect sees part of its ring only, the sparse road spans its whole overlap.
         pair_road = np.asarray(p.points_cam_a_m, float)[road]
@@ -497,8 +504,14 @@ def measure_defect_dense(
                 p.frame_a, p.frame_b, len(m.depth_m), 1000 * m.depth_m.min(),
                 1000 * m.depth_m.max(), 1000 * m.noise_m,
             )  # fmt: skip
-        if m is not None and m.noise_m <= cfg.max_noise_k * ctx.sparse_noise_m:
-            got.append(m)
+        return m
+
+    # Pairs are independent and LK releases the GIL; results come back in pair order.
+    got = [
+        m
+        for m in ordered_map(one, seeing, min(ctx.workers, len(seeing)))
+        if m is not None and m.noise_m <= cfg.max_noise_k * ctx.sparse_noise_m
+    ]
     res = combine_dense(
         poly, got, edge_m=cfg.edge_m, rim_k=cfg.rim_noise_k, rim_floor_m=rim_floor_m,
         extrapolate=cfg.area_extrapolate,

@@ -131,7 +131,7 @@ def run(
                 for k, (xy, _) in zip(_pair_keys(per_pair, traj, pose_of), pair_pts, strict=True)
             ]
             sparse_noise = float(np.median([pd.noise_m for pd in per_pair.values()]))
-            dense = DenseContext(drive, pairs, grid, sparse_noise)
+            dense = DenseContext(drive, pairs, grid, sparse_noise, cfg.pair_workers)
         t0 = time.perf_counter()
         defects, deep_xy = _measure_regions(
             cfg,

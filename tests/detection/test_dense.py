@@ -167,3 +167,32 @@ def test_patches_of_tracks_that_slid_together_are_dropped():
     groove[:, 4:6] = True
     assert keep[groove.ravel()].mean() > 0.97
     assert d[keep].max() == pytest.approx(0.038, abs=0.004)
+
+
+def test_dense_reading_on_threads_matches_one_thread(tmp_path):
+    """The pairs that see one defect are measured on threads: 1 and 3 threads give the same
+    reading, and a pair whose frame is missing is skipped on both."""
+    from shapely.geometry import Point
+
+    from detection.dense import DenseContext, measure_defect_dense
+
+    drive, pairs, traj = _scene_and_run(tmp_path)
+    missing = dataclasses.replace(pairs[0], frame_b="not_in_the_drive.png")
+    pairs = [pairs[0], missing, pairs[0], pairs[0]]
+    xy = traj.world_from_cam[0][:2, 3] + pairs[0].points_cam_a_m[:, :2] * [1, -1]
+    road = -pairs[0].plane_dist_m < 0.003
+    grid = [(k, xy, road) for k in range(len(pairs))]
+    poly = Point(0.05, 0.12).buffer(RADIUS_M)
+
+    def reading(workers):
+        ctx = DenseContext(drive, pairs, grid, 0.0005, workers)
+        return measure_defect_dense(poly, ctx, DenseConfig(), 0.002)
+
+    one, three = reading(1), reading(3)
+    assert one is not None and one.max_depth_m == pytest.approx(DEPTH_M, abs=0.003)
+    for f in dataclasses.fields(one):
+        va, vb = getattr(one, f.name), getattr(three, f.name)
+        if isinstance(va, np.ndarray):
+            assert np.array_equal(va, vb, equal_nan=va.dtype.kind == "f"), f.name
+        else:
+            assert va == vb, f.name
