@@ -35,6 +35,7 @@ import logging
 import math
 import time
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from scipy import ndimage
@@ -164,6 +165,26 @@ def _extent(depth: np.ndarray, i: int, t: float) -> tuple[int, int]:
     return lo, hi
 
 
+def _station_axes(
+    gsd_m: float, cfg: RutConfig, sample_m: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """A station's sample offsets (m): across (U,) every max(cell, ``sample_m``) over the
+    straightedge, along (V,) twice that over the strip (every cell when ``sample_m`` is 0)."""
+    gsd = max(gsd_m, sample_m)
+    half = 0.5 * cfg.straightedge_m
+    u = np.arange(-half, half + 1e-9, gsd)
+    v = np.arange(-0.5 * cfg.strip_m, 0.5 * cfg.strip_m + 1e-9, gsd if sample_m <= 0 else 2 * gsd)
+    return u, v
+
+
+def _observed_enough(z: np.ndarray) -> np.ndarray:
+    """(..., V, U) samples -> (...) bool: enough of the profile observed for a station (each
+    profile sample needs 30 % of its strip, and half the samples need that)."""
+    n_obs = np.isfinite(z).sum(axis=-2)
+    v, u = z.shape[-2:]
+    return (n_obs >= max(1, 0.3 * v)).sum(axis=-1) >= 0.5 * u
+
+
 def _station(
     reader: _Reader,
     centre: np.ndarray,
@@ -172,16 +193,17 @@ def _station(
     mc: MapSegmentConfig,
     search_m: float,
     sample_m: float = 0.0,
+    z: np.ndarray | None = None,
 ) -> _Station | None:
     """Transverse profile at ``centre`` across unit direction ``along`` (both (2,) grid m),
-    sampled every max(cell, ``sample_m``) across and twice that along."""
+    sampled every max(cell, ``sample_m``) across and twice that along (``_station_axes``).
+    ``z`` (V, U): those samples when the caller has read them already."""
     gsd = max(reader.grid.gsd_m, sample_m)
     normal = np.array([-along[1], along[0]])
-    half = 0.5 * cfg.straightedge_m
-    u = np.arange(-half, half + 1e-9, gsd)
-    v = np.arange(-0.5 * cfg.strip_m, 0.5 * cfg.strip_m + 1e-9, gsd if sample_m <= 0 else 2 * gsd)
-    pts = centre + u[None, :, None] * normal + v[:, None, None] * along
-    z = reader.sample(pts)  # (V, U)
+    u, v = _station_axes(reader.grid.gsd_m, cfg, sample_m)
+    if z is None:
+        pts = centre + u[None, :, None] * normal + v[:, None, None] * along
+        z = reader.sample(pts)  # (V, U)
     n_obs = np.isfinite(z).sum(axis=0)
     with np.errstate(invalid="ignore"):
         prof = np.nanmean(np.where(n_obs[None, :] > 0, z, 0.0), axis=0)
@@ -646,11 +668,15 @@ def _union(a: RutTrace, b: RutTrace, width: int) -> RutTrace:
     )
 
 
+_BOX = ((-1, -1), (1, -1), (1, 1), (-1, 1))  # a rectangle's corners (across, along) in order
+
+
 def scan_seeds(
     source: WindowSource,
     path_xy_m: np.ndarray,
     cfg: RutConfig,
     mc: MapSegmentConfig,
+    observed: Any = None,
 ) -> list[Region]:
     """Seeds for ruts too shallow to cross T_d anywhere: transverse profiles across the drive.
 
@@ -659,6 +685,9 @@ def scan_seeds(
     same test as a traced station, along the direction of travel: wheel-path ruts run with
     the lane). Troughs found at two consecutive scan lines within ``follow_m`` of each other
     become a thin seed region between them. Returns [] when scanning is off.
+    ``observed``: optional shapely geometry (grid m) outside which the source holds no data
+    (a fused run maps only the stretches it reconstructed); scan lines that miss it are not
+    read.
     """
     path = np.asarray(path_xy_m, float)
     if path.ndim != 2 or path.shape[1] != 2:
@@ -678,13 +707,37 @@ def scan_seeds(
     reader = _Reader(source, half_m=cfg.scan_half_width_m + cfg.straightedge_m + 1.0)
     n_off = int(round(cfg.scan_half_width_m / cfg.follow_m))
     offsets = np.arange(-n_off, n_off + 1) * cfg.follow_m
+    # Coarse samples (1 cm): the scan only finds seeds, the trace measures.
+    u, v = _station_axes(source.grid.gsd_m, cfg, 0.01)
     hits: list[list[np.ndarray]] = []
-    for p, d in zip(pts, tang, strict=True):
-        nrm = np.array([-d[1], d[0]])
+    reach_u = cfg.scan_half_width_m + 0.5 * cfg.straightedge_m + 0.02
+    reach_v = 0.5 * cfg.strip_m + 0.02
+    mapped = np.ones(len(pts), bool)
+    if observed is not None:
+        import shapely
+
+        nrms = np.column_stack([-tang[:, 1], tang[:, 0]])
+        corners = [pts + a * reach_u * nrms + b * reach_v * tang for a, b in _BOX]
+        bands = shapely.polygons(np.stack(corners, axis=1))
+        mapped = shapely.intersects(observed, bands)
+    for p, d, on_map in zip(pts, tang, mapped, strict=True):
         found: list[np.ndarray] = []
-        for o in offsets:
-            # Coarse samples (1 cm): the scan only finds seeds, the trace measures.
-            st = _station(reader, p + o * nrm, d, cfg, mc, search_m=cfg.follow_m, sample_m=0.01)
+        if not on_map:
+            hits.append(found)
+            continue
+        nrm = np.array([-d[1], d[0]])
+        # One read for the whole scan line; stations on unmapped road (most of a fused run's
+        # map) are skipped before any profile work.
+        centres = p + offsets[:, None] * nrm
+        line = centres[:, None, None] + u[None, None, :, None] * nrm + v[None, :, None, None] * d
+        z_line = reader.sample(line)  # (offsets, V, U)
+        enough = _observed_enough(z_line)
+        for k, o in enumerate(offsets):
+            if not enough[k]:
+                continue
+            st = _station(
+                reader, p + o * nrm, d, cfg, mc, search_m=cfg.follow_m, sample_m=0.01, z=z_line[k]
+            )
             if st is None or not st.ok:
                 continue
             c = st.centre + st.centroid_u_m * nrm

@@ -110,7 +110,10 @@ def run(
                 from detection.ruts import scan_seeds, trace_ruts
 
                 path = np.array([np.asarray(fp.centroid.coords[0]) for fp in footprints.values()])
-                seeds = scan_seeds(surface, path.reshape(-1, 2), cfg.rut, cfg.map)
+                seeds = scan_seeds(
+                    surface, path.reshape(-1, 2), cfg.rut, cfg.map,
+                    observed=_mapped_area(surface, pairs, footprints),
+                )  # fmt: skip
                 seg.regions = trace_ruts(
                     surface, seg.regions, cfg.rut, cfg.map, ev_xy, ev_pair, scan_seeds=seeds
                 )
@@ -319,6 +322,18 @@ def _footprints(drive: Drive, traj: Trajectory, mframe: MapFrame) -> dict[str, A
     for j, fn in enumerate(names):
         out[fn] = Polygon(xy[4 * j : 4 * j + 4])
     return out
+
+
+def _mapped_area(surface: WindowSource, pairs: list[PairResult], footprints: dict[str, Any]) -> Any:
+    """Where the map's surface raster can hold data: the footprints of the frames of every pair
+    (the map is made of the pairs' points), grown by 0.5 m for the raster's fill; None (all of
+    it) for a source gridded from other points."""
+    if not isinstance(surface, RasterSource):
+        return None
+    from shapely import unary_union
+
+    frames = {fn for p in pairs for fn in (p.frame_a, p.frame_b)}
+    return unary_union([fp for fn, fp in footprints.items() if fn in frames]).buffer(0.5)
 
 
 def _measure_regions(

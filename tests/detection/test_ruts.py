@@ -159,6 +159,28 @@ def test_the_drive_scan_finds_a_rut_too_shallow_for_any_seed():
         scan_seeds(flat, path.ravel(), CFG.rut, CFG.map)
 
 
+def test_the_scan_reads_only_the_mapped_stretches():
+    """A fused run maps only the stretches it reconstructed: scan lines outside ``observed``
+    are not read, and the seeds are those of the full scan (the unmapped road is NaN)."""
+    from shapely.geometry import box
+
+    path = np.column_stack([np.full(60, 1.0), np.linspace(0.3, 8.7, 60)])
+    res, x, y = _road(seed=4)
+    res = res - _rut(x, y, 0.007, 0.5, 2.0, 7.5, bend_m=0.1)
+    res[(y < 1.0) | (y > 8.0)] = np.nan  # the ends of the drive were not reconstructed
+    full, part = ArraySource(res), ArraySource(res)
+    seeds = scan_seeds(full, path, CFG.rut, CFG.map)
+    mapped = scan_seeds(part, path, CFG.rut, CFG.map, observed=box(0.0, 1.0, 2.0, 8.0))
+    assert seeds and len(mapped) == len(seeds)
+    for a, b in zip(seeds, mapped, strict=True):
+        assert np.array_equal(a.rows, b.rows) and np.array_equal(a.cols, b.cols)
+    assert 0 < part.reads <= full.reads
+    # nothing mapped near the drive: nothing read, no seed
+    far = ArraySource(res)
+    assert scan_seeds(far, path, CFG.rut, CFG.map, observed=box(10.0, 0.0, 11.0, 9.0)) == []
+    assert far.reads == 0
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_tapered_rut_ends_are_extrapolated_to_depth_zero(seed):
     """A 10 mm rut, 5 m long, whose depth ramps up over 0.8 m at each end (smoothstep): the
