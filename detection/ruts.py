@@ -178,8 +178,8 @@ def _station_axes(
 
 
 def _observed_enough(z: np.ndarray) -> np.ndarray:
-    """(..., V, U) samples -> (...) bool: enough of the profile observed for a station (each
-    profile sample needs 30 % of its strip, and half the samples need that)."""
+    """(..., V, U) samples -> (...) bool: enough of the profile observed for a station (a
+    profile sample is observed with 30 % of its strip, and half the samples must be)."""
     n_obs = np.isfinite(z).sum(axis=-2)
     v, u = z.shape[-2:]
     return (n_obs >= max(1, 0.3 * v)).sum(axis=-1) >= 0.5 * u
@@ -204,13 +204,13 @@ def _station(
     if z is None:
         pts = centre + u[None, :, None] * normal + v[:, None, None] * along
         z = reader.sample(pts)  # (V, U)
+    if not _observed_enough(z):
+        return None
     n_obs = np.isfinite(z).sum(axis=0)
     with np.errstate(invalid="ignore"):
         prof = np.nanmean(np.where(n_obs[None, :] > 0, z, 0.0), axis=0)
     prof[n_obs < max(1, 0.3 * len(v))] = np.nan
     valid = np.isfinite(prof)
-    if valid.sum() < 0.5 * len(u):
-        return None
     # Robust straightedge line: points well below it (the trough) or above it are left out.
     # It starts on the upper half of the profile, like a straightedge resting on the road:
     # a trough filling half the edge would otherwise pull the first fit into itself.
@@ -710,6 +710,7 @@ def scan_seeds(
     # Coarse samples (1 cm): the scan only finds seeds, the trace measures.
     u, v = _station_axes(source.grid.gsd_m, cfg, 0.01)
     hits: list[list[np.ndarray]] = []
+    # a scan line's samples lie within these half-widths of its centre (+2 cm for the cells)
     reach_u = cfg.scan_half_width_m + 0.5 * cfg.straightedge_m + 0.02
     reach_v = 0.5 * cfg.strip_m + 0.02
     mapped = np.ones(len(pts), bool)
