@@ -25,8 +25,8 @@ import numpy as np
 from detection.planefit import nanmedian_last, robust_plane, robust_sigma, signed_distance
 from reconstruction.features import track_forward_backward
 from reconstruction.geometry import normalised_from_px, triangulate
-from roadsurf.drive import Camera
-from roadsurf.parallel import SharedCache, ordered_map
+from roadsurf.drive import Camera, GrayFrames
+from roadsurf.parallel import ordered_map
 
 log = logging.getLogger(__name__)
 
@@ -443,7 +443,6 @@ class DenseContext:
         workers: int = 1,
     ) -> None:
         self.camera: Camera = drive.camera
-        self.frames = {f.filename: f for f in drive.frames}
         self.pairs = pairs
         self.pair_grid = pair_grid  # (pair index, grid xy (N, 2), road (N,) bool)
         # σ of the pairs' sparse road points (median over the run): dense tracks much noisier
@@ -451,22 +450,11 @@ class DenseContext:
         self.sparse_noise_m = sparse_noise_m
         self.workers = max(1, int(workers))  # threads over the pairs that see one defect
         # bounded memory: a defect is seen by a few pairs, a neighbour shares their frames
-        self._cache: SharedCache[str, np.ndarray | None] = SharedCache(9)
+        self._frames = GrayFrames(drive.frames, 9, "detection: dense measurement skips a frame")
 
     def gray(self, filename: str) -> np.ndarray | None:
         """The frame's grey image, or None when it is not in the drive or cannot be read."""
-        from roadsurf.drive import read_gray
-        from roadsurf.errors import FrameReadError
-
-        def load() -> np.ndarray | None:
-            f = self.frames.get(filename)
-            try:
-                return None if f is None else read_gray(f)
-            except FrameReadError as e:
-                log.warning("detection: dense measurement skips %s: %s", filename, e)
-                return None
-
-        return self._cache.get(filename, load)
+        return self._frames.get(filename)
 
 
 def measure_defect_dense(

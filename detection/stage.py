@@ -40,9 +40,8 @@ from detection.windows import PointsSource, RasterSource, WindowSource, segment_
 from mapping.types import Trajectory
 from reconstruction.types import PairResult
 from roadsurf.config import to_dict
-from roadsurf.drive import Drive, read_gray
-from roadsurf.errors import FrameReadError
-from roadsurf.parallel import SharedCache, ordered_map
+from roadsurf.drive import Drive, GrayFrames
+from roadsurf.parallel import ordered_map
 
 log = logging.getLogger(__name__)
 
@@ -196,22 +195,13 @@ def analyse_pairs(
     With ``masks_dir`` the refined 2D defect mask of each pair's image a is written there as
     ``<frame stem>.png`` (uint8, 255 = defect, 0 = not) and not kept in memory.
     """
-    frames = {f.filename: f for f in drive.frames}
     out: dict[int, PairDefects] = {}
     ok = [(k, p) for k, p in enumerate(pairs) if p.ok]
     workers = max(1, int(cfg.pair_workers))
     # consecutive pairs share a frame (b, then a); each thread is a pair or two apart
-    cache: SharedCache[str, np.ndarray | None] = SharedCache(2 * workers + 2)
-
-    def image(fn: str) -> np.ndarray | None:
-        def load() -> np.ndarray | None:
-            try:
-                return read_gray(frames[fn]) if fn in frames else None
-            except FrameReadError as e:
-                log.warning("detection: %s; pair %s uses 3D only", e, fn)
-                return None
-
-        return cache.get(fn, load)
+    image = GrayFrames(
+        drive.frames, 2 * workers + 2, "detection: pairs with this frame use 3D only"
+    ).get
 
     def one(kp: tuple[int, PairResult]) -> PairDefects | None:
         _, p = kp

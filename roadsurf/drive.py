@@ -17,10 +17,14 @@ cannot live with raise ``DriveFormatError`` naming the file and line and saying 
 
 from __future__ import annotations
 
+import logging
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -128,6 +132,32 @@ def read_gray(frame: Frame) -> np.ndarray:
     from roadsurf._drive_loader import read_gray as _read
 
     return _read(frame)
+
+
+class GrayFrames:
+    """Greyscale frames by filename for threads that share them, the ``size`` most recently
+    used kept (``roadsurf.parallel.SharedCache``). ``get`` gives None for a frame that is not
+    in ``frames`` or cannot be read; the latter is logged as ``user: <error>``."""
+
+    def __init__(self, frames: Iterable[Frame], size: int, user: str) -> None:
+        from roadsurf.parallel import SharedCache
+
+        self._frames = {f.filename: f for f in frames}
+        self._cache: SharedCache[str, np.ndarray | None] = SharedCache(size)
+        self._user = user
+
+    def get(self, filename: str) -> np.ndarray | None:
+        from roadsurf.errors import FrameReadError
+
+        def load() -> np.ndarray | None:
+            f = self._frames.get(filename)
+            try:
+                return None if f is None else read_gray(f)
+            except FrameReadError as e:
+                log.warning("%s: %s", self._user, e)
+                return None
+
+        return self._cache.get(filename, load)
 
 
 def along_track_m(drive: Drive) -> np.ndarray | None:

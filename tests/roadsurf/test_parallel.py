@@ -76,3 +76,28 @@ def test_shared_cache_under_threads_gives_every_key_its_own_value():
     with ThreadPoolExecutor(4) as pool:
         got = list(pool.map(lambda k: c.get(k, lambda: 10 * k), keys))
     assert got == [10 * k for k in keys]
+
+
+def test_gray_frames_reads_once_and_gives_none_for_missing_or_unreadable_frames(
+    tmp_path, caplog
+) -> None:
+    import logging
+
+    import cv2
+    import numpy as np
+
+    from roadsurf.drive import Frame, GrayFrames
+
+    img = np.arange(48, dtype=np.uint8).reshape(6, 8)
+    cv2.imwrite(str(tmp_path / "a.png"), img)
+    (tmp_path / "b.png").write_bytes(b"not a png")
+    frames = [
+        Frame(0, "a.png", tmp_path / "a.png", 0.0),
+        Frame(1, "b.png", tmp_path / "b.png", 0.1),
+    ]
+    gf = GrayFrames(frames, 2, "test: skipping")
+    with caplog.at_level(logging.WARNING, logger="roadsurf.drive"):
+        a = gf.get("a.png")
+        assert np.array_equal(a, img) and gf.get("a.png") is a  # cached, not read again
+        assert gf.get("b.png") is None and gf.get("nowhere.png") is None
+    assert caplog.text.count("test: skipping") == 1 and "b.png" in caplog.text
