@@ -180,6 +180,12 @@ class RutConfig:
     follow_m: float = 0.10  # the trough centre is searched this far from the predicted one (m)
     direction_stations: int = 6  # the direction follows the centre line over this many stations
     max_gap_m: float = 0.25  # tracing stops after this length of stations out of the rut (m)
+    # Flat road between two troughs (potholes in a line, not a rut): at least flat_gap_m (m)
+    # of stations shallower than flat_gap_frac (unitless) x the deepest station within
+    # flat_gap_ref_m (m) on either side. A rut's length is its longest stretch between them
+    flat_gap_m: float = 0.10
+    flat_gap_frac: float = 0.25
+    flat_gap_ref_m: float = 0.5
     # ... or after this length of unobserved road (a hole in the map: no evidence either way;
     # frames overlapping by less than half leave such holes between the pairs) (m)
     max_unobserved_m: float = 1.0

@@ -552,6 +552,55 @@ def trace_rut(
     return trace
 
 
+def longest_trough_m(trace: RutTrace, cfg: RutConfig) -> float:
+    """Length (m) of the trace's longest stretch that no flat gap cuts.
+
+    A station is at road level when it lies shallower than ``flat_gap_frac`` x the trough on
+    both sides of it (the deepest station within ``flat_gap_ref_m`` before it, and after it);
+    at least ``flat_gap_m`` of such stations in a row are flat road between two troughs. A
+    rut shallows and deepens along its length and noise drops single stations out of it, but
+    it does not come back to the road level between two deep stretches; two potholes in a
+    line do. A stretch runs from its first station in the rut to its last. Without flat gaps
+    this is ``measured_length_m``."""
+    ok = np.asarray(trace.in_rut, bool)
+    if not ok.any():
+        return 0.0
+    c = np.asarray(trace.centres_xy_m, float)
+    depth = np.where(np.isfinite(trace.depth_m), trace.depth_m, 0.0)
+    n = depth.size
+    w = max(1, int(round(cfg.flat_gap_ref_m / cfg.step_m)))
+    pad = np.r_[np.full(w, -np.inf), depth, np.full(w, -np.inf)]
+    win = np.lib.stride_tricks.sliding_window_view(pad, w)  # win[j] = pad[j : j + w]
+    before = win[:n].max(axis=1)  # depth[k - w : k]
+    after = win[w + 1 : w + 1 + n].max(axis=1)  # depth[k + 1 : k + 1 + w]
+    flat = depth < cfg.flat_gap_frac * np.minimum(before, after)
+    min_run = max(1, int(round(cfg.flat_gap_m / cfg.step_m)))
+    cut = np.zeros(n, bool)
+    k = 0
+    while k < n:  # runs of flat stations at least min_run long cut the trace
+        if flat[k]:
+            e = k
+            while e + 1 < n and flat[e + 1]:
+                e += 1
+            if e - k + 1 >= min_run:
+                cut[k : e + 1] = True
+            k = e + 1
+        else:
+            k += 1
+    seg = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(c, axis=0), axis=1))]
+    best, start = 0.0, None
+    for k in range(n + 1):
+        if k < n and not cut[k]:
+            start = k if start is None else start
+            continue
+        if start is not None:
+            idx = np.flatnonzero(ok[start:k]) + start
+            if idx.size:
+                best = max(best, float(seg[idx[-1]] - seg[idx[0]]) + cfg.step_m)
+            start = None
+    return best
+
+
 def trace_ruts(
     source: WindowSource,
     regions: list[Region],
@@ -589,8 +638,16 @@ def trace_ruts(
         if tr is None or not len(tr.rows):
             continue
         w_med = float(np.median(tr.width_m[tr.in_rut]))
-        if tr.measured_length_m < max(mc.rut_min_length_m, mc.elongation_min * w_med):
+        min_len = max(mc.rut_min_length_m, mc.elongation_min * w_med)
+        if tr.measured_length_m < min_len:
             log.debug("ruts: trace of %.2f x %.2f m is too short for a rut", tr.length_m, w_med)
+            continue
+        longest = longest_trough_m(tr, cfg)
+        if longest < min_len:
+            log.debug(
+                "ruts: trace of %.2f m crosses flat road (longest trough %.2f m): not a rut",
+                tr.length_m, longest,
+            )  # fmt: skip
             continue
         tkeys = set((tr.rows.astype(np.int64) * width + tr.cols).tolist())
         ruts.append((tr, tkeys))

@@ -9,9 +9,10 @@ the fused run safe for defects a single image cannot show:
    the eye and to the CNN (the bench's test_grey drive: a 20 mm deep, 6 m long rut over 11
    frames, p_defect <= 0.01 in most), but it is long, so a sparse audit meets it.
 2. **Growth along 3D defects**: a frame whose own 3D shows a defect (the self-labelling rule,
-   eq. 5.8-5.9) gets its neighbours reconstructed, again and again, until the 3D shows clear
-   road on both sides. A defect the audit meets, or one that outlasts the CNN's context, is
-   followed to its ends.
+   eq. 5.8-5.9) gets its whole image reconstructed, which gives each neighbour the pair it
+   shares with the frame; a neighbour whose shared pair shows depth grows in turn, again and
+   again, until the 3D shows clear road on both sides (``fusion.grow_pairs``). A defect the
+   audit meets, or one that outlasts the CNN's context, is followed to its ends.
 
 Audited and grown frames whose own 3D shows a defect by that rule are decided by their 3D
 result (``FusionRule.decide_3d``); the others keep the CNN's decision.
@@ -198,10 +199,10 @@ def run(
         if cfg.grow_along_defects:
             # a frame with some depth but too little for the rule (ambiguous) grows too: a rut
             # tapers at its ends, and with low overlap a frame's pair may see only its edge
-            defect = [
-                pos[fn] for fn, f in figs.items() if fn in pos and label_frame(f, None, cfg)[0] != 0
-            ]
-            for j, prs in grow_pairs(defect, n).items():
+            lab_now = {pos[fn]: label_frame(f, None, cfg)[0] for fn, f in figs.items() if fn in pos}
+            defect = [i for i, v in lab_now.items() if v != 0]
+            ambiguous = [i for i, v in lab_now.items() if v is None]
+            for j, prs in grow_pairs(defect, n, ambiguous).items():
                 new |= prs - todo
                 # a neighbour of a 3D defect is decided by 3D, even when others' pairs cover it
                 reasons.setdefault(filenames[j], "grown")

@@ -50,12 +50,17 @@ def test_fuse_frames_and_pairs_to_reconstruct() -> None:
     fused = fuse_frames(probs, d3, names, 0.95, context_frames=0)
     assert [fused[n].source for n in names] == ["cnn", "3d", "cnn", "cnn", "cnn", "fused"]
     assert [fused[n].defect for n in names] == [False, True, False, False, False, True]
-    # temporal context: neighbours of b and f are reconstructed and 3D decides them. Context
-    # frame e gets only its forward pair: what (4, 5) misses of e, sure-clear d showed too
-    assert pairs_to_reconstruct(probs, names, 0.95, context_frames=1) == {
+    # temporal context: neighbours a, c of b and e of f get 3D, which decides them, but only
+    # from the pair each shares with its defect-leaning neighbour (a sliver of b's defect lies
+    # in that shared part): c gets (1, 2), not (2, 3). Their far sides are reconstructed only
+    # when the shared pair shows depth (growth, test below)
+    assert pairs_to_reconstruct(probs, names, 0.95, context_frames=1) == {(0, 1), (1, 2), (4, 5)}
+    # with a wider context the pairs link each context frame to the defect-leaning frame
+    assert pairs_to_reconstruct(probs, names, 0.95, context_frames=2) == {
         (0, 1),
         (1, 2),
         (2, 3),
+        (3, 4),
         (4, 5),
     }
     fused = fuse_frames(probs, d3, names, 0.95, context_frames=1)
@@ -310,8 +315,9 @@ def test_growth_goes_through_a_tapered_end_and_an_isolated_depression_stays_cnn(
     tmp_path: Path,
 ) -> None:
     """With low overlap a rut's frame may have only some depth in its pairs (the rule's
-    "ambiguous": 3 deep points). Growth goes on through it and finds the rest of the rut
-    beyond; that frame is decided by 3D because its neighbour is a 3D defect. So are ambiguous
+    "ambiguous": 3 deep points). Growth goes on through it, across a clear pair (15, 16), and
+    finds the rest of the rut beyond; that frame is decided by 3D because its neighbour is a
+    3D defect. So are ambiguous
     neighbours of a frame the CNN was unsure about whose 3D shows some depth (a small pothole's
     rim). An ambiguous audited frame with no such anchor beside it keeps the CNN's decision."""
     from detection.classifier import guided
@@ -336,7 +342,40 @@ def test_growth_goes_through_a_tapered_end_and_an_isolated_depression_stays_cnn(
     assert {(14, 15), (15, 16), (16, 17), (17, 18)} <= done  # through frame 15 to the rest
     assert {"0015.png", "0016.png", "0017.png"} <= res.rule.decide_3d
     assert res.reasons["0019.png"] == "audit" and "0019.png" not in res.rule.decide_3d
-    assert (7, 8) in done and (6, 7) not in done  # growth stops on clear road
+    # growth stops on clear road: frame 8's shared pair (8, 9) is clear, so its far side is
+    # not reconstructed
+    assert (8, 9) in done and (7, 8) not in done
+
+
+def test_a_context_frame_far_side_is_reconstructed_only_when_its_shared_pair_is_deep() -> None:
+    """The CNN says "defect" on frames 5 and 6 and is sure 4 and 7 are clear. A pothole seen
+    by (5, 6) only: the run reconstructs (4, 5), (5, 6), (6, 7) in one round, not the far
+    sides (3, 4) and (7, 8) of the context frames. A defect that goes on into frame 7 shows in
+    the shared pair (6, 7), and growth follows it until the 3D shows clear road."""
+    from detection.classifier import guided
+
+    n = 20
+    names = [f"{i:04d}.png" for i in range(n)]
+    probs = dict.fromkeys(names, 0.001) | {"0005.png": 0.99, "0006.png": 0.99}
+    cfg = ClassifierConfig(audit_every_frames=0)
+    rng = np.random.default_rng(8)
+
+    def run(deep: set[tuple[int, int]]) -> tuple[set[tuple[int, int]], guided.GuidedResult]:
+        calls: list[set[tuple[int, int]]] = []
+
+        def reconstruct(only: set[tuple[int, int]]) -> list[PairResult]:
+            calls.append(set(only))
+            return [_pair(a, 0.03, 40 if (a, b) in deep else 0, rng) for a, b in sorted(only)]
+
+        res = guided.run(cfg, names, probs, 1.0, reconstruct)
+        return calls[-1], res
+
+    done, res = run({(5, 6)})
+    assert done == {(4, 5), (5, 6), (6, 7)} and res.rounds == 1
+    done, res = run({(5, 6), (6, 7), (7, 8)})
+    assert {(4, 5), (5, 6), (6, 7), (7, 8), (8, 9)} <= done
+    assert (9, 10) not in done and (3, 4) not in done
+    assert res.reasons["0008.png"] == "grown" and "0008.png" in res.rule.decide_3d
 
 
 def test_audit_and_growth_follow_a_defect_the_cnn_cannot_see(tmp_path: Path) -> None:
@@ -374,7 +413,9 @@ def test_audit_and_growth_follow_a_defect_the_cnn_cannot_see(tmp_path: Path) -> 
     }
     with pytest.raises(ValueError, match="shape"):
         audit_pairs(n, 4.0, (), np.arange(n - 1))
-    assert grow_pairs([0], n) == {0: {(0, 1)}, 1: {(0, 1), (1, 2)}}
+    # a 3D defect frame gets both of its pairs; a neighbour, the pair it shares with it
+    assert grow_pairs([0], n) == {0: {(0, 1)}, 1: {(0, 1)}}
+    assert grow_pairs([5], n) == {5: {(4, 5), (5, 6)}, 4: {(4, 5)}, 6: {(5, 6)}}
     res = guided.run(cfg, names, probs, 1.0, reconstruct, tmp_path)
     # round 1 is the audit only; growth walks the rut up from frame 9 and stops on clear road
     assert calls[0] == {(9, 10), (19, 20), (28, 29)}

@@ -8,7 +8,7 @@ from scipy import ndimage
 
 from detection.config import DetectionConfig
 from detection.mapseg import Region
-from detection.ruts import scan_seeds, trace_rut, trace_ruts
+from detection.ruts import longest_trough_m, scan_seeds, trace_rut, trace_ruts
 from roadsurf.formats import GridSpec
 
 CFG = DetectionConfig()
@@ -136,6 +136,52 @@ def test_a_sag_wider_than_the_straightedge_is_not_a_rut():
     res = res - _rut(x, y, 0.010, 1.4, 1.5, 7.5, bend_m=0.0) * (x < 3.0)
     blob = (np.abs(x - 1.0) < 0.05) & (np.abs(y - 4.0) < 0.05)
     assert trace_rut(ArraySource(res), _region(blob, res), CFG.rut, CFG.map) is None
+
+
+def _bowl(x, y, x0, y0, a_m, b_m, depth_m):
+    """A pothole: paraboloid of semi-axes a_m (across) and b_m (along), depth_m deep."""
+    return depth_m * np.clip(1 - ((x - x0) / a_m) ** 2 - ((y - y0) / b_m) ** 2, 0, None)
+
+
+def test_two_potholes_in_a_line_are_not_a_rut():
+    """Two potholes (48 and 30 mm deep) in a line, 0.58 m apart with a strip of flat road
+    between them: the trace from a narrow piece of one crosses into the other and is 1.1 m
+    long, past rut_min_length_m, but the road comes back to its level in between, so both
+    stay potholes. With the flat-gap check off the pair reads as one rut."""
+    res, x, y = _road(seed=6)
+    a = _bowl(x, y, 1.0, 4.0, 0.16, 0.22, 0.05)
+    b = _bowl(x, y, 1.0, 4.58, 0.24, 0.28, 0.03)
+    res = res - np.maximum(a, b)
+    source = ArraySource(res)
+    piece = _region((a > 0.008) & (np.abs(x - 1.0) < 0.04), res)
+    other = _region(b > 0.008, res)
+    tr = trace_rut(source, piece, CFG.rut, CFG.map)
+    assert tr is not None and tr.measured_length_m > CFG.map.rut_min_length_m
+    assert longest_trough_m(tr, CFG.rut) == pytest.approx(0.55, abs=0.15)
+    ev, ev_pair = np.zeros((0, 2)), np.zeros(0, int)
+    out = trace_ruts(source, [piece, other], CFG.rut, CFG.map, ev, ev_pair)
+    assert len(out) == 2 and all(r.rut is None for r in out)
+    off = dataclasses.replace(CFG.rut, flat_gap_frac=0.0)
+    out = trace_ruts(source, [piece, other], off, CFG.map, ev, ev_pair)
+    assert [r.rut is not None for r in out] == [True]
+
+
+def test_a_rut_that_shallows_midway_is_one_rut():
+    """A 12 mm rut that shallows to 5 mm over 0.3 m midway is still one rut: its depth never
+    comes back to the road level."""
+    res, x, y = _road(seed=7)
+    d = _rut(x, y, 0.012, 0.5, 1.5, 7.5, bend_m=0.0)
+    dip = 1 - 0.6 * np.clip(1 - np.abs(y - 4.5) / 0.3, 0, 1)
+    res = res - d * dip
+    piece = (np.abs(x - 1.0) < 0.04) & (np.abs(y - 3.0) < 0.2)
+    source = ArraySource(res)
+    tr = trace_rut(source, _region(piece, res), CFG.rut, CFG.map)
+    assert tr is not None
+    assert longest_trough_m(tr, CFG.rut) == pytest.approx(tr.measured_length_m)
+    ev, ev_pair = np.zeros((0, 2)), np.zeros(0, int)
+    out = trace_ruts(source, [_region(piece, res)], CFG.rut, CFG.map, ev, ev_pair)
+    assert len(out) == 1 and out[0].rut is not None
+    assert out[0].rut.length_m == pytest.approx(6.0, abs=0.8)
 
 
 def test_the_drive_scan_finds_a_rut_too_shallow_for_any_seed():
