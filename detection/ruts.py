@@ -575,29 +575,16 @@ def longest_trough_m(trace: RutTrace, cfg: RutConfig) -> float:
     after = win[w + 1 : w + 1 + n].max(axis=1)  # depth[k + 1 : k + 1 + w]
     flat = depth < cfg.flat_gap_frac * np.minimum(before, after)
     min_run = max(1, int(round(cfg.flat_gap_m / cfg.step_m)))
-    cut = np.zeros(n, bool)
-    k = 0
-    while k < n:  # runs of flat stations at least min_run long cut the trace
-        if flat[k]:
-            e = k
-            while e + 1 < n and flat[e + 1]:
-                e += 1
-            if e - k + 1 >= min_run:
-                cut[k : e + 1] = True
-            k = e + 1
-        else:
-            k += 1
+    # runs of flat stations at least min_run long cut the trace into stretches
+    runs, n_runs = ndimage.label(flat)
+    long_runs = 1 + np.flatnonzero(np.bincount(runs, minlength=n_runs + 1)[1:] >= min_run)
+    stretches, n_stretches = ndimage.label(~np.isin(runs, long_runs))
     seg = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(c, axis=0), axis=1))]
-    best, start = 0.0, None
-    for k in range(n + 1):
-        if k < n and not cut[k]:
-            start = k if start is None else start
-            continue
-        if start is not None:
-            idx = np.flatnonzero(ok[start:k]) + start
-            if idx.size:
-                best = max(best, float(seg[idx[-1]] - seg[idx[0]]) + cfg.step_m)
-            start = None
+    best = 0.0
+    for s in range(1, n_stretches + 1):
+        idx = np.flatnonzero((stretches == s) & ok)
+        if idx.size:
+            best = max(best, float(seg[idx[-1]] - seg[idx[0]]) + cfg.step_m)
     return best
 
 
