@@ -44,7 +44,7 @@ DOC_END = "<!-- detection-bench:end -->"
 
 
 def _drive(out: Path, scenario: str, seed: int, n: int) -> Path:
-    from simulation.scenarios import simulate
+    from roadsurf.simulation.scenarios import simulate
 
     d = out / "drives" / f"{scenario}_s{seed}_n{n}"
     if not (d / "truth" / "frame_labels.csv").exists():
@@ -55,11 +55,11 @@ def _drive(out: Path, scenario: str, seed: int, n: int) -> Path:
 
 def _variant(run_dir: Path, drive_dir: Path, name: str, **cfg_changes: Any) -> Path:
     """Re-run detection only, with changed config, into RUN/../<run>_<name> (maps reused)."""
-    from detection import stage
-    from detection.config import DetectionConfig, RefineConfig
-    from mapping.types import load_trajectory
-    from reconstruction.types import load_pair
+    from roadsurf.detection import stage
+    from roadsurf.detection.config import DetectionConfig, RefineConfig
     from roadsurf.drive import load_drive
+    from roadsurf.mapping.types import load_trajectory
+    from roadsurf.reconstruction.types import load_pair
 
     out = run_dir.parent / f"{run_dir.name}_{name}"
     out.mkdir(parents=True, exist_ok=True)
@@ -82,12 +82,12 @@ def _variant(run_dir: Path, drive_dir: Path, name: str, **cfg_changes: Any) -> P
 def redetect(run_dir: Path, drive_dir: Path) -> Path:
     """Re-run the detection stage alone, in place, on a finished run (its pairs, poses and map
     are reused; the defaults of ``DetectionConfig``, as ``roadsurf run`` uses them)."""
-    from detection import stage
-    from detection.config import DetectionConfig
-    from mapping.types import load_trajectory
-    from reconstruction.types import load_pair
+    from roadsurf.detection import stage
+    from roadsurf.detection.config import DetectionConfig
     from roadsurf.drive import load_drive
     from roadsurf.errors import RoadsurfError
+    from roadsurf.mapping.types import load_trajectory
+    from roadsurf.reconstruction.types import load_pair
 
     if not (run_dir / "poses.npz").exists():
         raise RoadsurfError(
@@ -103,11 +103,11 @@ def redetect(run_dir: Path, drive_dir: Path) -> Path:
 def binarisation_stats(run_dir: Path, drive_dir: Path, mode: str) -> dict[str, int]:
     """How T_b splits the 3D classes: dark pixels at 3D road points (false dark: shadows,
     exposure) and at 3D defect points deeper than 2 T_d (hits), summed over a run's pairs."""
-    from detection.config import DetectionConfig, RefineConfig
-    from detection.planefit import recursive_plane_fit
-    from detection.refine import binarise
-    from reconstruction.types import load_pair
+    from roadsurf.detection.config import DetectionConfig, RefineConfig
+    from roadsurf.detection.planefit import recursive_plane_fit
+    from roadsurf.detection.refine import binarise
     from roadsurf.drive import load_drive, read_gray
+    from roadsurf.reconstruction.types import load_pair
 
     cfg = DetectionConfig()
     rcfg = RefineConfig(binarise=mode)  # type: ignore[arg-type]
@@ -388,8 +388,8 @@ def run_benchmark(
     ``detection_only`` the runs must exist: only their detection stage is re-run (minutes
     instead of the cold run's half hour), e.g. after a change to ``detection/``.
     """
-    from detection.config import RefineConfig
-    from detection.evaluate import evaluate_detection
+    from roadsurf.detection.config import RefineConfig
+    from roadsurf.detection.evaluate import evaluate_detection
     from roadsurf.pipeline import run_drive
 
     t0 = time.perf_counter()

@@ -37,9 +37,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from detection.config import CrackConfig
-from reconstruction.types import PairResult
+from roadsurf.detection.config import CrackConfig
 from roadsurf.drive import Camera
+from roadsurf.reconstruction.types import PairResult
 
 log = logging.getLogger(__name__)
 
@@ -376,9 +376,9 @@ def dense_crack_depth(
     noise is the side band's robust spread about the fit (same pair, same direction, same
     window). None when too few tracks survive.
     """
-    from detection.dense import _as_u8, _distort, _undistort
-    from detection.planefit import robust_sigma
-    from reconstruction.features import track_forward_backward
+    from roadsurf.detection.dense import _as_u8, _distort, _undistort
+    from roadsurf.detection.planefit import robust_sigma
+    from roadsurf.reconstruction.features import track_forward_backward
 
     cam = view.camera
     K = cam.K
@@ -505,7 +505,7 @@ def detect_pair_cracks(
     h, w = lab.shape
     u = np.clip(np.round(px[:, 0]).astype(int), 0, w - 1)
     v = np.clip(np.round(px[:, 1]).astype(int), 0, h - 1)
-    from reconstruction.features import undistort_px
+    from roadsurf.reconstruction.features import undistort_px
 
     cam = camera if camera is not None else (view.camera if view is not None else None)
     if px_ideal is None:

@@ -22,11 +22,11 @@ from typing import Any
 import cv2
 import numpy as np
 
-from detection.planefit import nanmedian_last, robust_plane, robust_sigma, signed_distance
-from reconstruction.features import track_forward_backward
-from reconstruction.geometry import normalised_from_px, triangulate
+from roadsurf.detection.planefit import nanmedian_last, robust_plane, robust_sigma, signed_distance
 from roadsurf.drive import Camera, GrayFrames
 from roadsurf.parallel import ordered_map
+from roadsurf.reconstruction.features import track_forward_backward
+from roadsurf.reconstruction.geometry import normalised_from_px, triangulate
 
 log = logging.getLogger(__name__)
 
@@ -80,7 +80,7 @@ def _distort(px: np.ndarray, camera: Camera) -> np.ndarray:
 
 
 def _undistort(px: np.ndarray, camera: Camera) -> np.ndarray:
-    from reconstruction.features import undistort_px
+    from roadsurf.reconstruction.features import undistort_px
 
     return undistort_px(px, camera)
 

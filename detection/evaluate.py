@@ -104,8 +104,8 @@ def _run_geometries(run_dir: Path, crs: str) -> tuple[list[tuple[Any, dict[str, 
 
 def _trajectory_alignment(run_dir: Path, truth_dir: Path, crs: str, georef: bool) -> dict:
     """Rigid 2D fit of the run's camera positions (in ``crs``) onto the true ones."""
-    from mapping.types import load_trajectory
     from roadsurf.geometry import ExportFrame
+    from roadsurf.mapping.types import load_trajectory
 
     traj = load_trajectory(run_dir)
     truth = {r["filename"]: r for r in read_csv(truth_dir / "poses.csv")}

@@ -21,9 +21,9 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-from detection.config import MapSegmentConfig, SeverityConfig
-from detection.meanshift import mean_shift_flat
-from detection.planefit import nanmedian_last, robust_sigma
+from roadsurf.detection.config import MapSegmentConfig, SeverityConfig
+from roadsurf.detection.meanshift import mean_shift_flat
+from roadsurf.detection.planefit import nanmedian_last, robust_sigma
 from roadsurf.formats import GridSpec
 
 log = logging.getLogger(__name__)

@@ -18,8 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from detection.mapframe import MapFrame
-from detection.types import Defect, DetectionResult, FrameLabel
+from roadsurf.detection.mapframe import MapFrame
+from roadsurf.detection.types import Defect, DetectionResult, FrameLabel
 from roadsurf.formats import feature, polygon_geometry, write_csv, write_geojson
 from roadsurf.io import read_json, write_json_atomic, write_text_atomic
 

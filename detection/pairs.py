@@ -7,12 +7,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from detection.config import DetectionConfig
-from detection.cracks import PairCracks, PairView, detect_pair_cracks
-from detection.planefit import recursive_plane_fit
-from detection.refine import binarise, correct_defects, refined_mask
-from reconstruction.types import PairResult
+from roadsurf.detection.config import DetectionConfig
+from roadsurf.detection.cracks import PairCracks, PairView, detect_pair_cracks
+from roadsurf.detection.planefit import recursive_plane_fit
+from roadsurf.detection.refine import binarise, correct_defects, refined_mask
 from roadsurf.drive import Camera
+from roadsurf.reconstruction.types import PairResult
 
 log = logging.getLogger(__name__)
 
@@ -105,7 +105,7 @@ def _raw_px(px: np.ndarray, camera: Camera | None) -> np.ndarray:
     """(N, 2) ideal pinhole pixels -> raw image pixels (unchanged without lens distortion)."""
     if camera is None or not camera.has_distortion:
         return px
-    from detection.dense import _distort
+    from roadsurf.detection.dense import _distort
 
     return _distort(px, camera)
 

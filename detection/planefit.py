@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from detection.config import PlaneFitConfig
+from roadsurf.detection.config import PlaneFitConfig
 from roadsurf.geometry import check_shape
 
 MAD_TO_SIGMA = 1.4826  # σ of a normal distribution from its median absolute deviation

@@ -12,7 +12,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from detection.config import RefineConfig
+from roadsurf.detection.config import RefineConfig
 from roadsurf.geometry import check_shape
 
 

@@ -40,10 +40,10 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
-from detection.config import MapSegmentConfig, RutConfig
-from detection.mapseg import Region
-from detection.planefit import robust_sigma
-from detection.windows import WindowSource
+from roadsurf.detection.config import MapSegmentConfig, RutConfig
+from roadsurf.detection.mapseg import Region
+from roadsurf.detection.planefit import robust_sigma
+from roadsurf.detection.windows import WindowSource
 from roadsurf.formats import GridSpec
 
 log = logging.getLogger(__name__)

@@ -29,19 +29,19 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from detection.config import DetectionConfig
-from detection.footprint import footprint_enu
-from detection.mapframe import MapFrame
-from detection.mapseg import Measured, choose_gsd, classify, measure, severity
-from detection.output import load_result, write_outputs
-from detection.pairs import PairDefects, analyse_pair
-from detection.types import Defect, DetectionResult, FrameLabel
-from detection.windows import PointsSource, RasterSource, WindowSource, segment_windows
-from mapping.types import Trajectory
-from reconstruction.types import PairResult
 from roadsurf.config import to_dict
+from roadsurf.detection.config import DetectionConfig
+from roadsurf.detection.footprint import footprint_enu
+from roadsurf.detection.mapframe import MapFrame
+from roadsurf.detection.mapseg import Measured, choose_gsd, classify, measure, severity
+from roadsurf.detection.output import load_result, write_outputs
+from roadsurf.detection.pairs import PairDefects, analyse_pair
+from roadsurf.detection.types import Defect, DetectionResult, FrameLabel
+from roadsurf.detection.windows import PointsSource, RasterSource, WindowSource, segment_windows
 from roadsurf.drive import Drive, GrayFrames
+from roadsurf.mapping.types import Trajectory
 from roadsurf.parallel import ordered_map
+from roadsurf.reconstruction.types import PairResult
 
 log = logging.getLogger(__name__)
 
@@ -106,7 +106,7 @@ def run(
             )  # fmt: skip
             steps_s["windows"] = time.perf_counter() - t0
             if cfg.rut.enabled:
-                from detection.ruts import scan_seeds, trace_ruts
+                from roadsurf.detection.ruts import scan_seeds, trace_ruts
 
                 path = np.array([np.asarray(fp.centroid.coords[0]) for fp in footprints.values()])
                 seeds = scan_seeds(
@@ -122,7 +122,7 @@ def run(
         pair_pts = _pair_points(pairs, per_pair, traj, pose_of, mframe)
         dense = None
         if cfg.dense.enabled and cfg.use_images and per_pair:
-            from detection.dense import DenseContext
+            from roadsurf.detection.dense import DenseContext
 
             grid = [
                 (
@@ -383,7 +383,7 @@ def _measure_regions(
             m.length_m = rut.length_m
             m.width_m = rut.body_width_m
         elif dense is not None:
-            from detection.dense import measure_defect_dense
+            from roadsurf.detection.dense import measure_defect_dense
 
             dm = measure_defect_dense(
                 poly, dense, cfg.dense, mc.rim_threshold_m, cfg.plane.max_depth_m
@@ -488,7 +488,7 @@ def _crack_defects(
     from shapely import contains_xy, union_all
     from shapely.geometry import MultiPoint, Polygon
 
-    from detection.cracks import cluster_cracks, crack_evidence
+    from roadsurf.detection.cracks import cluster_cracks, crack_evidence
 
     xy_l, pair_l, piece_l, pieces = [], [], [], []
     for k, pd in per_pair.items():
@@ -714,7 +714,7 @@ def pair_max_depth(
     """
     from shapely import contains_xy
 
-    from detection.planefit import robust_plane, signed_distance
+    from roadsurf.detection.planefit import robust_plane, signed_distance
 
     x0, y0, x1, y1 = poly.bounds
     pad = mc.level_ring_m
@@ -824,7 +824,7 @@ def _fuse(
     """Fig. 5.6: a confident CNN decides, otherwise 3D (frames no ok pair covers have no 3D)."""
     if not frame_probs:
         return frames
-    from detection.classifier.fusion import FusionRule, fuse_frames
+    from roadsurf.detection.classifier.fusion import FusionRule, fuse_frames
 
     if rule is None:
         rule = FusionRule(threshold=cfg.fusion_threshold)

@@ -25,8 +25,8 @@ from typing import Protocol
 
 import numpy as np
 
-from detection.config import MapSegmentConfig
-from detection.mapseg import Region, Segmentation, Surface, segment
+from roadsurf.detection.config import MapSegmentConfig
+from roadsurf.detection.mapseg import Region, Segmentation, Surface, segment
 from roadsurf.formats import GridSpec
 
 log = logging.getLogger(__name__)

@@ -29,10 +29,10 @@ if mode == "run":
     extra = {"timings_s": rep["timings_s"], "n_tiles": rep.get("map", {}).get("n_tiles")}
 elif mode == "detection":  # detection only, on the cached pairs and map of a previous run
     from roadsurf.drive import load_drive
-    from reconstruction.types import load_pair
-    from mapping.types import load_trajectory
-    from detection.config import DetectionConfig
-    from detection import stage
+    from roadsurf.reconstruction.types import load_pair
+    from roadsurf.mapping.types import load_trajectory
+    from roadsurf.detection.config import DetectionConfig
+    from roadsurf.detection import stage
     drive_ = load_drive(drive)
     pairs = [load_pair(p) for p in sorted((Path(out) / "pairs").glob("*.npz"))]
     t1 = time.perf_counter()
@@ -40,9 +40,9 @@ elif mode == "detection":  # detection only, on the cached pairs and map of a pr
     extra = {"detection_s": time.perf_counter() - t1}
 else:  # mapping stages only, on the pairs cached by a previous full run
     from roadsurf.drive import load_drive
-    from reconstruction.types import load_pair
-    from mapping.config import MappingConfig
-    from mapping import poses, globalmap
+    from roadsurf.reconstruction.types import load_pair
+    from roadsurf.mapping.config import MappingConfig
+    from roadsurf.mapping import poses, globalmap
     drive_ = load_drive(drive)
     pairs = [load_pair(p) for p in sorted((Path(out) / "pairs").glob("*.npz"))]
     cfg = MappingConfig(overwrite=True)
@@ -83,7 +83,7 @@ def run_benchmark(
     per-length figures plus a markdown table. ``width`` < 640 renders smaller images (same
     footprint: fx scales, no supersampling) so the 600-frame drive renders in reasonable time
     on 2 cores; both lengths then use the same image size."""
-    from simulation.scenarios import simulate
+    from roadsurf.simulation.scenarios import simulate
 
     work = Path(work)
     over: dict[str, Any] = {}

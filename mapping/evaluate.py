@@ -84,7 +84,7 @@ def evaluate_run(run_dir: str | Path, truth_dir: str | Path) -> dict[str, Any]:
     out["seam_step_max_m"], out["seam_step_p95_m"], out["seam_pairs"] = _seam_steps(run_dir)
     out["targets"] = _targets(out, scen)
     try:
-        det = importlib.import_module("detection.evaluate")
+        det = importlib.import_module("roadsurf.detection.evaluate")
     except ModuleNotFoundError:
         det = None
     if (

@@ -14,9 +14,9 @@ from typing import Any
 
 import numpy as np
 
-from mapping.types import Trajectory
 from roadsurf.formats import feature, write_csv, write_geojson, write_ply
 from roadsurf.geometry import ExportFrame
+from roadsurf.mapping.types import Trajectory
 
 log = logging.getLogger(__name__)
 

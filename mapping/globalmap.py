@@ -33,9 +33,14 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from mapping.config import NOT_IN_FINGERPRINT, MappingConfig
-from mapping.export import export_xyz, write_cloud_ply
-from mapping.raster import (
+from roadsurf.config import to_dict
+from roadsurf.drive import Camera, Drive, Frame, read_image
+from roadsurf.errors import FrameReadError
+from roadsurf.formats import GridSpec
+from roadsurf.io import atomic_path, read_json, write_json_atomic, write_npz_atomic
+from roadsurf.mapping.config import NOT_IN_FINGERPRINT, MappingConfig
+from roadsurf.mapping.export import export_xyz, write_cloud_ply
+from roadsurf.mapping.raster import (
     LOCAL_CRS,
     GridToEnu,
     TiledWriter,
@@ -43,13 +48,8 @@ from mapping.raster import (
     fill_nodata_capped,
     interpolate_to_grid,
 )
-from mapping.surface import LocalSurface
-from mapping.types import Trajectory
-from roadsurf.config import to_dict
-from roadsurf.drive import Camera, Drive, Frame, read_image
-from roadsurf.errors import FrameReadError
-from roadsurf.formats import GridSpec
-from roadsurf.io import atomic_path, read_json, write_json_atomic, write_npz_atomic
+from roadsurf.mapping.surface import LocalSurface
+from roadsurf.mapping.types import Trajectory
 from roadsurf.parallel import SharedCache, ordered_map
 
 log = logging.getLogger(__name__)

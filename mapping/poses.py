@@ -35,8 +35,6 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.spatial.transform import Rotation
 
-from mapping.config import NOT_IN_FINGERPRINT, MappingConfig
-from mapping.types import Trajectory, load_trajectory, save_trajectory
 from roadsurf.config import to_dict
 from roadsurf.drive import Drive
 from roadsurf.geometry import (
@@ -47,6 +45,8 @@ from roadsurf.geometry import (
     world_from_cam,
 )
 from roadsurf.io import read_json, write_json_atomic
+from roadsurf.mapping.config import NOT_IN_FINGERPRINT, MappingConfig
+from roadsurf.mapping.types import Trajectory, load_trajectory, save_trajectory
 
 log = logging.getLogger(__name__)
 
@@ -86,7 +86,7 @@ def run(
 ) -> Trajectory:
     """Fuse GPS and pairs into the trajectory; writes RUN/poses.npz, reference.json,
     trajectory.geojson and poses_report.json. Resumes when the inputs did not change."""
-    from mapping.export import write_trajectory_csv, write_trajectory_geojson
+    from roadsurf.mapping.export import write_trajectory_csv, write_trajectory_geojson
 
     run_dir = Path(run_dir)
     key = _fingerprint(cfg, drive, pairs)
@@ -145,7 +145,7 @@ def estimate_trajectory(
     n = len(frames)
     rep = PoseReport(n_frames=n)
     if n == 0:
-        raise ValueError("mapping.poses: the drive has no valid frame to place")
+        raise ValueError("roadsurf.mapping.poses: the drive has no valid frame to place")
     t = np.array([f.timestamp_s for f in frames], float)
     pos_of = {f.index: i for i, f in enumerate(frames)}
     ok_pairs = [p for p in pairs if p.ok and p.index_a in pos_of and p.index_b in pos_of]

@@ -14,8 +14,8 @@ import logging
 
 import numpy as np
 
-from mapping.config import MappingConfig
 from roadsurf.geometry import check_shape
+from roadsurf.mapping.config import MappingConfig
 
 log = logging.getLogger(__name__)
 

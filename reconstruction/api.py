@@ -15,12 +15,12 @@ import time
 
 import numpy as np
 
-from reconstruction import features as feat
-from reconstruction.config import ReconstructionConfig
-from reconstruction.estimators import estimate_matches
-from reconstruction.types import Features, PairResult
 from roadsurf.drive import Camera, Frame, read_gray
 from roadsurf.errors import FrameReadError
+from roadsurf.reconstruction import features as feat
+from roadsurf.reconstruction.config import ReconstructionConfig
+from roadsurf.reconstruction.estimators import estimate_matches
+from roadsurf.reconstruction.types import Features, PairResult
 
 
 def reconstruct_matches(

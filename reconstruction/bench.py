@@ -8,8 +8,8 @@ from __future__ import annotations
 import tempfile
 from pathlib import Path
 
-from reconstruction.io_helpers import write_rows_csv
 from roadsurf.io import write_text_atomic
+from roadsurf.reconstruction.io_helpers import write_rows_csv
 
 
 def bench_reconstruction(
@@ -27,7 +27,7 @@ def bench_reconstruction(
 
     study=False re-runs only the rendered-drive part and keeps the study's summary.md part.
     """
-    from reconstruction.study import run_study
+    from roadsurf.reconstruction.study import run_study
 
     out = Path(out)
     lines: list[str] = []
@@ -44,7 +44,7 @@ def bench_reconstruction(
     else:
         md = prev_md.split("\n## Rendered drives")[0]
     if images:
-        from reconstruction.bench_images import bench_images
+        from roadsurf.reconstruction.bench_images import bench_images
 
         work = Path(work or Path(tempfile.gettempdir()) / "roadsurf_bench_drives")
         n = frames or (12 if quick else 30)
@@ -82,8 +82,8 @@ def bench_speed_report(
     """Speed benchmark; returns the markdown report (also OUT/speed.md)."""
     from dataclasses import replace
 
-    from reconstruction.bench_speed import bench_speed
-    from reconstruction.config import ReconstructionConfig
+    from roadsurf.reconstruction.bench_speed import bench_speed
+    from roadsurf.reconstruction.config import ReconstructionConfig
 
     base = ReconstructionConfig()
     mf = max_features or base.features.max_features

@@ -21,13 +21,13 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
-from reconstruction import features as feat
-from reconstruction.config import ReconstructionConfig
-from reconstruction.estimators import estimate_matches
-from reconstruction.types import PairResult
 from roadsurf.drive import Drive, load_drive, read_gray
 from roadsurf.errors import FrameReadError
 from roadsurf.formats import read_csv, read_geotiff
+from roadsurf.reconstruction import features as feat
+from roadsurf.reconstruction.config import ReconstructionConfig
+from roadsurf.reconstruction.estimators import estimate_matches
+from roadsurf.reconstruction.types import PairResult
 
 log = logging.getLogger(__name__)
 
@@ -38,7 +38,7 @@ POTHOLE_MAX_M = -0.010  # truth residual below this: inside a pothole (m)
 
 def render_drive(work: Path, scenario: str, n_frames: int, overlap: float) -> Path:
     """Render (once, cached in ``work``) a simulator drive with the given frame overlap."""
-    from simulation.scenarios import SCENARIOS, make_config, simulate
+    from roadsurf.simulation.scenarios import SCENARIOS, make_config, simulate
 
     out = work / f"{scenario}_{n_frames}f_ov{int(overlap * 100)}"
     if (out / "frames.csv").is_file():

@@ -21,12 +21,12 @@ from typing import Any
 import cv2
 import numpy as np
 
-from reconstruction import features as feat
-from reconstruction import stage
-from reconstruction.api import reconstruct_pair
-from reconstruction.config import ReconstructionConfig
-from reconstruction.estimators import estimate_matches
 from roadsurf.drive import load_drive, read_gray
+from roadsurf.reconstruction import features as feat
+from roadsurf.reconstruction import stage
+from roadsurf.reconstruction.api import reconstruct_pair
+from roadsurf.reconstruction.config import ReconstructionConfig
+from roadsurf.reconstruction.estimators import estimate_matches
 
 log = logging.getLogger(__name__)
 
@@ -43,7 +43,7 @@ def ensure_drive(path: Path, n_frames: int, scenario: str = "potholes") -> Path:
     """Render (once) a 1024x768, f = 960 px simulator drive for the benchmark."""
     if (path / "frames.csv").is_file():
         return path
-    from simulation.scenarios import simulate
+    from roadsurf.simulation.scenarios import simulate
 
     tmp = path.with_name(path.name + ".partial")
     shutil.rmtree(tmp, ignore_errors=True)
@@ -137,7 +137,7 @@ def _bench_pycolmap(
 ) -> dict[str, Any]:
     import pycolmap
 
-    from reconstruction.types import Features
+    from roadsurf.reconstruction.types import Features
 
     opts = pycolmap.FeatureExtractionOptions()
     opts.num_threads = threads

@@ -18,8 +18,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import erf
 
-from reconstruction.geometry import point_covariance
 from roadsurf.geometry import check_shape
+from roadsurf.reconstruction.geometry import point_covariance
 
 
 def ratio_to_plane(X: np.ndarray) -> np.ndarray:

@@ -15,10 +15,10 @@ import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
-from reconstruction import geometry as g
-from reconstruction.config import ReconstructionConfig
-from reconstruction.types import PairResult
 from roadsurf.geometry import check_shape
+from roadsurf.reconstruction import geometry as g
+from roadsurf.reconstruction.config import ReconstructionConfig
+from roadsurf.reconstruction.types import PairResult
 
 log = logging.getLogger(__name__)
 

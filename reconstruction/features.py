@@ -11,11 +11,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from reconstruction.config import FeatureConfig
-from reconstruction.types import Features
 from roadsurf.drive import Camera
 from roadsurf.errors import ConfigError
 from roadsurf.io import write_npz_atomic
+from roadsurf.reconstruction.config import FeatureConfig
+from roadsurf.reconstruction.types import Features
 
 
 def _detector(cfg: FeatureConfig, n: int) -> cv2.Feature2D:

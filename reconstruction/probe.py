@@ -30,12 +30,12 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from reconstruction.api import reconstruct_matches
-from reconstruction.config import ProbeConfig, ReconstructionConfig
-from reconstruction.features import to_gray, track_forward_backward
-from reconstruction.types import PairResult, load_pair, save_pair
 from roadsurf.drive import Camera, Drive, read_gray
 from roadsurf.errors import FrameReadError
+from roadsurf.reconstruction.api import reconstruct_matches
+from roadsurf.reconstruction.config import ProbeConfig, ReconstructionConfig
+from roadsurf.reconstruction.features import to_gray, track_forward_backward
+from roadsurf.reconstruction.types import PairResult, load_pair, save_pair
 
 log = logging.getLogger(__name__)
 

@@ -824,9 +824,9 @@ def run(
     cfg: SfmBaselineConfig, drive_dir: str | Path, out_dir: str | Path, *, overwrite: bool = False
 ) -> SfmBaselineResult:
     """Run the pycolmap baseline on a drive and write the run-folder outputs into ``out_dir``."""
-    from mapping.export import export_xyz, write_cloud_ply, write_trajectory_geojson
-    from mapping.types import Trajectory, save_trajectory
     from roadsurf.formats import write_geotiff
+    from roadsurf.mapping.export import export_xyz, write_cloud_ply, write_trajectory_geojson
+    from roadsurf.mapping.types import Trajectory, save_trajectory
 
     t_start = time.perf_counter()
     out = Path(out_dir)

@@ -19,12 +19,12 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from reconstruction import features as feat
-from reconstruction.api import reconstruct_features
-from reconstruction.config import ReconstructionConfig
-from reconstruction.types import Features, PairResult, load_pair, pair_filename, save_pair
 from roadsurf.drive import Drive, Frame, read_gray
 from roadsurf.errors import FrameReadError
+from roadsurf.reconstruction import features as feat
+from roadsurf.reconstruction.api import reconstruct_features
+from roadsurf.reconstruction.config import ReconstructionConfig
+from roadsurf.reconstruction.types import Features, PairResult, load_pair, pair_filename, save_pair
 
 log = logging.getLogger(__name__)
 

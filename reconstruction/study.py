@@ -16,14 +16,14 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from reconstruction import geometry as g
-from reconstruction.bound import epsilon_bound
-from reconstruction.config import ReconstructionConfig
-from reconstruction.estimators import estimate_matches
-from reconstruction.io_helpers import write_rows_csv
-from reconstruction.types import PairResult
 from roadsurf.io import atomic_path, write_text_atomic
-from simulation.points import PointPair, PointScene, simulate_points
+from roadsurf.reconstruction import geometry as g
+from roadsurf.reconstruction.bound import epsilon_bound
+from roadsurf.reconstruction.config import ReconstructionConfig
+from roadsurf.reconstruction.estimators import estimate_matches
+from roadsurf.reconstruction.io_helpers import write_rows_csv
+from roadsurf.reconstruction.types import PairResult
+from roadsurf.simulation.points import PointPair, PointScene, simulate_points
 
 log = logging.getLogger(__name__)
 

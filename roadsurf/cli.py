@@ -61,7 +61,7 @@ def simulate(
     """Render a photo-textured drive with ground truth in the drive format."""
     import yaml
 
-    from simulation import scenarios
+    from roadsurf.simulation import scenarios
 
     if list_scenarios:
         for name, desc in scenarios.describe().items():
@@ -87,7 +87,7 @@ def bench_render(
     height: Annotated[int, typer.Option(help="Image height (px).")] = 480,
 ) -> None:
     """Simulator render time per frame (world tiles, ray casting, sensor, encoding)."""
-    from simulation.bench import bench_render as _bench
+    from roadsurf.simulation.bench import bench_render as _bench
 
     fx = 600.0 * width / 640.0
     res = _bench(scenario, frames, width=width, height=height, fx=fx)
@@ -108,7 +108,7 @@ def bench_reconstruction(
     study: Annotated[bool, typer.Option(help="Run the point-level study.")] = True,
 ) -> None:
     """Parametric study (Figs. 3.6-3.12, bound, targets) and rendered-drive accuracy."""
-    from reconstruction.bench import bench_reconstruction as _bench
+    from roadsurf.reconstruction.bench import bench_reconstruction as _bench
 
     typer.echo(
         _bench(
@@ -136,7 +136,7 @@ def bench_speed(
     features: Annotated[str, typer.Option(help="sift | orb | akaze")] = "sift",
 ) -> None:
     """Reconstruction speed: one 1024x768 pair (breakdown) and pairs/s over a drive."""
-    from reconstruction.bench import bench_speed_report
+    from roadsurf.reconstruction.bench import bench_speed_report
 
     typer.echo(
         bench_speed_report(
@@ -202,7 +202,7 @@ def evaluate(
 ) -> None:
     """Score run folders against simulator truth (trajectory, surface, coverage, seams,
     detection); writes RUN/evaluation.json and .md and prints a markdown table."""
-    from mapping.evaluate import evaluate_run, markdown_table
+    from roadsurf.mapping.evaluate import evaluate_run, markdown_table
 
     results = [evaluate_run(r, truth) for r in runs]
     typer.echo(markdown_table(results, [str(r) for r in runs]))
@@ -222,7 +222,7 @@ def bench_mapping(
     width: Annotated[int, typer.Option(help="Image width of the simulated drives (px).")] = 640,
 ) -> None:
     """Peak RSS of `roadsurf run` and of the mapping stages on simulated drives of each length."""
-    from mapping.bench import run_benchmark
+    from roadsurf.mapping.bench import run_benchmark
 
     res = run_benchmark(work, tuple(int(f) for f in frames.split(",")), full=full, width=width)
     typer.echo(res["markdown"])
@@ -241,7 +241,7 @@ def sfm_baseline(
 ) -> None:
     """Baseline: pycolmap incremental SfM, scaled by camera height, aligned to GPS; writes the
     same cloud.ply, surface.tif, trajectory.geojson and report.json as `roadsurf run`."""
-    from reconstruction.sfm_baseline import run_from_paths
+    from roadsurf.reconstruction.sfm_baseline import run_from_paths
 
     res = run_from_paths(drive, out, config_path=config, overwrite=overwrite)
     typer.echo(
@@ -287,7 +287,7 @@ def label(
     ] = None,
 ) -> None:
     """Self-label frames with the 3D physics pipeline into a CNN dataset (eq. 5.8-5.9)."""
-    from detection.classifier import commands
+    from roadsurf.detection.classifier import commands
 
     bal = commands.label(
         drives, out, runs=run_dirs, runs_dir=runs_dir, config_path=config, augment=augment
@@ -312,7 +312,7 @@ def train(
     ] = False,
 ) -> None:
     """Train the defect CNN on a labelled dataset (resumes an interrupted training)."""
-    from detection.classifier import commands
+    from roadsurf.detection.classifier import commands
 
     meta = commands.train(
         dataset,
@@ -345,7 +345,7 @@ def bench_classifier(
     lr: Annotated[float | None, typer.Option(help="Learning rate.")] = None,
 ) -> None:
     """CNN vs fused CNN+3D vs 3D-only on unseen simulator drives (Table 5.2, Fig. 5.5)."""
-    from detection.classifier import commands
+    from roadsurf.detection.classifier import commands
 
     res = commands.bench(work, quick=quick, config_path=config, epochs=epochs, learning_rate=lr)
     typer.echo((Path(work) / "results.md").read_text(encoding="utf-8"))
@@ -361,8 +361,8 @@ def bench_probe(
     ] = None,
 ) -> None:
     """The fused run's audit probe against a full pair on every pair: misses and time."""
-    from detection.classifier.bench_probe import bench_probe as _bench
-    from detection.classifier.bench_probe import report
+    from roadsurf.detection.classifier.bench_probe import bench_probe as _bench
+    from roadsurf.detection.classifier.bench_probe import report
     from roadsurf.pipeline import load_pipeline_config
 
     cfg = load_pipeline_config(config)
@@ -391,7 +391,7 @@ def bench_detection(
     ] = False,
 ) -> None:
     """Table 4.2: the detector on proposed, classic and colmap reconstructions of sim drives."""
-    from detection.bench import run_benchmark
+    from roadsurf.detection.bench import run_benchmark
 
     cmd = f"roadsurf bench detection --work {work}" + (
         " --detection-only" if detection_only else ""
@@ -434,7 +434,7 @@ def view(
     ] = None,
 ) -> None:
     """Inspect a run in Rerun: native viewer (default), --save RUN.rrd, or --serve (web)."""
-    from viewer.api import view as view_run
+    from roadsurf.viewer.api import view as view_run
 
     res = view_run(
         run_dir,
@@ -468,7 +468,7 @@ def report(
     ] = None,
 ) -> None:
     """Write the self-contained HTML run report (summary, defects, figures, timings)."""
-    from viewer.report import report_command
+    from roadsurf.viewer.report import report_command
 
     out, shot = report_command(run_dir, html_out, drive_dir=drive, screenshot_png=screenshot)
     typer.echo(f"Report: {out}")

@@ -23,13 +23,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from detection.classifier.config import ClassifierConfig
-from detection.config import DetectionConfig
-from mapping.config import MappingConfig
-from reconstruction.config import ReconstructionConfig
 from roadsurf.config import from_dict, load_yaml_config, to_dict
+from roadsurf.detection.classifier.config import ClassifierConfig
+from roadsurf.detection.config import DetectionConfig
 from roadsurf.errors import ConfigError, RoadsurfError
 from roadsurf.io import read_json, write_json_atomic
+from roadsurf.mapping.config import MappingConfig
+from roadsurf.reconstruction.config import ReconstructionConfig
 
 log = logging.getLogger(__name__)
 
@@ -65,15 +65,15 @@ def _stage(module: str) -> Any:
 # What a fused run imports after screening: the stage modules and the heavy libraries they
 # import inside functions. A stale entry only costs overlap, never correctness
 _FUSED_RUN_IMPORTS = (
-    "reconstruction.stage",
-    "reconstruction.probe",
-    "detection.classifier.guided",
-    "mapping.poses",
-    "mapping.globalmap",
-    "detection.stage",
-    "detection.cracks",
-    "detection.dense",
-    "detection.ruts",
+    "roadsurf.reconstruction.stage",
+    "roadsurf.reconstruction.probe",
+    "roadsurf.detection.classifier.guided",
+    "roadsurf.mapping.poses",
+    "roadsurf.mapping.globalmap",
+    "roadsurf.detection.stage",
+    "roadsurf.detection.cracks",
+    "roadsurf.detection.dense",
+    "roadsurf.detection.ruts",
     "rasterio",
     "rasterio.windows",
     "shapely",
@@ -91,7 +91,7 @@ def _screen(model: Path, drive: Any, cfg: ClassifierConfig, job: Any) -> dict[st
     run needs (imports hold the GIL, so a thread could not overlap them), or in this process
     when ``job`` is None."""
     if job is None:
-        return _stage("detection.classifier.screen").screen_drive(model, drive, cfg)
+        return _stage("roadsurf.detection.classifier.screen").screen_drive(model, drive, cfg)
     job.send(drive.frames)
     for name in _FUSED_RUN_IMPORTS:
         try:
@@ -149,7 +149,7 @@ def run_drive(
     if classifier is not None and cfg.classifier.screen_in_subprocess:
         # a fused run starts its CNN worker first: torch's import and the model's loading run
         # on another core while this process reads the drive and imports the stages
-        from detection.classifier.screen_job import ScreeningJob
+        from roadsurf.detection.classifier.screen_job import ScreeningJob
 
         job = ScreeningJob(Path(classifier), cfg.classifier)
     try:
@@ -181,7 +181,7 @@ def _run_drive(
     obs: list[Observer] = list(observers or [])
     if rerun:
         try:
-            live = importlib.import_module("viewer.live")
+            live = importlib.import_module("roadsurf.viewer.live")
         except ModuleNotFoundError as e:
             raise RoadsurfError(
                 "--rerun needs the live viewer (viewer/live.py with make_observer(run_dir)); "
@@ -220,15 +220,15 @@ def _run_drive(
     frame_probs: dict[str, float] | None = None
     fusion_rule: Any = None
     if classifier is None:
-        rec = _stage("reconstruction.stage")
+        rec = _stage("roadsurf.reconstruction.stage")
         pairs = timed("reconstruction", lambda: rec.run(rec_cfg, drive, out))
     else:
         frame_probs = timed(
             "screening", lambda: _screen(Path(classifier), drive, cfg.classifier, job)
         )
-        rec = _stage("reconstruction.stage")
-        guided = _stage("detection.classifier.guided")
-        probe = _stage("reconstruction.probe")
+        rec = _stage("roadsurf.reconstruction.stage")
+        guided = _stage("roadsurf.detection.classifier.guided")
+        probe = _stage("roadsurf.reconstruction.probe")
 
         def reconstruct_guided() -> list[Any]:
             nonlocal fusion_rule
@@ -246,11 +246,11 @@ def _run_drive(
             return g.pairs
 
         pairs = timed("reconstruction", reconstruct_guided)
-    poses = _stage("mapping.poses")
+    poses = _stage("roadsurf.mapping.poses")
     traj = timed("poses", lambda: poses.run(cfg.mapping, drive, pairs, out))
-    gmap = _stage("mapping.globalmap")
+    gmap = _stage("roadsurf.mapping.globalmap")
     products = timed("globalmap", lambda: gmap.run(cfg.mapping, drive, pairs, traj, out))
-    det = _stage("detection.stage")
+    det = _stage("roadsurf.detection.stage")
     detections = timed(
         "detection",
         lambda: det.run(

@@ -8,10 +8,10 @@ from typing import Any
 
 import numpy as np
 
-from simulation.render import Renderer
-from simulation.scenarios import SCENARIOS, make_config
-from simulation.sensors import encode_image, form_image
-from simulation.world import build_world
+from roadsurf.simulation.render import Renderer
+from roadsurf.simulation.scenarios import SCENARIOS, make_config
+from roadsurf.simulation.sensors import encode_image, form_image
+from roadsurf.simulation.world import build_world
 
 
 def bench_render(scenario: str = "sample", n_frames: int = 20, **overrides: Any) -> dict[str, Any]:

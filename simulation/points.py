@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from reconstruction.geometry import px_from_cam, rotation_from_euler_deg
+from roadsurf.reconstruction.geometry import px_from_cam, rotation_from_euler_deg
 
 DEFAULT_F_PX = 960.0  # focal length f (px) of the study camera
 DEFAULT_SIZE = (1024, 768)  # image width, height (px)

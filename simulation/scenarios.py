@@ -23,9 +23,9 @@ from roadsurf.config import from_dict, load_yaml_config
 from roadsurf.errors import ConfigError, RoadsurfError
 from roadsurf.formats import write_csv
 from roadsurf.io import write_bytes_atomic, write_json_atomic, write_text_atomic
-from simulation.config import SimConfig
-from simulation.render import Renderer
-from simulation.sensors import (
+from roadsurf.simulation.config import SimConfig
+from roadsurf.simulation.render import Renderer
+from roadsurf.simulation.sensors import (
     encode_image,
     form_image,
     gps_params,
@@ -35,14 +35,14 @@ from simulation.sensors import (
     simulate_obd,
     time_offset_s,
 )
-from simulation.truth import (
+from roadsurf.simulation.truth import (
     corridor_polygon,
     write_features,
     write_frame_labels,
     write_poses,
     write_rasters,
 )
-from simulation.world import build_world, footprint_m
+from roadsurf.simulation.world import build_world, footprint_m
 
 log = logging.getLogger(__name__)
 

@@ -9,8 +9,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from simulation.config import SimConfig
-from simulation.world import World
+from roadsurf.simulation.config import SimConfig
+from roadsurf.simulation.world import World
 
 # GPS profiles: rate (Hz), white noise σ per horizontal axis (m), bias std after 60 s (m), HDOP.
 GPS_PROFILES = {

@@ -14,7 +14,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-from simulation.noise import uniform01
+from roadsurf.simulation.noise import uniform01
 
 # Per-texture colour tint (R, G, B) and ground size multiplier of one texel.
 _TINTS = {

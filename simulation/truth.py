@@ -27,7 +27,7 @@ from roadsurf.formats import (
     write_geotiff_blocks,
 )
 from roadsurf.geometry import lla_from_utm
-from simulation.world import Pothole, Trough, World
+from roadsurf.simulation.world import Pothole, Trough, World
 
 BLOCK = 256
 DEFECT_DEPTH_M = 0.010  # frame label: footprint area deeper than this ...

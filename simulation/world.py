@@ -19,10 +19,10 @@ import cv2
 import numpy as np
 
 from roadsurf.geometry import lla_from_utm, utm_epsg_for, utm_from_lla, world_from_cam
-from simulation.config import SimConfig
-from simulation.noise import fractal_noise, value_noise
-from simulation.shapes import Blob, Polyline, Rect
-from simulation.texture import TextureField
+from roadsurf.simulation.config import SimConfig
+from roadsurf.simulation.noise import fractal_noise, value_noise
+from roadsurf.simulation.shapes import Blob, Polyline, Rect
+from roadsurf.simulation.texture import TextureField
 
 log = logging.getLogger(__name__)
 

@@ -107,7 +107,7 @@ def test_outputs_are_georeferenced_against_truth(sample_run) -> None:
 @pytest.mark.slow
 def test_evaluate_scores_the_run(sample_run) -> None:
     drive, out, _ = sample_run
-    from mapping.evaluate import evaluate_run
+    from roadsurf.mapping.evaluate import evaluate_run
 
     ev = evaluate_run(out, drive / "truth")
     assert ev["trajectory_rmse_m"] < 0.1
@@ -143,8 +143,8 @@ def test_run_with_classifier_screens_audits_and_fuses(sample_run, tmp_path: Path
     which source decided each frame, screening.json why each frame got 3D."""
     import torch
 
-    from detection.classifier.modelfile import save_model
-    from detection.classifier.network import DefectNet
+    from roadsurf.detection.classifier.modelfile import save_model
+    from roadsurf.detection.classifier.network import DefectNet
     from roadsurf.pipeline import run_drive
 
     drive, _, _ = sample_run

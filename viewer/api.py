@@ -21,9 +21,9 @@ from urllib.parse import quote
 import rerun as rr
 
 from roadsurf.errors import RoadsurfError
-from viewer.config import ViewerConfig
-from viewer.recording import APP_ID, layout_for, log_run
-from viewer.runfolder import RunData, load_run
+from roadsurf.viewer.config import ViewerConfig
+from roadsurf.viewer.recording import APP_ID, layout_for, log_run
+from roadsurf.viewer.runfolder import RunData, load_run
 
 log = logging.getLogger(__name__)
 
@@ -258,7 +258,7 @@ def view(
         if on_ready is not None:
             on_ready(res.url)
         if screenshot_png is not None:
-            from viewer.browser import is_blank, screenshot
+            from roadsurf.viewer.browser import is_blank, screenshot
 
             shot = screenshot(
                 res.url,

@@ -19,8 +19,8 @@ from typing import Any
 import rerun as rr
 
 from roadsurf.errors import RoadsurfError
-from viewer.config import ViewerConfig
-from viewer.recording import (
+from roadsurf.viewer.config import ViewerConfig
+from roadsurf.viewer.recording import (
     APP_ID,
     blueprint,
     layout_for,
@@ -33,7 +33,7 @@ from viewer.recording import (
     log_trajectory,
     summary_markdown,
 )
-from viewer.runfolder import RunData, load_run
+from roadsurf.viewer.runfolder import RunData, load_run
 
 log = logging.getLogger(__name__)
 
@@ -61,7 +61,7 @@ class LiveObserver:
         log_setup(rec)
 
     def _connect(self, rec: rr.RecordingStream, spawn: bool) -> None:
-        from viewer.api import spawn_native
+        from roadsurf.viewer.api import spawn_native
 
         if spawn:
             try:

@@ -29,9 +29,9 @@ import rerun as rr
 import rerun.blueprint as rrb
 from tqdm import tqdm
 
-from viewer.colors import legend_png, residual_half_range_m, residual_rgb
-from viewer.config import ViewerConfig
-from viewer.runfolder import (
+from roadsurf.viewer.colors import legend_png, residual_half_range_m, residual_rgb
+from roadsurf.viewer.config import ViewerConfig
+from roadsurf.viewer.runfolder import (
     DefectView,
     RunData,
     defect_rings_3d,

@@ -17,9 +17,9 @@ from typing import Any
 import numpy as np
 
 from roadsurf.io import write_text_atomic
-from viewer.colors import residual_half_range_m
-from viewer.config import ViewerConfig
-from viewer.runfolder import (
+from roadsurf.viewer.colors import residual_half_range_m
+from roadsurf.viewer.config import ViewerConfig
+from roadsurf.viewer.runfolder import (
     RunData,
     defect_rings_3d,
     depth_profile,
@@ -524,7 +524,7 @@ def report_command(
     path = write_report(run_dir, out, drive_dir=drive_dir)
     shot = None
     if screenshot_png is not None:
-        from viewer.browser import screenshot
+        from roadsurf.viewer.browser import screenshot
 
         shot = screenshot(path.resolve().as_uri(), screenshot_png, size=(1300, 2000)).path
     return path, shot

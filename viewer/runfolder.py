@@ -199,7 +199,7 @@ def _read_optional_json(path: Path, missing: list[str]) -> Any | None:
 
 
 def _load_trajectory(run: Path, missing: list[str]) -> Any | None:
-    from mapping.types import load_trajectory
+    from roadsurf.mapping.types import load_trajectory
 
     if not (run / "poses.npz").exists() or not (run / "reference.json").exists():
         missing.append("poses.npz")
@@ -352,7 +352,7 @@ def _load_frame_labels(run: Path, missing: list[str]) -> dict[str, dict[str, str
 
 
 def _load_pairs(run: Path, missing: list[str]) -> list[Any]:
-    from reconstruction.types import load_pair
+    from roadsurf.reconstruction.types import load_pair
 
     folder = run / "pairs"
     files = sorted(folder.glob("*.npz")) if folder.is_dir() else []

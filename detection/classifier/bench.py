@@ -28,8 +28,8 @@ from typing import Any
 
 import numpy as np
 
-from detection.classifier.config import ClassifierConfig
-from detection.classifier.modelfile import model_weights_path
+from roadsurf.detection.classifier.config import ClassifierConfig
+from roadsurf.detection.classifier.modelfile import model_weights_path
 from roadsurf.errors import RoadsurfError
 from roadsurf.io import read_json, write_json_atomic, write_text_atomic
 
@@ -248,7 +248,7 @@ def _simulate(spec: DriveSpec, root: Path) -> Path:
     out = root / "drives" / spec.name
     if (out / "truth" / "frame_labels.csv").is_file():
         return out
-    from simulation.scenarios import simulate
+    from roadsurf.simulation.scenarios import simulate
 
     if out.exists():
         shutil.rmtree(out)
@@ -358,7 +358,7 @@ def score(
     pred: dict[str, int], truth: dict[str, int], distractors: dict[str, set[str]]
 ) -> dict[str, Any]:
     """Frame metrics plus false positives broken down by the distractor types in view."""
-    from detection.evaluate import frame_metrics
+    from roadsurf.detection.evaluate import frame_metrics
 
     m = frame_metrics(pred, truth)
     fp_by: dict[str, int] = {}
@@ -382,9 +382,9 @@ def bench_classifier(
     config_path: str | Path | None = None,
 ) -> dict[str, Any]:
     """Run the whole benchmark in ``work``; returns the results (also work/results.json/.md)."""
-    from detection.classifier.dataset import label_drives
-    from detection.classifier.screen import screen_drive
-    from detection.classifier.train import train
+    from roadsurf.detection.classifier.dataset import label_drives
+    from roadsurf.detection.classifier.screen import screen_drive
+    from roadsurf.detection.classifier.train import train
 
     cfg = cfg or ClassifierConfig()
     work = Path(work)
@@ -630,6 +630,6 @@ def rewrite_markdown(work: str | Path) -> str:
 
 def require_simulator() -> None:
     try:
-        import simulation.scenarios  # noqa: F401
+        import roadsurf.simulation.scenarios  # noqa: F401
     except ImportError as e:
         raise RoadsurfError(f"bench classifier needs the simulator package ({e})") from e

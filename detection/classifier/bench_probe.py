@@ -18,14 +18,14 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from detection.classifier.config import ClassifierConfig
-from detection.classifier.dataset import figures_from_pairs, label_frame
-from detection.classifier.guided import probe_depth_points
-from reconstruction import features as feat
-from reconstruction.api import reconstruct_features
-from reconstruction.config import ReconstructionConfig
-from reconstruction.probe import probe_pair
+from roadsurf.detection.classifier.config import ClassifierConfig
+from roadsurf.detection.classifier.dataset import figures_from_pairs, label_frame
+from roadsurf.detection.classifier.guided import probe_depth_points
 from roadsurf.drive import load_drive, read_gray
+from roadsurf.reconstruction import features as feat
+from roadsurf.reconstruction.api import reconstruct_features
+from roadsurf.reconstruction.config import ReconstructionConfig
+from roadsurf.reconstruction.probe import probe_pair
 
 
 @dataclass

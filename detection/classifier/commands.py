@@ -10,7 +10,7 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
-from detection.classifier.config import ClassifierConfig
+from roadsurf.detection.classifier.config import ClassifierConfig
 
 
 def make_config(config_path: str | Path | None = None, **overrides: Any) -> ClassifierConfig:
@@ -34,7 +34,7 @@ def label(
     config_path: Path | None = None,
     augment: bool | None = None,
 ) -> dict[str, Any]:
-    from detection.classifier.dataset import label_drives
+    from roadsurf.detection.classifier.dataset import label_drives
 
     cfg = make_config(config_path, augment=augment)
     return label_drives(drives, out, cfg, runs=runs or None, runs_dir=runs_dir)
@@ -51,7 +51,7 @@ def train(
     seed: int | None = None,
     overwrite: bool = False,
 ) -> dict[str, Any]:
-    from detection.classifier.train import train as _train
+    from roadsurf.detection.classifier.train import train as _train
 
     cfg = make_config(
         config_path,
@@ -71,7 +71,7 @@ def bench(
     epochs: int | None = None,
     learning_rate: float | None = None,
 ) -> dict[str, Any]:
-    from detection.classifier.bench import bench_classifier, require_simulator
+    from roadsurf.detection.classifier.bench import bench_classifier, require_simulator
 
     require_simulator()
     cfg = make_config(config_path, epochs=epochs, learning_rate=learning_rate)

@@ -33,9 +33,9 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from detection.classifier import augment
-from detection.classifier.config import CLASS_NAMES, ClassifierConfig
 from roadsurf.config import to_dict
+from roadsurf.detection.classifier import augment
+from roadsurf.detection.classifier.config import CLASS_NAMES, ClassifierConfig
 from roadsurf.errors import RoadsurfError
 from roadsurf.io import atomic_path, write_json_atomic, write_text_atomic
 
@@ -107,7 +107,7 @@ def frame_figures(
 ) -> dict[str, FrameFigures]:
     """Depth and extent of each frame from RUN/pairs/*.npz (eq. 5.8-5.9); see
     ``figures_from_pairs``. ``filenames`` are the drive's valid frames in capture order."""
-    from reconstruction.types import load_pair, pair_filename
+    from roadsurf.reconstruction.types import load_pair, pair_filename
 
     pair_dir = Path(run_dir) / "pairs"
     pairs = []

@@ -36,9 +36,9 @@ from typing import Any
 
 import numpy as np
 
-from detection.classifier.config import ClassifierConfig
-from detection.classifier.dataset import figures_from_pairs, label_frame
-from detection.classifier.fusion import (
+from roadsurf.detection.classifier.config import ClassifierConfig
+from roadsurf.detection.classifier.dataset import figures_from_pairs, label_frame
+from roadsurf.detection.classifier.fusion import (
     FusionRule,
     audit_pairs,
     cnn_confident,

@@ -15,8 +15,8 @@ from typing import Any
 
 import torch
 
-from detection.classifier.config import CLASS_NAMES
-from detection.classifier.network import DefectNet
+from roadsurf.detection.classifier.config import CLASS_NAMES
+from roadsurf.detection.classifier.network import DefectNet
 from roadsurf.errors import ModelFileError
 from roadsurf.io import atomic_path, write_json_atomic
 

@@ -12,10 +12,10 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from detection.classifier.config import ClassifierConfig
-from detection.classifier.dataset import thumbnail, to_input
-from detection.classifier.modelfile import load_model
-from detection.classifier.network import pick_device
+from roadsurf.detection.classifier.config import ClassifierConfig
+from roadsurf.detection.classifier.dataset import thumbnail, to_input
+from roadsurf.detection.classifier.modelfile import load_model
+from roadsurf.detection.classifier.network import pick_device
 from roadsurf.drive import Drive, Frame, load_drive, read_image
 from roadsurf.errors import RoadsurfError
 from roadsurf.parallel import ordered_map

@@ -28,9 +28,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from detection.classifier.config import ClassifierConfig
 from roadsurf import errors
 from roadsurf.config import from_dict, to_dict
+from roadsurf.detection.classifier.config import ClassifierConfig
 from roadsurf.drive import Frame
 from roadsurf.errors import RoadsurfError
 from roadsurf.io import write_json_atomic
@@ -75,7 +75,7 @@ class ScreeningJob:
             [
                 sys.executable,
                 "-m",
-                "detection.classifier.screen_job",
+                "roadsurf.detection.classifier.screen_job",
                 str(self._out),
                 json.dumps(header),
             ],
@@ -141,7 +141,7 @@ def _work(out: Path, header: dict[str, Any]) -> int:
         return [Frame(int(i), str(fn), Path(p), float(t)) for i, fn, p, t in rows]
 
     try:
-        from detection.classifier.screen import screen_frames
+        from roadsurf.detection.classifier.screen import screen_frames
 
         cfg = from_dict(ClassifierConfig, header["config"], "classifier")
         probs = screen_frames(header["model"], frames, cfg, progress=bool(header["progress"]))

@@ -24,12 +24,12 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
-from detection.classifier import augment
-from detection.classifier.config import CLASS_NAMES, ClassifierConfig
-from detection.classifier.dataset import Dataset, load_dataset
-from detection.classifier.modelfile import save_model
-from detection.classifier.network import DefectNet, pick_device
 from roadsurf.config import to_dict
+from roadsurf.detection.classifier import augment
+from roadsurf.detection.classifier.config import CLASS_NAMES, ClassifierConfig
+from roadsurf.detection.classifier.dataset import Dataset, load_dataset
+from roadsurf.detection.classifier.modelfile import save_model
+from roadsurf.detection.classifier.network import DefectNet, pick_device
 from roadsurf.errors import RoadsurfError
 from roadsurf.io import atomic_path, write_json_atomic
 
@@ -242,7 +242,7 @@ def _calibrate(
     with ``calibrate_bias`` a logit bias b fitted jointly, plus the shift from the data's
     defect share ``prior_data`` to ``cfg.defect_prior`` when that is set. ``prior_trained``
     (defect share the net was trained at) is recorded for reference."""
-    from detection.classifier.modelfile import load_model
+    from roadsurf.detection.classifier.modelfile import load_model
 
     net, meta = load_model(out, device)
     lg = logits_of(net, images, device)

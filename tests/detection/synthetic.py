@@ -14,10 +14,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from mapping.types import Trajectory
-from reconstruction.types import PairResult
 from roadsurf.drive import Camera, Drive, Frame
 from roadsurf.geometry import EnuReference, invert_pose, transform_points, world_from_cam
+from roadsurf.mapping.types import Trajectory
+from roadsurf.reconstruction.types import PairResult
 
 REF = EnuReference(lat_deg=43.0, lon_deg=-79.5, alt_m=100.0)
 
@@ -170,7 +170,7 @@ def build(
     n_points: int = 2500,
 ) -> tuple[Drive, list[PairResult], Trajectory]:
     """Write tiny images under ``root/frames`` and return (drive, pairs, trajectory)."""
-    from detection.planefit import fit_plane, signed_distance
+    from roadsurf.detection.planefit import fit_plane, signed_distance
 
     rng = np.random.default_rng(seed)
     Ts = poses(n_frames)
@@ -249,7 +249,7 @@ def write_truth(scene: Scene, truth_dir: Path, traj: Trajectory, camera: Camera 
     defects.geojson (pothole discs) and distractors.geojson (lane marking, oil stain)."""
     import json
 
-    from detection.footprint import footprint_enu
+    from roadsurf.detection.footprint import footprint_enu
     from roadsurf.formats import feature, polygon_geometry, write_csv, write_geojson
     from roadsurf.geometry import ExportFrame
 
@@ -374,7 +374,7 @@ def build_two_view(
     """Two frames rendered with true relief and ONE pair whose sparse matches (with exact
     R, t, H) avoid the pothole floor: features only where the surface is shallower than
     ``max_feature_depth_m`` (a dark, smooth pothole bottom holds no features)."""
-    from detection.planefit import fit_plane, signed_distance
+    from roadsurf.detection.planefit import fit_plane, signed_distance
 
     cam = camera or Camera(
         width=320, height=240, fx=300.0, fy=300.0, cx=159.5, cy=119.5, height_m=1.0, fps=10.0

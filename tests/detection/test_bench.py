@@ -1,6 +1,6 @@
 """Pooling, table and docs section of `roadsurf bench detection` (no simulation here)."""
 
-from detection.bench import DOC_BEGIN, DOC_END, _pool, table_markdown, update_docs
+from roadsurf.detection.bench import DOC_BEGIN, DOC_END, _pool, table_markdown, update_docs
 
 
 def _res(tp, tn, fp, fn, pred, truth, matched, errs, areas, fa=0):
@@ -67,7 +67,7 @@ def test_update_docs_says_when_only_detection_was_rerun(tmp_path):
 def test_detection_only_needs_the_runs(tmp_path):
     import pytest
 
-    from detection.bench import redetect
+    from roadsurf.detection.bench import redetect
     from roadsurf.errors import RoadsurfError
 
     (tmp_path / "run").mkdir()

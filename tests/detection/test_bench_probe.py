@@ -7,8 +7,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from detection.classifier.bench_probe import bench_probe, report
-from reconstruction.config import FeatureConfig, ReconstructionConfig
+from roadsurf.detection.classifier.bench_probe import bench_probe, report
+from roadsurf.reconstruction.config import FeatureConfig, ReconstructionConfig
 from tests.reconstruction.conftest import texture
 from tests.reconstruction.test_probe import _rut, render_surface
 

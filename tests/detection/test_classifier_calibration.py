@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import torch
 
-from detection.classifier.config import ClassifierConfig
-from detection.classifier.modelfile import load_model, save_model
-from detection.classifier.network import DefectNet
-from detection.classifier.train import fit_temperature, make_scheduler
+from roadsurf.detection.classifier.config import ClassifierConfig
+from roadsurf.detection.classifier.modelfile import load_model, save_model
+from roadsurf.detection.classifier.network import DefectNet
+from roadsurf.detection.classifier.train import fit_temperature, make_scheduler
 from roadsurf.errors import ModelFileError, RoadsurfError
 
 
@@ -80,7 +80,7 @@ def test_cosine_schedule_warms_up_then_decays() -> None:
 
 def test_prior_shift_and_bias_calibration(tmp_path: Path) -> None:
     """Balanced sampling trains at 1:1; a fitted logit bias moves p to the data's prior."""
-    from detection.classifier.train import prior_shift, training_priors
+    from roadsurf.detection.classifier.train import prior_shift, training_priors
 
     assert prior_shift(0.5, 0.25) == pytest.approx(np.log(1 / 3))
     assert prior_shift(0.2, 0.2) == 0.0
@@ -94,7 +94,7 @@ def test_prior_shift_and_bias_calibration(tmp_path: Path) -> None:
 
     # a net whose posterior is right at 1:1 but too sharp (T = 2), validation drawn at a 1:4
     # prior: the joint fit recovers both the temperature and the prior shift
-    from detection.classifier.train import fit_temperature_bias
+    from roadsurf.detection.classifier.train import fit_temperature_bias
 
     rng = np.random.default_rng(0)
     z = rng.normal(0.0, 4.0, 8000)

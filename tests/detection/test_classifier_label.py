@@ -11,13 +11,13 @@ import cv2
 import numpy as np
 import pytest
 
-from detection.classifier import augment
-from detection.classifier.config import ClassifierConfig
-from detection.classifier.dataset import FrameFigures, frame_figures, label_frame
-from detection.classifier.fusion import fuse, fuse_frames, needs_3d, pairs_to_reconstruct
-from reconstruction.types import PairResult, pair_filename, save_pair
+from roadsurf.detection.classifier import augment
+from roadsurf.detection.classifier.config import ClassifierConfig
+from roadsurf.detection.classifier.dataset import FrameFigures, frame_figures, label_frame
+from roadsurf.detection.classifier.fusion import fuse, fuse_frames, needs_3d, pairs_to_reconstruct
 from roadsurf.errors import RoadsurfError
 from roadsurf.formats import read_geojson, write_geojson
+from roadsurf.reconstruction.types import PairResult, pair_filename, save_pair
 
 
 @pytest.mark.parametrize("thr", [0.8, 0.95])
@@ -206,8 +206,8 @@ def _read_labels(path: Path) -> list[dict[str, str]]:
 
 def test_labelling_a_rendered_drive_agrees_with_truth_on_clear_cases(tmp_path: Path) -> None:
     """Simulate a tiny drive, let `label` run the physics pipeline, compare with truth."""
-    scenarios = pytest.importorskip("simulation.scenarios")
-    from detection.classifier.dataset import label_drives
+    scenarios = pytest.importorskip("roadsurf.simulation.scenarios")
+    from roadsurf.detection.classifier.dataset import label_drives
 
     drive = scenarios.simulate(
         "potholes",
@@ -276,7 +276,7 @@ def test_labelling_a_rendered_drive_agrees_with_truth_on_clear_cases(tmp_path: P
 
 
 def test_defect_types_per_frame_and_the_cnn_skip_rule(tmp_path: Path) -> None:
-    from detection.classifier.dataset import read_defect_types, skip_for_cnn
+    from roadsurf.detection.classifier.dataset import read_defect_types, skip_for_cnn
 
     def feat(kind: str, frames: list[str]) -> dict:
         ring = [[0.0, 0.0], [1e-5, 0.0], [1e-5, 1e-5], [0.0, 0.0]]
@@ -320,7 +320,7 @@ def test_growth_goes_through_a_tapered_end_and_an_isolated_depression_stays_cnn(
     3D defect. So are ambiguous
     neighbours of a frame the CNN was unsure about whose 3D shows some depth (a small pothole's
     rim). An ambiguous audited frame with no such anchor beside it keeps the CNN's decision."""
-    from detection.classifier import guided
+    from roadsurf.detection.classifier import guided
 
     n = 30
     names = [f"{i:04d}.png" for i in range(n)]
@@ -352,7 +352,7 @@ def test_a_context_frame_far_side_is_reconstructed_only_when_its_shared_pair_is_
     by (5, 6) only: the run reconstructs (4, 5), (5, 6), (6, 7) in one round, not the far
     sides (3, 4) and (7, 8) of the context frames. A defect that goes on into frame 7 shows in
     the shared pair (6, 7), and growth follows it until the 3D shows clear road."""
-    from detection.classifier import guided
+    from roadsurf.detection.classifier import guided
 
     n = 20
     names = [f"{i:04d}.png" for i in range(n)]
@@ -382,8 +382,8 @@ def test_audit_and_growth_follow_a_defect_the_cnn_cannot_see(tmp_path: Path) -> 
     """A long shallow defect (frames 9-15) the CNN is sure is clear road: the sparse audit meets
     it, growth follows it to both ends, and 3D decides those frames (detection.classifier.guided).
     """
-    from detection.classifier import guided
-    from detection.classifier.fusion import audit_pairs, grow_pairs
+    from roadsurf.detection.classifier import guided
+    from roadsurf.detection.classifier.fusion import audit_pairs, grow_pairs
 
     n = 30
     names = [f"{i:04d}.png" for i in range(n)]
@@ -462,7 +462,7 @@ def test_audit_probes_settle_clear_road_and_send_depth_to_full_pairs(tmp_path: P
     depth (> audit_probe_max_deep_points points below audit_probe_depth_frac x Z^d); a clear
     probe settles the frame (the CNN's decision stands, no full pair, no "pair failed" retry).
     The rut the audit meets is still followed to its ends by full pairs."""
-    from detection.classifier import guided
+    from roadsurf.detection.classifier import guided
 
     n = 30
     names = [f"{i:04d}.png" for i in range(n)]
@@ -532,7 +532,7 @@ def test_audit_probes_settle_clear_road_and_send_depth_to_full_pairs(tmp_path: P
 def test_a_frame_whose_pair_failed_gets_its_other_pair() -> None:
     """An unsure frame is planned with one pair; when that pair fails, the next round adds
     the other, so the frame still gets 3D (detection.classifier.guided)."""
-    from detection.classifier import guided
+    from roadsurf.detection.classifier import guided
 
     n = 12
     names = [f"{i:04d}.png" for i in range(n)]
@@ -559,7 +559,7 @@ def test_a_frame_whose_pair_failed_gets_its_other_pair() -> None:
 
 
 def test_growth_extends_the_cnn_context_along_a_long_defect(tmp_path: Path) -> None:
-    from detection.classifier import guided
+    from roadsurf.detection.classifier import guided
 
     n = 20
     names = [f"{i:04d}.png" for i in range(n)]

@@ -13,12 +13,12 @@ import numpy as np
 import pytest
 import torch
 
-from detection.classifier.config import ClassifierConfig
-from detection.classifier.modelfile import load_model, save_model
-from detection.classifier.network import DefectNet
-from detection.classifier.screen import screen_drive, screen_threads
-from detection.classifier.screen_job import ScreeningJob
-from detection.classifier.train import metrics, train, train_steps
+from roadsurf.detection.classifier.config import ClassifierConfig
+from roadsurf.detection.classifier.modelfile import load_model, save_model
+from roadsurf.detection.classifier.network import DefectNet
+from roadsurf.detection.classifier.screen import screen_drive, screen_threads
+from roadsurf.detection.classifier.screen_job import ScreeningJob
+from roadsurf.detection.classifier.train import metrics, train, train_steps
 from roadsurf.drive import Camera, Drive, Frame
 from roadsurf.errors import ModelFileError, RoadsurfError
 

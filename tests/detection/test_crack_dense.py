@@ -5,8 +5,8 @@ import cv2
 import numpy as np
 import pytest
 
-from detection.config import CrackConfig
-from detection.cracks import PairView, dense_crack_depth
+from roadsurf.detection.config import CrackConfig
+from roadsurf.detection.cracks import PairView, dense_crack_depth
 from roadsurf.drive import Camera, read_gray
 from roadsurf.geometry import invert_pose, transform_points
 from tests.detection.synthetic import Scene, Trough, build_two_view, poses
@@ -88,8 +88,8 @@ def test_crack_without_sparse_points_is_carried_by_its_dense_reading(tmp_path, d
     reading then carries it into the pooled test (dropped before, as without dense)."""
     import dataclasses
 
-    from detection.config import DetectionConfig
-    from detection.pairs import analyse_pair
+    from roadsurf.detection.config import DetectionConfig
+    from roadsurf.detection.pairs import analyse_pair
 
     # 10 mm wide, 6 mm deep, darkest at its floor (wide and dark enough for the 2D detector)
     groove = Trough(-0.15, 0.12, 0.15, 0.14, 0.010, 0.006, darker=0.3, dark_profile="floor")

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import skimage.data
 
-from detection.config import CrackConfig
-from detection.cracks import thin_dark_components
+from roadsurf.detection.config import CrackConfig
+from roadsurf.detection.cracks import thin_dark_components
 
 M_PER_PX = 0.0015  # ground size of a pixel (m), as on a survey camera 1-2 mm/px
 

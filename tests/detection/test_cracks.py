@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from detection import stage
-from detection.config import CrackConfig, DetectionConfig
-from detection.cracks import cluster_cracks, crack_evidence, thin_dark_components
+from roadsurf.detection import stage
+from roadsurf.detection.config import CrackConfig, DetectionConfig
+from roadsurf.detection.cracks import cluster_cracks, crack_evidence, thin_dark_components
 from tests.detection.synthetic import Pothole, Scene, Trough, build
 
 CFG = DetectionConfig()
@@ -73,8 +73,8 @@ def test_pooled_evidence_and_clustering():
 def _crack_pair(depth_m: float):
     """One pair holding one confirmed-looking crack piece 0.4 m long, its 3D points
     ``depth_m`` deep (20 points, σ 1 mm)."""
-    from detection.cracks import PairCracks
-    from detection.pairs import PairDefects
+    from roadsurf.detection.cracks import PairCracks
+    from roadsurf.detection.pairs import PairDefects
 
     x = np.linspace(-0.2, 0.2, 40)
     xyz = np.c_[x, np.zeros_like(x), np.full_like(x, 1.0)]
@@ -91,8 +91,8 @@ def test_crack_evidence_from_a_failed_reconstruction_is_vetoed():
     """A thin dark line whose 3D points lie decimetres below the road (what a failed
     reconstruction gives, e.g. the `classic` baseline) is no crack: deeper than any defect the
     plane fit accepts (`plane.max_depth_m`). The same piece 4 mm deep is one."""
-    from detection.mapframe import MapFrame
-    from mapping.types import Trajectory
+    from roadsurf.detection.mapframe import MapFrame
+    from roadsurf.mapping.types import Trajectory
     from tests.detection.synthetic import poses
 
     traj = Trajectory(["000000.png"], np.arange(1), np.zeros(1), poses(1), ["gps"], None)

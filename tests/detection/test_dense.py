@@ -6,8 +6,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from detection import stage
-from detection.config import DenseConfig, DetectionConfig
+from roadsurf.detection import stage
+from roadsurf.detection.config import DenseConfig, DetectionConfig
 from tests.detection.synthetic import Pothole, Scene, build_two_view, write_surface
 
 DEPTH_M, RADIUS_M = 0.040, 0.12
@@ -63,7 +63,7 @@ def test_no_dense_reading_without_the_pair_geometry(tmp_path):
     back to the sparse points instead of failing."""
     from shapely.geometry import Point
 
-    from detection.dense import DenseContext, measure_defect_dense
+    from roadsurf.detection.dense import DenseContext, measure_defect_dense
 
     drive, pairs, traj = _scene_and_run(tmp_path)
     pairs[0].H = np.full((3, 3), np.nan)
@@ -86,7 +86,7 @@ def test_partial_dense_reading_still_counts_for_max_depth(tmp_path):
 
 def test_distort_undistort_round_trip():
     """Tracks run on the raw (distorted) images; the pair's pixels are ideal pinhole ones."""
-    from detection.dense import _distort, _undistort
+    from roadsurf.detection.dense import _distort, _undistort
     from roadsurf.drive import Camera
 
     cam = Camera(640, 480, 600.0, 600.0, 319.5, 239.5, 1.1, 15.0, (-0.12, 0.03, 0.0005, -0.0005, 0))
@@ -101,7 +101,7 @@ def test_tracks_that_slid_along_the_epipolar_line_are_dropped():
     """A rut running with the direction of travel gave tracks 0.3-4.5 m 'deep' that passed the
     forward-backward and epipolar checks (they slide along the line); one such cluster set the
     rut's max depth to 0.75 m. The neighbour check drops them and keeps a steep-walled bowl."""
-    from detection.dense import _consistent
+    from roadsurf.detection.dense import _consistent
 
     rng = np.random.default_rng(3)
     shape = (40, 60)
@@ -130,7 +130,7 @@ def test_patches_of_tracks_that_slid_together_are_dropped():
     each other, so the 5 x 5 neighbour check keeps them, and one set the depth to 122 mm. An
     island of tracks where LK failed all around, and a small patch far deeper than the valid
     tracks around it, are dropped; a steep-walled floor and a narrow crack groove stay."""
-    from detection.dense import _consistent, _no_deep_patch
+    from roadsurf.detection.dense import _consistent, _no_deep_patch
 
     rng = np.random.default_rng(5)
     shape = (60, 80)
@@ -174,7 +174,7 @@ def test_dense_reading_on_threads_matches_one_thread(tmp_path):
     reading, and a pair whose frame is missing is skipped on both."""
     from shapely.geometry import Point
 
-    from detection.dense import DenseContext, measure_defect_dense
+    from roadsurf.detection.dense import DenseContext, measure_defect_dense
 
     drive, pairs, traj = _scene_and_run(tmp_path)
     missing = dataclasses.replace(pairs[0], frame_b="not_in_the_drive.png")

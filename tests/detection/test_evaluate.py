@@ -5,10 +5,10 @@ import dataclasses
 import numpy as np
 import pytest
 
-from detection import stage
-from detection.config import DetectionConfig
-from detection.evaluate import evaluate_detection, frame_metrics, rigid_2d, targets
-from mapping.types import save_trajectory
+from roadsurf.detection import stage
+from roadsurf.detection.config import DetectionConfig
+from roadsurf.detection.evaluate import evaluate_detection, frame_metrics, rigid_2d, targets
+from roadsurf.mapping.types import save_trajectory
 from tests.detection.synthetic import Pothole, Scene, build, write_truth
 
 

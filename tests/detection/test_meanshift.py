@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from detection.meanshift import mean_shift_flat
+from roadsurf.detection.meanshift import mean_shift_flat
 
 
 def _disc(rng, c, r, n):

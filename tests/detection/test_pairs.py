@@ -4,11 +4,11 @@ image is raw, so the 2D refinement must read the image where each point really i
 import cv2
 import numpy as np
 
-from detection.config import DetectionConfig
-from detection.pairs import _raw_px, analyse_pair
-from reconstruction.features import undistort_px
-from reconstruction.types import PairResult
+from roadsurf.detection.config import DetectionConfig
+from roadsurf.detection.pairs import _raw_px, analyse_pair
 from roadsurf.drive import Camera
+from roadsurf.reconstruction.features import undistort_px
+from roadsurf.reconstruction.types import PairResult
 
 CAM = Camera(640, 480, 500.0, 500.0, 319.5, 239.5, 1.0, 15.0, (-0.3, 0.08, 0.0, 0.0, 0.0))
 CAM_IDEAL = Camera(640, 480, 500.0, 500.0, 319.5, 239.5, 1.0, 15.0)

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from detection.config import PlaneFitConfig
-from detection.planefit import (
+from roadsurf.detection.config import PlaneFitConfig
+from roadsurf.detection.planefit import (
     fit_plane,
     nanmedian_last,
     recursive_plane_fit,

@@ -4,8 +4,8 @@ import dataclasses
 
 import numpy as np
 
-from detection.config import RefineConfig
-from detection.refine import binarise, correct_defects
+from roadsurf.detection.config import RefineConfig
+from roadsurf.detection.refine import binarise, correct_defects
 from tests.detection.synthetic import CAMERA, Pothole, Scene, poses, render
 
 T0 = poses(1)[0]

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from detection.config import DetectionConfig
-from detection.mapseg import Region
-from detection.ruts import longest_trough_m, scan_seeds, trace_rut, trace_ruts
+from roadsurf.detection.config import DetectionConfig
+from roadsurf.detection.mapseg import Region
+from roadsurf.detection.ruts import longest_trough_m, scan_seeds, trace_rut, trace_ruts
 from roadsurf.formats import GridSpec
 
 CFG = DetectionConfig()

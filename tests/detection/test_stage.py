@@ -1,4 +1,4 @@
-"""detection.stage.run end to end on seeded synthetic scenes (tiny images, real files)."""
+"""roadsurf.detection.stage.run end to end on seeded synthetic scenes (tiny images, real files)."""
 
 import dataclasses
 import json
@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import shapely.geometry
 
-from detection import stage
-from detection.config import DetectionConfig, RefineConfig
+from roadsurf.detection import stage
+from roadsurf.detection.config import DetectionConfig, RefineConfig
 from roadsurf.formats import read_csv, read_geojson
 from tests.detection.synthetic import REF, Pothole, Scene, Trough, build, write_surface
 
@@ -173,7 +173,7 @@ def test_resume_and_overwrite(tmp_path):
 
 def test_cnn_probabilities_are_fused(tmp_path):
     """frames.csv follows detection.classifier.fusion applied to the 3D labels (Fig. 5.6)."""
-    from detection.classifier.fusion import fuse_frames
+    from roadsurf.detection.classifier.fusion import fuse_frames
 
     scene = Scene(potholes=[Pothole(0.1, 1.0, 0.15, 0.03)])
     drive, pairs, traj = build(scene, tmp_path / "drive")
@@ -263,7 +263,7 @@ def _write_map_points(run_dir, xy, res_m):
 def test_pairs_analysed_by_threads_match_one_thread(tmp_path):
     """analyse_pairs on 1 and 3 threads: the same refined points, distances, scores, cracks and
     mask files, in pair order; an unreadable frame leaves its pairs to 3D only on both."""
-    from detection.pairs import PairDefects
+    from roadsurf.detection.pairs import PairDefects
 
     scene = Scene(
         potholes=[Pothole(0.1, 1.0, 0.15, 0.030), Pothole(-0.1, 2.0, 0.1, 0.02)],

@@ -7,10 +7,15 @@ import cv2
 import numpy as np
 import pytest
 
-from detection import stage
-from detection.config import DetectionConfig, MapSegmentConfig
-from detection.mapseg import Region
-from detection.windows import PointsSource, candidate_windows, merge_regions, segment_windows
+from roadsurf.detection import stage
+from roadsurf.detection.config import DetectionConfig, MapSegmentConfig
+from roadsurf.detection.mapseg import Region
+from roadsurf.detection.windows import (
+    PointsSource,
+    candidate_windows,
+    merge_regions,
+    segment_windows,
+)
 from roadsurf.formats import GridSpec
 from tests.detection.synthetic import Pothole, Scene, Trough, build, write_surface
 

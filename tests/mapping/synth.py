@@ -12,9 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
-from reconstruction.types import PairResult
 from roadsurf.drive import Camera, Drive, Frame, GpsTrack, ObdLog
 from roadsurf.geometry import EnuReference, invert_pose, lla_from_enu, world_from_cam
+from roadsurf.reconstruction.types import PairResult
 
 REF = EnuReference(43.6532, -79.3832, 100.0)  # Toronto: UTM 17N, EPSG:32617
 

@@ -12,13 +12,13 @@ import pytest
 import rasterio
 from plyfile import PlyData
 
-from mapping import globalmap, poses
-from mapping.config import MappingConfig
-from mapping.raster import grid_mean, interpolate_to_grid
-from reconstruction.types import PairResult
 from roadsurf.drive import load_drive
 from roadsurf.formats import GridSpec
 from roadsurf.geometry import ExportFrame, enu_from_lla, lla_from_utm
+from roadsurf.mapping import globalmap, poses
+from roadsurf.mapping.config import MappingConfig
+from roadsurf.mapping.raster import grid_mean, interpolate_to_grid
+from roadsurf.reconstruction.types import PairResult
 from tests.mapping.synth import REF, make_pair, make_synthetic, texture, write_drive, write_images
 
 POT_ENU = np.array([2.0, 3.3])  # pothole centre in the synthetic REF ENU frame (m)
@@ -129,7 +129,7 @@ def test_vrt_and_tiles_cover_the_same_data(mapped) -> None:
     np.testing.assert_array_equal(np.isfinite(a), np.isfinite(b))
     np.testing.assert_allclose(a[np.isfinite(a)], b[np.isfinite(b)])
     # the corridor-bounded reader gives the same pixels as the monolithic file
-    from mapping.raster import iter_tiles
+    from roadsurf.mapping.raster import iter_tiles
 
     n_valid = 0
     for grid, data in iter_tiles(run, "surface"):
@@ -158,7 +158,7 @@ def test_seams_between_tiles_do_not_show(mapped) -> None:
 
 def test_resume_skips_and_overwrite_rebuilds(mapped) -> None:
     run, syn, _ = mapped
-    from mapping.types import load_trajectory
+    from roadsurf.mapping.types import load_trajectory
 
     traj = load_trajectory(run)
     m0 = os.stat(run / "surface.tif").st_mtime_ns
@@ -170,7 +170,7 @@ def test_raster_tiles_on_one_or_more_threads_are_identical(mapped, tmp_path: Pat
     """raster_workers only changes who computes a tile: the files are the same, bit for bit."""
     import dataclasses
 
-    from mapping.types import load_trajectory
+    from roadsurf.mapping.types import load_trajectory
 
     run, syn, prod = mapped
     assert CFG.raster_workers > 1 and prod.n_tiles > 2
@@ -241,7 +241,7 @@ def test_no_gps_map_stays_in_the_local_frame(tmp_path: Path) -> None:
 
 def test_consecutive_overlap_and_its_warning() -> None:
     """Share of each footprint the next one sees; a median below min_frame_overlap warns."""
-    from mapping.globalmap import MapProducts, _check_frame_overlap, consecutive_overlap
+    from roadsurf.mapping.globalmap import MapProducts, _check_frame_overlap, consecutive_overlap
 
     def square(y0: float) -> np.ndarray:  # 1 m x 0.8 m footprint, as a 5 x 5 point grid
         X, Y = np.meshgrid(np.linspace(0, 1, 5), np.linspace(y0, y0 + 0.8, 5))

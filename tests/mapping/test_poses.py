@@ -10,11 +10,11 @@ import os
 import numpy as np
 import pytest
 
-from mapping import poses
-from mapping.config import MappingConfig
-from mapping.types import load_trajectory
 from roadsurf.formats import read_geojson
 from roadsurf.geometry import enu_from_lla, lla_from_enu
+from roadsurf.mapping import poses
+from roadsurf.mapping.config import MappingConfig
+from roadsurf.mapping.types import load_trajectory
 from tests.mapping.synth import REF, make_synthetic
 
 RTK = MappingConfig(gps_sigma_m=0.02)

@@ -9,9 +9,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mapping import globalmap
-from mapping.config import MappingConfig
 from roadsurf.formats import GridSpec
+from roadsurf.mapping import globalmap
+from roadsurf.mapping.config import MappingConfig
 
 CENTRE = np.array([0.64, -0.64])  # bowl centre in the tile's grid CRS (m)
 

@@ -14,11 +14,11 @@ from pathlib import Path
 import numpy as np
 import rasterio
 
-from mapping import globalmap, poses
-from mapping.config import MappingConfig
-from mapping.raster import fill_nodata_capped
 from roadsurf.formats import GridSpec
 from roadsurf.geometry import enu_from_lla, lla_from_utm
+from roadsurf.mapping import globalmap, poses
+from roadsurf.mapping.config import MappingConfig
+from roadsurf.mapping.raster import fill_nodata_capped
 from tests.mapping.synth import make_pair, make_synthetic, write_images
 
 # ------------------------------------------------------------------ one tile, known geometry

@@ -6,8 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
-from reconstruction.geometry import rotation_from_euler_deg
 from roadsurf.drive import Camera
+from roadsurf.reconstruction.geometry import rotation_from_euler_deg
 
 
 def make_camera(width: int = 512, height: int = 384, f: float = 480.0, h: float = 1.1) -> Camera:

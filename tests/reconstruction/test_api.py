@@ -6,9 +6,9 @@ import cv2
 import numpy as np
 import pytest
 
-from reconstruction.api import reconstruct_pair
-from reconstruction.config import FeatureConfig, ReconstructionConfig
-from reconstruction.types import STATUS_FAILED
+from roadsurf.reconstruction.api import reconstruct_pair
+from roadsurf.reconstruction.config import FeatureConfig, ReconstructionConfig
+from roadsurf.reconstruction.types import STATUS_FAILED
 from tests.reconstruction.conftest import render_pair, texture
 
 CFG = ReconstructionConfig(features=FeatureConfig(max_features=1000))

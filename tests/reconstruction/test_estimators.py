@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from reconstruction.bound import epsilon_bound
-from reconstruction.config import ReconstructionConfig
-from reconstruction.estimators import estimate_matches, motion_prior_mask
-from reconstruction.study import epsilon
-from simulation.points import PointScene, simulate_points
+from roadsurf.reconstruction.bound import epsilon_bound
+from roadsurf.reconstruction.config import ReconstructionConfig
+from roadsurf.reconstruction.estimators import estimate_matches, motion_prior_mask
+from roadsurf.reconstruction.study import epsilon
+from roadsurf.simulation.points import PointScene, simulate_points
 
 N_TRIALS = 8
 
@@ -76,7 +76,7 @@ def test_motion_prior_removes_injected_mismatches() -> None:
 
 
 def test_point_covariance_matches_monte_carlo() -> None:
-    from reconstruction import geometry as g
+    from roadsurf.reconstruction import geometry as g
 
     pp = simulate_points(PointScene(n_points=5, sigma_px=0.3, theta_deg=(1, 2, 3)), 0)
     rng = np.random.default_rng(0)
@@ -103,8 +103,8 @@ def test_point_covariance_matches_monte_carlo() -> None:
 @pytest.mark.parametrize("delta_m", [1e-4, 0.01])
 def test_bound_matches_known_pose_monte_carlo(delta_m: float) -> None:
     """The first-order bound equals the Monte-Carlo ε of triangulating with the true pose."""
-    from reconstruction import geometry as g
-    from reconstruction.bound import ratio_to_plane
+    from roadsurf.reconstruction import geometry as g
+    from roadsurf.reconstruction.bound import ratio_to_plane
 
     scene = PointScene(delta_m=delta_m, sigma_px=0.2, n_points=100, theta_deg=(1, 1, 1))
     pp = simulate_points(scene, 7)
@@ -190,7 +190,7 @@ def test_plane_parallax_pose_beats_model_switch_with_mild_relief() -> None:
 
 def test_plane_parallax_reduces_to_homography_pose_on_a_plane() -> None:
     """No relief: κ is 0 and the pose is exactly the gold-standard homography decomposition."""
-    from reconstruction.estimators import (
+    from roadsurf.reconstruction.estimators import (
         estimate_homography,
         pose_plane_from_homography,
         refine_homography_sampson,

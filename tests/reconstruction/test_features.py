@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from reconstruction import features as feat
-from reconstruction.config import FeatureConfig
+from roadsurf.reconstruction import features as feat
+from roadsurf.reconstruction.config import FeatureConfig
 from tests.reconstruction.conftest import texture
 
 

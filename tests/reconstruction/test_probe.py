@@ -10,12 +10,12 @@ import cv2
 import numpy as np
 import pytest
 
-import reconstruction.probe as probe
-from reconstruction.api import reconstruct_pair
-from reconstruction.config import FeatureConfig, ReconstructionConfig
-from reconstruction.geometry import rotation_from_euler_deg
-from reconstruction.types import STATUS_FAILED
+import roadsurf.reconstruction.probe as probe
 from roadsurf.drive import Camera, Drive, Frame
+from roadsurf.reconstruction.api import reconstruct_pair
+from roadsurf.reconstruction.config import FeatureConfig, ReconstructionConfig
+from roadsurf.reconstruction.geometry import rotation_from_euler_deg
+from roadsurf.reconstruction.types import STATUS_FAILED
 from tests.reconstruction.conftest import texture
 
 CFG = ReconstructionConfig(features=FeatureConfig(max_features=1500))

@@ -11,7 +11,9 @@ import cv2
 import numpy as np
 import pytest
 
-from reconstruction.sfm_baseline import (
+from roadsurf.drive import Camera, load_drive
+from roadsurf.formats import LOCAL_CRS, read_csv, read_geojson, read_geotiff, read_ply
+from roadsurf.reconstruction.sfm_baseline import (
     SfmBaselineConfig,
     _colmap_camera,
     fit_plane_ransac,
@@ -20,8 +22,6 @@ from reconstruction.sfm_baseline import (
     robust_fit_2d,
     run,
 )
-from roadsurf.drive import Camera, load_drive
-from roadsurf.formats import LOCAL_CRS, read_csv, read_geojson, read_geotiff, read_ply
 
 N_FRAMES = 12
 BLANK = "blank"  # the frame we replace with a textureless image
@@ -29,7 +29,7 @@ BLANK = "blank"  # the frame we replace with a textureless image
 
 @pytest.fixture(scope="module")
 def sim_drive(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    scenarios = pytest.importorskip("simulation.scenarios")
+    scenarios = pytest.importorskip("roadsurf.simulation.scenarios")
     root = tmp_path_factory.mktemp("sfm") / "drive"
     scenarios.simulate(
         "flat",
@@ -226,7 +226,7 @@ def test_local_residuals_and_raster() -> None:
 
 
 def test_vertical_tilt_follows_good_gps_altitude_only() -> None:
-    from reconstruction.sfm_baseline import _fit_vertical_tilt
+    from roadsurf.reconstruction.sfm_baseline import _fit_vertical_tilt
 
     rng = np.random.default_rng(4)
     s = np.linspace(0, 20, 40)
@@ -246,7 +246,7 @@ def test_vertical_tilt_follows_good_gps_altitude_only() -> None:
 
 
 def test_neighbour_heading_deviation_flags_a_flipped_pose() -> None:
-    from reconstruction.sfm_baseline import _neighbour_heading_dev
+    from roadsurf.reconstruction.sfm_baseline import _neighbour_heading_dev
 
     h = np.array([10.0, 11.0, 9.5, 190.0, 10.5, 359.0 + 12.0 - 360.0, 10.0])
     dev = _neighbour_heading_dev(h)
@@ -290,8 +290,8 @@ def test_textureless_drive_fails_with_reasons(tmp_path: Path) -> None:
 
 
 def test_config_file_rejects_unknown_keys(tmp_path: Path) -> None:
-    from reconstruction.sfm_baseline import run_from_paths
     from roadsurf.errors import ConfigError
+    from roadsurf.reconstruction.sfm_baseline import run_from_paths
 
     cfg = tmp_path / "c.yaml"
     cfg.write_text("sfm_baseline:\n  overlap: 3\n  ovrlap: 4\n")

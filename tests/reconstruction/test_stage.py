@@ -7,11 +7,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-import reconstruction.api as api
-import reconstruction.stage as stage
-from reconstruction.config import FeatureConfig, ReconstructionConfig
-from reconstruction.types import pair_filename
+import roadsurf.reconstruction.api as api
+import roadsurf.reconstruction.stage as stage
 from roadsurf.drive import Drive, Frame
+from roadsurf.reconstruction.config import FeatureConfig, ReconstructionConfig
+from roadsurf.reconstruction.types import pair_filename
 from tests.reconstruction.conftest import render_pair
 
 CFG = ReconstructionConfig(features=FeatureConfig(max_features=500))

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from reconstruction.study import paired_vs_colmap
+from roadsurf.reconstruction.study import paired_vs_colmap
 
 
 def _rows(eps_ra: np.ndarray, eps_colmap: np.ndarray, sweep: str = "s") -> list[dict]:

@@ -2,9 +2,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from reconstruction.api import reconstruct_pair
-from reconstruction.config import FeatureConfig, ReconstructionConfig
-from reconstruction.types import PairResult, load_pair, save_pair
+from roadsurf.reconstruction.api import reconstruct_pair
+from roadsurf.reconstruction.config import FeatureConfig, ReconstructionConfig
+from roadsurf.reconstruction.types import PairResult, load_pair, save_pair
 from tests.reconstruction.conftest import render_pair
 
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from simulation.noise import fractal_noise, value_noise
-from simulation.shapes import Blob, Polyline, Rect
+from roadsurf.simulation.noise import fractal_noise, value_noise
+from roadsurf.simulation.shapes import Blob, Polyline, Rect
 
 
 def test_value_noise_unit_std_and_position_only() -> None:

@@ -15,7 +15,7 @@ from pyproj import Transformer
 from roadsurf.drive import load_drive, read_gray
 from roadsurf.errors import ConfigError, RoadsurfError
 from roadsurf.formats import read_csv, read_geojson, read_geotiff
-from simulation.scenarios import describe, simulate
+from roadsurf.simulation.scenarios import describe, simulate
 
 # Tiny drives: 240x180 px with the default footprint (fx scaled), 6 frames.
 TINY = {"width": 240, "height": 180, "fx": 225.0, "progress": False}
@@ -314,8 +314,8 @@ def test_rerun_into_same_folder_replaces_drive(tmp_path: Path) -> None:
 def test_pothole_look_and_wall_ranges_are_drawn_from_the_config() -> None:
     """pothole_darken / pothole_power: lighter-than-road potholes and steep walls on demand;
     the defaults draw the same world as before the knobs existed (same random draws)."""
-    from simulation.scenarios import make_config
-    from simulation.world import build_world
+    from roadsurf.simulation.scenarios import make_config
+    from roadsurf.simulation.world import build_world
 
     base = build_world(make_config("potholes"), 202, 20)
     same = build_world(

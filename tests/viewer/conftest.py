@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
+from roadsurf.viewer.browser import find_chromium
 from tests.viewer.synthetic_run import SyntheticRun, make_synthetic_run
-from viewer.browser import find_chromium
 
 
 @pytest.fixture(scope="module")
@@ -17,7 +17,7 @@ def synthetic_run(tmp_path_factory: pytest.TempPathFactory) -> SyntheticRun:
 
 @pytest.fixture(scope="module")
 def saved_rrd(synthetic_run: SyntheticRun) -> Path:
-    from viewer.api import save_rrd
+    from roadsurf.viewer.api import save_rrd
 
     return save_rrd(synthetic_run.run, synthetic_run.run / "run.rrd").rrd
 

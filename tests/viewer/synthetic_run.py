@@ -15,8 +15,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from mapping.types import Trajectory, save_trajectory
-from reconstruction.types import PairResult, pair_filename, save_pair
 from roadsurf.formats import (
     GridSpec,
     feature,
@@ -34,6 +32,8 @@ from roadsurf.geometry import (
     world_from_cam,
 )
 from roadsurf.io import write_json_atomic
+from roadsurf.mapping.types import Trajectory, save_trajectory
+from roadsurf.reconstruction.types import PairResult, pair_filename, save_pair
 
 REF = EnuReference(45.0, 7.0, 200.0)
 W, H = 160, 120

@@ -10,10 +10,10 @@ import pytest
 from typer.testing import CliRunner
 
 from roadsurf.cli import app
+from roadsurf.viewer.api import free_port, serve
+from roadsurf.viewer.browser import is_blank, screenshot
+from roadsurf.viewer.inspect import summarize_rrd
 from tests.viewer.synthetic_run import SyntheticRun
-from viewer.api import free_port, serve
-from viewer.browser import is_blank, screenshot
-from viewer.inspect import summarize_rrd
 
 
 def test_cli_view_save_and_report(synthetic_run: SyntheticRun, tmp_path: Path) -> None:

@@ -5,11 +5,11 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
-from mapping.types import load_trajectory
 from roadsurf.drive import load_drive
+from roadsurf.mapping.types import load_trajectory
+from roadsurf.viewer.inspect import summarize_rrd
+from roadsurf.viewer.live import LiveObserver
 from tests.viewer.synthetic_run import SyntheticRun
-from viewer.inspect import summarize_rrd
-from viewer.live import LiveObserver
 
 
 def test_live_observer_streams_stage_by_stage(synthetic_run: SyntheticRun, tmp_path: Path) -> None:

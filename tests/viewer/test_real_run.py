@@ -8,15 +8,15 @@ import numpy as np
 import pytest
 
 from roadsurf.formats import read_geojson
-from viewer.api import save_rrd
-from viewer.inspect import summarize_rrd
-from viewer.report import write_report
+from roadsurf.viewer.api import save_rrd
+from roadsurf.viewer.inspect import summarize_rrd
+from roadsurf.viewer.report import write_report
 
 
 @pytest.mark.slow
 def test_viewer_reads_a_real_pipeline_run(tmp_path: Path) -> None:
     from roadsurf.pipeline import run_drive
-    from simulation.scenarios import simulate
+    from roadsurf.simulation.scenarios import simulate
 
     drive = simulate("potholes", tmp_path / "drive", n_frames=6)
     run = tmp_path / "run"

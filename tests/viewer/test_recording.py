@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from roadsurf.geometry import ExportFrame
+from roadsurf.viewer.api import save_rrd
+from roadsurf.viewer.inspect import component_values, summarize_rrd
+from roadsurf.viewer.runfolder import depth_profile, enu_from_crs, load_run
 from tests.viewer.synthetic_run import REF, SyntheticRun, make_synthetic_run
-from viewer.api import save_rrd
-from viewer.inspect import component_values, summarize_rrd
-from viewer.runfolder import depth_profile, enu_from_crs, load_run
 
 
 def test_rrd_holds_cloud_defects_trajectory_map_and_images(

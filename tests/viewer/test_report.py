@@ -7,9 +7,9 @@ from pathlib import Path
 
 import pytest
 
+from roadsurf.viewer.browser import is_blank, screenshot
+from roadsurf.viewer.report import write_report
 from tests.viewer.synthetic_run import SyntheticRun, make_synthetic_run
-from viewer.browser import is_blank, screenshot
-from viewer.report import write_report
 
 
 @pytest.fixture(scope="module")
@@ -60,7 +60,7 @@ def test_report_renders_in_headless_chromium(
 def test_screenshot_without_chromium_says_how_to_install(
     monkeypatch: pytest.MonkeyPatch, tmp_path: Path
 ) -> None:
-    import viewer.browser as browser
+    import roadsurf.viewer.browser as browser
     from roadsurf.errors import RoadsurfError
 
     monkeypatch.setattr(browser.shutil, "which", lambda name: None)

@@ -1,0 +1,212 @@
+"""Behaviour check: run the CLI on drives and compare two sets of outputs file by file.
+
+Used to prove that a refactor preserves behaviour. It drives the program only through its
+command line (``python -m roadsurf``), so the same script records outputs of an old checkout
+(``--pythonpath OLD_TREE``) and of the current one.
+
+    python -m benchmarks.behaviour_check record --out /tmp/bc/new [--pythonpath TREE]
+    python -m benchmarks.behaviour_check compare /tmp/bc/old /tmp/bc/new [--json RESULT]
+
+``record`` simulates a few drives with fixed seeds (plus the committed ``data_samples/drive``),
+runs ``roadsurf run`` on each, ``roadsurf sfm-baseline`` and ``roadsurf evaluate`` on one.
+``compare`` checks every output file: byte for byte, else number for number (JSON without
+timings/versions/paths, GeoTIFF pixels + georeferencing, PLY vertex arrays, PNG pixels).
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# (name, scenario, seed, frames); short drives so a check takes minutes on 2 cores
+DRIVES: list[tuple[str, str, int, int]] = [
+    ("potholes", "potholes", 202, 30),
+    ("flat", "flat", 101, 20),
+    ("varied", "varied", 707, 24),
+    ("vibration", "vibration", 303, 24),
+]
+SFM_DRIVE = "flat"
+
+# JSON keys whose values legitimately change between two runs (times, versions, paths)
+VOLATILE_KEYS = {
+    "timings_s",
+    "timings_this_run_s",
+    "stages",
+    "resumed_stages",
+    "versions",
+    "elapsed_s",
+    "drive",
+    "run",
+    "created",
+    "date",
+    "model",
+    "seconds",
+    "wall_s",
+    "time_s",
+    "run_dir",
+    "truth",
+    "runs",
+}
+SKIP_SUFFIXES = {".rrd", ".log"}
+
+
+def _cli(args: list[str], pythonpath: str | None) -> None:
+    env = dict(os.environ)
+    if pythonpath:
+        env["PYTHONPATH"] = pythonpath
+    cmd = [sys.executable, "-m", "roadsurf", *args]
+    print("+", " ".join(cmd), flush=True)
+    subprocess.run(cmd, check=True, env=env, cwd=pythonpath or ROOT)
+
+
+def record(out: Path, pythonpath: str | None) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    drives = {"sample": ROOT / "data_samples" / "drive"}
+    for name, scenario, seed, frames in DRIVES:
+        d = out / "drives" / name
+        if not (d / "frames.csv").is_file():
+            _cli(
+                ["simulate", "--scenario", scenario, "--seed", str(seed), "--frames", str(frames),
+                 "--out", str(d)],
+                pythonpath,
+            )  # fmt: skip
+        drives[name] = d
+    for name, d in drives.items():
+        _cli(["run", str(d), "--out", str(out / "runs" / name)], pythonpath)
+    _cli(
+        ["sfm-baseline", str(drives[SFM_DRIVE]), "--out", str(out / "sfm" / SFM_DRIVE)], pythonpath
+    )
+    truth = drives["potholes"] / "truth"
+    _cli(["evaluate", str(out / "runs" / "potholes"), "--truth", str(truth)], pythonpath)
+
+
+def _strip(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {k: _strip(v) for k, v in obj.items() if k not in VOLATILE_KEYS}
+    if isinstance(obj, list):
+        return [_strip(v) for v in obj]
+    if isinstance(obj, str) and ("/tmp/" in obj or obj.startswith("/")):
+        return Path(obj).name  # absolute paths differ between checkouts
+    return obj
+
+
+def _same_json(a: Path, b: Path) -> bool:
+    return _strip(json.loads(a.read_text())) == _strip(json.loads(b.read_text()))
+
+
+def _same_tif(a: Path, b: Path) -> bool:
+    import numpy as np
+    import rasterio
+
+    with rasterio.open(a) as ra, rasterio.open(b) as rb:
+        if ra.crs != rb.crs or ra.transform != rb.transform or ra.shape != rb.shape:
+            return False
+        return bool(np.array_equal(ra.read(), rb.read(), equal_nan=True))
+
+
+def _same_ply(a: Path, b: Path) -> bool:
+    import numpy as np
+    from plyfile import PlyData
+
+    pa, pb = PlyData.read(str(a)), PlyData.read(str(b))
+    va, vb = pa["vertex"].data, pb["vertex"].data
+    return va.dtype == vb.dtype and bool(np.array_equal(va, vb))
+
+
+def _same_png(a: Path, b: Path) -> bool:
+    import cv2
+    import numpy as np
+
+    ia = cv2.imread(str(a), cv2.IMREAD_UNCHANGED)
+    ib = cv2.imread(str(b), cv2.IMREAD_UNCHANGED)
+    return ia is not None and ib is not None and bool(np.array_equal(ia, ib))
+
+
+def _same_text(a: Path, b: Path) -> bool:
+    # markdown/html reports embed dates and timings: compare lines without digits of time
+    def norm(p: Path) -> list[str]:
+        return [ln for ln in p.read_text(errors="replace").splitlines() if " s" not in ln]
+
+    return norm(a) == norm(b)
+
+
+def compare_file(a: Path, b: Path) -> str:
+    """'bytes' / 'numbers' when equal, 'DIFFERENT' otherwise."""
+    if hashlib.sha256(a.read_bytes()).digest() == hashlib.sha256(b.read_bytes()).digest():
+        return "bytes"
+    suffix = a.suffix.lower()
+    same = {
+        ".json": _same_json,
+        ".geojson": _same_json,
+        ".tif": _same_tif,
+        ".ply": _same_ply,
+        ".png": _same_png,
+        ".md": _same_text,
+        ".html": _same_text,
+    }.get(suffix)
+    try:
+        return "numbers" if same is not None and same(a, b) else "DIFFERENT"
+    except Exception as e:  # noqa: BLE001 - an unreadable file is a difference to report
+        return f"DIFFERENT ({e})"
+
+
+def compare(old: Path, new: Path) -> dict[str, Any]:
+    rows: dict[str, str] = {}
+    for sub in ("drives", "runs", "sfm"):
+        for fa in sorted((old / sub).rglob("*")):
+            if not fa.is_file() or fa.suffix in SKIP_SUFFIXES:
+                continue
+            rel = fa.relative_to(old)
+            fb = new / rel
+            rows[str(rel)] = compare_file(fa, fb) if fb.is_file() else "MISSING"
+        for fb in sorted((new / sub).rglob("*")):
+            rel = fb.relative_to(new)
+            if fb.is_file() and fb.suffix not in SKIP_SUFFIXES and str(rel) not in rows:
+                rows[str(rel)] = "EXTRA"
+    bad = {k: v for k, v in rows.items() if v not in ("bytes", "numbers")}
+    return {
+        "files": len(rows),
+        "identical_bytes": sum(v == "bytes" for v in rows.values()),
+        "identical_numbers": sum(v == "numbers" for v in rows.values()),
+        "different": bad,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    r = sub.add_parser("record", help="simulate drives and run the CLI on them")
+    r.add_argument("--out", type=Path, required=True)
+    r.add_argument("--pythonpath", default=None, help="a checkout to run instead of this one")
+    c = sub.add_parser("compare", help="compare two recorded output trees")
+    c.add_argument("old", type=Path)
+    c.add_argument("new", type=Path)
+    c.add_argument("--json", type=Path, default=None, help="also write the result as JSON")
+    a = ap.parse_args(argv)
+    if a.cmd == "record":
+        record(a.out, a.pythonpath)
+        return 0
+    res = compare(a.old, a.new)
+    for k, v in res["different"].items():
+        print(f"{v:12s} {k}")
+    print(
+        f"{res['files']} files: {res['identical_bytes']} byte-identical, "
+        f"{res['identical_numbers']} identical in numbers, {len(res['different'])} different"
+    )
+    if a.json is not None:
+        from benchmarks._result import write_result
+
+        write_result(a.json, "behaviour_check", res)
+    return 0 if not res["different"] else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
