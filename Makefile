@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 DEMO_OUT ?= out/demo
 
-.PHONY: demo test lint format sysdeps venv clean sample browser-deps screenshots
+.PHONY: demo test lint typecheck format sysdeps venv clean sample browser-deps screenshots
 
 # open3d 0.20 links libusb-1.0; install it with apt-get when the loader cannot find it.
 sysdeps:
@@ -46,11 +46,22 @@ demo: $(STAMP)
 	echo "Report:    $(DEMO_OUT)/report.html" && \
 	echo "Recording: $(DEMO_OUT)/run.rrd"
 
-test: $(STAMP)
+# The tests include real headless-Chromium checks of the HTML report, so the test set-up
+# installs Chromium from Debian (browser-deps) before running them.
+test: $(STAMP) browser-deps
 	$(BIN)/python -m pytest -q tests
 
+# Benchmarks live outside the package: `make bench-NAME ARGS="..."` runs
+# `python -m benchmarks.NAME ARGS` and writes benchmarks/results/NAME.json (docs/benchmarks.md).
+bench-%: $(STAMP)
+	$(BIN)/python -m benchmarks.$* $(ARGS)
+
 lint: $(STAMP)
-	$(BIN)/ruff check . && $(BIN)/ruff format --check .
+	$(BIN)/ruff check . && $(BIN)/ruff format --check . && $(MAKE) --no-print-directory typecheck
+
+# Type check of the public API packages (pyright; settings in pyproject.toml).
+typecheck: $(STAMP)
+	$(BIN)/pyright
 
 format: $(STAMP)
 	$(BIN)/ruff format . && $(BIN)/ruff check --fix .

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from roadsurf.io import read_json, write_json_atomic
+from roadsurf.core.atomic import read_json, write_json_atomic
 
 log = logging.getLogger(__name__)
 
@@ -57,7 +57,7 @@ def _variant(run_dir: Path, drive_dir: Path, name: str, **cfg_changes: Any) -> P
     """Re-run detection only, with changed config, into RUN/../<run>_<name> (maps reused)."""
     from roadsurf.detection import stage
     from roadsurf.detection.config import DetectionConfig, RefineConfig
-    from roadsurf.drive import load_drive
+    from roadsurf.io.drive import load_drive
     from roadsurf.mapping.types import load_trajectory
     from roadsurf.reconstruction.types import load_pair
 
@@ -82,10 +82,10 @@ def _variant(run_dir: Path, drive_dir: Path, name: str, **cfg_changes: Any) -> P
 def redetect(run_dir: Path, drive_dir: Path) -> Path:
     """Re-run the detection stage alone, in place, on a finished run (its pairs, poses and map
     are reused; the defaults of ``DetectionConfig``, as ``roadsurf run`` uses them)."""
+    from roadsurf.core.errors import RoadsurfError
     from roadsurf.detection import stage
     from roadsurf.detection.config import DetectionConfig
-    from roadsurf.drive import load_drive
-    from roadsurf.errors import RoadsurfError
+    from roadsurf.io.drive import load_drive
     from roadsurf.mapping.types import load_trajectory
     from roadsurf.reconstruction.types import load_pair
 
@@ -106,7 +106,7 @@ def binarisation_stats(run_dir: Path, drive_dir: Path, mode: str) -> dict[str, i
     from roadsurf.detection.config import DetectionConfig, RefineConfig
     from roadsurf.detection.planefit import recursive_plane_fit
     from roadsurf.detection.refine import binarise
-    from roadsurf.drive import load_drive, read_gray
+    from roadsurf.io.drive import load_drive, read_gray
     from roadsurf.reconstruction.types import load_pair
 
     cfg = DetectionConfig()
@@ -366,7 +366,7 @@ def update_docs(
         text = text[:a] + section.rstrip("\n") + text[b:]
     else:
         text = text.rstrip("\n") + "\n\n" + section
-    from roadsurf.io import write_text_atomic
+    from roadsurf.core.atomic import write_text_atomic
 
     write_text_atomic(doc, text)
 

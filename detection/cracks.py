@@ -38,7 +38,7 @@ import cv2
 import numpy as np
 
 from roadsurf.detection.config import CrackConfig
-from roadsurf.drive import Camera
+from roadsurf.io.drive import Camera
 from roadsurf.reconstruction.types import PairResult
 
 log = logging.getLogger(__name__)

@@ -22,9 +22,9 @@ from typing import Any
 import cv2
 import numpy as np
 
+from roadsurf.core.parallel import ordered_map
 from roadsurf.detection.planefit import nanmedian_last, robust_plane, robust_sigma, signed_distance
-from roadsurf.drive import Camera, GrayFrames
-from roadsurf.parallel import ordered_map
+from roadsurf.io.drive import Camera, GrayFrames
 from roadsurf.reconstruction.features import track_forward_backward
 from roadsurf.reconstruction.geometry import normalised_from_px, triangulate
 

@@ -25,8 +25,8 @@ from typing import Any
 
 import numpy as np
 
-from roadsurf.errors import RoadsurfError
-from roadsurf.formats import read_csv, read_geojson
+from roadsurf.core.errors import RoadsurfError
+from roadsurf.io.formats import read_csv, read_geojson
 
 log = logging.getLogger(__name__)
 
@@ -104,7 +104,7 @@ def _run_geometries(run_dir: Path, crs: str) -> tuple[list[tuple[Any, dict[str, 
 
 def _trajectory_alignment(run_dir: Path, truth_dir: Path, crs: str, georef: bool) -> dict:
     """Rigid 2D fit of the run's camera positions (in ``crs``) onto the true ones."""
-    from roadsurf.geometry import ExportFrame
+    from roadsurf.core.geometry import ExportFrame
     from roadsurf.mapping.types import load_trajectory
 
     traj = load_trajectory(run_dir)

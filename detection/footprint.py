@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from roadsurf.drive import Camera
-from roadsurf.geometry import check_shape
+from roadsurf.core.geometry import check_shape
+from roadsurf.io.drive import Camera
 
 
 def footprint_enu(world_from_cam: np.ndarray, camera: Camera) -> np.ndarray | None:

@@ -14,7 +14,7 @@ from functools import cached_property
 import numpy as np
 from pyproj import Transformer
 
-from roadsurf.geometry import EnuReference, ExportFrame, check_shape, lla_from_enu
+from roadsurf.core.geometry import EnuReference, ExportFrame, check_shape, lla_from_enu
 
 
 @dataclass(frozen=True)

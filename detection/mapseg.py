@@ -24,7 +24,7 @@ from scipy import ndimage
 from roadsurf.detection.config import MapSegmentConfig, SeverityConfig
 from roadsurf.detection.meanshift import mean_shift_flat
 from roadsurf.detection.planefit import nanmedian_last, robust_sigma
-from roadsurf.formats import GridSpec
+from roadsurf.io.formats import GridSpec
 
 log = logging.getLogger(__name__)
 

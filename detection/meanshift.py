@@ -12,7 +12,7 @@ import numpy as np
 from scipy.cluster.hierarchy import fcluster, linkage
 from scipy.spatial import cKDTree
 
-from roadsurf.geometry import check_shape
+from roadsurf.core.geometry import check_shape
 
 
 def mean_shift_flat(

@@ -18,10 +18,10 @@ from typing import Any
 
 import numpy as np
 
+from roadsurf.core.atomic import read_json, write_json_atomic, write_text_atomic
 from roadsurf.detection.mapframe import MapFrame
 from roadsurf.detection.types import Defect, DetectionResult, FrameLabel
-from roadsurf.formats import feature, polygon_geometry, write_csv, write_geojson
-from roadsurf.io import read_json, write_json_atomic, write_text_atomic
+from roadsurf.io.formats import feature, polygon_geometry, write_csv, write_geojson
 
 log = logging.getLogger(__name__)
 

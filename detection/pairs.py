@@ -11,7 +11,7 @@ from roadsurf.detection.config import DetectionConfig
 from roadsurf.detection.cracks import PairCracks, PairView, detect_pair_cracks
 from roadsurf.detection.planefit import recursive_plane_fit
 from roadsurf.detection.refine import binarise, correct_defects, refined_mask
-from roadsurf.drive import Camera
+from roadsurf.io.drive import Camera
 from roadsurf.reconstruction.types import PairResult
 
 log = logging.getLogger(__name__)

@@ -11,8 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from roadsurf.core.geometry import check_shape
 from roadsurf.detection.config import PlaneFitConfig
-from roadsurf.geometry import check_shape
 
 MAD_TO_SIGMA = 1.4826  # σ of a normal distribution from its median absolute deviation
 

@@ -12,8 +12,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from roadsurf.core.geometry import check_shape
 from roadsurf.detection.config import RefineConfig
-from roadsurf.geometry import check_shape
 
 
 def to_gray(image: np.ndarray) -> np.ndarray:

@@ -44,7 +44,7 @@ from roadsurf.detection.config import MapSegmentConfig, RutConfig
 from roadsurf.detection.mapseg import Region
 from roadsurf.detection.planefit import robust_sigma
 from roadsurf.detection.windows import WindowSource
-from roadsurf.formats import GridSpec
+from roadsurf.io.formats import GridSpec
 
 log = logging.getLogger(__name__)
 

@@ -29,7 +29,8 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from roadsurf.config import to_dict
+from roadsurf.core.config import to_dict
+from roadsurf.core.parallel import ordered_map
 from roadsurf.detection.config import DetectionConfig
 from roadsurf.detection.footprint import footprint_enu
 from roadsurf.detection.mapframe import MapFrame
@@ -38,9 +39,8 @@ from roadsurf.detection.output import load_result, write_outputs
 from roadsurf.detection.pairs import PairDefects, analyse_pair
 from roadsurf.detection.types import Defect, DetectionResult, FrameLabel
 from roadsurf.detection.windows import PointsSource, RasterSource, WindowSource, segment_windows
-from roadsurf.drive import Drive, GrayFrames
+from roadsurf.io.drive import Drive, GrayFrames
 from roadsurf.mapping.types import Trajectory
-from roadsurf.parallel import ordered_map
 from roadsurf.reconstruction.types import PairResult
 
 log = logging.getLogger(__name__)
@@ -236,7 +236,7 @@ def _write_mask(path: Path, mask: np.ndarray) -> None:
     """Write a refined 2D defect mask as an 8-bit PNG (255 = defect), atomically."""
     import cv2
 
-    from roadsurf.io import atomic_path
+    from roadsurf.core.atomic import atomic_path
 
     with atomic_path(path) as tmp:
         if not cv2.imwrite(str(tmp), np.where(mask, 255, 0).astype(np.uint8)):

@@ -27,7 +27,7 @@ import numpy as np
 
 from roadsurf.detection.config import MapSegmentConfig
 from roadsurf.detection.mapseg import Region, Segmentation, Surface, segment
-from roadsurf.formats import GridSpec
+from roadsurf.io.formats import GridSpec
 
 log = logging.getLogger(__name__)
 

@@ -28,7 +28,7 @@ if mode == "run":
     rep = run_drive(drive, out, overwrite=True)  # a full run, not a resumed one
     extra = {"timings_s": rep["timings_s"], "n_tiles": rep.get("map", {}).get("n_tiles")}
 elif mode == "detection":  # detection only, on the cached pairs and map of a previous run
-    from roadsurf.drive import load_drive
+    from roadsurf.io.drive import load_drive
     from roadsurf.reconstruction.types import load_pair
     from roadsurf.mapping.types import load_trajectory
     from roadsurf.detection.config import DetectionConfig
@@ -39,7 +39,7 @@ elif mode == "detection":  # detection only, on the cached pairs and map of a pr
     stage.run(DetectionConfig(overwrite=True), drive_, pairs, load_trajectory(out), Path(out))
     extra = {"detection_s": time.perf_counter() - t1}
 else:  # mapping stages only, on the pairs cached by a previous full run
-    from roadsurf.drive import load_drive
+    from roadsurf.io.drive import load_drive
     from roadsurf.reconstruction.types import load_pair
     from roadsurf.mapping.config import MappingConfig
     from roadsurf.mapping import poses, globalmap

@@ -1,7 +1,7 @@
 """Configuration of the mapping stage (poses, global map, rasters, exports).
 
 Every field gives its unit and, where the dissertation names it, its symbol. Loaded with
-``roadsurf.config.from_dict`` / ``load_yaml_config`` (unknown keys are rejected).
+``roadsurf.core.config.from_dict`` / ``load_yaml_config`` (unknown keys are rejected).
 """
 
 from __future__ import annotations

@@ -24,9 +24,9 @@ from typing import Any
 
 import numpy as np
 
-from roadsurf.errors import RoadsurfError
-from roadsurf.formats import read_csv, read_geojson
-from roadsurf.io import read_json, write_json_atomic, write_text_atomic
+from roadsurf.core.atomic import read_json, write_json_atomic, write_text_atomic
+from roadsurf.core.errors import RoadsurfError
+from roadsurf.io.formats import read_csv, read_geojson
 
 log = logging.getLogger(__name__)
 

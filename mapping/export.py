@@ -14,8 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from roadsurf.formats import feature, write_csv, write_geojson, write_ply
-from roadsurf.geometry import ExportFrame
+from roadsurf.core.geometry import ExportFrame
+from roadsurf.io.formats import feature, write_csv, write_geojson, write_ply
 from roadsurf.mapping.types import Trajectory
 
 log = logging.getLogger(__name__)

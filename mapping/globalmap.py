@@ -33,11 +33,12 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from roadsurf.config import to_dict
-from roadsurf.drive import Camera, Drive, Frame, read_image
-from roadsurf.errors import FrameReadError
-from roadsurf.formats import GridSpec
-from roadsurf.io import atomic_path, read_json, write_json_atomic, write_npz_atomic
+from roadsurf.core.atomic import atomic_path, read_json, write_json_atomic, write_npz_atomic
+from roadsurf.core.config import to_dict
+from roadsurf.core.errors import FrameReadError
+from roadsurf.core.parallel import SharedCache, ordered_map
+from roadsurf.io.drive import Camera, Drive, Frame, read_image
+from roadsurf.io.formats import GridSpec
 from roadsurf.mapping.config import NOT_IN_FINGERPRINT, MappingConfig
 from roadsurf.mapping.export import export_xyz, write_cloud_ply
 from roadsurf.mapping.raster import (
@@ -50,7 +51,6 @@ from roadsurf.mapping.raster import (
 )
 from roadsurf.mapping.surface import LocalSurface
 from roadsurf.mapping.types import Trajectory
-from roadsurf.parallel import SharedCache, ordered_map
 
 log = logging.getLogger(__name__)
 

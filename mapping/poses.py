@@ -35,16 +35,16 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.spatial.transform import Rotation
 
-from roadsurf.config import to_dict
-from roadsurf.drive import Drive
-from roadsurf.geometry import (
+from roadsurf.core.atomic import read_json, write_json_atomic
+from roadsurf.core.config import to_dict
+from roadsurf.core.geometry import (
     EnuReference,
     enu_from_lla,
     heading_deg_from_displacement,
     invert_pose,
     world_from_cam,
 )
-from roadsurf.io import read_json, write_json_atomic
+from roadsurf.io.drive import Drive
 from roadsurf.mapping.config import NOT_IN_FINGERPRINT, MappingConfig
 from roadsurf.mapping.types import Trajectory, load_trajectory, save_trajectory
 

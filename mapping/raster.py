@@ -18,9 +18,9 @@ from xml.sax.saxutils import escape
 
 import numpy as np
 
-from roadsurf.formats import LOCAL_CRS, GridSpec, geotiff_profile
-from roadsurf.geometry import EnuReference, ExportFrame, enu_from_lla, lla_from_utm
-from roadsurf.io import atomic_path, write_text_atomic
+from roadsurf.core.atomic import atomic_path, write_text_atomic
+from roadsurf.core.geometry import EnuReference, ExportFrame, enu_from_lla, lla_from_utm
+from roadsurf.io.formats import LOCAL_CRS, GridSpec, geotiff_profile
 
 
 @dataclass(frozen=True)
@@ -370,7 +370,7 @@ def iter_tiles(run_dir: str | Path, name: str = "surface") -> Any:
     import rasterio
     from rasterio.windows import Window
 
-    from roadsurf.io import read_json
+    from roadsurf.core.atomic import read_json
 
     run_dir = Path(run_dir)
     rep = read_json(run_dir / "map_report.json")

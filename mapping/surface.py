@@ -14,7 +14,7 @@ import logging
 
 import numpy as np
 
-from roadsurf.geometry import check_shape
+from roadsurf.core.geometry import check_shape
 from roadsurf.mapping.config import MappingConfig
 
 log = logging.getLogger(__name__)

@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from roadsurf.geometry import EnuReference, ExportFrame, heading_deg_from_world_rotation
-from roadsurf.io import read_json, write_json_atomic, write_npz_atomic
+from roadsurf.core.atomic import read_json, write_json_atomic, write_npz_atomic
+from roadsurf.core.geometry import EnuReference, ExportFrame, heading_deg_from_world_rotation
 
 POSE_SOURCES = ("gps", "visual", "fused")
 

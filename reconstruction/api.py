@@ -15,8 +15,8 @@ import time
 
 import numpy as np
 
-from roadsurf.drive import Camera, Frame, read_gray
-from roadsurf.errors import FrameReadError
+from roadsurf.core.errors import FrameReadError
+from roadsurf.io.drive import Camera, Frame, read_gray
 from roadsurf.reconstruction import features as feat
 from roadsurf.reconstruction.config import ReconstructionConfig
 from roadsurf.reconstruction.estimators import estimate_matches

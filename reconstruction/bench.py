@@ -8,7 +8,7 @@ from __future__ import annotations
 import tempfile
 from pathlib import Path
 
-from roadsurf.io import write_text_atomic
+from roadsurf.core.atomic import write_text_atomic
 from roadsurf.reconstruction.io_helpers import write_rows_csv
 
 

@@ -21,9 +21,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
-from roadsurf.drive import Drive, load_drive, read_gray
-from roadsurf.errors import FrameReadError
-from roadsurf.formats import read_csv, read_geotiff
+from roadsurf.core.errors import FrameReadError
+from roadsurf.io.drive import Drive, load_drive, read_gray
+from roadsurf.io.formats import read_csv, read_geotiff
 from roadsurf.reconstruction import features as feat
 from roadsurf.reconstruction.config import ReconstructionConfig
 from roadsurf.reconstruction.estimators import estimate_matches

@@ -21,7 +21,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from roadsurf.drive import load_drive, read_gray
+from roadsurf.io.drive import load_drive, read_gray
 from roadsurf.reconstruction import features as feat
 from roadsurf.reconstruction import stage
 from roadsurf.reconstruction.api import reconstruct_pair

@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import erf
 
-from roadsurf.geometry import check_shape
+from roadsurf.core.geometry import check_shape
 from roadsurf.reconstruction.geometry import point_covariance
 
 

@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
-from roadsurf.geometry import check_shape
+from roadsurf.core.geometry import check_shape
 from roadsurf.reconstruction import geometry as g
 from roadsurf.reconstruction.config import ReconstructionConfig
 from roadsurf.reconstruction.types import PairResult

@@ -11,9 +11,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from roadsurf.drive import Camera
-from roadsurf.errors import ConfigError
-from roadsurf.io import write_npz_atomic
+from roadsurf.core.atomic import write_npz_atomic
+from roadsurf.core.errors import ConfigError
+from roadsurf.io.drive import Camera
 from roadsurf.reconstruction.config import FeatureConfig
 from roadsurf.reconstruction.types import Features
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from roadsurf.geometry import check_shape
+from roadsurf.core.geometry import check_shape
 
 
 def skew(v: np.ndarray) -> np.ndarray:

@@ -7,7 +7,7 @@ import io
 from pathlib import Path
 from typing import Any
 
-from roadsurf.io import write_text_atomic
+from roadsurf.core.atomic import write_text_atomic
 
 
 def write_rows_csv(path: Path, rows: list[dict[str, Any]]) -> Path:

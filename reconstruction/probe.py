@@ -30,8 +30,8 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from roadsurf.drive import Camera, Drive, read_gray
-from roadsurf.errors import FrameReadError
+from roadsurf.core.errors import FrameReadError
+from roadsurf.io.drive import Camera, Drive, read_gray
 from roadsurf.reconstruction.api import reconstruct_matches
 from roadsurf.reconstruction.config import ProbeConfig, ReconstructionConfig
 from roadsurf.reconstruction.features import to_gray, track_forward_backward

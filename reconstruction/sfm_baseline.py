@@ -43,16 +43,16 @@ from typing import Any, Literal
 
 import numpy as np
 
-from roadsurf.config import to_dict
-from roadsurf.drive import Camera, Drive, load_drive
-from roadsurf.errors import RoadsurfError
-from roadsurf.geometry import (
+from roadsurf.core.atomic import read_json, write_json_atomic
+from roadsurf.core.config import to_dict
+from roadsurf.core.errors import RoadsurfError
+from roadsurf.core.geometry import (
     EnuReference,
     check_shape,
     enu_from_lla,
     heading_deg_from_world_rotation,
 )
-from roadsurf.io import read_json, write_json_atomic
+from roadsurf.io.drive import Camera, Drive, load_drive
 
 log = logging.getLogger(__name__)
 
@@ -501,7 +501,7 @@ def rasterise_mean(
 
     Returns (float32 (H, W) raster, NaN where no point fell, GridSpec). The GSD is coarsened
     when the bounding grid would exceed ``max_px`` pixels."""
-    from roadsurf.formats import LOCAL_CRS, GridSpec
+    from roadsurf.io.formats import LOCAL_CRS, GridSpec
 
     xy = check_shape("xy", xy, (None, 2))
     lo, hi = xy.min(0), xy.max(0)
@@ -824,7 +824,7 @@ def run(
     cfg: SfmBaselineConfig, drive_dir: str | Path, out_dir: str | Path, *, overwrite: bool = False
 ) -> SfmBaselineResult:
     """Run the pycolmap baseline on a drive and write the run-folder outputs into ``out_dir``."""
-    from roadsurf.formats import write_geotiff
+    from roadsurf.io.formats import write_geotiff
     from roadsurf.mapping.export import export_xyz, write_cloud_ply, write_trajectory_geojson
     from roadsurf.mapping.types import Trajectory, save_trajectory
 
@@ -1028,8 +1028,8 @@ def run_from_paths(
     ``SfmBaselineConfig`` at top level; unknown keys are rejected) and ``run``."""
     import yaml
 
-    from roadsurf.config import from_dict
-    from roadsurf.errors import ConfigError
+    from roadsurf.core.config import from_dict
+    from roadsurf.core.errors import ConfigError
 
     cfg = SfmBaselineConfig()
     if config_path is not None:

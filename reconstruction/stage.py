@@ -19,8 +19,8 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from roadsurf.drive import Drive, Frame, read_gray
-from roadsurf.errors import FrameReadError
+from roadsurf.core.errors import FrameReadError
+from roadsurf.io.drive import Drive, Frame, read_gray
 from roadsurf.reconstruction import features as feat
 from roadsurf.reconstruction.api import reconstruct_features
 from roadsurf.reconstruction.config import ReconstructionConfig

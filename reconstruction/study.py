@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from roadsurf.io import atomic_path, write_text_atomic
+from roadsurf.core.atomic import atomic_path, write_text_atomic
 from roadsurf.reconstruction import geometry as g
 from roadsurf.reconstruction.bound import epsilon_bound
 from roadsurf.reconstruction.config import ReconstructionConfig

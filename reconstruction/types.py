@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from roadsurf.io import write_npz_atomic
+from roadsurf.core.atomic import write_npz_atomic
 
 # Status values. "ok" is the only success; everything else is a reported failure, never raised.
 STATUS_OK = "ok"

@@ -19,10 +19,10 @@ import numpy as np
 import yaml
 from tqdm import tqdm
 
-from roadsurf.config import from_dict, load_yaml_config
-from roadsurf.errors import ConfigError, RoadsurfError
-from roadsurf.formats import write_csv
-from roadsurf.io import write_bytes_atomic, write_json_atomic, write_text_atomic
+from roadsurf.core.atomic import write_bytes_atomic, write_json_atomic, write_text_atomic
+from roadsurf.core.config import from_dict, load_yaml_config
+from roadsurf.core.errors import ConfigError, RoadsurfError
+from roadsurf.io.formats import write_csv
 from roadsurf.simulation.config import SimConfig
 from roadsurf.simulation.render import Renderer
 from roadsurf.simulation.sensors import (

@@ -106,7 +106,7 @@ def simulate_gps(world: World, rng: np.random.Generator) -> GpsLog:
         keep[[0, -1]] = True
     lla_e = meas[keep, 0] + world.origin_e_m
     lla_n = meas[keep, 1] + world.origin_n_m
-    from roadsurf.geometry import lla_from_utm
+    from roadsurf.core.geometry import lla_from_utm
 
     lla = lla_from_utm(lla_e, lla_n, world.epsg)
     hdop = np.round(p["hdop"] * (1 + 0.15 * np.abs(rng.standard_normal(int(keep.sum())))), 1)

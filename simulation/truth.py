@@ -18,7 +18,8 @@ import shapely
 from shapely.geometry import MultiPolygon, Polygon, box
 from shapely.prepared import prep
 
-from roadsurf.formats import (
+from roadsurf.core.geometry import lla_from_utm
+from roadsurf.io.formats import (
     GridSpec,
     feature,
     polygon_geometry,
@@ -26,7 +27,6 @@ from roadsurf.formats import (
     write_geojson,
     write_geotiff_blocks,
 )
-from roadsurf.geometry import lla_from_utm
 from roadsurf.simulation.world import Pothole, Trough, World
 
 BLOCK = 256

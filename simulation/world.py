@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from roadsurf.geometry import lla_from_utm, utm_epsg_for, utm_from_lla, world_from_cam
+from roadsurf.core.geometry import lla_from_utm, utm_epsg_for, utm_from_lla, world_from_cam
 from roadsurf.simulation.config import SimConfig
 from roadsurf.simulation.noise import fractal_noise, value_noise
 from roadsurf.simulation.shapes import Blob, Polyline, Rect

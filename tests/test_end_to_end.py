@@ -12,8 +12,8 @@ import pytest
 import rasterio
 from plyfile import PlyData
 
-from roadsurf.errors import ModelFileError
-from roadsurf.formats import read_csv, read_geojson
+from roadsurf.core.errors import ModelFileError
+from roadsurf.io.formats import read_csv, read_geojson
 
 SAMPLE = Path(__file__).resolve().parents[1] / "data_samples" / "drive"
 N_FRAMES = 10

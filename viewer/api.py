@@ -20,7 +20,7 @@ from urllib.parse import quote
 
 import rerun as rr
 
-from roadsurf.errors import RoadsurfError
+from roadsurf.core.errors import RoadsurfError
 from roadsurf.viewer.config import ViewerConfig
 from roadsurf.viewer.recording import APP_ID, layout_for, log_run
 from roadsurf.viewer.runfolder import RunData, load_run
@@ -221,7 +221,7 @@ def load_viewer_config(path: str | Path | None) -> ViewerConfig:
     """ViewerConfig from a YAML file (keys of ViewerConfig; unknown keys are rejected)."""
     if path is None:
         return ViewerConfig()
-    from roadsurf.config import load_yaml_config
+    from roadsurf.core.config import load_yaml_config
 
     return load_yaml_config(ViewerConfig, path)
 

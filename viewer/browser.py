@@ -17,7 +17,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
-from roadsurf.errors import RoadsurfError
+from roadsurf.core.errors import RoadsurfError
 
 log = logging.getLogger(__name__)
 

@@ -1,4 +1,4 @@
-"""Viewer and run-report settings (frozen; loaded with ``roadsurf.config.from_dict``).
+"""Viewer and run-report settings (frozen; loaded with ``roadsurf.core.config.from_dict``).
 
 The viewer only reads a finished (or running) run folder; nothing here changes any result.
 """

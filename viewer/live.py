@@ -18,7 +18,7 @@ from typing import Any
 
 import rerun as rr
 
-from roadsurf.errors import RoadsurfError
+from roadsurf.core.errors import RoadsurfError
 from roadsurf.viewer.config import ViewerConfig
 from roadsurf.viewer.recording import (
     APP_ID,

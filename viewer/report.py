@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from roadsurf.io import write_text_atomic
+from roadsurf.core.atomic import write_text_atomic
 from roadsurf.viewer.colors import residual_half_range_m
 from roadsurf.viewer.config import ViewerConfig
 from roadsurf.viewer.runfolder import (

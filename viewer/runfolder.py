@@ -21,16 +21,16 @@ from typing import Any
 
 import numpy as np
 
-from roadsurf.errors import RoadsurfError
-from roadsurf.formats import GridSpec, read_csv, read_ply, validate_geojson
-from roadsurf.geometry import (
+from roadsurf.core.atomic import read_json
+from roadsurf.core.errors import RoadsurfError
+from roadsurf.core.geometry import (
     EnuReference,
     ExportFrame,
     enu_from_lla,
     lla_from_enu,
     lla_from_utm,
 )
-from roadsurf.io import read_json
+from roadsurf.io.formats import GridSpec, read_csv, read_ply, validate_geojson
 
 log = logging.getLogger(__name__)
 
@@ -118,7 +118,7 @@ class RunData:
     mosaic: Raster | None
     surface: Raster | None
     masks: dict[str, Path]  # frame filename (stem) -> refined 2D defect mask image
-    drive: Any | None  # roadsurf.drive.Drive
+    drive: Any | None  # roadsurf.io.drive.Drive
     missing: list[str] = field(default_factory=list)
 
     @functools.cached_property
@@ -422,7 +422,7 @@ def _load_drive(drive_dir: Any, missing: list[str]) -> Any | None:
     if not (root / "camera.yaml").exists():
         missing.append(f"drive {root} (not found; pass --drive)")
         return None
-    from roadsurf.drive import load_drive
+    from roadsurf.io.drive import load_drive
 
     try:
         return load_drive(root, check_images=False)
@@ -571,7 +571,7 @@ def project_to_image(
 ) -> np.ndarray | None:
     """(K, 3) ENU points -> (K, 2) pixels (u right, v down) of a pinhole camera (no distortion);
     None when any point is behind the camera or none falls inside the image."""
-    from roadsurf.geometry import invert_pose, transform_points
+    from roadsurf.core.geometry import invert_pose, transform_points
 
     pc = transform_points(invert_pose(world_from_cam), pts_enu_m)
     if np.any(pc[:, 2] <= 1e-3):

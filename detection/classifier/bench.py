@@ -28,10 +28,10 @@ from typing import Any
 
 import numpy as np
 
+from roadsurf.core.atomic import read_json, write_json_atomic, write_text_atomic
+from roadsurf.core.errors import RoadsurfError
 from roadsurf.detection.classifier.config import ClassifierConfig
 from roadsurf.detection.classifier.modelfile import model_weights_path
-from roadsurf.errors import RoadsurfError
-from roadsurf.io import read_json, write_json_atomic, write_text_atomic
 
 log = logging.getLogger(__name__)
 
@@ -300,13 +300,13 @@ def _file_digest(path: Path) -> str:
 
 
 def _frame_labels(path: Path) -> dict[str, int]:
-    from roadsurf.formats import read_csv
+    from roadsurf.io.formats import read_csv
 
     return {r["filename"]: int(float(r["defect"])) for r in read_csv(path)}
 
 
 def _frame_sources(path: Path) -> dict[str, str]:
-    from roadsurf.formats import read_csv
+    from roadsurf.io.formats import read_csv
 
     return {r["filename"]: r.get("source", "") for r in read_csv(path)}
 
@@ -323,7 +323,7 @@ def distractors_in_view(drive: Path) -> dict[str, set[str]]:
     from scipy.spatial.transform import Rotation
     from shapely.geometry import Polygon, shape
 
-    from roadsurf.formats import read_csv, read_geojson
+    from roadsurf.io.formats import read_csv, read_geojson
 
     truth = drive / "truth"
     dpath = truth / "distractors.geojson"
@@ -411,7 +411,7 @@ def bench_classifier(
     balance = label_drives(train_drives, ds_dir, cfg, runs=train_runs)
     # how good are the self-labels? (the CNN can be no better than its teacher)
     self_labels = {}
-    from roadsurf.formats import read_csv
+    from roadsurf.io.formats import read_csv
 
     rows = [r for r in read_csv(ds_dir / "labels.csv") if not r.get("augmentation")]
     for s, d in zip(train_specs, train_drives, strict=True):

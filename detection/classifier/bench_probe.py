@@ -21,7 +21,7 @@ from tqdm import tqdm
 from roadsurf.detection.classifier.config import ClassifierConfig
 from roadsurf.detection.classifier.dataset import figures_from_pairs, label_frame
 from roadsurf.detection.classifier.guided import probe_depth_points
-from roadsurf.drive import load_drive, read_gray
+from roadsurf.io.drive import load_drive, read_gray
 from roadsurf.reconstruction import features as feat
 from roadsurf.reconstruction.api import reconstruct_features
 from roadsurf.reconstruction.config import ReconstructionConfig

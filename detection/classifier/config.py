@@ -108,7 +108,7 @@ class ClassifierConfig:
     context_frames: int = 1
     # sparse 3D audit: one pair every this far along the drive is reconstructed whatever the
     # CNN says, so long defects a single image cannot show (a shallow rut under diffuse light)
-    # are met. Distance from OBD speed, else GPS (roadsurf.drive.along_track_m), so the cost
+    # are met. Distance from OBD speed, else GPS (roadsurf.io.drive.along_track_m), so the cost
     # does not grow with the frame rate; 4 m = 10 frames at 15 fps and 6 m/s (m).
     # 0 = count frames instead (audit_every_frames)
     audit_every_m: float = 4.0

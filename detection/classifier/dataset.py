@@ -33,11 +33,11 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from roadsurf.config import to_dict
+from roadsurf.core.atomic import atomic_path, write_json_atomic, write_text_atomic
+from roadsurf.core.config import to_dict
+from roadsurf.core.errors import RoadsurfError
 from roadsurf.detection.classifier import augment
 from roadsurf.detection.classifier.config import CLASS_NAMES, ClassifierConfig
-from roadsurf.errors import RoadsurfError
-from roadsurf.io import atomic_path, write_json_atomic, write_text_atomic
 
 log = logging.getLogger(__name__)
 
@@ -177,7 +177,7 @@ def figures_from_pairs(
 def read_defect_types(run_dir: Path) -> dict[str, set[str]]:
     """RUN/defects.geojson -> {filename: types of the physics defects seen in that frame}
     (the features' ``frames`` property); {} when the file does not exist."""
-    from roadsurf.formats import read_geojson
+    from roadsurf.io.formats import read_geojson
 
     path = Path(run_dir) / "defects.geojson"
     if not path.is_file():
@@ -290,7 +290,7 @@ def label_drives(
     lives in ``runs_dir/<key>`` (default ``out/runs``) and is computed or resumed there.
     Returns the balance summary (also ``out/balance.json``).
     """
-    from roadsurf.drive import load_drive, read_image
+    from roadsurf.io.drive import load_drive, read_image
 
     cfg = cfg or ClassifierConfig()
     out = Path(out)
@@ -472,7 +472,7 @@ class Dataset:
 
 def load_dataset(root: str | Path, input_size_px: int) -> Dataset:
     """Read DATASET/labels.csv and its PNGs, resized to the network input side."""
-    from roadsurf.io import read_json
+    from roadsurf.core.atomic import read_json
 
     root = Path(root)
     path = root / "labels.csv"

@@ -36,6 +36,7 @@ from typing import Any
 
 import numpy as np
 
+from roadsurf.core.atomic import write_json_atomic
 from roadsurf.detection.classifier.config import ClassifierConfig
 from roadsurf.detection.classifier.dataset import figures_from_pairs, label_frame
 from roadsurf.detection.classifier.fusion import (
@@ -47,7 +48,6 @@ from roadsurf.detection.classifier.fusion import (
     grow_pairs,
     pairs_to_reconstruct,
 )
-from roadsurf.io import write_json_atomic
 
 log = logging.getLogger(__name__)
 
@@ -149,7 +149,7 @@ def run(
     """Reconstruct what the screened drive needs; ``reconstruct(only_pairs)`` runs the
     reconstruction stage on those (index_a, index_b) pairs (cached pairs are reused) and
     returns its PairResults. ``filenames`` are the drive's valid frames in capture order;
-    ``along_m`` their distances along the drive (m, ``roadsurf.drive.along_track_m``), which
+    ``along_m`` their distances along the drive (m, ``roadsurf.io.drive.along_track_m``), which
     space the audit in metres (None: in frames). ``probe(only_pairs)`` (``reconstruction.probe``)
     returns cheap PairResults for the audit pairs; None (or ``audit_probe: false``) makes every
     audit pair a full pair."""

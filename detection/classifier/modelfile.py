@@ -15,10 +15,10 @@ from typing import Any
 
 import torch
 
+from roadsurf.core.atomic import atomic_path, write_json_atomic
+from roadsurf.core.errors import ModelFileError
 from roadsurf.detection.classifier.config import CLASS_NAMES
 from roadsurf.detection.classifier.network import DefectNet
-from roadsurf.errors import ModelFileError
-from roadsurf.io import atomic_path, write_json_atomic
 
 log = logging.getLogger(__name__)
 

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from roadsurf.errors import RoadsurfError
+from roadsurf.core.errors import RoadsurfError
 
 # (quarter turns, mirrored) of the test-time views, in order: 2 = identity + mirror, 4 = the four
 # quarter turns, 8 = all eight symmetries of the square

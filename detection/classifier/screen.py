@@ -12,13 +12,13 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from roadsurf.core.errors import RoadsurfError
+from roadsurf.core.parallel import ordered_map
 from roadsurf.detection.classifier.config import ClassifierConfig
 from roadsurf.detection.classifier.dataset import thumbnail, to_input
 from roadsurf.detection.classifier.modelfile import load_model
 from roadsurf.detection.classifier.network import pick_device
-from roadsurf.drive import Drive, Frame, load_drive, read_image
-from roadsurf.errors import RoadsurfError
-from roadsurf.parallel import ordered_map
+from roadsurf.io.drive import Drive, Frame, load_drive, read_image
 
 log = logging.getLogger(__name__)
 

@@ -28,12 +28,12 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from roadsurf import errors
-from roadsurf.config import from_dict, to_dict
+from roadsurf.core import errors
+from roadsurf.core.atomic import write_json_atomic
+from roadsurf.core.config import from_dict, to_dict
+from roadsurf.core.errors import RoadsurfError
 from roadsurf.detection.classifier.config import ClassifierConfig
-from roadsurf.drive import Frame
-from roadsurf.errors import RoadsurfError
-from roadsurf.io import write_json_atomic
+from roadsurf.io.drive import Frame
 
 log = logging.getLogger(__name__)
 

@@ -24,14 +24,14 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
-from roadsurf.config import to_dict
+from roadsurf.core.atomic import atomic_path, write_json_atomic
+from roadsurf.core.config import to_dict
+from roadsurf.core.errors import RoadsurfError
 from roadsurf.detection.classifier import augment
 from roadsurf.detection.classifier.config import CLASS_NAMES, ClassifierConfig
 from roadsurf.detection.classifier.dataset import Dataset, load_dataset
 from roadsurf.detection.classifier.modelfile import save_model
 from roadsurf.detection.classifier.network import DefectNet, pick_device
-from roadsurf.errors import RoadsurfError
-from roadsurf.io import atomic_path, write_json_atomic
 
 log = logging.getLogger(__name__)
 
@@ -482,7 +482,7 @@ def train(
             )
     if not (out / "model.json").is_file():
         _save(out, net, cfg, ds, tr, va, history[-1] if history else {}, history, device, t0)
-    from roadsurf.io import read_json
+    from roadsurf.core.atomic import read_json
 
     if cfg.calibrate and len(va):
         pt, pd = training_priors(ds.labels, augmented, tr, cfg)

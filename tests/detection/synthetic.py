@@ -14,8 +14,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from roadsurf.drive import Camera, Drive, Frame
-from roadsurf.geometry import EnuReference, invert_pose, transform_points, world_from_cam
+from roadsurf.core.geometry import EnuReference, invert_pose, transform_points, world_from_cam
+from roadsurf.io.drive import Camera, Drive, Frame
 from roadsurf.mapping.types import Trajectory
 from roadsurf.reconstruction.types import PairResult
 
@@ -216,8 +216,8 @@ def build(
 def write_surface(scene: Scene, run_dir: Path, traj: Trajectory, gsd_m: float = 0.005, seed=0):
     """RUN/surface.tif as mapping writes it: residual (m, negative below) on a UTM grid over the
     driven corridor, with measurement noise; returns the GridSpec."""
-    from roadsurf.formats import GridSpec, write_geotiff
-    from roadsurf.geometry import ExportFrame, enu_from_lla, lla_from_utm
+    from roadsurf.core.geometry import ExportFrame, enu_from_lla, lla_from_utm
+    from roadsurf.io.formats import GridSpec, write_geotiff
 
     ef = ExportFrame.for_reference(REF)
     pos = traj.positions_enu_m
@@ -249,9 +249,9 @@ def write_truth(scene: Scene, truth_dir: Path, traj: Trajectory, camera: Camera 
     defects.geojson (pothole discs) and distractors.geojson (lane marking, oil stain)."""
     import json
 
+    from roadsurf.core.geometry import ExportFrame
     from roadsurf.detection.footprint import footprint_enu
-    from roadsurf.formats import feature, polygon_geometry, write_csv, write_geojson
-    from roadsurf.geometry import ExportFrame
+    from roadsurf.io.formats import feature, polygon_geometry, write_csv, write_geojson
 
     truth_dir.mkdir(parents=True, exist_ok=True)
     ef = ExportFrame.for_reference(REF)

@@ -67,8 +67,8 @@ def test_update_docs_says_when_only_detection_was_rerun(tmp_path):
 def test_detection_only_needs_the_runs(tmp_path):
     import pytest
 
+    from roadsurf.core.errors import RoadsurfError
     from roadsurf.detection.bench import redetect
-    from roadsurf.errors import RoadsurfError
 
     (tmp_path / "run").mkdir()
     with pytest.raises(RoadsurfError, match="without --detection-only"):

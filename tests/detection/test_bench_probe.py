@@ -26,7 +26,7 @@ def _write_drive(root: Path, depth_m: float) -> Path:
         f"model: pinhole\nwidth: {w}\nheight: {h}\nfx: {f}\nfy: {f}\ncx: {w / 2}\ncy: {h / 2}\n"
         f"height_m: {cam_h}\nfps: 10.0\n"
     )
-    from roadsurf.drive import Camera
+    from roadsurf.io.drive import Camera
 
     cam = Camera(w, h, f, f, w / 2, h / 2, cam_h, 10.0)
     tex = texture((1600, 1600), 11)

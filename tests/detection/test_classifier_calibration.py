@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 import torch
 
+from roadsurf.core.errors import ModelFileError, RoadsurfError
 from roadsurf.detection.classifier.config import ClassifierConfig
 from roadsurf.detection.classifier.modelfile import load_model, save_model
 from roadsurf.detection.classifier.network import DefectNet
 from roadsurf.detection.classifier.train import fit_temperature, make_scheduler
-from roadsurf.errors import ModelFileError, RoadsurfError
 
 
 def _logits_with_temperature(t_true: float, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:

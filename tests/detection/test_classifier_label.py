@@ -11,12 +11,12 @@ import cv2
 import numpy as np
 import pytest
 
+from roadsurf.core.errors import RoadsurfError
 from roadsurf.detection.classifier import augment
 from roadsurf.detection.classifier.config import ClassifierConfig
 from roadsurf.detection.classifier.dataset import FrameFigures, frame_figures, label_frame
 from roadsurf.detection.classifier.fusion import fuse, fuse_frames, needs_3d, pairs_to_reconstruct
-from roadsurf.errors import RoadsurfError
-from roadsurf.formats import read_geojson, write_geojson
+from roadsurf.io.formats import read_geojson, write_geojson
 from roadsurf.reconstruction.types import PairResult, pair_filename, save_pair
 
 

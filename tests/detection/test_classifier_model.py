@@ -13,14 +13,14 @@ import numpy as np
 import pytest
 import torch
 
+from roadsurf.core.errors import ModelFileError, RoadsurfError
 from roadsurf.detection.classifier.config import ClassifierConfig
 from roadsurf.detection.classifier.modelfile import load_model, save_model
 from roadsurf.detection.classifier.network import DefectNet
 from roadsurf.detection.classifier.screen import screen_drive, screen_threads
 from roadsurf.detection.classifier.screen_job import ScreeningJob
 from roadsurf.detection.classifier.train import metrics, train, train_steps
-from roadsurf.drive import Camera, Drive, Frame
-from roadsurf.errors import ModelFileError, RoadsurfError
+from roadsurf.io.drive import Camera, Drive, Frame
 
 
 @pytest.fixture(autouse=True)
@@ -81,7 +81,7 @@ def test_network_overfits_a_small_batch() -> None:
 
 
 def test_forward_rejects_wrong_shape() -> None:
-    from roadsurf.errors import RoadsurfError
+    from roadsurf.core.errors import RoadsurfError
 
     with pytest.raises(RoadsurfError, match="expects"):
         DefectNet(64)(torch.zeros(2, 1, 32, 32, dtype=torch.uint8))

@@ -5,10 +5,10 @@ import cv2
 import numpy as np
 import pytest
 
+from roadsurf.core.geometry import invert_pose, transform_points
 from roadsurf.detection.config import CrackConfig
 from roadsurf.detection.cracks import PairView, dense_crack_depth
-from roadsurf.drive import Camera, read_gray
-from roadsurf.geometry import invert_pose, transform_points
+from roadsurf.io.drive import Camera, read_gray
 from tests.detection.synthetic import Scene, Trough, build_two_view, poses
 
 # 1.7 mm pixels: a 7 mm groove is about 4 px wide, like the simulator's cracks.

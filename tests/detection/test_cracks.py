@@ -32,7 +32,7 @@ def test_crack_is_detected_once_and_typed(tmp_path):
 
 def test_dark_line_without_depth_is_not_a_crack(tmp_path):
     """A tar seam / painted dark line: same 2D look, no depth -> the 3D test vetoes it."""
-    from roadsurf.drive import read_gray
+    from roadsurf.io.drive import read_gray
 
     seam = Trough(-0.2, 0.7, 0.25, 1.1, 0.012, 0.0, darker=0.45)
     scene = Scene(troughs=[seam], lane_x_m=-0.35, shadow_x_m=0.3)

@@ -87,7 +87,7 @@ def test_partial_dense_reading_still_counts_for_max_depth(tmp_path):
 def test_distort_undistort_round_trip():
     """Tracks run on the raw (distorted) images; the pair's pixels are ideal pinhole ones."""
     from roadsurf.detection.dense import _distort, _undistort
-    from roadsurf.drive import Camera
+    from roadsurf.io.drive import Camera
 
     cam = Camera(640, 480, 600.0, 600.0, 319.5, 239.5, 1.1, 15.0, (-0.12, 0.03, 0.0005, -0.0005, 0))
     rng = np.random.default_rng(3)

@@ -6,7 +6,7 @@ import numpy as np
 
 from roadsurf.detection.config import DetectionConfig
 from roadsurf.detection.pairs import _raw_px, analyse_pair
-from roadsurf.drive import Camera
+from roadsurf.io.drive import Camera
 from roadsurf.reconstruction.features import undistort_px
 from roadsurf.reconstruction.types import PairResult
 

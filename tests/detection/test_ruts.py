@@ -9,7 +9,7 @@ from scipy import ndimage
 from roadsurf.detection.config import DetectionConfig
 from roadsurf.detection.mapseg import Region
 from roadsurf.detection.ruts import longest_trough_m, scan_seeds, trace_rut, trace_ruts
-from roadsurf.formats import GridSpec
+from roadsurf.io.formats import GridSpec
 
 CFG = DetectionConfig()
 GSD = 0.005

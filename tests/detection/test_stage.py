@@ -9,7 +9,7 @@ import shapely.geometry
 
 from roadsurf.detection import stage
 from roadsurf.detection.config import DetectionConfig, RefineConfig
-from roadsurf.formats import read_csv, read_geojson
+from roadsurf.io.formats import read_csv, read_geojson
 from tests.detection.synthetic import REF, Pothole, Scene, Trough, build, write_surface
 
 CFG = DetectionConfig()
@@ -249,7 +249,7 @@ def test_max_depth_from_pairs_not_the_pose_smeared_map(tmp_path):
 
 def _write_map_points(run_dir, xy, res_m):
     """RUN/map_points.npz as mapping writes it (grid-frame xy == ENU here, z = residual)."""
-    from roadsurf.io import write_npz_atomic
+    from roadsurf.core.atomic import write_npz_atomic
 
     write_npz_atomic(
         run_dir / "map_points.npz",

@@ -16,7 +16,7 @@ from roadsurf.detection.windows import (
     merge_regions,
     segment_windows,
 )
-from roadsurf.formats import GridSpec
+from roadsurf.io.formats import GridSpec
 from tests.detection.synthetic import Pothole, Scene, Trough, build, write_surface
 
 CFG = DetectionConfig()

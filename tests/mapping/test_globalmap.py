@@ -12,9 +12,9 @@ import pytest
 import rasterio
 from plyfile import PlyData
 
-from roadsurf.drive import load_drive
-from roadsurf.formats import GridSpec
-from roadsurf.geometry import ExportFrame, enu_from_lla, lla_from_utm
+from roadsurf.core.geometry import ExportFrame, enu_from_lla, lla_from_utm
+from roadsurf.io.drive import load_drive
+from roadsurf.io.formats import GridSpec
 from roadsurf.mapping import globalmap, poses
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.raster import grid_mean, interpolate_to_grid

@@ -10,8 +10,8 @@ import os
 import numpy as np
 import pytest
 
-from roadsurf.formats import read_geojson
-from roadsurf.geometry import enu_from_lla, lla_from_enu
+from roadsurf.core.geometry import enu_from_lla, lla_from_enu
+from roadsurf.io.formats import read_geojson
 from roadsurf.mapping import poses
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.types import load_trajectory

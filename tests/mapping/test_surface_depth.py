@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from roadsurf.formats import GridSpec
+from roadsurf.io.formats import GridSpec
 from roadsurf.mapping import globalmap
 from roadsurf.mapping.config import MappingConfig
 

@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import rasterio
 
-from roadsurf.formats import GridSpec
-from roadsurf.geometry import enu_from_lla, lla_from_utm
+from roadsurf.core.geometry import enu_from_lla, lla_from_utm
+from roadsurf.io.formats import GridSpec
 from roadsurf.mapping import globalmap, poses
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.raster import fill_nodata_capped

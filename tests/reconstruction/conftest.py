@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from roadsurf.drive import Camera
+from roadsurf.io.drive import Camera
 from roadsurf.reconstruction.geometry import rotation_from_euler_deg
 
 

@@ -54,7 +54,7 @@ def test_textureless_pair_gives_status(cam) -> None:
 @pytest.mark.parametrize("kind", ["orb", "akaze"])
 def test_binary_features_reconstruct(cam, kind: str) -> None:
     if kind == "akaze" and not hasattr(cv2, "AKAZE_create"):
-        from roadsurf.errors import ConfigError
+        from roadsurf.core.errors import ConfigError
 
         with pytest.raises(ConfigError, match="akaze"):
             reconstruct_pair(

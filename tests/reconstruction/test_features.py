@@ -59,7 +59,7 @@ def test_feature_cache_round_trips_bit_for_bit_and_stores_sift_as_bytes(tmp_path
     """SIFT descriptors (float32 holding whole numbers 0-255) are stored as uint8, losslessly
     and uncompressed; other descriptors as they are. Older zlib files with float descriptors
     still load."""
-    from roadsurf.io import write_npz_atomic
+    from roadsurf.core.atomic import write_npz_atomic
 
     sift = feat.detect(texture((240, 320), 5), FeatureConfig(max_features=300))
     assert sift.descriptors.dtype == np.float32 and len(sift.descriptors) > 50

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import roadsurf.reconstruction.probe as probe
-from roadsurf.drive import Camera, Drive, Frame
+from roadsurf.io.drive import Camera, Drive, Frame
 from roadsurf.reconstruction.api import reconstruct_pair
 from roadsurf.reconstruction.config import FeatureConfig, ReconstructionConfig
 from roadsurf.reconstruction.geometry import rotation_from_euler_deg

@@ -11,8 +11,8 @@ import cv2
 import numpy as np
 import pytest
 
-from roadsurf.drive import Camera, load_drive
-from roadsurf.formats import LOCAL_CRS, read_csv, read_geojson, read_geotiff, read_ply
+from roadsurf.io.drive import Camera, load_drive
+from roadsurf.io.formats import LOCAL_CRS, read_csv, read_geojson, read_geotiff, read_ply
 from roadsurf.reconstruction.sfm_baseline import (
     SfmBaselineConfig,
     _colmap_camera,
@@ -97,7 +97,7 @@ def test_outputs_read_back_in_utm(sim_drive: Path, sfm_out: Path) -> None:
 
 
 def test_trajectory_close_to_gps_and_truth(sim_drive: Path, sfm_out: Path) -> None:
-    from roadsurf.geometry import utm_from_lla
+    from roadsurf.core.geometry import utm_from_lla
 
     rep = json.loads((sfm_out / "report.json").read_text())
     epsg = int(rep["crs"].split(":")[1])
@@ -281,7 +281,7 @@ def _blank_drive(root: Path, n: int = 4) -> Path:
 
 
 def test_textureless_drive_fails_with_reasons(tmp_path: Path) -> None:
-    from roadsurf.errors import RoadsurfError
+    from roadsurf.core.errors import RoadsurfError
 
     drive = _blank_drive(tmp_path / "d")
     with pytest.raises(RoadsurfError, match=r"no usable model.*SIFT features"):
@@ -290,7 +290,7 @@ def test_textureless_drive_fails_with_reasons(tmp_path: Path) -> None:
 
 
 def test_config_file_rejects_unknown_keys(tmp_path: Path) -> None:
-    from roadsurf.errors import ConfigError
+    from roadsurf.core.errors import ConfigError
     from roadsurf.reconstruction.sfm_baseline import run_from_paths
 
     cfg = tmp_path / "c.yaml"

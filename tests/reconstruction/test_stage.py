@@ -9,7 +9,7 @@ import numpy as np
 
 import roadsurf.reconstruction.api as api
 import roadsurf.reconstruction.stage as stage
-from roadsurf.drive import Drive, Frame
+from roadsurf.io.drive import Drive, Frame
 from roadsurf.reconstruction.config import FeatureConfig, ReconstructionConfig
 from roadsurf.reconstruction.types import pair_filename
 from tests.reconstruction.conftest import render_pair

@@ -2,8 +2,8 @@ from dataclasses import dataclass, field
 
 import pytest
 
-from roadsurf.config import from_dict, load_yaml_config
-from roadsurf.errors import ConfigError
+from roadsurf.core.config import from_dict, load_yaml_config
+from roadsurf.core.errors import ConfigError
 
 
 @dataclass(frozen=True)

@@ -10,8 +10,8 @@ import cv2
 import numpy as np
 import pytest
 
-from roadsurf.drive import load_drive, read_gray, read_image
-from roadsurf.errors import DriveFormatError, FrameReadError
+from roadsurf.core.errors import DriveFormatError, FrameReadError
+from roadsurf.io.drive import load_drive, read_gray, read_image
 
 W, H = 64, 48
 T0 = 1_700_000_000.0  # UNIX seconds (used for GPX/NMEA drives)
@@ -487,7 +487,7 @@ def test_gps_verbatim_duplicate_row_is_dropped_not_fatal(tmp_path: Path) -> None
 def test_along_track_from_obd_else_gps_else_none(tmp_path: Path) -> None:
     """Frames at 10 Hz: OBD speed 5 m/s -> 0.5 m per frame; without OBD the GPS path (fixes
     1e-5 deg of latitude = 1.11 m apart every 0.5 s -> 0.222 m per frame); neither -> None."""
-    from roadsurf.drive import along_track_m
+    from roadsurf.io.drive import along_track_m
 
     rows = [f"{0.5 * k - 0.5:.3f},{LAT0 + 1e-5 * k:.8f},{LON0:.8f},100.0,0.8" for k in range(5)]
     root = make_drive(tmp_path / "d", n=8, gps_rows=rows)

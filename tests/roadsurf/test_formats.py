@@ -5,7 +5,8 @@ import pytest
 import rasterio
 from plyfile import PlyData
 
-from roadsurf.formats import (
+from roadsurf.core.atomic import write_json_atomic
+from roadsurf.io.formats import (
     GridSpec,
     feature,
     polygon_geometry,
@@ -18,7 +19,6 @@ from roadsurf.formats import (
     write_geotiff,
     write_ply,
 )
-from roadsurf.io import write_json_atomic
 
 
 def test_ply_round_trip_is_binary_with_contract_types(tmp_path):
@@ -98,7 +98,7 @@ def test_csv_round_trip(tmp_path):
 
 
 def test_atomic_write_leaves_no_temp_on_failure(tmp_path):
-    from roadsurf.io import atomic_path
+    from roadsurf.core.atomic import atomic_path
 
     with pytest.raises(RuntimeError):
         with atomic_path(tmp_path / "x.json") as tmp:
@@ -110,7 +110,7 @@ def test_atomic_write_leaves_no_temp_on_failure(tmp_path):
 
 
 def test_geotiff_blocks_sparse_round_trip(tmp_path):
-    from roadsurf.formats import write_geotiff_blocks
+    from roadsurf.io.formats import write_geotiff_blocks
 
     # A long thin diagonal corridor in a large box: only the written blocks are stored.
     grid = GridSpec("EPSG:32617", 630000.0, 4833000.0, 0.005, 4096, 4096)
@@ -140,7 +140,7 @@ def test_atomic_outputs_are_not_private(tmp_path):
 
 
 def test_geotiff_local_frame_round_trip(tmp_path):
-    from roadsurf.formats import LOCAL_CRS
+    from roadsurf.io.formats import LOCAL_CRS
 
     # A run without GPS: the raster has no CRS, and reads back as the local frame.
     grid = GridSpec(LOCAL_CRS, -5.0, 20.0, 0.01, 40, 30)

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from roadsurf.geometry import (
+from roadsurf.core.geometry import (
     EnuReference,
     ExportFrame,
     enu_from_lla,

@@ -1,10 +1,10 @@
-"""roadsurf.parallel.ordered_map: order, bounded look-ahead, errors in turn."""
+"""roadsurf.core.parallel.ordered_map: order, bounded look-ahead, errors in turn."""
 
 from __future__ import annotations
 
 import pytest
 
-from roadsurf.parallel import ordered_map
+from roadsurf.core.parallel import ordered_map
 
 
 def test_ordered_map_keeps_order_bounds_lookahead_and_raises_in_turn() -> None:
@@ -49,7 +49,7 @@ def test_ordered_map_keeps_order_bounds_lookahead_and_raises_in_turn() -> None:
 
 
 def test_shared_cache_keeps_the_most_recent_values_and_loads_each_once():
-    from roadsurf.parallel import SharedCache
+    from roadsurf.core.parallel import SharedCache
 
     loads: list[int] = []
 
@@ -69,7 +69,7 @@ def test_shared_cache_keeps_the_most_recent_values_and_loads_each_once():
 def test_shared_cache_under_threads_gives_every_key_its_own_value():
     from concurrent.futures import ThreadPoolExecutor
 
-    from roadsurf.parallel import SharedCache
+    from roadsurf.core.parallel import SharedCache
 
     c: SharedCache[int, int] = SharedCache(3)
     keys = [k % 7 for k in range(500)]
@@ -86,7 +86,7 @@ def test_gray_frames_reads_once_and_gives_none_for_missing_or_unreadable_frames(
     import cv2
     import numpy as np
 
-    from roadsurf.drive import Frame, GrayFrames
+    from roadsurf.io.drive import Frame, GrayFrames
 
     img = np.arange(48, dtype=np.uint8).reshape(6, 8)
     cv2.imwrite(str(tmp_path / "a.png"), img)
@@ -96,7 +96,7 @@ def test_gray_frames_reads_once_and_gives_none_for_missing_or_unreadable_frames(
         Frame(1, "b.png", tmp_path / "b.png", 0.1),
     ]
     gf = GrayFrames(frames, 2, "test: skipping")
-    with caplog.at_level(logging.WARNING, logger="roadsurf.drive"):
+    with caplog.at_level(logging.WARNING, logger="roadsurf.io.drive"):
         a = gf.get("a.png")
         assert np.array_equal(a, img) and gf.get("a.png") is a  # cached, not read again
         assert gf.get("b.png") is None and gf.get("nowhere.png") is None

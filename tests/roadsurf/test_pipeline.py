@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from roadsurf.errors import ConfigError
+from roadsurf.core.errors import ConfigError
 from roadsurf.pipeline import PipelineConfig, load_pipeline_config
 
 
@@ -40,13 +40,13 @@ def test_fused_run_warm_up_imports_name_real_modules_and_not_torch() -> None:
     import subprocess
     import sys
 
-    from roadsurf.pipeline import _FUSED_RUN_IMPORTS
+    from roadsurf.pipeline.run import _FUSED_RUN_IMPORTS
 
     for name in _FUSED_RUN_IMPORTS:
         assert importlib.util.find_spec(name) is not None, name
     code = (
         "import importlib, sys\n"
-        "from roadsurf.pipeline import _FUSED_RUN_IMPORTS\n"
+        "from roadsurf.pipeline.run import _FUSED_RUN_IMPORTS\n"
         "for n in _FUSED_RUN_IMPORTS: importlib.import_module(n)\n"
         "print('torch' in sys.modules)\n"
     )

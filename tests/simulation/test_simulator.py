@@ -12,9 +12,9 @@ import pytest
 import rasterio
 from pyproj import Transformer
 
-from roadsurf.drive import load_drive, read_gray
-from roadsurf.errors import ConfigError, RoadsurfError
-from roadsurf.formats import read_csv, read_geojson, read_geotiff
+from roadsurf.core.errors import ConfigError, RoadsurfError
+from roadsurf.io.drive import load_drive, read_gray
+from roadsurf.io.formats import read_csv, read_geojson, read_geotiff
 from roadsurf.simulation.scenarios import describe, simulate
 
 # Tiny drives: 240x180 px with the default footprint (fx scaled), 6 frames.

@@ -15,7 +15,15 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from roadsurf.formats import (
+from roadsurf.core.atomic import write_json_atomic
+from roadsurf.core.geometry import (
+    EnuReference,
+    ExportFrame,
+    enu_from_lla,
+    lla_from_utm,
+    world_from_cam,
+)
+from roadsurf.io.formats import (
     GridSpec,
     feature,
     polygon_geometry,
@@ -24,14 +32,6 @@ from roadsurf.formats import (
     write_geotiff,
     write_ply,
 )
-from roadsurf.geometry import (
-    EnuReference,
-    ExportFrame,
-    enu_from_lla,
-    lla_from_utm,
-    world_from_cam,
-)
-from roadsurf.io import write_json_atomic
 from roadsurf.mapping.types import Trajectory, save_trajectory
 from roadsurf.reconstruction.types import PairResult, pair_filename, save_pair
 
@@ -83,7 +83,7 @@ def _write_drive(root: Path, n: int, rng: np.random.Generator, gps: bool) -> lis
         for k in range(n // 2 + 1):  # 5 Hz fixes over the drive
             t = 0.2 * k
             enu = np.array([[0.0, t * STEP_M / 0.1, CAM_H]])
-            from roadsurf.geometry import lla_from_enu
+            from roadsurf.core.geometry import lla_from_enu
 
             lat, lon, alt = lla_from_enu(enu, REF)[0]
             rows.append((t, lat, lon, alt))

@@ -5,7 +5,7 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
-from roadsurf.drive import load_drive
+from roadsurf.io.drive import load_drive
 from roadsurf.mapping.types import load_trajectory
 from roadsurf.viewer.inspect import summarize_rrd
 from roadsurf.viewer.live import LiveObserver

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from roadsurf.formats import read_geojson
+from roadsurf.io.formats import read_geojson
 from roadsurf.viewer.api import save_rrd
 from roadsurf.viewer.inspect import summarize_rrd
 from roadsurf.viewer.report import write_report

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from roadsurf.geometry import ExportFrame
+from roadsurf.core.geometry import ExportFrame
 from roadsurf.viewer.api import save_rrd
 from roadsurf.viewer.inspect import component_values, summarize_rrd
 from roadsurf.viewer.runfolder import depth_profile, enu_from_crs, load_run

@@ -61,7 +61,7 @@ def test_screenshot_without_chromium_says_how_to_install(
     monkeypatch: pytest.MonkeyPatch, tmp_path: Path
 ) -> None:
     import roadsurf.viewer.browser as browser
-    from roadsurf.errors import RoadsurfError
+    from roadsurf.core.errors import RoadsurfError
 
     monkeypatch.setattr(browser.shutil, "which", lambda name: None)
     assert browser.find_chromium() is None

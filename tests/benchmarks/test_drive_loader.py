@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from roadsurf._drive_bench import bench_loader
+from benchmarks.drive_loader import bench_loader
 from tests.roadsurf.test_drive_loader import make_drive
 
 

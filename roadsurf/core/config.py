@@ -17,7 +17,7 @@ from typing import Any, TypeVar
 
 import yaml
 
-from roadsurf.errors import ConfigError
+from roadsurf.core.errors import ConfigError
 
 T = TypeVar("T")
 

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from roadsurf.io import atomic_path, write_text_atomic
+from roadsurf.core.atomic import atomic_path, write_text_atomic
 
 # --------------------------------------------------------------------------- PLY
 

@@ -1,4 +1,4 @@
-"""`roadsurf bench loader`: how long ``load_drive`` takes, with and without the image check.
+"""Benchmark: how long ``load_drive`` takes, with and without the image check.
 
 A long drive is made by repeating a short one's frames (copies with new names and times) in a
 temporary folder, so the figure for e.g. 600 frames needs no 600-frame render.
@@ -12,7 +12,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from roadsurf.drive import load_drive
+from roadsurf.io.drive import load_drive
 
 
 def _repeated_drive(src: Path, dst: Path, repeat: int) -> int:
@@ -60,3 +60,24 @@ def bench_loader(drive: str | Path, repeat: int = 12, runs: int = 3) -> str:
             *rows,
         ]
     )
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m benchmarks.drive_loader [DRIVE] [--repeat N]`` (``make bench-drive_loader``)."""
+    import argparse
+
+    from benchmarks._result import write_result
+
+    ap = argparse.ArgumentParser(description="Time load_drive on a long drive made by repetition.")
+    ap.add_argument("drive", nargs="?", default="data_samples/drive", type=Path)
+    ap.add_argument("--repeat", type=int, default=12, help="repeat the frames this many times")
+    ap.add_argument("--json", type=Path, default=None, help="result file (default results/)")
+    a = ap.parse_args(argv)
+    table = bench_loader(a.drive, repeat=a.repeat)
+    print(table)
+    write_result(a.json, "drive_loader", {"markdown": table})
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -10,13 +10,9 @@ from typing import Annotated
 
 import typer
 
-from roadsurf.errors import RoadsurfError
+from roadsurf.core.errors import RoadsurfError
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help=__doc__)
-bench_app = typer.Typer(
-    no_args_is_help=True, help="Benchmarks that print figures (not timed tests)."
-)
-app.add_typer(bench_app, name="bench")
 
 Out = Annotated[Path, typer.Option("--out", "-o", help="Output folder.")]
 
@@ -79,72 +75,6 @@ def simulate(
     typer.echo(f"Wrote drive '{scenario}' to {res}")
 
 
-@bench_app.command("render")
-def bench_render(
-    scenario: Annotated[str, typer.Option(help="Scenario to render.")] = "sample",
-    frames: Annotated[int, typer.Option(help="Frames to render (in memory).")] = 20,
-    width: Annotated[int, typer.Option(help="Image width (px).")] = 640,
-    height: Annotated[int, typer.Option(help="Image height (px).")] = 480,
-) -> None:
-    """Simulator render time per frame (world tiles, ray casting, sensor, encoding)."""
-    from roadsurf.simulation.bench import bench_render as _bench
-
-    fx = 600.0 * width / 640.0
-    res = _bench(scenario, frames, width=width, height=height, fx=fx)
-    for k, v in res.items():
-        typer.echo(f"{k:22s} {v:.3f}" if isinstance(v, float) else f"{k:22s} {v}")
-
-
-@bench_app.command("reconstruction")
-def bench_reconstruction(
-    out: Annotated[
-        Path, typer.Option("--out", "-o", help="Folder for CSV, figures, summary.md.")
-    ] = Path("docs/img/reconstruction"),
-    quick: Annotated[bool, typer.Option(help="Fewer cells, trials and frames.")] = False,
-    trials: Annotated[int | None, typer.Option(help="Monte-Carlo trials per cell.")] = None,
-    workers: Annotated[int, typer.Option(help="Worker processes.")] = 2,
-    images: Annotated[bool, typer.Option(help="Also evaluate rendered drives.")] = True,
-    frames: Annotated[int | None, typer.Option(help="Frames per rendered drive.")] = None,
-    study: Annotated[bool, typer.Option(help="Run the point-level study.")] = True,
-) -> None:
-    """Parametric study (Figs. 3.6-3.12, bound, targets) and rendered-drive accuracy."""
-    from roadsurf.reconstruction.bench import bench_reconstruction as _bench
-
-    typer.echo(
-        _bench(
-            out,
-            quick=quick,
-            trials=trials,
-            workers=workers,
-            images=images,
-            frames=frames,
-            study=study,
-        )
-    )
-
-
-@bench_app.command("speed")
-def bench_speed(
-    out: Annotated[Path, typer.Option("--out", "-o", help="Work/output folder.")] = Path(
-        "out/bench_speed"
-    ),
-    frames: Annotated[int, typer.Option(help="Frames of the timed drive.")] = 60,
-    repeats: Annotated[int, typer.Option(help="Repeats of the single-pair timing.")] = 5,
-    max_features: Annotated[
-        int | None, typer.Option(help="Keypoints per frame (default: the config's).")
-    ] = None,
-    features: Annotated[str, typer.Option(help="sift | orb | akaze")] = "sift",
-) -> None:
-    """Reconstruction speed: one 1024x768 pair (breakdown) and pairs/s over a drive."""
-    from roadsurf.reconstruction.bench import bench_speed_report
-
-    typer.echo(
-        bench_speed_report(
-            out, frames=frames, repeats=repeats, max_features=max_features, kind=features
-        )
-    )
-
-
 @app.command()
 def run(
     drive: Annotated[Path, typer.Argument(help="Drive folder (see docs/formats.md).")],
@@ -169,14 +99,19 @@ def run(
     """Run the whole pipeline on a drive: 3D map, mosaic, trajectory and defects."""
     from roadsurf.pipeline import run_drive
 
+    observers = []
+    if rerun:
+        from roadsurf.viewer.live import make_observer
+
+        observers.append(make_observer(out))
     report = run_drive(
         drive,
         out,
         config_path=config,
         method=method,
         classifier=classifier,
-        rerun=rerun,
         overwrite=overwrite,
+        observers=observers,
     )
     table = (report.get("detection") or {}).get("table")
     if table:
@@ -210,24 +145,6 @@ def evaluate(
         typer.echo(f"Wrote {r}/evaluation.json and {r}/evaluation.md")
 
 
-@bench_app.command("mapping")
-def bench_mapping(
-    work: Annotated[Path, typer.Option(help="Work folder (drives, runs).")] = Path(
-        "out/bench_mapping"
-    ),
-    frames: Annotated[str, typer.Option(help="Comma-separated drive lengths.")] = "60,600",
-    full: Annotated[
-        bool, typer.Option("--full/--mapping-only", help="Also time the full `roadsurf run`.")
-    ] = True,
-    width: Annotated[int, typer.Option(help="Image width of the simulated drives (px).")] = 640,
-) -> None:
-    """Peak RSS of `roadsurf run` and of the mapping stages on simulated drives of each length."""
-    from roadsurf.mapping.bench import run_benchmark
-
-    res = run_benchmark(work, tuple(int(f) for f in frames.split(",")), full=full, width=width)
-    typer.echo(res["markdown"])
-
-
 @app.command("sfm-baseline")
 def sfm_baseline(
     drive: Annotated[Path, typer.Argument(help="Drive folder (see docs/formats.md).")],
@@ -252,19 +169,6 @@ def sfm_baseline(
         typer.echo(f"  not registered: {name}: {why}")
     if len(res.not_registered) > 20:
         typer.echo(f"  ... and {len(res.not_registered) - 20} more (see report.json)")
-
-
-@bench_app.command("loader")
-def bench_loader(
-    drive: Annotated[Path, typer.Argument(help="Drive whose frames are repeated.")] = Path(
-        "data_samples/drive"
-    ),
-    repeat: Annotated[int, typer.Option(help="Repeat the frames this many times.")] = 12,
-) -> None:
-    """Time load_drive (with and without the image check) on a long drive made by repetition."""
-    from roadsurf._drive_bench import bench_loader as _bench
-
-    typer.echo(_bench(drive, repeat=repeat))
 
 
 # --- CNN classifier (detection/classifier) -------------------------------------------------
@@ -330,82 +234,6 @@ def train(
         f"val accuracy {m.get('val_accuracy')}, precision {m.get('val_precision')}, "
         f"recall {m.get('val_recall')}; {meta.get('train_time_s')} s"
     )
-
-
-@bench_app.command("classifier")
-def bench_classifier(
-    work: Annotated[
-        Path, typer.Option(help="Work folder (drives, runs, dataset, model, results).")
-    ] = Path("out/bench_classifier"),
-    quick: Annotated[bool, typer.Option("--quick", help="Shorter drives (smoke run).")] = False,
-    config: Annotated[
-        Path | None, typer.Option(help="YAML config for the pipeline and the classifier.")
-    ] = None,
-    epochs: Annotated[int | None, typer.Option(help="Training epochs.")] = None,
-    lr: Annotated[float | None, typer.Option(help="Learning rate.")] = None,
-) -> None:
-    """CNN vs fused CNN+3D vs 3D-only on unseen simulator drives (Table 5.2, Fig. 5.5)."""
-    from roadsurf.detection.classifier import commands
-
-    res = commands.bench(work, quick=quick, config_path=config, epochs=epochs, learning_rate=lr)
-    typer.echo((Path(work) / "results.md").read_text(encoding="utf-8"))
-    typer.echo(f"Total {res['total_s']} s; details in {work}/results.json")
-
-
-@bench_app.command("probe")
-def bench_probe(
-    drives: Annotated[list[Path], typer.Argument(help="Drive folders.")],
-    step: Annotated[int, typer.Option(help="Compare every step-th pair.")] = 1,
-    config: Annotated[
-        Path | None, typer.Option(help="YAML config (reconstruction and classifier sections).")
-    ] = None,
-) -> None:
-    """The fused run's audit probe against a full pair on every pair: misses and time."""
-    from roadsurf.detection.classifier.bench_probe import bench_probe as _bench
-    from roadsurf.detection.classifier.bench_probe import report
-    from roadsurf.pipeline import load_pipeline_config
-
-    cfg = load_pipeline_config(config)
-    typer.echo(report(_bench(drives, step, cfg.reconstruction, cfg.classifier)))
-
-
-@bench_app.command("detection")
-def bench_detection(
-    work: Annotated[
-        Path, typer.Option(help="Work folder (simulated drives, runs, results).")
-    ] = Path("out/bench_detection"),
-    quick: Annotated[
-        bool, typer.Option("--quick", help="Two short drives; docs are not touched.")
-    ] = False,
-    methods: Annotated[
-        str, typer.Option(help="Comma-separated reconstruction methods (first = product).")
-    ] = "rotation_aware,proposed,classic,colmap",
-    docs: Annotated[
-        Path | None, typer.Option(help="Markdown file whose detection section is rewritten.")
-    ] = Path("docs/benchmarks.md"),
-    detection_only: Annotated[
-        bool,
-        typer.Option(
-            "--detection-only", help="Re-run only the detection stage on the runs in --work."
-        ),
-    ] = False,
-) -> None:
-    """Table 4.2: the detector on proposed, classic and colmap reconstructions of sim drives."""
-    from roadsurf.detection.bench import run_benchmark
-
-    cmd = f"roadsurf bench detection --work {work}" + (
-        " --detection-only" if detection_only else ""
-    )
-    res = run_benchmark(
-        work,
-        quick=quick,
-        methods=tuple(m.strip() for m in methods.split(",")),
-        docs=docs,
-        command=cmd,
-        detection_only=detection_only,
-    )
-    typer.echo(res["markdown"])
-    typer.echo(f"Total {res['wall_s']:.0f} s; details in {work}/bench_detection.json")
 
 
 RunDir = Annotated[Path, typer.Argument(help="Run folder written by `roadsurf run --out`.")]

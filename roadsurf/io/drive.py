@@ -112,7 +112,7 @@ class Drive:
 
 def load_drive(root: str | Path, check_images: bool = True) -> Drive:
     """Load and validate a drive folder. See the module docstring for the contract."""
-    from roadsurf._drive_loader import load_drive as _load
+    from roadsurf.io._drive_loader import load_drive as _load
 
     return _load(root, check_images=check_images)
 
@@ -122,32 +122,32 @@ def read_image(frame: Frame) -> np.ndarray:
 
     Raises ``FrameReadError`` for unreadable or truncated files.
     """
-    from roadsurf._drive_loader import read_image as _read
+    from roadsurf.io._drive_loader import read_image as _read
 
     return _read(frame)
 
 
 def read_gray(frame: Frame) -> np.ndarray:
     """Read a frame as greyscale uint8 (H, W). Raises ``FrameReadError`` when unreadable."""
-    from roadsurf._drive_loader import read_gray as _read
+    from roadsurf.io._drive_loader import read_gray as _read
 
     return _read(frame)
 
 
 class GrayFrames:
     """Greyscale frames by filename for threads that share them, the ``size`` most recently
-    used kept (``roadsurf.parallel.SharedCache``). ``get`` gives None for a frame that is not
+    used kept (``roadsurf.core.parallel.SharedCache``). ``get`` gives None for a frame that is not
     in ``frames`` or cannot be read; the latter is logged as ``user: <error>``."""
 
     def __init__(self, frames: Iterable[Frame], size: int, user: str) -> None:
-        from roadsurf.parallel import SharedCache
+        from roadsurf.core.parallel import SharedCache
 
         self._frames = {f.filename: f for f in frames}
         self._cache: SharedCache[str, np.ndarray | None] = SharedCache(size)
         self._user = user
 
     def get(self, filename: str) -> np.ndarray | None:
-        from roadsurf.errors import FrameReadError
+        from roadsurf.core.errors import FrameReadError
 
         def load() -> np.ndarray | None:
             f = self._frames.get(filename)
@@ -180,7 +180,7 @@ def along_track_m(drive: Drive) -> np.ndarray | None:
         v = np.abs(np.asarray(drive.obd.speed_mps, float)[o])
         s = np.r_[0.0, np.cumsum(0.5 * (v[1:] + v[:-1]) * np.diff(t))]
     elif drive.gps is not None and len(drive.gps) >= 2:
-        from roadsurf.geometry import EnuReference, enu_from_lla
+        from roadsurf.core.geometry import EnuReference, enu_from_lla
 
         g = drive.gps
         ref = EnuReference(float(g.lat_deg[0]), float(g.lon_deg[0]), 0.0)

@@ -4,9 +4,10 @@ Order: load_drive -> [CNN screening, decides which pairs are reconstructed] ->
 reconstruction.stage.run -> mapping.poses.run -> mapping.globalmap.run -> detection.stage.run
 -> report.json. Each stage resumes from its own artifacts in the run folder.
 
-Live streaming (``rerun=True``) imports ``viewer.live`` here (the pipeline may import the viewer;
-stages never do). An observer is any callable ``observer(stage_name, result)`` called after each
-stage with that stage's result (``"drive"``: Drive, ``"screening"``: dict filename -> p,
+Stages are imported lazily inside ``_run_drive`` (keeps `roadsurf --help` fast) but called
+explicitly. Live streaming is an observer that the CLI passes in (``roadsurf.viewer.live``): the
+pipeline never imports the viewer. An observer is any callable ``observer(stage_name, result)``
+called after each stage with that stage's result (``"drive"``: Drive, ``"screening"``: dict filename -> p,
 ``"reconstruction"``: list[PairResult], ``"poses"``: Trajectory, ``"globalmap"``: MapProducts,
 ``"detection"``: DetectionResult).
 """
@@ -23,11 +24,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from roadsurf.config import from_dict, load_yaml_config, to_dict
+from roadsurf.core.atomic import read_json, write_json_atomic
+from roadsurf.core.config import from_dict, load_yaml_config, to_dict
+from roadsurf.core.errors import ConfigError
 from roadsurf.detection.classifier.config import ClassifierConfig
 from roadsurf.detection.config import DetectionConfig
-from roadsurf.errors import ConfigError, RoadsurfError
-from roadsurf.io import read_json, write_json_atomic
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.reconstruction.config import ReconstructionConfig
 
@@ -55,11 +56,6 @@ def load_pipeline_config(path: str | Path | None) -> PipelineConfig:
 
 def pipeline_config_from_dict(data: dict[str, Any] | None) -> PipelineConfig:
     return from_dict(PipelineConfig, data, "pipeline config")
-
-
-def _stage(module: str) -> Any:
-    """Import a stage module lazily (keeps `roadsurf --help` and light commands fast)."""
-    return importlib.import_module(module)
 
 
 # What a fused run imports after screening: the stage modules and the heavy libraries they
@@ -91,7 +87,9 @@ def _screen(model: Path, drive: Any, cfg: ClassifierConfig, job: Any) -> dict[st
     run needs (imports hold the GIL, so a thread could not overlap them), or in this process
     when ``job`` is None."""
     if job is None:
-        return _stage("roadsurf.detection.classifier.screen").screen_drive(model, drive, cfg)
+        from roadsurf.detection.classifier.screen import screen_drive
+
+        return screen_drive(model, drive, cfg)
     job.send(drive.frames)
     for name in _FUSED_RUN_IMPORTS:
         try:
@@ -131,7 +129,6 @@ def run_drive(
     config_path: str | Path | None = None,
     method: str | None = None,
     classifier: str | Path | None = None,
-    rerun: bool = False,
     overwrite: bool = False,
     observers: list[Observer] | None = None,
 ) -> dict[str, Any]:
@@ -140,7 +137,8 @@ def run_drive(
     ``method`` picks the reconstruction estimator (None: the config's, by default the
     rotation-aware variant of the proposed method); ``classifier`` is a CNN model file for
     screening (only pairs the CNN is unsure about, or calls defect, are reconstructed);
-    ``rerun`` streams results live to the Rerun viewer; ``overwrite`` recomputes finished
+    ``observers`` are called after each stage (the CLI's ``--rerun`` streams to Rerun through
+    one); ``overwrite`` recomputes finished
     artifacts instead of resuming.
     """
     t_start = time.perf_counter()
@@ -154,7 +152,7 @@ def run_drive(
         job = ScreeningJob(Path(classifier), cfg.classifier)
     try:
         return _run_drive(
-            drive_dir, Path(out_dir), cfg, method, classifier, rerun, overwrite, observers, job,
+            drive_dir, Path(out_dir), cfg, method, classifier, overwrite, observers, job,
             t_start,
         )  # fmt: skip
     finally:
@@ -168,26 +166,19 @@ def _run_drive(
     cfg: PipelineConfig,
     method: str | None,
     classifier: str | Path | None,
-    rerun: bool,
     overwrite: bool,
     observers: list[Observer] | None,
     job: Any,
     t_start: float,
 ) -> dict[str, Any]:
     """``run_drive`` with its config loaded and its screening worker (``job``, or None) started."""
-    from roadsurf.drive import along_track_m, load_drive
+    from roadsurf.detection import stage as detection_stage
+    from roadsurf.io.drive import along_track_m, load_drive
+    from roadsurf.mapping import globalmap, poses
+    from roadsurf.reconstruction import stage as reconstruction_stage
 
     out.mkdir(parents=True, exist_ok=True)
     obs: list[Observer] = list(observers or [])
-    if rerun:
-        try:
-            live = importlib.import_module("roadsurf.viewer.live")
-        except ModuleNotFoundError as e:
-            raise RoadsurfError(
-                "--rerun needs the live viewer (viewer/live.py with make_observer(run_dir)); "
-                f"it is not installed ({e}). Run without --rerun and use `roadsurf view OUT`."
-            ) from e
-        obs.append(live.make_observer(out))
     timings: dict[str, float] = {}
     started: dict[str, float] = {}  # wall-clock start of each stage (artifact mtimes vs this)
     previous = _previous_stage_timings(out)
@@ -220,15 +211,13 @@ def _run_drive(
     frame_probs: dict[str, float] | None = None
     fusion_rule: Any = None
     if classifier is None:
-        rec = _stage("roadsurf.reconstruction.stage")
-        pairs = timed("reconstruction", lambda: rec.run(rec_cfg, drive, out))
+        pairs = timed("reconstruction", lambda: reconstruction_stage.run(rec_cfg, drive, out))
     else:
         frame_probs = timed(
             "screening", lambda: _screen(Path(classifier), drive, cfg.classifier, job)
         )
-        rec = _stage("roadsurf.reconstruction.stage")
-        guided = _stage("roadsurf.detection.classifier.guided")
-        probe = _stage("roadsurf.reconstruction.probe")
+        from roadsurf.detection.classifier import guided
+        from roadsurf.reconstruction import probe
 
         def reconstruct_guided() -> list[Any]:
             nonlocal fusion_rule
@@ -237,7 +226,7 @@ def _run_drive(
                 [f.filename for f in drive.frames],
                 frame_probs,
                 drive.camera.height_m,
-                lambda only: rec.run(rec_cfg, drive, out, only_pairs=only),
+                lambda only: reconstruction_stage.run(rec_cfg, drive, out, only_pairs=only),
                 out,
                 along_m=along_track_m(drive),
                 probe=lambda only: probe.run(rec_cfg, drive, out, only),
@@ -246,14 +235,11 @@ def _run_drive(
             return g.pairs
 
         pairs = timed("reconstruction", reconstruct_guided)
-    poses = _stage("roadsurf.mapping.poses")
     traj = timed("poses", lambda: poses.run(cfg.mapping, drive, pairs, out))
-    gmap = _stage("roadsurf.mapping.globalmap")
-    products = timed("globalmap", lambda: gmap.run(cfg.mapping, drive, pairs, traj, out))
-    det = _stage("roadsurf.detection.stage")
+    products = timed("globalmap", lambda: globalmap.run(cfg.mapping, drive, pairs, traj, out))
     detections = timed(
         "detection",
-        lambda: det.run(
+        lambda: detection_stage.run(
             cfg.detection, drive, pairs, traj, out, frame_probs=frame_probs, fusion=fusion_rule
         ),
     )

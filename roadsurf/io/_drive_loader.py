@@ -1,4 +1,4 @@
-"""Implementation of ``roadsurf.drive.load_drive`` / ``read_image`` / ``read_gray``.
+"""Implementation of ``roadsurf.io.drive.load_drive`` / ``read_image`` / ``read_gray``.
 
 The rules (what is an error, what is skipped, how GPS times are matched to frame times) are
 documented in docs/formats.md; keep the two in step.
@@ -35,8 +35,8 @@ import cv2
 import numpy as np
 import yaml
 
-from roadsurf.drive import Camera, Drive, Frame, GpsTrack, ObdLog, Skipped
-from roadsurf.errors import DriveFormatError, FrameReadError
+from roadsurf.core.errors import DriveFormatError, FrameReadError
+from roadsurf.io.drive import Camera, Drive, Frame, GpsTrack, ObdLog, Skipped
 
 log = logging.getLogger(__name__)
 
