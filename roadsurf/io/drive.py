@@ -24,32 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
+from roadsurf.core.camera import Camera
+
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class Camera:
-    """Pinhole camera with OpenCV distortion. Pixels (px), metres (m)."""
-
-    width: int  # image width (px)
-    height: int  # image height (px)
-    fx: float  # focal length x (px)
-    fy: float  # focal length y (px)
-    cx: float  # principal point x (px)
-    cy: float  # principal point y (px)
-    height_m: float  # nominal camera height above the road, h (m)
-    fps: float  # frame rate (Hz)
-    dist: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)  # k1,k2,p1,p2,k3
-    model: str = "pinhole"
-
-    @property
-    def K(self) -> np.ndarray:
-        """(3, 3) intrinsic matrix."""
-        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
-
-    @property
-    def has_distortion(self) -> bool:
-        return any(abs(d) > 0 for d in self.dist)
 
 
 @dataclass(frozen=True)
