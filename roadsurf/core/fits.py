@@ -1,0 +1,128 @@
+"""The one place for robust statistics, plane fits and the 2D rigid fit.
+
+Planes are ``Z = p0 X + p1 Y + p2`` (dissertation eq. 3.31) in metres, in whatever frame the
+points are given (camera or world); distances are signed, negative below the road (eq. 3.32).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from roadsurf.core.geometry import check_shape
+
+MAD_TO_SIGMA = 1.4826  # σ of a normal distribution from its median absolute deviation
+
+
+def robust_sigma(values: np.ndarray) -> float:
+    """σ estimated as 1.4826 · MAD (robust to a minority of outliers); NaN for empty input.
+    Non-finite values are ignored."""
+    v = np.asarray(values, float)
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        return float("nan")
+    return float(MAD_TO_SIGMA * np.median(np.abs(v - np.median(v))))
+
+
+# ---------------------------------------------------------------------------------- planes
+def fit_plane_z(points_m: np.ndarray) -> np.ndarray:
+    """Least-squares plane Z = p0 X + p1 Y + p2 through (N, 3) points (N >= 3); returns (3,)."""
+    P = check_shape("points_m", points_m, (None, 3))
+    if P.shape[0] < 3:
+        raise ValueError(f"fit_plane_z: need at least 3 points, got {P.shape[0]}")
+    A = np.column_stack([P[:, 0], P[:, 1], np.ones(len(P))])
+    p, *_ = np.linalg.lstsq(A, P[:, 2], rcond=None)
+    return p
+
+
+def fit_plane_z_trimmed(
+    X: np.ndarray, trim_k: float = 0.0, iterations: int = 3
+) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares plane (eq. 3.31) refitted without points whose VERTICAL residual is more
+    than ``trim_k`` robust sigmas from the median (so potholes do not tilt the road plane).
+
+    X: (N, 3) metres. trim_k <= 0 is one plain fit. Stops when fewer than 3 points would stay
+    or the inlier set no longer changes. Returns (p (3,), used mask (N,))."""
+    X = check_shape("X", X, (None, 3))
+    used = np.ones(X.shape[0], dtype=bool)
+    p = np.full(3, np.nan)
+    for _ in range(max(1, iterations if trim_k > 0 else 1)):
+        A = np.column_stack([X[used, 0], X[used, 1], np.ones(int(used.sum()))])
+        p = np.linalg.lstsq(A, X[used, 2], rcond=None)[0]
+        if trim_k <= 0:
+            break
+        r = X[:, 2] - (p[0] * X[:, 0] + p[1] * X[:, 1] + p[2])
+        s = MAD_TO_SIGMA * np.median(np.abs(r[used] - np.median(r[used]))) + 1e-12
+        new = np.abs(r - np.median(r[used])) <= trim_k * s
+        if new.sum() < 3 or np.array_equal(new, used):
+            break
+        used = new
+    return p, used
+
+
+def plane_signed_distance(points_m: np.ndarray, plane: np.ndarray) -> np.ndarray:
+    """(N,) d_i = (p0 X + p1 Y - Z + p2) / sqrt(p0² + p1² + 1) (eq. 3.32); negative below."""
+    P = check_shape("points_m", points_m, (None, 3))
+    p0, p1, p2 = check_shape("plane", plane, (3,))
+    return (p0 * P[:, 0] + p1 * P[:, 1] - P[:, 2] + p2) / np.sqrt(p0 * p0 + p1 * p1 + 1.0)
+
+
+def camera_plane_distance(p: np.ndarray) -> float:
+    """d_c = |p2| / sqrt(p0² + p1² + 1) (eq. 3.33): the camera's distance to the plane, when
+    the plane is in camera coordinates."""
+    return float(abs(p[2]) / np.sqrt(p[0] ** 2 + p[1] ** 2 + 1))
+
+
+def robust_plane_z(points_m: np.ndarray, iterations: int = 3) -> np.ndarray | None:
+    """Plane (3,) through road points (N, 3), refit without the points beyond 3 σ (MAD) of the
+    previous fit's PERPENDICULAR distances, ``iterations`` fits in all; None with fewer than 10
+    points."""
+    P = check_shape("points_m", np.asarray(points_m, float), (None, 3))
+    keep = np.ones(len(P), bool)
+    plane = None
+    for _ in range(iterations):
+        if keep.sum() < 10:
+            return plane
+        plane = fit_plane_z(P[keep])
+        d = plane_signed_distance(P, plane)
+        s = max(robust_sigma(d[keep]), 1e-4)
+        keep = np.abs(d - np.median(d[keep])) <= 3.0 * s
+    return plane
+
+
+# ---------------------------------------------------------------------------------- 2D rigid
+@dataclass(frozen=True)
+class Rigid2D:
+    """dst ≈ R @ src + t, with R a rotation by ``yaw_rad`` (counter-clockwise)."""
+
+    yaw_rad: float
+    R: np.ndarray  # (2, 2)
+    t: np.ndarray  # (2,) metres
+
+    def apply(self, xy: np.ndarray) -> np.ndarray:
+        """(N, 2) -> (N, 2)."""
+        return xy @ self.R.T + self.t
+
+
+def fit_rigid_2d(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) -> Rigid2D:
+    """Least-squares 2D rigid transform dst ≈ R src + t between (N, 2) point sets (metres).
+
+    Closed form: the rotation angle is atan2 of the cross-covariance's antisymmetric and
+    symmetric parts, exact in 2D and free of SVD reflection cases. ``weights`` (N,), if given,
+    weigh each pair (normalised to sum 1)."""
+    src = check_shape("src", np.asarray(src, float), (None, 2))
+    dst = check_shape("dst", np.asarray(dst, float), (None, 2))
+    if weights is None:
+        ms, md = src.mean(0), dst.mean(0)
+        S = (src - ms).T @ (dst - md)
+        yaw = math.atan2(S[0, 1] - S[1, 0], S[0, 0] + S[1, 1])
+        R = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
+        return Rigid2D(yaw, R, md - ms @ R.T)
+    w = weights / weights.sum()
+    ms, md = w @ src, w @ dst
+    S = ((src - ms) * w[:, None]).T @ (dst - md)
+    yaw = math.atan2(S[0, 1] - S[1, 0], S[0, 0] + S[1, 1])
+    R = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
+    return Rigid2D(yaw, R, md - R @ ms)

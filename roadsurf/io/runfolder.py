@@ -1,0 +1,136 @@
+"""The run folder: the one owner of every artifact's name and path.
+
+``roadsurf run DRIVE --out OUT`` writes everything below OUT under the names defined here; the
+stages, the viewer and the evaluation find them through :class:`RunFolder` instead of spelling
+file names. docs/formats.md describes each file's content.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+# reconstruction
+PAIRS_DIR = "pairs"  # one .npz per frame pair (PairResult)
+FEATURES_DIR = "features"  # per-frame keypoint cache
+PROBES_DIR = "probes"  # fused run: cheap audit probes of pairs
+# poses
+POSES_NPZ = "poses.npz"
+REFERENCE_JSON = "reference.json"  # the local ENU frame's origin
+POSES_REPORT = "poses_report.json"
+TRAJECTORY_GEOJSON = "trajectory.geojson"
+TRAJECTORY_CSV = "trajectory.csv"
+# global map
+MAP_REPORT = "map_report.json"
+MAP_POINTS = "map_points.npz"
+CLOUD_PLY = "cloud.ply"
+SURFACE = "surface"  # surface.tif / surface.vrt / tiles/surface_*.tif
+MOSAIC = "mosaic"
+TILES_DIR = "tiles"
+SURFACE_TIF = f"{SURFACE}.tif"
+SURFACE_VRT = f"{SURFACE}.vrt"
+MOSAIC_TIF = f"{MOSAIC}.tif"
+MOSAIC_VRT = f"{MOSAIC}.vrt"
+MOSAIC_PREVIEW = "mosaic_preview.png"
+SURFACE_PREVIEW = "surface_preview.png"
+# detection
+MASKS_DIR = "masks"  # one 2D defect mask per frame
+DEFECTS_GEOJSON = "defects.geojson"
+DEFECTS_CSV = "defects.csv"
+FRAME_LABELS_CSV = "frames.csv"  # per-frame labels (not the drive's frames.csv)
+DETECTION_JSON = "detection.json"
+SCREENING_JSON = "screening.json"  # fused run: CNN screening per frame
+# run level
+REPORT_JSON = "report.json"
+REPORT_HTML = "report.html"
+RECORDING_RRD = "run.rrd"
+LIVE_RRD = "live.rrd"
+EVALUATION_JSON = "evaluation.json"
+EVALUATION_MD = "evaluation.md"
+
+
+def pair_filename(index_a: int, index_b: int) -> str:
+    """``000012_000013.npz``: the pair of frames ``index_a``, ``index_b`` (capture order)."""
+    return f"{index_a:06d}_{index_b:06d}.npz"
+
+
+def tile_filename(kind: str, row: int, col: int) -> str:
+    """``surface_0001_0002.tif``: one GeoTIFF tile of a tiled raster."""
+    return f"{kind}_{row:04d}_{col:04d}.tif"
+
+
+@dataclass(frozen=True)
+class RunFolder:
+    """Paths of a run's artifacts below ``root`` (nothing is created or read here)."""
+
+    root: Path
+
+    def __init__(self, root: str | Path) -> None:
+        object.__setattr__(self, "root", Path(root))
+
+    def path(self, name: str) -> Path:
+        """Any artifact by its name constant, e.g. ``run.path(DEFECTS_GEOJSON)``."""
+        return self.root / name
+
+    @property
+    def pairs_dir(self) -> Path:
+        return self.root / PAIRS_DIR
+
+    def pair(self, index_a: int, index_b: int) -> Path:
+        return self.pairs_dir / pair_filename(index_a, index_b)
+
+    @property
+    def features_dir(self) -> Path:
+        return self.root / FEATURES_DIR
+
+    @property
+    def probes_dir(self) -> Path:
+        return self.root / PROBES_DIR
+
+    @property
+    def tiles_dir(self) -> Path:
+        return self.root / TILES_DIR
+
+    @property
+    def masks_dir(self) -> Path:
+        return self.root / MASKS_DIR
+
+    def mask(self, frame_filename: str) -> Path:
+        """The 2D defect mask of one frame (PNG, same stem as the image)."""
+        return self.masks_dir / f"{Path(frame_filename).stem}.png"
+
+    @property
+    def report(self) -> Path:
+        return self.root / REPORT_JSON
+
+    @property
+    def defects_geojson(self) -> Path:
+        return self.root / DEFECTS_GEOJSON
+
+    @property
+    def frame_labels(self) -> Path:
+        return self.root / FRAME_LABELS_CSV
+
+    @property
+    def surface_tif(self) -> Path:
+        return self.root / SURFACE_TIF
+
+    @property
+    def surface_vrt(self) -> Path:
+        return self.root / SURFACE_VRT
+
+    @property
+    def cloud_ply(self) -> Path:
+        return self.root / CLOUD_PLY
+
+    @property
+    def poses_npz(self) -> Path:
+        return self.root / POSES_NPZ
+
+    @property
+    def map_report(self) -> Path:
+        return self.root / MAP_REPORT
+
+    @property
+    def map_points(self) -> Path:
+        return self.root / MAP_POINTS
