@@ -29,6 +29,7 @@ from roadsurf.core.config import from_dict, load_yaml_config, to_dict
 from roadsurf.core.errors import ConfigError
 from roadsurf.detection.classifier.config import ClassifierConfig
 from roadsurf.detection.config import DetectionConfig
+from roadsurf.io import runfolder as rf
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.reconstruction.config import ReconstructionConfig
 
@@ -257,9 +258,9 @@ def _run_drive(
         timings,
         out,
     )
-    if classifier is not None and (out / "screening.json").is_file():
+    if classifier is not None and (out / rf.SCREENING_JSON).is_file():
         # CNN screening summary of this run (per-frame details stay in screening.json)
-        scr = read_json(out / "screening.json")
+        scr = read_json(out / rf.SCREENING_JSON)
         report["screening"] = {"model": str(Path(classifier).resolve())} | {
             k: v for k, v in scr.items() if k != "frames"
         }
@@ -272,24 +273,24 @@ def _run_drive(
         **{k: v["computed_s"] for k, v in stages.items() if v["computed_s"] is not None},
         "total": round(sum(v["computed_s"] or 0.0 for v in stages.values()), 3),
     }
-    write_json_atomic(out / "report.json", report)
+    write_json_atomic(out / rf.REPORT_JSON, report)
     notify("report", report)
     return report
 
 
 # artifacts whose modification time tells whether a stage computed or resumed (run-folder paths)
 STAGE_ARTIFACTS: dict[str, tuple[str, ...]] = {
-    "reconstruction": ("pairs",),
-    "poses": ("poses.npz",),
-    "globalmap": ("map_report.json",),
-    "detection": ("defects.geojson",),
+    "reconstruction": (rf.PAIRS_DIR,),
+    "poses": (rf.POSES_NPZ,),
+    "globalmap": (rf.MAP_REPORT,),
+    "detection": (rf.DEFECTS_GEOJSON,),
 }
 
 
 def _previous_stage_timings(out: Path) -> dict[str, Any]:
     """Per-stage timings recorded by an earlier run in ``out`` (report.json), if any."""
     try:
-        rep = read_json(out / "report.json")
+        rep = read_json(out / rf.REPORT_JSON)
     except (OSError, ValueError):
         return {}
     stages = rep.get("stages")
@@ -306,8 +307,8 @@ def _own_timings(out: Path, pairs: list[Any]) -> dict[str, float | None]:
     secs = [sum(getattr(p, "timings_s", {}).values()) for p in pairs]
     own["reconstruction"] = round(float(sum(secs)), 3) if any(secs) else None
     for name, file, key in (
-        ("poses", "poses_report.json", ("elapsed_s",)),
-        ("globalmap", "map_report.json", ("timings_s", "total")),
+        ("poses", rf.POSES_REPORT, ("elapsed_s",)),
+        ("globalmap", rf.MAP_REPORT, ("timings_s", "total")),
     ):
         try:
             v: Any = read_json(out / file)
@@ -412,7 +413,7 @@ def _build_report(
         "versions": _versions(),
         "config": {f.name: to_dict(getattr(cfg, f.name)) for f in dataclasses.fields(cfg)},
     }
-    pose_rep = out / "poses_report.json"
+    pose_rep = out / rf.POSES_REPORT
     if traj is not None and pose_rep.is_file():
         report["poses"] = read_json(pose_rep)
         report["warnings"] += report["poses"].get("warnings", [])
