@@ -59,9 +59,9 @@ bench-%: $(STAMP)
 lint: $(STAMP)
 	$(BIN)/ruff check . && $(BIN)/ruff format --check . && $(MAKE) --no-print-directory typecheck
 
-# Type check of the public API packages (pyright; settings in pyproject.toml).
+# Type check of the public API: core, io, pipeline and cli (mypy; settings in pyproject.toml).
 typecheck: $(STAMP)
-	$(BIN)/pyright
+	$(BIN)/mypy
 
 format: $(STAMP)
 	$(BIN)/ruff format . && $(BIN)/ruff check --fix .

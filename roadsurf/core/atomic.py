@@ -86,5 +86,5 @@ def write_npz_atomic(
     save = np.savez_compressed if compressed else np.savez
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
-            save(f, **{k: np.asarray(v) for k, v in arrays.items()})
+            save(f, **{k: np.asarray(v) for k, v in arrays.items()})  # type: ignore[arg-type]
     return Path(path)

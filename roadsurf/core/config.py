@@ -37,12 +37,12 @@ def from_dict(cls: type[T], data: dict[str, Any] | None, where: str = "config") 
     fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
     unknown = sorted(set(data) - set(fields))
     if unknown:
-        hints = [
+        guesses = [
             f"'{k}' -> did you mean '{m[0]}'?"
             for k in unknown
             if (m := difflib.get_close_matches(k, list(fields), n=1))
         ]
-        hint = (" " + " ".join(hints)) if hints else ""
+        hint = (" " + " ".join(guesses)) if guesses else ""
         raise ConfigError(
             f"{where}: unknown key(s) {unknown}.{hint} Valid keys are: {sorted(fields)}. "
             "Fix the spelling or remove them."

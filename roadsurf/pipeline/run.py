@@ -19,7 +19,7 @@ import importlib
 import logging
 import platform
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -131,7 +131,7 @@ def run_drive(
     method: str | None = None,
     classifier: str | Path | None = None,
     overwrite: bool = False,
-    observers: list[Observer] | None = None,
+    observers: Sequence[Observer] | None = None,
 ) -> dict[str, Any]:
     """Run every stage on ``drive_dir`` into ``out_dir``; returns the report (also report.json).
 
@@ -168,7 +168,7 @@ def _run_drive(
     method: str | None,
     classifier: str | Path | None,
     overwrite: bool,
-    observers: list[Observer] | None,
+    observers: Sequence[Observer] | None,
     job: Any,
     t_start: float,
 ) -> dict[str, Any]:
