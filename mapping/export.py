@@ -10,13 +10,16 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from roadsurf.core.geometry import ExportFrame
 from roadsurf.io.formats import feature, write_csv, write_geojson, write_ply
 from roadsurf.mapping.types import Trajectory
+
+if TYPE_CHECKING:
+    from roadsurf.io.drive import Drive
 
 log = logging.getLogger(__name__)
 
@@ -50,7 +53,10 @@ def write_cloud_ply(
 
 
 def write_trajectory_geojson(
-    path: str | Path, traj: Trajectory, drive: Any = None, extra: dict[str, Any] | None = None
+    path: str | Path,
+    traj: Trajectory,
+    drive: Drive | None = None,
+    extra: dict[str, Any] | None = None,
 ) -> Path | None:
     """trajectory.geojson (RFC 7946, WGS84 lon/lat): one LineString of the fused path plus one
     Point per frame with filename, timestamp_s, heading_deg, source (and frame_index, segment,

@@ -11,9 +11,9 @@ from __future__ import annotations
 import contextlib
 import math
 import os
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 from xml.sax.saxutils import escape
 
 import numpy as np
@@ -362,7 +362,7 @@ def file_size_mb(path: Path) -> float:
     return os.path.getsize(path) / 1e6 if path.exists() else 0.0
 
 
-def iter_tiles(run_dir: str | Path, name: str = "surface") -> Any:
+def iter_tiles(run_dir: str | Path, name: str = "surface") -> Iterator[tuple[GridSpec, np.ndarray]]:
     """Yield (GridSpec, data) for each non-empty tile of RUN's ``name`` raster ("surface" or
     "mosaic"), one at a time, from the tile list in RUN/map_report.json (the per-tile files, or
     windows of the monolithic GeoTIFF). Memory stays bounded by one tile; use it instead of

@@ -1,13 +1,16 @@
 """Artifacts of the mapping stage shared with detection and the viewer.
 
 ``RUN/poses.npz`` holds the fused ``Trajectory`` (see ``save_trajectory``/``load_trajectory``);
-``RUN/reference.json`` holds the ENU reference and export CRS.
+``RUN/reference.json`` holds the ENU reference and export CRS. ``PoseReport`` goes to
+``RUN/poses_report.json`` and ``MapProducts`` (what the global map wrote) to
+``RUN/map_report.json``.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -86,3 +89,61 @@ def load_trajectory(run_dir: str | Path) -> Trajectory:
             reference=ref,
             segment=z["segment"] if "segment" in z.files else None,
         )
+
+
+@dataclass
+class PoseReport:
+    """What the pose fusion used, rejected and warned about (goes to report.json)."""
+
+    n_frames: int = 0
+    n_gps_fixes: int = 0
+    n_gps_used: int = 0
+    gps_outliers: list[dict[str, Any]] = field(default_factory=list)
+    n_pairs_ok: int = 0
+    n_pairs_failed: int = 0
+    n_segments: int = 1
+    gps_sigma_scale: float = 1.0
+    visual_sigma_scale: float = 1.0
+    cost_initial: float = float("nan")
+    cost_final: float = float("nan")
+    n_iterations: int = 0
+    warnings: list[str] = field(default_factory=list)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dict(self.__dict__)
+
+
+@dataclass
+class MapProducts:
+    """What the global-map stage wrote (paths relative to the run folder) and key figures."""
+
+    run_dir: Path
+    crs: str | None  # export CRS of cloud.ply and the rasters (None: local ENU frame)
+    gsd_m: float
+    n_points_raw: int = 0  # points from all ok pairs
+    n_points: int = 0  # after voxel fusion
+    n_tiles: int = 0
+    grid: dict[str, Any] | None = None  # bounding grid of the tile lattice
+    files: dict[str, str] = field(default_factory=dict)
+    residual_stats_m: dict[str, float] = field(default_factory=dict)
+    surface_px: int = 0  # observed pixels in surface.tif
+    mosaic_px: int = 0  # imaged pixels in mosaic.tif
+    patch_alignment: dict[str, float] = field(default_factory=dict)
+    # share of each frame's road footprint the next frame also sees: median, 10th percentile
+    frame_overlap: dict[str, float] = field(default_factory=dict)
+    # non-empty tiles: row, col, bounds [x_min, y_min, x_max, y_max] in the grid CRS, and the
+    # per-tile files when written, so readers can stay within the corridor (window by window)
+    tiles: list[dict[str, Any]] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+    def to_report(self) -> dict[str, Any]:
+        d = dict(self.__dict__)
+        d["run_dir"] = str(self.run_dir)
+        return d
+
+    @classmethod
+    def from_report(cls, d: dict[str, Any]) -> MapProducts:
+        d = {k: v for k, v in d.items() if k in cls.__dataclass_fields__}
+        d["run_dir"] = Path(d["run_dir"])
+        return cls(**d)

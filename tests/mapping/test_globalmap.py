@@ -241,7 +241,8 @@ def test_no_gps_map_stays_in_the_local_frame(tmp_path: Path) -> None:
 
 def test_consecutive_overlap_and_its_warning() -> None:
     """Share of each footprint the next one sees; a median below min_frame_overlap warns."""
-    from roadsurf.mapping.globalmap import MapProducts, _check_frame_overlap, consecutive_overlap
+    from roadsurf.mapping.footprint import check_frame_overlap, consecutive_overlap
+    from roadsurf.mapping.types import MapProducts
 
     def square(y0: float) -> np.ndarray:  # 1 m x 0.8 m footprint, as a 5 x 5 point grid
         X, Y = np.meshgrid(np.linspace(0, 1, 5), np.linspace(y0, y0 + 0.8, 5))
@@ -252,9 +253,9 @@ def test_consecutive_overlap_and_its_warning() -> None:
     assert ov[:2] == pytest.approx([0.7, 0.7])
     assert np.isnan(ov[2]) and np.isnan(ov[3])
     prod = MapProducts(Path("."), None, 0.005)
-    _check_frame_overlap(MappingConfig(), fps, prod)
+    check_frame_overlap(MappingConfig(), fps, prod)
     assert prod.frame_overlap["median"] == pytest.approx(0.7) and not prod.warnings
     fast = [square(0.56 * i) for i in range(6)]  # 30 % overlap: the map would be strips
-    _check_frame_overlap(MappingConfig(), fast, prod)
+    check_frame_overlap(MappingConfig(), fast, prod)
     assert prod.frame_overlap["median"] == pytest.approx(0.3)
     assert len(prod.warnings) == 1 and "overlap by only 30%" in prod.warnings[0]

@@ -1,6 +1,6 @@
 """The residual raster keeps the depth of a pothole: a bowl of known depth, sampled by noisy
 scattered points like a pair's triangulation, must come out of the surface interpolation and
-noise-adaptive smoothing (``globalmap._surface_tile_filled``) with its depth, while flat road noise is
+noise-adaptive smoothing (``surface_raster.surface_tile_filled``) with its depth, while flat road noise is
 still averaged. (The earlier smoothing used the wide flat-road kernel on a pothole's smooth bottom,
 where the fine and coarse versions agree, and lifted it: 2.0 mm MAE inside a 40 mm bowl.)"""
 
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from roadsurf.io.formats import GridSpec
-from roadsurf.mapping import globalmap
+from roadsurf.mapping import surface_raster
 from roadsurf.mapping.config import MappingConfig
 
 CENTRE = np.array([0.64, -0.64])  # bowl centre in the tile's grid CRS (m)
@@ -33,7 +33,7 @@ def test_surface_tile_keeps_the_depth_of_a_bowl(depth_m: float, radius_m: float)
     xy = np.column_stack([rng.uniform(0, 1.28, n), rng.uniform(-1.28, 0, n)])
     noise = 0.001
     z = bowl(xy, depth_m, radius_m) + rng.normal(0, noise, n)
-    res = globalmap._surface_tile_filled(cfg, xy, z, grid, noise_m=noise)[0]
+    res = surface_raster.surface_tile_filled(cfg, xy, z, grid, noise_m=noise)[0]
     rows, cols = np.nonzero(np.isfinite(res))
     pix = np.column_stack(
         [grid.x0_m + (cols + 0.5) * grid.gsd_m, grid.y0_m - (rows + 0.5) * grid.gsd_m]

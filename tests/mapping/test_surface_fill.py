@@ -16,7 +16,7 @@ import rasterio
 
 from roadsurf.core.geometry import enu_from_lla, lla_from_utm
 from roadsurf.io.formats import GridSpec
-from roadsurf.mapping import globalmap, poses
+from roadsurf.mapping import footprint, globalmap, poses, surface_raster
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.raster import fill_nodata_capped
 from tests.mapping.synth import make_pair, make_synthetic, write_images
@@ -63,10 +63,10 @@ def test_surface_tile_fills_to_the_overlap_up_to_the_cap() -> None:
     xy = xy[np.linalg.norm(xy - SMALL_C, axis=1) > SMALL_R]
     noise = 0.001
     z = _truth(xy) + rng.normal(0, noise, len(xy))
-    old = globalmap._surface_tile_filled(cfg, xy, z, grid, noise_m=noise)[0]
-    new = globalmap._surface_tile_filled(cfg, xy, z, grid, noise_m=noise, fill_mask=_overlap_mask)[
-        0
-    ]
+    old = surface_raster.surface_tile_filled(cfg, xy, z, grid, noise_m=noise)[0]
+    new = surface_raster.surface_tile_filled(
+        cfg, xy, z, grid, noise_m=noise, fill_mask=_overlap_mask
+    )[0]
     rr, cc = np.mgrid[0 : grid.height, 0 : grid.width]
     pix = grid.xy_from_rowcol(rr.ravel(), cc.ravel())
     old, new = old.ravel(), new.ravel()
@@ -142,7 +142,7 @@ def _two_view_fraction(
     def inside(i: int) -> np.ndarray:
         W = traj.world_from_cam[i]
         Xc = (enu - W[:3, 3]) @ W[:3, :3]
-        u, v = globalmap.project(cam, Xc)
+        u, v = footprint.project(cam, Xc)
         with np.errstate(invalid="ignore"):
             return (
                 (u >= tol_px)

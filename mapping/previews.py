@@ -1,0 +1,67 @@
+"""PNG previews of the whole corridor: the downsampled mosaic and the colour-mapped residual
+surface, filled tile by tile (bounded size)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from roadsurf.core.atomic import atomic_path
+from roadsurf.io.formats import GridSpec
+from roadsurf.mapping.raster import TileLattice
+
+
+class Previews:
+    """Downsampled mosaic and colour-mapped surface over the whole corridor (bounded size)."""
+
+    def __init__(self, fg: GridSpec, max_px: int) -> None:
+        self.f = max(1, int(math.ceil(max(fg.width, fg.height) / max_px)))
+        self.h = max(1, fg.height // self.f)
+        self.w = max(1, fg.width // self.f)
+        self.mos = np.zeros((self.h, self.w, 3), np.uint8)
+        self.res = np.full((self.h, self.w), np.nan, np.float32)
+
+    def add(
+        self, t: tuple[int, int], lat: TileLattice, res_t: np.ndarray, mos_t: np.ndarray
+    ) -> None:
+        tp, f = lat.tile_px, self.f
+        # exact integer bounds so neighbouring tiles meet without a gap
+        r0, c0 = t[0] * tp // f, t[1] * tp // f
+        sh, sw = (t[0] + 1) * tp // f - r0, (t[1] + 1) * tp // f - c0
+        hh, ww = min(sh, self.h - r0), min(sw, self.w - c0)
+        if hh <= 0 or ww <= 0:
+            return
+        m = cv2.resize(mos_t, (sw, sh), interpolation=cv2.INTER_AREA)
+        valid = np.isfinite(res_t).astype(np.float32)
+        num = cv2.resize(np.nan_to_num(res_t), (sw, sh), interpolation=cv2.INTER_AREA)
+        den = cv2.resize(valid, (sw, sh), interpolation=cv2.INTER_AREA)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            r = np.where(den > 0.25, num / den, np.nan)
+        mm = m[:hh, :ww]
+        has = mm.any(axis=2)
+        self.mos[r0 : r0 + hh, c0 : c0 + ww][has] = mm[has]
+        rr = r[:hh, :ww]
+        fin = np.isfinite(rr)
+        self.res[r0 : r0 + hh, c0 : c0 + ww][fin] = rr[fin]
+
+    def write(self, run_dir: Path) -> None:
+        from matplotlib import colormaps
+
+        with atomic_path(run_dir / "mosaic_preview.png") as tmp:
+            cv2.imwrite(str(tmp), cv2.cvtColor(self.mos, cv2.COLOR_RGB2BGR))
+        fin = np.isfinite(self.res)
+        lim = 0.005
+        if fin.any():
+            lim = max(lim, float(np.percentile(np.abs(self.res[fin]), 99.5)))
+        rgba = colormaps["RdBu"](np.clip(np.nan_to_num(self.res) / (2 * lim) + 0.5, 0, 1))
+        img = (rgba[..., :3] * 255).astype(np.uint8)
+        img[~fin] = 235
+        label = f"residual height: red {-lim * 1000:.0f} mm (below) .. blue +{lim * 1000:.0f} mm"
+        pad = np.full((28, img.shape[1], 3), 255, np.uint8)
+        cv2.putText(pad, label, (4, 19), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
+        out = np.vstack([img, pad]) if img.shape[1] >= 200 else img
+        with atomic_path(run_dir / "surface_preview.png") as tmp:
+            cv2.imwrite(str(tmp), cv2.cvtColor(out, cv2.COLOR_RGB2BGR))

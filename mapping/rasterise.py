@@ -1,0 +1,228 @@
+"""The global map's rasters, tile by tile: the frames' road footprints give the tiles of a
+global lattice that the corridor passes; each tile's residual surface and mosaic are computed by
+worker threads and written in order (per-tile files + VRTs, and/or window by window into
+``surface.tif``/``mosaic.tif``), with the previews."""
+
+from __future__ import annotations
+
+import logging
+import math
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from roadsurf.core.parallel import ordered_map
+from roadsurf.io.drive import Drive, Frame
+from roadsurf.io.formats import GridSpec
+from roadsurf.mapping.config import MappingConfig
+from roadsurf.mapping.export import export_xyz
+from roadsurf.mapping.footprint import check_frame_overlap, footprint_enu
+from roadsurf.mapping.mosaic import ImageCache, mosaic_tile
+from roadsurf.mapping.previews import Previews
+from roadsurf.mapping.raster import LOCAL_CRS, GridToEnu, TiledWriter, corridor_tiles
+from roadsurf.mapping.surface import LocalSurface
+from roadsurf.mapping.surface_raster import (
+    points_in,
+    surface_pad_m,
+    surface_tile_filled,
+    two_view_mask,
+)
+from roadsurf.mapping.types import MapProducts, Trajectory
+
+log = logging.getLogger(__name__)
+
+NODATA_SURFACE = float("nan")
+
+
+def rasterise(
+    cfg: MappingConfig,
+    drive: Drive,
+    traj: Trajectory,
+    surf: LocalSurface,
+    xyz: np.ndarray,
+    resid: np.ndarray,
+    prod: MapProducts,
+    frames_by_index: dict[int, Frame],
+    pair_frames: list[tuple[int, int]] | None = None,
+) -> None:
+    """Write the surface and mosaic rasters (and previews) of the corridor into
+    ``prod.run_dir``, recording files, tiles, pixel counts and warnings in ``prod``.
+    ``pair_frames``: pose indices of the ok pairs (the capped fill acts where both saw the road)."""
+    cam = drive.camera
+    ef = traj.export_frame
+    crs = ef.crs if ef is not None else LOCAL_CRS
+    g2e = GridToEnu(traj.reference, ef.epsg if ef is not None else None)
+    # footprints of every posed frame on the local road
+    fp_grid: list[np.ndarray] = []
+    road_z = np.empty(len(traj))
+    cam_xy = traj.positions_enu_m[:, :2]
+    zr = surf.height(cam_xy)
+    for i in range(len(traj)):
+        W = traj.world_from_cam[i]
+        road_z[i] = zr[i] if np.isfinite(zr[i]) else W[2, 3] - cam.height_m
+        fp = footprint_enu(cam, W, road_z[i])
+        fp_grid.append(export_xyz(fp, ef)[:, :2] if len(fp) else np.zeros((0, 2)))
+    check_frame_overlap(cfg, fp_grid, prod)
+    samples = [f for f in fp_grid if len(f)]
+    pts_grid = export_xyz(xyz, ef)[:, :2] if len(xyz) else np.zeros((0, 2))
+    if not samples and not len(pts_grid):
+        prod.warnings.append("nothing to rasterise (no footprint, no point)")
+        return
+    allxy = np.concatenate([*samples, pts_grid]) if samples else pts_grid
+    lat, tiles = corridor_tiles(allxy, crs, cfg.gsd_m, cfg.tile_px)
+    # footprint bounding boxes in pixel coordinates of the full grid, and frames per tile
+    fg = lat.full_grid
+    fbox: list[tuple[int, int, int, int] | None] = []
+    frames_of_tile: dict[tuple[int, int], list[int]] = {t: [] for t in tiles}
+    for i, fp in enumerate(fp_grid):
+        if len(fp) < 3:
+            fbox.append(None)
+            continue
+        rc = fg.rowcol_from_xy(fp)
+        r0, c0 = np.floor(rc.min(0)).astype(int) - 2
+        r1, c1 = np.ceil(rc.max(0)).astype(int) + 2
+        fbox.append((r0, r1, c0, c1))
+        tp = lat.tile_px
+        for tr in range(max(r0 // tp, 0), min(r1 // tp, lat.n_rows - 1) + 1):
+            for tc in range(max(c0 // tp, 0), min(c1 // tp, lat.n_cols - 1) + 1):
+                if (tr, tc) in frames_of_tile:
+                    frames_of_tile[(tr, tc)].append(i)
+    # visit tiles in drive order (first frame seeing them) so the image cache hits
+    tiles.sort(key=lambda t: (min(frames_of_tile[t]) if frames_of_tile[t] else 1 << 30, t))
+    n_full_px = fg.width * fg.height
+    write_full = n_full_px <= cfg.max_raster_px
+    write_tiles = len(tiles) >= cfg.tiled_vrt_min_tiles or not write_full
+    if not write_full:
+        msg = (
+            f"the corridor's bounding grid has {n_full_px / 1e6:.0f} Mpx (> max_raster_px): "
+            "surface.tif/mosaic.tif are not written; use surface.vrt/mosaic.vrt (tiles/)"
+        )
+        log.warning("globalmap: %s", msg)
+        prod.warnings.append(msg)
+    prod.grid = {
+        "crs": crs,
+        "x0_m": fg.x0_m,
+        "y0_m": fg.y0_m,
+        "gsd_m": fg.gsd_m,
+        "width": fg.width,
+        "height": fg.height,
+        "tile_px": lat.tile_px,
+    }
+    # pyramid level so that source pixels are about one GSD on the road (anti-aliasing)
+    native = (
+        float(np.median(traj.world_from_cam[:, 2, 3] - road_z)) / cam.fx if len(traj) else cfg.gsd_m
+    )
+    level = max(0, int(math.floor(math.log2(max(cfg.gsd_m / max(native, 1e-9), 1.0)))))
+    # points per tile (with a margin so interpolation is continuous across tile borders)
+    margin = cfg.surface_max_edge_m + surface_pad_m(cfg)
+    # robust per-point height noise (MAD of all residuals; defects are a small minority)
+    noise_m = float(1.4826 * np.median(np.abs(resid))) if len(resid) else 0.0
+    prod.residual_stats_m["noise_mad_m"] = noise_m
+    writers: list[TiledWriter] = []
+    try:
+        sw = TiledWriter(
+            prod.run_dir,
+            "surface",
+            lat,
+            1,
+            "float32",
+            NODATA_SURFACE,
+            write_tiles,
+            write_full,
+            tags={"units": "m", "description": "height above the local road, negative below"},
+        )
+        writers.append(sw)
+        mw = TiledWriter(prod.run_dir, "mosaic", lat, 3, "uint8", 0, write_tiles, write_full)
+        writers.append(mw)
+        prev = Previews(fg, cfg.preview_max_px)
+        workers = max(1, int(cfg.raster_workers))
+        # each thread works on its own tile, a few frames apart in drive order
+        cache = ImageCache(12 * workers)
+        frame_list = [frames_by_index.get(int(k)) for k in traj.frame_indices]
+        pf = list(pair_frames or [])
+
+        def two_view(g: GridSpec, resid_g: np.ndarray | None = None) -> np.ndarray:
+            return two_view_mask(cam, traj, surf, g2e, g, pf, fp_grid, road_z, resid_g)
+
+        def compute(t: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            grid = lat.tile_grid(*t)
+            sel = points_in(pts_grid, grid, margin)
+            res_t, filled = surface_tile_filled(
+                cfg, pts_grid[sel], resid[sel], grid, noise_m, two_view
+            )
+            mos_t, wsum = mosaic_tile(
+                cfg,
+                cam,
+                traj,
+                surf,
+                g2e,
+                grid,
+                t,
+                lat,
+                fbox,
+                frames_of_tile[t],
+                frame_list,
+                res_t,
+                road_z,
+                cache,
+                level,
+            )
+            res_t[wsum <= 0] = np.nan  # only the imaged corridor
+            # filled pixels only where both frames of an ok pair saw the road (with the
+            # surface's own heights: a pothole floor near an image border is seen where the road
+            # above it would not be). Interpolated ones are kept as before, also across a thin
+            # strip seen by one frame between two pairs (a short Delaunay edge bridges it)
+            if filled.any():
+                res_t[filled & ~two_view(grid, res_t)] = np.nan
+            return res_t, mos_t, wsum
+
+        # tiles are computed by worker threads (OpenCV and numpy release the GIL) and written
+        # here, in order, a bounded number ahead (GDAL datasets are not shared across threads)
+        for t, (res_t, mos_t, wsum) in tqdm(
+            zip(tiles, ordered_map(compute, tiles, workers), strict=True),
+            total=len(tiles),
+            desc="rasters",
+            unit="tile",
+            leave=False,
+        ):
+            has_s = bool(np.isfinite(res_t).any())
+            has_m = bool((wsum > 0).any())
+            if not (has_s or has_m):
+                continue
+            prod.n_tiles += 1
+            prod.surface_px += int(np.isfinite(res_t).sum())
+            prod.mosaic_px += int((wsum > 0).sum())
+            sw.write(*t, res_t)
+            mw.write(*t, mos_t)
+            tg = lat.tile_grid(*t)
+            info: dict[str, Any] = {
+                "row": t[0],
+                "col": t[1],
+                "bounds": [
+                    tg.x0_m,
+                    tg.y0_m - tg.height * tg.gsd_m,
+                    tg.x0_m + tg.width * tg.gsd_m,
+                    tg.y0_m,
+                ],
+            }
+            if write_tiles:
+                info["surface"] = f"tiles/surface_{t[0]:04d}_{t[1]:04d}.tif"
+                info["mosaic"] = f"tiles/mosaic_{t[0]:04d}_{t[1]:04d}.tif"
+            prod.tiles.append(info)
+            prev.add(t, lat, res_t, mos_t)
+        for w in writers:
+            w.close()
+    except BaseException:
+        for w in writers:
+            w.abort()
+        raise
+    if write_full:
+        prod.files["surface"] = "surface.tif"
+        prod.files["mosaic"] = "mosaic.tif"
+    if write_tiles:
+        prod.files["surface_vrt"] = "surface.vrt"
+        prod.files["mosaic_vrt"] = "mosaic.vrt"
+    prev.write(prod.run_dir)
+    prod.files["mosaic_preview"] = "mosaic_preview.png"
+    prod.files["surface_preview"] = "surface_preview.png"
