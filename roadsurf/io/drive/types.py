@@ -1,32 +1,17 @@
-"""The drive format (input contract) and its loader.
-
-```
-DRIVE/
-  camera.yaml    # model: pinhole, width, height, fx, fy, cx, cy, dist: [k1,k2,p1,p2,k3] (optional),
-                 # height_m (camera height above road, metres), fps
-  frames/        # images (jpg/png); sorted name order = capture order
-  frames.csv     # header: filename,timestamp_s
-  gps.csv        # header: timestamp_s,lat,lon[,alt_m][,hdop]  (or gps.gpx, or gps.nmea)
-  obd.csv        # optional, header: timestamp_s,speed_mps
-  truth/         # optional, written by the simulator only; ignored by the loader
-```
-See docs/formats.md. The loader validates everything; problems the run can live with (an
-unreadable image, a bad GPS row) are skipped and recorded in ``Drive.skipped``; problems it
-cannot live with raise ``DriveFormatError`` naming the file and line and saying what to do.
-"""
+"""Data types of a loaded drive (frames, GPS track, OBD log, skipped items) and the distance
+travelled along it. The format itself is described in ``roadsurf.io.drive`` and docs/formats.md."""
 
 from __future__ import annotations
 
-import logging
-from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from roadsurf.core.camera import Camera
+from roadsurf.core.geometry import EnuReference, enu_from_lla
 
-log = logging.getLogger(__name__)
+FORMAT_HINT = "See docs/formats.md for the drive format."
 
 
 @dataclass(frozen=True)
@@ -87,56 +72,6 @@ class Drive:
         return p if p.is_dir() else None
 
 
-def load_drive(root: str | Path, check_images: bool = True) -> Drive:
-    """Load and validate a drive folder. See the module docstring for the contract."""
-    from roadsurf.io._drive_loader import load_drive as _load
-
-    return _load(root, check_images=check_images)
-
-
-def read_image(frame: Frame) -> np.ndarray:
-    """Read a frame as RGB uint8 (H, W, 3); greyscale images are replicated to 3 channels.
-
-    Raises ``FrameReadError`` for unreadable or truncated files.
-    """
-    from roadsurf.io._drive_loader import read_image as _read
-
-    return _read(frame)
-
-
-def read_gray(frame: Frame) -> np.ndarray:
-    """Read a frame as greyscale uint8 (H, W). Raises ``FrameReadError`` when unreadable."""
-    from roadsurf.io._drive_loader import read_gray as _read
-
-    return _read(frame)
-
-
-class GrayFrames:
-    """Greyscale frames by filename for threads that share them, the ``size`` most recently
-    used kept (``roadsurf.core.parallel.SharedCache``). ``get`` gives None for a frame that is not
-    in ``frames`` or cannot be read; the latter is logged as ``user: <error>``."""
-
-    def __init__(self, frames: Iterable[Frame], size: int, user: str) -> None:
-        from roadsurf.core.parallel import SharedCache
-
-        self._frames = {f.filename: f for f in frames}
-        self._cache: SharedCache[str, np.ndarray | None] = SharedCache(size)
-        self._user = user
-
-    def get(self, filename: str) -> np.ndarray | None:
-        from roadsurf.core.errors import FrameReadError
-
-        def load() -> np.ndarray | None:
-            f = self._frames.get(filename)
-            try:
-                return None if f is None else read_gray(f)
-            except FrameReadError as e:
-                log.warning("%s: %s", self._user, e)
-                return None
-
-        return self._cache.get(filename, load)
-
-
 def along_track_m(drive: Drive) -> np.ndarray | None:
     """(N,) distance travelled (m) at each frame's timestamp, from 0 at the first frame.
 
@@ -157,8 +92,6 @@ def along_track_m(drive: Drive) -> np.ndarray | None:
         v = np.abs(np.asarray(drive.obd.speed_mps, float)[o])
         s = np.r_[0.0, np.cumsum(0.5 * (v[1:] + v[:-1]) * np.diff(t))]
     elif drive.gps is not None and len(drive.gps) >= 2:
-        from roadsurf.core.geometry import EnuReference, enu_from_lla
-
         g = drive.gps
         ref = EnuReference(float(g.lat_deg[0]), float(g.lon_deg[0]), 0.0)
         xy = enu_from_lla(g.lat_deg, g.lon_deg, 0.0, ref)[:, :2]

@@ -1,0 +1,141 @@
+"""camera.yaml of a drive: parse and validate it into a ``Camera``.
+
+Errors name the file and the line of the offending key (from the YAML node marks)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from roadsurf.core.camera import Camera
+from roadsurf.core.errors import DriveFormatError
+from roadsurf.io.drive.types import FORMAT_HINT
+
+# camera.yaml: key -> (python type, required)
+_CAMERA_KEYS: dict[str, tuple[type, bool]] = {
+    "model": (str, False),
+    "width": (int, True),
+    "height": (int, True),
+    "fx": (float, True),
+    "fy": (float, True),
+    "cx": (float, True),
+    "cy": (float, True),
+    "dist": (list, False),
+    "height_m": (float, True),
+    "fps": (float, True),
+}
+
+
+def _yaml_key_lines(text: str) -> dict[str, int]:
+    """1-based line number of each top-level key of a YAML mapping (for error messages)."""
+    try:
+        node = yaml.compose(text)
+    except yaml.YAMLError:
+        return {}
+    if not isinstance(node, yaml.MappingNode):
+        return {}
+    return {str(k.value): k.start_mark.line + 1 for k, _ in node.value if hasattr(k, "value")}
+
+
+def load_camera(path: Path) -> Camera:
+    """Parse and validate camera.yaml. Raises DriveFormatError naming the file and line."""
+    if not path.is_file():
+        raise DriveFormatError(
+            f"{path}: camera.yaml not found. Every drive needs one with keys model, width, "
+            f"height, fx, fy, cx, cy, height_m, fps (dist optional). {FORMAT_HINT}"
+        )
+    text = path.read_text(encoding="utf-8-sig")
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        at = f"{path}:{mark.line + 1}" if mark is not None else str(path)
+        raise DriveFormatError(f"{at}: camera.yaml is not valid YAML ({e}). Fix the syntax.") from e
+    if not isinstance(data, dict):
+        raise DriveFormatError(
+            f"{path}: camera.yaml must be a mapping of keys to values (got "
+            f"{type(data).__name__}). {FORMAT_HINT}"
+        )
+    lines = _yaml_key_lines(text)
+
+    def where(key: str) -> str:
+        return f"{path}:{lines[key]}" if key in lines else str(path)
+
+    unknown = sorted(str(k) for k in data if k not in _CAMERA_KEYS)
+    if unknown:
+        raise DriveFormatError(
+            f"{where(unknown[0])}: unknown key(s) {unknown} in camera.yaml. Valid keys are "
+            f"{sorted(_CAMERA_KEYS)}. Fix the spelling or remove them."
+        )
+    missing = [k for k, (_, req) in _CAMERA_KEYS.items() if req and k not in data]
+    if missing:
+        raise DriveFormatError(
+            f"{path}: camera.yaml is missing required key(s) {missing}. Add them "
+            f"(pixels for width/height/fx/fy/cx/cy, metres for height_m, Hz for fps). {FORMAT_HINT}"
+        )
+    vals: dict[str, Any] = {}
+    for key, (tp, _) in _CAMERA_KEYS.items():
+        if key not in data:
+            continue
+        v = data[key]
+        if tp is int:
+            if isinstance(v, float) and v.is_integer():  # "640.0" from some writers
+                v = int(v)
+            if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
+                raise DriveFormatError(
+                    f"{where(key)}: camera.yaml '{key}' must be a positive integer (pixels), "
+                    f"got {v!r}."
+                )
+        elif tp is float:
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise DriveFormatError(
+                    f"{where(key)}: camera.yaml '{key}' must be a number, got {v!r}."
+                )
+            v = float(v)
+            if key in ("fx", "fy", "height_m", "fps") and v <= 0:
+                raise DriveFormatError(f"{where(key)}: camera.yaml '{key}' must be > 0, got {v!r}.")
+        elif tp is str:
+            if not isinstance(v, str) or v.strip().lower() != "pinhole":
+                raise DriveFormatError(
+                    f"{where(key)}: camera.yaml 'model' must be 'pinhole' (with OpenCV 'dist' "
+                    f"coefficients for lens distortion), got {v!r}."
+                )
+            v = "pinhole"
+        elif key == "dist":
+            if v is None:
+                v = []
+            if (
+                not isinstance(v, (list, tuple))
+                or len(v) not in (0, 4, 5)
+                or any(
+                    isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x)
+                    for x in v
+                )
+            ):
+                raise DriveFormatError(
+                    f"{where(key)}: camera.yaml 'dist' must be a list of 5 numbers "
+                    f"[k1, k2, p1, p2, k3] in OpenCV order (4 are accepted, k3 = 0), got {v!r}."
+                )
+            v = tuple(float(x) for x in v) + (0.0,) * (5 - len(v))
+        vals[key] = v
+    cam = Camera(
+        width=vals["width"],
+        height=vals["height"],
+        fx=vals["fx"],
+        fy=vals["fy"],
+        cx=vals["cx"],
+        cy=vals["cy"],
+        height_m=vals["height_m"],
+        fps=vals["fps"],
+        dist=vals.get("dist", (0.0,) * 5),
+        model=vals.get("model", "pinhole"),
+    )
+    if not (0 <= cam.cx <= cam.width and 0 <= cam.cy <= cam.height):
+        raise DriveFormatError(
+            f"{path}: principal point (cx, cy) = ({cam.cx}, {cam.cy}) lies outside the "
+            f"{cam.width}x{cam.height} image. Check camera.yaml (pixels, origin top-left)."
+        )
+    return cam

@@ -1,0 +1,69 @@
+"""CSV helpers of the drive loader: header check, numbered rows, numbers, increasing times."""
+
+from __future__ import annotations
+
+import csv
+import logging
+import math
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from roadsurf.core.errors import DriveFormatError
+from roadsurf.io.drive.types import FORMAT_HINT
+
+log = logging.getLogger(__name__)
+
+
+def csv_rows(
+    path: Path, required: tuple[str, ...], optional: tuple[str, ...] = ()
+) -> tuple[list[str], Iterator[tuple[int, dict[str, str]]]]:
+    """Open a CSV, check its header, and yield (line number, row dict) for non-empty rows."""
+    f = open(path, encoding="utf-8-sig", newline="")  # noqa: SIM115 - closed by the generator
+    reader = csv.reader(f)
+    try:
+        header = next(reader)
+    except StopIteration:
+        f.close()
+        raise DriveFormatError(
+            f"{path}:1: file is empty; it needs the header {','.join(required)}. {FORMAT_HINT}"
+        ) from None
+    header = [h.strip() for h in header]
+    missing = [c for c in required if c not in header]
+    if missing:
+        f.close()
+        raise DriveFormatError(
+            f"{path}:1: header {header} lacks column(s) {missing}; expected "
+            f"{','.join(required)}{''.join(',' + o for o in optional)}. Fix the header line."
+        )
+    extra = [h for h in header if h not in required and h not in optional]
+    if extra:
+        log.warning("%s:1: ignoring unknown column(s) %s", path, extra)
+
+    def gen() -> Iterator[tuple[int, dict[str, str]]]:
+        with f:
+            for row in reader:
+                if not row or all(not c.strip() for c in row):
+                    continue
+                if len(row) < len(header):
+                    row = row + [""] * (len(header) - len(row))
+                yield reader.line_num, {h: c.strip() for h, c in zip(header, row, strict=False)}
+
+    return header, gen()
+
+
+def csv_float(s: str) -> float:
+    """Parse a CSV number; empty -> NaN; raises ValueError for text."""
+    return float(s) if s != "" else math.nan
+
+
+def check_increasing(t: np.ndarray, lines: list[int], path: Path, what: str) -> None:
+    bad = np.flatnonzero(np.diff(t) <= 0)
+    if bad.size:
+        i = int(bad[0])
+        raise DriveFormatError(
+            f"{path}:{lines[i + 1]}: {what} timestamp {float(t[i + 1])!r} is not after the previous one "
+            f"({float(t[i])!r} on line {lines[i]}). Timestamps must strictly increase; sort the file "
+            f"and remove duplicate rows."
+        )

@@ -1,0 +1,154 @@
+"""frames.csv and frames/ of a drive: rows, timestamps, missing and unreadable images."""
+
+from __future__ import annotations
+
+import math
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+from roadsurf.core.camera import Camera
+from roadsurf.core.errors import DriveFormatError
+from roadsurf.io.drive.csvrows import check_increasing, csv_rows
+from roadsurf.io.drive.images import check_image, image_size_from_header
+from roadsurf.io.drive.types import FORMAT_HINT, Frame, Skipped
+
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
+
+
+def load_frames(
+    root: Path, camera: Camera, check_images: bool, skipped: list[Skipped], warnings: list[str]
+) -> list[Frame]:
+    csv_path = root / "frames.csv"
+    img_dir = root / "frames"
+    if not csv_path.is_file():
+        raise DriveFormatError(
+            f"{csv_path}: frames.csv not found. Write it with the header filename,timestamp_s "
+            f"and one row per image in frames/. {FORMAT_HINT}"
+        )
+    if not img_dir.is_dir():
+        raise DriveFormatError(f"{img_dir}: the frames/ folder is missing. {FORMAT_HINT}")
+    _, rows = csv_rows(csv_path, ("filename", "timestamp_s"))
+    names: list[str] = []
+    times: list[float] = []
+    lines: list[int] = []
+    seen: dict[str, int] = {}
+    prefixed = False
+    for line, row in rows:
+        name = row["filename"].replace("\\", "/")
+        if not name:
+            raise DriveFormatError(f"{csv_path}:{line}: empty filename. Fill it in or delete it.")
+        if name.startswith("frames/") and not (img_dir / name).exists():
+            # Written relative to the drive instead of frames/: accept it, say so once.
+            name = name[len("frames/") :]
+            if not prefixed:
+                warnings.append(
+                    f"{csv_path}:{line}: filenames start with 'frames/'; they should be relative "
+                    f"to frames/ (the prefix was removed)."
+                )
+                prefixed = True
+        try:
+            t = float(row["timestamp_s"])
+        except ValueError:
+            raise DriveFormatError(
+                f"{csv_path}:{line}: timestamp_s {row['timestamp_s']!r} is not a number "
+                f"(seconds). Fix the row."
+            ) from None
+        if not math.isfinite(t):
+            raise DriveFormatError(
+                f"{csv_path}:{line}: timestamp_s is {row['timestamp_s']!r}; it must be a finite "
+                f"number of seconds. Fix the row."
+            )
+        if name in seen:
+            raise DriveFormatError(
+                f"{csv_path}:{line}: {name!r} is listed twice (also line {seen[name]}). "
+                f"Remove the duplicate row."
+            )
+        seen[name] = line
+        names.append(name)
+        times.append(t)
+        lines.append(line)
+    if not names:
+        raise DriveFormatError(
+            f"{csv_path}: empty drive: frames.csv lists no images. Add one row per image in "
+            f"frames/ (filename,timestamp_s)."
+        )
+    t_arr = np.asarray(times)
+    check_increasing(t_arr, lines, csv_path, "frame")
+    if names != sorted(names):
+        warnings.append(
+            f"{csv_path}: filenames are not in sorted order; capture order is taken from "
+            f"frames.csv timestamps. Rename the files so sorted name order = capture order."
+        )
+
+    # Which rows have an image at all.
+    present: list[int] = []
+    for k, name in enumerate(names):
+        p = img_dir / name
+        if not p.is_file():
+            skipped.append(
+                Skipped("frames.csv", lines[k], f"image frames/{name} does not exist; row skipped")
+            )
+        elif p.suffix.lower() not in IMAGE_SUFFIXES:
+            skipped.append(
+                Skipped(
+                    "frames.csv",
+                    lines[k],
+                    f"frames/{name} is not a .jpg/.jpeg/.png image; row skipped",
+                )
+            )
+        else:
+            present.append(k)
+    n_missing = len(names) - len(present)
+    if n_missing:
+        warnings.append(
+            f"{csv_path}: {n_missing} of {len(names)} rows point to missing or non-image files "
+            f"and were skipped (see report skipped list)."
+        )
+    listed = set(names)
+    unlisted = [
+        p.name
+        for p in img_dir.iterdir()
+        if p.suffix.lower() in IMAGE_SUFFIXES and p.name not in listed
+    ]
+    if unlisted:
+        warnings.append(
+            f"{img_dir}: {len(unlisted)} image(s) are not listed in frames.csv and are ignored "
+            f"(e.g. {sorted(unlisted)[0]}). Add rows for them if they belong to the drive."
+        )
+
+    # Decode/validate the images (threads: cv2 releases the GIL while decoding).
+    paths = [img_dir / names[k] for k in present]
+    if check_images:
+        with ThreadPoolExecutor(max_workers=4) as ex:
+            results = list(ex.map(lambda p: check_image(p, True), paths))
+    else:
+        # Only the first present image's header, to catch a wrong camera.yaml early.
+        results = [(None, None)] * len(paths)
+        if paths:
+            try:
+                results[0] = (image_size_from_header(paths[0].read_bytes()), None)
+            except OSError:
+                pass
+    frames: list[Frame] = []
+    for k, p, (size, why) in zip(present, paths, results, strict=True):
+        if why is not None:
+            skipped.append(Skipped(f"frames/{names[k]}", None, f"unreadable image: {why}"))
+            continue
+        if size is not None and size != (camera.width, camera.height):
+            raise DriveFormatError(
+                f"{p}: image is {size[0]}x{size[1]} px but camera.yaml says "
+                f"{camera.width}x{camera.height} (frames.csv line {lines[k]}). All frames must "
+                f"have the calibrated size: fix camera.yaml or re-export the images."
+            )
+        frames.append(Frame(len(frames), names[k], p, float(t_arr[k])))
+    n_bad = len(present) - len(frames)
+    if n_bad:
+        warnings.append(f"{img_dir}: {n_bad} unreadable or truncated image(s) skipped.")
+    if not frames:
+        raise DriveFormatError(
+            f"{root}: empty drive: none of the {len(names)} rows of frames.csv has a readable "
+            f"image in frames/. Check the folder and the filenames in frames.csv."
+        )
+    return frames

@@ -1,0 +1,133 @@
+"""GPS logs: fix validation and track assembly shared by the CSV, GPX and NMEA readers, the
+gps.csv reader, and the check that the track overlaps the frame times."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from roadsurf.core.errors import DriveFormatError
+from roadsurf.io.drive.csvrows import check_increasing, csv_float, csv_rows
+from roadsurf.io.drive.types import Frame, GpsTrack, Skipped
+
+
+def valid_latlon(lat: float, lon: float) -> str | None:
+    if not (math.isfinite(lat) and math.isfinite(lon)):
+        return "lat/lon is NaN or missing"
+    if abs(lat) > 90 or abs(lon) > 180:
+        return f"lat/lon ({lat}, {lon}) out of range"
+    if lat == 0.0 and lon == 0.0:
+        return "lat/lon is (0, 0), a receiver's no-fix placeholder"
+    return None
+
+
+def gps_from_lists(
+    path: Path,
+    rows: list[tuple[int | None, float, float, float, float, float]],
+    skipped: list[Skipped],
+    n_bad: int,
+    n_total: int,
+    warnings: list[str],
+) -> GpsTrack | None:
+    """rows: (line, t, lat, lon, alt, hdop) of fixes that passed validation."""
+    # A row repeated verbatim (same time and position; some loggers write a fix twice) carries
+    # no information: drop it. Any other non-increasing time is an error below.
+    dedup: list[tuple[int | None, float, float, float, float, float]] = []
+    for r in rows:
+        if dedup and r[1] == dedup[-1][1] and r[2:4] == dedup[-1][2:4]:
+            where = f"line {r[0]}" if r[0] is not None else f"time {r[1]}"
+            skipped.append(Skipped(path.name, r[0], f"duplicate GPS fix ({where}) dropped"))
+            n_bad += 1
+            continue
+        dedup.append(r)
+    rows = dedup
+    if n_bad:
+        warnings.append(
+            f"{path}: dropped {n_bad} of {n_total} GPS record(s) (bad or out-of-range values; "
+            f"see report skipped list)."
+        )
+    if not rows:
+        warnings.append(f"{path}: no valid GPS fix; running without GPS (local frame).")
+        return None
+    arr = np.array([r[1:] for r in rows], dtype=float)
+    lines = [r[0] or 0 for r in rows]
+    if any(r[0] is None for r in rows):
+        bad = np.flatnonzero(np.diff(arr[:, 0]) <= 0)
+        if bad.size:
+            i = int(bad[0])
+            raise DriveFormatError(
+                f"{path}: GPS fix #{i + 2} (time {float(arr[i + 1, 0])!r} s) is not after fix #{i + 1} "
+                f"({float(arr[i, 0])!r} s). GPS times must strictly increase; fix the log."
+            )
+    else:
+        check_increasing(arr[:, 0], lines, path, "GPS")
+    return GpsTrack(
+        timestamp_s=arr[:, 0],
+        lat_deg=arr[:, 1],
+        lon_deg=arr[:, 2],
+        alt_m=arr[:, 3],
+        hdop=arr[:, 4],
+        source=path.name,
+    )
+
+
+def load_gps_csv(path: Path, skipped: list[Skipped], warnings: list[str]) -> GpsTrack | None:
+    _, rows = csv_rows(path, ("timestamp_s", "lat", "lon"), ("alt_m", "hdop"))
+    good: list[tuple[int | None, float, float, float, float, float]] = []
+    n_total = n_bad = 0
+    for line, row in rows:
+        n_total += 1
+        try:
+            t = float(row["timestamp_s"])
+        except ValueError:
+            t = math.nan
+        if not math.isfinite(t):
+            n_bad += 1
+            skipped.append(Skipped(path.name, line, "GPS row without a numeric timestamp_s"))
+            continue
+        try:
+            lat, lon = csv_float(row["lat"]), csv_float(row["lon"])
+        except ValueError:
+            lat = lon = math.nan
+        why = valid_latlon(lat, lon)
+        if why is not None:
+            n_bad += 1
+            skipped.append(Skipped(path.name, line, f"GPS row dropped: {why}"))
+            continue
+        try:
+            alt = csv_float(row.get("alt_m", ""))
+        except ValueError:
+            alt = math.nan
+        try:
+            hdop = csv_float(row.get("hdop", ""))
+        except ValueError:
+            hdop = math.nan
+        if math.isfinite(hdop) and hdop <= 0:
+            hdop = math.nan
+        good.append((line, t, lat, lon, alt, hdop))
+    return gps_from_lists(path, good, skipped, n_bad, n_total, warnings)
+
+
+def check_overlap(gps: GpsTrack, frames: list[Frame], warnings: list[str]) -> GpsTrack | None:
+    t0, t1 = frames[0].timestamp_s, frames[-1].timestamp_s
+    g0, g1 = float(gps.timestamp_s[0]), float(gps.timestamp_s[-1])
+    # A fix slightly outside the frame span still helps; allow one GPS interval of slack.
+    slack = float(np.median(np.diff(gps.timestamp_s))) if len(gps) > 1 else 1.0
+    if g1 < t0 - slack or g0 > t1 + slack:
+        warnings.append(
+            f"{gps.source}: GPS times [{g0:.3f}, {g1:.3f}] s do not overlap the frame times "
+            f"[{t0:.3f}, {t1:.3f}] s (offset about {g0 - t0:+.1f} s), so the GPS is ignored and "
+            f"the map is built in a local frame without lat/lon. Write frames.csv times in the "
+            f"same clock as the GPS (UNIX seconds, UTC, for GPX/NMEA logs)."
+        )
+        return None
+    span = max(t1 - t0, 1e-9)
+    covered = (min(t1, g1) - max(t0, g0)) / span if t1 > t0 else 1.0
+    if covered < 0.9:
+        warnings.append(
+            f"{gps.source}: GPS covers only {100 * max(covered, 0):.0f}% of the frame time span; "
+            f"frames outside it are placed by visual chaining."
+        )
+    return gps

@@ -1,0 +1,66 @@
+"""Drive loader, camera.yaml: every validation rule in docs/formats.md."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from roadsurf.core.errors import DriveFormatError
+from roadsurf.io.drive import load_drive
+from tests.io.drive_fixtures import W, camera_yaml, make_drive
+
+# --------------------------------------------------------------------------- camera.yaml
+
+
+def test_missing_camera_yaml(tmp_path: Path) -> None:
+    root = make_drive(tmp_path / "d")
+    (root / "camera.yaml").unlink()
+    with pytest.raises(DriveFormatError, match="camera.yaml not found"):
+        load_drive(root)
+
+
+def test_missing_camera_key(tmp_path: Path) -> None:
+    root = make_drive(tmp_path / "d")
+    (root / "camera.yaml").write_text(camera_yaml(fx=None))
+    with pytest.raises(DriveFormatError, match=r"missing required key\(s\) \['fx'\]"):
+        load_drive(root)
+
+
+def test_ill_typed_camera_key_names_line(tmp_path: Path) -> None:
+    root = make_drive(tmp_path / "d")
+    (root / "camera.yaml").write_text(camera_yaml(width="wide"))
+    with pytest.raises(DriveFormatError, match=r"camera.yaml:2: camera.yaml 'width'"):
+        load_drive(root)
+    (root / "camera.yaml").write_text(camera_yaml(height_m=-1))
+    with pytest.raises(DriveFormatError, match=r":9: .*'height_m' must be > 0"):
+        load_drive(root)
+    (root / "camera.yaml").write_text(camera_yaml(dist="[1, 2]"))
+    with pytest.raises(DriveFormatError, match="'dist' must be a list of 5 numbers"):
+        load_drive(root)
+    (root / "camera.yaml").write_text(camera_yaml(model="fisheye"))
+    with pytest.raises(DriveFormatError, match="'model' must be 'pinhole'"):
+        load_drive(root)
+
+
+def test_integral_float_size_accepted(tmp_path: Path) -> None:
+    root = make_drive(tmp_path / "d")
+    (root / "camera.yaml").write_text(camera_yaml(width=f"{W}.0"))
+    assert load_drive(root).camera.width == W
+    (root / "camera.yaml").write_text(camera_yaml(width=f"{W}.5"))
+    with pytest.raises(DriveFormatError, match="positive integer"):
+        load_drive(root)
+
+
+def test_unknown_camera_key(tmp_path: Path) -> None:
+    root = make_drive(tmp_path / "d")
+    (root / "camera.yaml").write_text(camera_yaml() + "focal: 3\n")
+    with pytest.raises(DriveFormatError, match=r":11: unknown key\(s\) \['focal'\]"):
+        load_drive(root)
+
+
+def test_bad_yaml_syntax(tmp_path: Path) -> None:
+    root = make_drive(tmp_path / "d")
+    (root / "camera.yaml").write_text("width: [64\nheight: 48\n")
+    with pytest.raises(DriveFormatError, match="not valid YAML"):
+        load_drive(root)
