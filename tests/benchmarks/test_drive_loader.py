@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from benchmarks.drive_loader import bench_loader
-from tests.roadsurf.test_drive_loader import make_drive
+from tests.io.drive_fixtures import make_drive
 
 
 def test_bench_loader_table(tmp_path: Path) -> None:
