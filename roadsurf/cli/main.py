@@ -4,6 +4,7 @@ logic lives in the stage packages. Output printed here is the CLI's own; stages 
 from __future__ import annotations
 
 import logging
+import signal
 import sys
 from pathlib import Path
 from typing import Annotated
@@ -15,12 +16,17 @@ from roadsurf.core.errors import RoadsurfError
 app = typer.Typer(add_completion=False, no_args_is_help=True, help=__doc__)
 
 Out = Annotated[Path, typer.Option("--out", "-o", help="Output folder.")]
+_DEBUG = {"on": False}  # --debug: show tracebacks instead of one-line errors
 
 
 @app.callback()
 def _main(
     verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Debug logging.")] = False,
+    debug: Annotated[
+        bool, typer.Option("--debug", help="Show the full traceback of an error.")
+    ] = False,
 ) -> None:
+    _DEBUG["on"] = debug
     logging.basicConfig(
         level=logging.DEBUG if verbose else logging.INFO,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
@@ -304,12 +310,32 @@ def report(
         typer.echo(f"Screenshot: {shot}")
 
 
+class _Terminated(BaseException):
+    """SIGTERM, raised in the main thread so that every ``finally`` runs (the CNN worker and
+    the Rerun server are stopped, temporary folders removed)."""
+
+
+def _on_sigterm(signum: int, _frame: object) -> None:
+    raise _Terminated(signum)
+
+
 def main() -> None:
+    signal.signal(signal.SIGTERM, _on_sigterm)
     try:
         app()
     except RoadsurfError as e:
+        if _DEBUG["on"]:
+            raise
         typer.echo(f"error: {e}", err=True)
         sys.exit(2)
+    except (KeyboardInterrupt, _Terminated):
+        if _DEBUG["on"]:
+            raise
+        typer.echo(
+            "stopped: interrupted. Finished work is kept; run the same command again to resume.",
+            err=True,
+        )
+        sys.exit(130)
 
 
 if __name__ == "__main__":

@@ -7,14 +7,21 @@ run never leaves a half-written file that a resumed run would trust.
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
+import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from roadsurf.core.errors import OutputError
+
+# temporary files of atomic_path: ".<stem>.<random>.tmp<suffix>" beside the final file
+TEMP_GLOB = ".*.tmp*"
 
 
 def _current_umask() -> int:
@@ -23,38 +30,97 @@ def _current_umask() -> int:
     return mask
 
 
+def output_error(
+    e: OSError, path: str | os.PathLike[str], needed_bytes: int | None = None
+) -> OutputError:
+    """A one-line, actionable error for a failed write of ``path`` (disk full, read-only,
+    permission, not a folder)."""
+    path = Path(path)
+    folder = next((p for p in [path.parent, *path.parents] if p.exists()), Path("."))
+    if e.errno == errno.ENOSPC:
+        free = shutil.disk_usage(folder).free
+        need = f", about {needed_bytes / 1e6:.1f} MB needed" if needed_bytes else ""
+        return OutputError(
+            f"{path}: disk full ({free / 1e6:.1f} MB free on {folder}{need}). Free some space "
+            "or choose another --out, then run the same command again to resume."
+        )
+    if e.errno in (errno.EROFS, errno.EACCES, errno.EPERM):
+        return OutputError(
+            f"{path}: cannot write there ({os.strerror(e.errno or 0)}). Choose a writable --out."
+        )
+    if e.errno in (errno.ENOTDIR, errno.EEXIST):
+        return OutputError(
+            f"{path}: a file stands where a folder is needed ({folder}). Choose another --out."
+        )
+    return OutputError(f"{path}: cannot write ({e.strerror or e}). Check the output folder.")
+
+
 @contextlib.contextmanager
-def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
+def atomic_path(path: str | os.PathLike[str], *, allow_empty: bool = False) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; rename it onto ``path`` if the block succeeds.
 
     The temporary name keeps the final suffix, so libraries that pick a format from the
-    extension (rasterio, open3d, cv2) still work.
+    extension (rasterio, open3d, cv2) still work. The file is flushed to disk (fsync) before
+    the rename, and an empty result is refused unless ``allow_empty``: some writers (cv2.imwrite
+    on a full disk) report success after writing nothing. Write failures become one-line
+    ``OutputError``s.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(
-        prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent
-    )
-    os.close(fd)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(
+            prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent
+        )
+        os.close(fd)
+    except OSError as e:
+        raise output_error(e, path) from e
     tmp_path = Path(tmp)
     try:
-        yield tmp_path
-        # mkstemp creates mode 0600; outputs are meant to be shared, so apply the usual umask mode.
-        os.chmod(tmp_path, 0o666 & ~_current_umask())
-        os.replace(tmp_path, path)
+        try:
+            yield tmp_path
+            if not allow_empty and tmp_path.stat().st_size == 0:
+                raise OSError(errno.ENOSPC, "nothing was written")
+            _fsync(tmp_path)
+            # mkstemp creates mode 0600; outputs are meant to be shared: apply the usual umask.
+            os.chmod(tmp_path, 0o666 & ~_current_umask())
+            os.replace(tmp_path, path)
+        except OSError as e:
+            raise output_error(e, path) from e
     finally:
         if tmp_path.exists():
             tmp_path.unlink()
 
 
+def _fsync(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def remove_stale_temporaries(root: str | os.PathLike[str]) -> list[Path]:
+    """Delete the temporary files a killed run left below ``root`` (atomic_path's names);
+    returns them."""
+    root = Path(root)
+    if not root.is_dir():
+        return []
+    gone = []
+    for p in root.rglob(TEMP_GLOB):
+        if p.is_file() and ".tmp" in p.name:
+            p.unlink(missing_ok=True)
+            gone.append(p)
+    return gone
+
+
 def write_text_atomic(path: str | os.PathLike[str], text: str) -> Path:
-    with atomic_path(path) as tmp:
+    with atomic_path(path, allow_empty=not text) as tmp:
         tmp.write_text(text, encoding="utf-8")
     return Path(path)
 
 
 def write_bytes_atomic(path: str | os.PathLike[str], data: bytes) -> Path:
-    with atomic_path(path) as tmp:
+    with atomic_path(path, allow_empty=not data) as tmp:
         tmp.write_bytes(data)
     return Path(path)
 

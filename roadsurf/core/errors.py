@@ -19,3 +19,11 @@ class ModelFileError(RoadsurfError):
 
 class FrameReadError(RoadsurfError):
     """An image could not be decoded (missing, unreadable or truncated). Stages skip the frame."""
+
+
+class OutputError(RoadsurfError):
+    """An output could not be written (disk full, read-only or unwritable folder)."""
+
+
+class InputError(RoadsurfError):
+    """An input file is unreadable (encoding, truncation, bad content) outside the drive format."""

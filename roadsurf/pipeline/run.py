@@ -24,7 +24,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from roadsurf.core.atomic import read_json, write_json_atomic
+from roadsurf.core.atomic import (
+    output_error,
+    read_json,
+    remove_stale_temporaries,
+    write_json_atomic,
+)
 from roadsurf.core.config import from_dict, load_yaml_config, to_dict
 from roadsurf.core.errors import ConfigError
 from roadsurf.detection.classifier.config import ClassifierConfig
@@ -143,6 +148,7 @@ def run_drive(
     artifacts instead of resuming.
     """
     t_start = time.perf_counter()
+    _check_out_folder(Path(drive_dir), Path(out_dir))
     cfg = load_pipeline_config(config_path)
     job = None
     if classifier is not None and cfg.classifier.screen_in_subprocess:
@@ -178,7 +184,12 @@ def _run_drive(
     from roadsurf.mapping import globalmap, poses
     from roadsurf.reconstruction import stage as reconstruction_stage
 
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise output_error(e, out) from e
+    for tmp in remove_stale_temporaries(out):
+        log.info("removed a temporary file left by an interrupted run: %s", tmp)
     obs: list[Observer] = list(observers or [])
     timings: dict[str, float] = {}
     started: dict[str, float] = {}  # wall-clock start of each stage (artifact mtimes vs this)
@@ -276,6 +287,20 @@ def _run_drive(
     write_json_atomic(out / rf.REPORT_JSON, report)
     notify("report", report)
     return report
+
+
+def _check_out_folder(drive_dir: Path, out: Path) -> None:
+    """The run never writes inside the drive (its frames.csv would be overwritten by the run's
+    frame labels) nor into an existing file."""
+    d, o = drive_dir.resolve(), out.resolve()
+    if o == d or d in o.parents:
+        raise ConfigError(
+            f"--out {out} is inside the drive folder {drive_dir}: the run would overwrite the "
+            "drive's own files (frames.csv). Choose an output folder outside the drive, e.g. "
+            f"--out {d.parent / (d.name + '_run')}"
+        )
+    if o.exists() and not o.is_dir():
+        raise ConfigError(f"--out {out} is an existing file, not a folder. Choose another --out.")
 
 
 # artifacts whose modification time tells whether a stage computed or resumed (run-folder paths)

@@ -1,0 +1,44 @@
+"""The CLI's error contract: one line for user errors, the traceback only with --debug, and
+a run never writes inside its drive folder."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[2]
+SAMPLE = REPO / "data_samples" / "drive"
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "roadsurf", *args], capture_output=True, text=True, cwd=REPO
+    )
+
+
+def test_out_inside_the_drive_is_refused_and_the_drive_is_untouched(tmp_path: Path) -> None:
+    drive = tmp_path / "drive"
+    shutil.copytree(SAMPLE, drive, ignore=shutil.ignore_patterns("truth"))
+    before = (drive / "frames.csv").read_bytes()
+    for out in (drive, drive / "run"):
+        r = _cli("run", str(drive), "--out", str(out))
+        assert r.returncode == 2, r.stderr
+        lines = r.stderr.strip().splitlines()
+        assert len(lines) == 1 and "inside the drive folder" in lines[0], r.stderr
+        assert "Traceback" not in r.stderr
+    assert (drive / "frames.csv").read_bytes() == before
+    assert not (drive / "run").exists()
+
+
+def test_debug_shows_the_traceback(tmp_path: Path) -> None:
+    r = _cli("--debug", "run", str(SAMPLE), "--out", str(SAMPLE))
+    assert r.returncode != 0 and "Traceback" in r.stderr
+
+
+def test_out_that_is_a_file_is_one_line(tmp_path: Path) -> None:
+    f = tmp_path / "out"
+    f.write_text("x")
+    r = _cli("run", str(SAMPLE), "--out", str(f))
+    assert r.returncode == 2 and "existing file" in r.stderr and "Traceback" not in r.stderr
