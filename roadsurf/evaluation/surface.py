@@ -1,0 +1,237 @@
+"""Surface figures of a run against simulator truth: height errors on flat road and inside
+defects (raw and aligned), coverage of the imaged corridor, and the seam steps between pair
+patches."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from roadsurf.io.formats import read_geojson
+
+if TYPE_CHECKING:
+    from shapely import Geometry
+
+
+def _open_surface(run_dir: Path) -> Path | None:
+    for name in ("surface.tif", "surface.vrt"):
+        if (run_dir / name).exists():
+            return run_dir / name
+    return None
+
+
+def _corridor_polygon(
+    truth_dir: Path, truth: dict[str, Any], seen: set[str], stereo: bool = False
+) -> Geometry | None:
+    """Union of the true camera footprints on the road (truth CRS), or None."""
+    import shapely
+    import yaml
+
+    cam_yaml = truth_dir.parent / "camera.yaml"
+    if not cam_yaml.is_file():
+        return None
+    cam = yaml.safe_load(cam_yaml.read_text())
+    from scipy.spatial.transform import Rotation
+
+    w, h = float(cam["width"]), float(cam["height"])
+    corners = np.array([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]], float)
+    rays = np.column_stack(
+        [
+            (corners[:, 0] - cam["cx"]) / cam["fx"],
+            (corners[:, 1] - cam["cy"]) / cam["fy"],
+            np.ones(4),
+        ]
+    )
+    q = truth["q"]
+    Rs = Rotation.from_quat(np.column_stack([q[:, 1], q[:, 2], q[:, 3], q[:, 0]])).as_matrix()
+    polys = []
+    for k in range(len(q)):
+        if truth["filename"][k] not in seen:
+            polys.append(None)
+            continue
+        rw = rays @ Rs[k].T
+        if np.any(rw[:, 2] >= -1e-6):
+            continue
+        lam = -float(cam["height_m"]) / rw[:, 2]
+        xy = truth["xy"][k] + lam[:, None] * rw[:, :2]
+        polys.append(shapely.Polygon(xy))
+    if stereo:  # seen by two consecutive frames: what a two-view method can measure
+        polys = [
+            a.intersection(b)
+            for a, b in zip(polys[:-1], polys[1:], strict=True)
+            if a is not None and b is not None
+        ]
+    polys = [p for p in polys if p is not None and not p.is_empty]
+    return shapely.union_all(polys) if polys else None
+
+
+def surface_metrics(
+    run_dir: Path,
+    truth_dir: Path,
+    truth: dict[str, Any],
+    align: tuple[np.ndarray, np.ndarray] | None,
+    crs: str | None,
+    scen: dict[str, Any],
+    seen: set[str],
+) -> dict[str, Any]:
+    import rasterio
+    import shapely
+    from rasterio.features import rasterize
+    from rasterio.windows import Window
+
+    res: dict[str, Any] = {"metrics": {}}
+    path = _open_surface(run_dir)
+    tpath = truth_dir / "residual.tif"
+    if path is None or not tpath.is_file():
+        res["metrics"]["note"] = "no surface raster or no truth residual"
+        return res
+    with rasterio.open(tpath) as t:
+        tres = t.read(1).astype(np.float32)
+        tnd = t.nodata
+        tT = t.transform
+        tshape = (t.height, t.width)
+    if tnd is not None and not math.isnan(tnd):
+        tres[tres == tnd] = np.nan
+    defects_path = truth_dir / "defects.geojson"
+    dmask = np.zeros(tshape, bool)
+    if defects_path.is_file() and crs:
+        from pyproj import Transformer
+
+        trf = Transformer.from_crs("EPSG:4326", crs, always_xy=True)
+        shapes = []
+        for f in read_geojson(defects_path)["features"]:
+            ring = np.array(f["geometry"]["coordinates"][0], float)
+            x, y = trf.transform(ring[:, 0], ring[:, 1])
+            shapes.append(shapely.Polygon(np.column_stack([x, y])))
+        if shapes:
+            dmask = rasterize(
+                shapes, out_shape=tshape, transform=tT, fill=0, default_value=1
+            ).astype(bool)
+
+    def burn(poly: Geometry | None) -> np.ndarray | None:
+        if poly is None:
+            return None
+        return rasterize([poly], out_shape=tshape, transform=tT, fill=0, default_value=1) > 0
+
+    cmask = burn(_corridor_polygon(truth_dir, truth, seen))
+    smask = burn(_corridor_polygon(truth_dir, truth, seen, stereo=True))
+    n_in_stereo = 0
+    inv_t = ~tT
+
+    acc = {k: [] for k in ("raw_flat", "raw_def", "al_flat", "al_def")}
+    n_in_corridor = 0
+    our_px_area = 0.0
+    with rasterio.open(path) as src:
+        nd = src.nodata
+        W, H = src.width, src.height
+        bs = 1024
+        for r0 in range(0, H, bs):
+            for c0 in range(0, W, bs):
+                win = Window(c0, r0, min(bs, W - c0), min(bs, H - r0))
+                a = src.read(1, window=win).astype(np.float32)
+                if nd is not None and not math.isnan(nd):
+                    a[a == nd] = np.nan
+                rr, cc = np.nonzero(np.isfinite(a))
+                if len(rr) == 0:
+                    continue
+                T = src.window_transform(win)
+                x = T.c + (cc + 0.5) * T.a
+                y = T.f + (rr + 0.5) * T.e
+                v = a[rr, cc]
+                xy = np.column_stack([x, y])
+                for tag, pts in (
+                    ("raw", xy),
+                    ("al", xy @ align[0].T + align[1] if align else None),
+                ):
+                    if pts is None:
+                        continue
+                    col, row = inv_t * (pts[:, 0], pts[:, 1])
+                    col, row = np.floor(col).astype(int), np.floor(row).astype(int)
+                    ok = (row >= 0) & (row < tshape[0]) & (col >= 0) & (col < tshape[1])
+                    tv = np.full(len(v), np.nan, np.float32)
+                    tv[ok] = tres[row[ok], col[ok]]
+                    isdef = np.zeros(len(v), bool)
+                    isdef[ok] = dmask[row[ok], col[ok]]
+                    good = np.isfinite(tv)
+                    d = (v - tv)[good]
+                    acc[f"{tag}_flat"].append(d[~isdef[good]])
+                    acc[f"{tag}_def"].append(d[isdef[good]])
+                    if tag == ("al" if align else "raw") and cmask is not None:
+                        n_in_corridor += int(cmask[row[ok], col[ok]].sum())
+                        our_px_area = abs(T.a * T.e)
+                        if smask is not None:
+                            n_in_stereo += int(smask[row[ok], col[ok]].sum())
+
+    def stats(lst: list[np.ndarray]) -> dict[str, float]:
+        d = np.concatenate(lst) if lst else np.zeros(0)
+        if len(d) == 0:
+            return {"n": 0, "mae_m": float("nan"), "rmse_m": float("nan"), "bias_m": float("nan")}
+        return {
+            "n": int(len(d)),
+            "mae_m": float(np.mean(np.abs(d))),
+            "rmse_m": float(np.sqrt(np.mean(d**2))),
+            "bias_m": float(np.median(d)),
+        }
+
+    m = res["metrics"]
+    for tag, name in (("raw", "raw"), ("al", "aligned")):
+        f, dd = stats(acc[f"{tag}_flat"]), stats(acc[f"{tag}_def"])
+        m[name] = {
+            "flat_mae_m": f["mae_m"],
+            "flat_rmse_m": f["rmse_m"],
+            "flat_bias_m": f["bias_m"],
+            "flat_n": f["n"],
+            "defect_mae_m": dd["mae_m"],
+            "defect_rmse_m": dd["rmse_m"],
+            "defect_bias_m": dd["bias_m"],
+            "defect_n": dd["n"],
+        }
+    if cmask is not None and cmask.any():
+        # our pixels (their own area) inside the true corridor, over the corridor's area
+        area = float(cmask.sum() * abs(tT.a * tT.e))
+        res["coverage"] = float(min(1.0, n_in_corridor * our_px_area / area))
+        res["corridor_area_m2"] = area
+    if smask is not None and smask.any():
+        sarea = float(smask.sum() * abs(tT.a * tT.e))
+        res["coverage_two_view"] = float(min(1.0, n_in_stereo * our_px_area / sarea))
+        if cmask is not None and cmask.any():
+            # the ceiling of a two-view method: the drive's ends are seen by one frame only
+            res["coverage_two_view_share"] = float(min(1.0, sarea / area))
+    return res
+
+
+# --------------------------------------------------------------------------- seams
+
+
+def seam_steps(run_dir: Path) -> tuple[float, float, int]:
+    """Height disagreement between neighbouring patches: for patches k and the next one, the
+    median residual difference of nearby points (within 1.5 cm) on flat road (|r| < 1 cm)."""
+    path = run_dir / "map_points.npz"
+    if not path.is_file():
+        return float("nan"), float("nan"), 0
+    from scipy.spatial import cKDTree
+
+    with np.load(path, allow_pickle=False) as z:
+        xyz, r, fr = z["xyz"], z["residual_m"].astype(float), z["frame_index"]
+    flat = np.abs(r) < 0.01
+    xyz, r, fr = xyz[flat], r[flat], fr[flat]
+    ids = np.unique(fr)
+    steps = []
+    for a, b in zip(ids[:-1], ids[1:], strict=True):
+        A, B = fr == a, fr == b
+        if A.sum() < 20 or B.sum() < 20:
+            continue
+        tree = cKDTree(xyz[A, :2])
+        d, j = tree.query(xyz[B, :2], distance_upper_bound=0.015)
+        ok = np.isfinite(d)
+        if ok.sum() < 20:
+            continue
+        diff = r[B][ok] - r[A][j[ok]]
+        steps.append(abs(float(np.median(diff))))
+    if not steps:
+        return float("nan"), float("nan"), 0
+    s = np.array(steps)
+    return float(s.max()), float(np.percentile(s, 95)), len(s)

@@ -1,0 +1,148 @@
+"""Trajectory figures of a run against simulator truth: horizontal RMSE (raw and after a 2D
+rigid alignment), relative drift over 5 m windows, and the GPS fixes' own error."""
+
+from __future__ import annotations
+
+import logging
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from roadsurf.io.formats import read_csv, read_geojson
+
+log = logging.getLogger(__name__)
+
+
+def truth_poses(truth_dir: Path) -> dict[str, Any]:
+    rows = read_csv(truth_dir / "poses.csv")
+    return {
+        "filename": [r["filename"] for r in rows],
+        "xy": np.array([[float(r["easting_m"]), float(r["northing_m"])] for r in rows]),
+        "up": np.array([float(r["up_m"]) for r in rows]),
+        "q": np.array([[float(r[k]) for k in ("qw", "qx", "qy", "qz")] for r in rows]),
+        "heading_deg": np.array([float(r["heading_deg"]) for r in rows]),
+    }
+
+
+def run_trajectory(run_dir: Path, crs: str | None) -> dict[str, Any] | None:
+    path = run_dir / "trajectory.geojson"
+    if not path.is_file() or crs is None:
+        return None
+    from pyproj import Transformer
+
+    fc = read_geojson(path)
+    names, ll, hd = [], [], []
+    for f in fc["features"]:
+        if f["geometry"]["type"] == "Point" and "filename" in f["properties"]:
+            names.append(f["properties"]["filename"])
+            ll.append(f["geometry"]["coordinates"][:2])
+            hd.append(float(f["properties"].get("heading_deg", float("nan"))))
+    if not names:
+        return None
+    ll_a = np.array(ll, float)
+    x, y = Transformer.from_crs("EPSG:4326", crs, always_xy=True).transform(ll_a[:, 0], ll_a[:, 1])
+    return {"filename": names, "xy": np.column_stack([x, y]), "heading_deg": np.array(hd)}
+
+
+def rigid_2d(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares 2D rotation R (2, 2) and translation t (2,) with dst ≈ src @ R.T + t."""
+    ms, md = src.mean(0), dst.mean(0)
+    S = (src - ms).T @ (dst - md)
+    yaw = math.atan2(S[0, 1] - S[1, 0], S[0, 0] + S[1, 1])
+    R = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
+    return R, md - ms @ R.T
+
+
+def trajectory_metrics(est: dict[str, Any], truth: dict[str, Any]) -> dict[str, Any]:
+    idx = {n: i for i, n in enumerate(truth["filename"])}
+    pairs = [(i, idx[n]) for i, n in enumerate(est["filename"]) if n in idx]
+    e = est["xy"][[a for a, _ in pairs]]
+    t = truth["xy"][[b for _, b in pairs]]
+    err = np.linalg.norm(e - t, axis=1)
+    R, tr = rigid_2d(e, t)
+    ea = e @ R.T + tr
+    err_a = np.linalg.norm(ea - t, axis=1)
+    # relative drift (relative pose error): the displacement over windows of 5 m of true travel,
+    # each expressed in its own vehicle frame (heading), so a global heading offset does not
+    # count; UTM grid north vs true north is the same for both and cancels too.
+    he = np.radians(est["heading_deg"][[a for a, _ in pairs]])
+    ht = np.radians(truth["heading_deg"][[b for _, b in pairs]])
+    if not np.all(np.isfinite(he)):
+        he = ht  # a producer without headings: world-frame displacements
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(t, axis=0), axis=1))])
+    drift = []
+    for i in range(len(s)):
+        j = int(np.searchsorted(s, s[i] + 5.0))
+        if j >= len(s):
+            break
+        d_true = _body(t[j] - t[i], ht[i])
+        d_est = _body(e[j] - e[i], he[i])
+        drift.append(np.linalg.norm(d_est - d_true) / max(s[j] - s[i], 1e-9) * 100.0)
+    drift_a = np.array(drift)
+    if not drift:
+        log.info("drive shorter than 5 m: no relative drift figure")
+    dstat = (
+        (float(np.median(drift_a)), float(np.percentile(drift_a, 95)), float(np.max(drift_a)))
+        if drift
+        else (float("nan"),) * 3
+    )
+    metrics = {
+        "n_frames_matched": len(pairs),
+        "trajectory_rmse_m": float(np.sqrt(np.mean(err**2))),
+        "trajectory_max_m": float(err.max()),
+        "trajectory_rmse_aligned_m": float(np.sqrt(np.mean(err_a**2))),
+        "alignment_offset_m": float(np.linalg.norm(tr + (R - np.eye(2)) @ e.mean(0))),
+        "alignment_rotation_deg": float(math.degrees(math.atan2(R[1, 0], R[0, 0]))),
+        "drift_5m_median_pct": dstat[0],
+        "drift_5m_p95_pct": dstat[1],
+        "drift_5m_max_pct": dstat[2],
+        "distance_m": float(s[-1]),
+    }
+    return {"metrics": metrics, "align": (R, tr)}
+
+
+def _body(d: np.ndarray, heading_rad: float) -> np.ndarray:
+    """World (E, N) displacement -> vehicle frame (right, forward) for a compass heading."""
+    c, s = math.cos(heading_rad), math.sin(heading_rad)
+    return np.array([d[0] * c - d[1] * s, d[0] * s + d[1] * c])
+
+
+def gps_rmse_m(truth_dir: Path, crs: str | None) -> float | None:
+    """RMSE of the drive's GPS fixes against the true path interpolated at the fix times."""
+    gps = truth_dir.parent / "gps.csv"
+    if crs is None or not gps.is_file():
+        return None
+    from pyproj import Transformer
+
+    rows = read_csv(truth_dir / "poses.csv")
+    tt = np.array([float(r["timestamp_s"]) for r in rows])
+    txy = np.array([[float(r["easting_m"]), float(r["northing_m"])] for r in rows])
+    g = read_csv(gps)
+    try:
+        t = np.array([float(r["timestamp_s"]) for r in g])
+        lat = np.array([float(r["lat"]) for r in g])
+        lon = np.array([float(r["lon"]) for r in g])
+    except (KeyError, ValueError):
+        return None
+    inside = (t >= tt[0]) & (t <= tt[-1])
+    if not inside.any():
+        return None
+    x, y = Transformer.from_crs("EPSG:4326", crs, always_xy=True).transform(
+        lon[inside], lat[inside]
+    )
+    ex = np.interp(t[inside], tt, txy[:, 0])
+    ey = np.interp(t[inside], tt, txy[:, 1])
+    return float(np.sqrt(np.mean((np.asarray(x) - ex) ** 2 + (np.asarray(y) - ey) ** 2)))
+
+
+def gps_noise_m(truth_dir: Path, scen: dict[str, Any]) -> float | None:
+    g = scen.get("derived", {}).get("gps", {})
+    if isinstance(g, dict) and g.get("sigma_m"):
+        return float(g["sigma_m"])
+    p = scen.get("params", {})
+    for k in ("gps_sigma_m", "gps_noise_m", "gps_sigma"):
+        if k in p and p[k]:
+            return float(p[k])
+    return None
