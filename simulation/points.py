@@ -12,7 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from roadsurf.reconstruction.geometry import px_from_cam, rotation_from_euler_deg
+from roadsurf.core.camera import px_from_cam
+from roadsurf.core.geometry import rotation_from_euler_xyz
 
 DEFAULT_F_PX = 960.0  # focal length f (px) of the study camera
 DEFAULT_SIZE = (1024, 768)  # image width, height (px)
@@ -65,7 +66,8 @@ def simulate_points(scene: PointScene, rng: np.random.Generator | int) -> PointP
     """Sample road points visible in both views and return noisy matched pixels + truth."""
     rng = np.random.default_rng(rng)
     K = camera_matrix(scene)
-    R = rotation_from_euler_deg(*scene.theta_deg)
+    # R = Rz @ Ry @ Rx of the vibration angles (deg -> rad)
+    R = rotation_from_euler_xyz(*np.radians(scene.theta_deg))
     t = np.asarray(scene.t_m, dtype=float)
     Xs: list[np.ndarray] = []
     need = scene.n_points

@@ -20,7 +20,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from roadsurf.simulation.world import Pose, World
+from roadsurf.simulation.route import Pose
+from roadsurf.simulation.world import World
 
 TILE = 384  # largest tile size (px at the render GSD)
 TILE_M = 0.47  # target tile size on the ground (m): coarse GSDs get smaller tiles

@@ -23,7 +23,9 @@ from roadsurf.core.atomic import write_bytes_atomic, write_json_atomic, write_te
 from roadsurf.core.config import from_dict, load_yaml_config
 from roadsurf.core.errors import ConfigError, RoadsurfError
 from roadsurf.io.formats import write_csv
+from roadsurf.simulation.build import build_world
 from roadsurf.simulation.config import SimConfig
+from roadsurf.simulation.placement import footprint_m
 from roadsurf.simulation.render import Renderer
 from roadsurf.simulation.sensors import (
     encode_image,
@@ -42,7 +44,6 @@ from roadsurf.simulation.truth import (
     write_poses,
     write_rasters,
 )
-from roadsurf.simulation.world import build_world, footprint_m
 
 log = logging.getLogger(__name__)
 

@@ -27,7 +27,9 @@ from roadsurf.io.formats import (
     write_geojson,
     write_geotiff_blocks,
 )
-from roadsurf.simulation.world import Pothole, Trough, World
+from roadsurf.simulation.defects import Pothole, Trough
+from roadsurf.simulation.route import Pose
+from roadsurf.simulation.world import World
 
 BLOCK = 256
 DEFECT_DEPTH_M = 0.010  # frame label: footprint area deeper than this ...
@@ -262,7 +264,7 @@ def write_features(world: World, out: Path) -> None:
 
 
 def write_poses(
-    world: World, out: Path, rows: list[tuple[str, Any]], time_offset_s: float = 0.0
+    world: World, out: Path, rows: list[tuple[str, Pose]], time_offset_s: float = 0.0
 ) -> None:
     """rows: (filename, Pose) per frame; ``time_offset_s`` is added to the timestamps (the
     drive's clock, see sensors.time_offset_s)."""

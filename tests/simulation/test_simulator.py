@@ -314,8 +314,8 @@ def test_rerun_into_same_folder_replaces_drive(tmp_path: Path) -> None:
 def test_pothole_look_and_wall_ranges_are_drawn_from_the_config() -> None:
     """pothole_darken / pothole_power: lighter-than-road potholes and steep walls on demand;
     the defaults draw the same world as before the knobs existed (same random draws)."""
+    from roadsurf.simulation.build import build_world
     from roadsurf.simulation.scenarios import make_config
-    from roadsurf.simulation.world import build_world
 
     base = build_world(make_config("potholes"), 202, 20)
     same = build_world(

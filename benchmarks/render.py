@@ -1,20 +1,27 @@
-"""``roadsurf bench render``: render time per frame, with a breakdown, on this machine."""
+"""Benchmark: the simulator's render time per frame, with a breakdown, on this machine.
+
+``make bench-render ARGS="--scenario sample --frames 20"`` (was ``roadsurf bench render``)
+renders in memory (no files) and writes ``benchmarks/results/render.json``.
+"""
 
 from __future__ import annotations
 
 import resource
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from roadsurf.simulation.build import build_world
 from roadsurf.simulation.render import Renderer
 from roadsurf.simulation.scenarios import SCENARIOS, make_config
 from roadsurf.simulation.sensors import encode_image, form_image
-from roadsurf.simulation.world import build_world
 
 
-def bench_render(scenario: str = "sample", n_frames: int = 20, **overrides: Any) -> dict[str, Any]:
+def bench_render(
+    scenario: str = "sample", n_frames: int = 20, **overrides: Any
+) -> dict[str, float | int | str]:
     """Render ``n_frames`` of ``scenario`` in memory (no files) and time each step.
 
     Returns wall-clock seconds per frame (and the process CPU time, all threads, which is less
@@ -75,3 +82,30 @@ def bench_render(scenario: str = "sample", n_frames: int = 20, **overrides: Any)
         "tile_cache_mb": len(r.cache) * tile_mb,
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
     }
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m benchmarks.render [--scenario S] [--frames N] [--width W] [--height H]``."""
+    import argparse
+
+    from benchmarks._result import write_result
+
+    ap = argparse.ArgumentParser(
+        description="Simulator render time per frame (world tiles, ray casting, sensor, encoding)."
+    )
+    ap.add_argument("--scenario", default="sample", help="scenario to render")
+    ap.add_argument("--frames", type=int, default=20, help="frames to render (in memory)")
+    ap.add_argument("--width", type=int, default=640, help="image width (px)")
+    ap.add_argument("--height", type=int, default=480, help="image height (px)")
+    ap.add_argument("--json", type=Path, default=None, help="result file (default results/)")
+    a = ap.parse_args(argv)
+    fx = 600.0 * a.width / 640.0  # the focal length scales with the width (600 px at 640)
+    res = bench_render(a.scenario, a.frames, width=a.width, height=a.height, fx=fx)
+    for k, v in res.items():
+        print(f"{k:22s} {v:.3f}" if isinstance(v, float) else f"{k:22s} {v}")
+    write_result(a.json, "render", res)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

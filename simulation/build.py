@@ -1,0 +1,91 @@
+"""Draw a world for a seed: timing, trajectory, route, long-wave undulation, then the
+defects and distractors (``placement``). The order of the random draws is part of the
+output: every scenario's drive is a pure function of (config, seed)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from roadsurf.core.geometry import utm_epsg_for, utm_from_lla
+from roadsurf.simulation.config import SimConfig
+from roadsurf.simulation.noise import fractal_noise
+from roadsurf.simulation.placement import place_features
+from roadsurf.simulation.route import Route, Trajectory
+from roadsurf.simulation.texture import TextureField
+from roadsurf.simulation.world import World
+
+T_START_S = 2.0  # time stamp of the first frame (s); the logs start earlier, all stamps > 0
+T_PAD_S = 1.5  # trajectory (and GPS/OBD logs) extend this long before and after the frames (s)
+
+
+def _noise1d(t: np.ndarray, spacings: tuple[float, ...], weights: tuple[float, ...], seed: int):
+    return fractal_noise(t, np.full_like(t, 0.5), spacings, weights, seed).astype(np.float64)
+
+
+def build_world(cfg: SimConfig, seed: int, n_frames: int) -> World:
+    """Draw a route, a trajectory and the defects/distractors for ``seed``."""
+    rng = np.random.default_rng(seed)
+    epsg = utm_epsg_for(cfg.origin_lat_deg, cfg.origin_lon_deg)
+    en = utm_from_lla(cfg.origin_lat_deg, cfg.origin_lon_deg, epsg)[0]
+    e0, n0 = float(np.round(en[0])), float(np.round(en[1]))
+
+    # Timing and trajectory.
+    fps = cfg.fps
+    jitter = rng.uniform(-0.0003, 0.0003, n_frames)  # trigger jitter (s)
+    jitter[0] = 0.0
+    frame_times = T_START_S + np.arange(n_frames) / fps + jitter
+    dt = 0.005
+    t = np.arange(T_START_S - T_PAD_S, frame_times[-1] + T_PAD_S + dt, dt)
+    seeds = rng.integers(0, 2**31, size=8)
+    speed = cfg.speed_mps * (1.0 + cfg.speed_var * _noise1d(t, (2.5,), (1.0,), int(seeds[0])))
+    s = 3.0 + np.concatenate([[0.0], np.cumsum(0.5 * (speed[1:] + speed[:-1]) * dt)])
+    f = max(cfg.vibration_hz, 0.1)
+    vib = math.radians(cfg.vibration_deg)
+    roll = vib * _noise1d(t, (0.5 / f, 0.15 / f), (1.0, 0.5), int(seeds[1]))
+    pitch = vib * _noise1d(t, (0.5 / f, 0.15 / f), (1.0, 0.5), int(seeds[2]))
+    yaw = math.radians(cfg.yaw_noise_deg) * _noise1d(t, (0.8, 0.2), (1.0, 0.4), int(seeds[3]))
+    dh = cfg.height_noise_m * _noise1d(t, (0.5 / f, 0.15 / f), (1.0, 0.5), int(seeds[4]))
+    lateral = cfg.lateral_wander_m * _noise1d(t, (3.0,), (1.0,), int(seeds[5]))
+    traj = Trajectory(t, s, speed, lateral, dh, roll, pitch, yaw)
+
+    # Like Toronto's street grid: roughly along a cardinal direction (also keeps the north-up
+    # tiles that frames render from well aligned with the footprint).
+    heading0 = (
+        math.radians(cfg.route_heading_deg)
+        if cfg.route_heading_deg is not None
+        else math.radians(90.0 * int(rng.integers(0, 4)) + rng.uniform(-5.0, 5.0))
+    )
+    route = Route.make(
+        float(s[-1]) + 5.0,
+        heading0,
+        math.radians(cfg.route_curve_amp_deg),
+        cfg.route_curve_wavelength_m,
+        float(rng.uniform(0, 2 * np.pi)),
+    )
+    waves = []
+    for _ in range(3):
+        lam = rng.uniform(8.0, 30.0)
+        ang = rng.uniform(0, 2 * np.pi)
+        k = 2 * np.pi / lam
+        waves.append(
+            (k * math.cos(ang), k * math.sin(ang), cfg.undulation_m / 2, rng.uniform(0, 6.3))
+        )
+    gsd = cfg.render_gsd_m or round(cfg.camera_height_m / cfg.fx / 1.5, 5)
+    world = World(
+        cfg=cfg,
+        seed=seed,
+        n_frames=n_frames,
+        epsg=epsg,
+        origin_e_m=e0,
+        origin_n_m=n0,
+        route=route,
+        traj=traj,
+        frame_times=frame_times,
+        texture=TextureField(cfg.texture, cfg.texel_m, cfg.texture_cell_m, gsd, seed),
+        base_waves=np.asarray(waves),
+        render_gsd_m=gsd,
+    )
+    place_features(world, rng)
+    return world
