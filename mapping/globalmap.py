@@ -17,7 +17,7 @@
 5. ``cloud.ply`` (export CRS), ``map_points.npz`` (ENU, for detection), PNG previews.
 
 This module is the stage (``run``, ``build_map``); steps 1-2 are in ``mapping.cloud``, step 4 in
-``mapping.rasterise`` (with ``footprint``, ``surface_raster``, ``mosaic`` and ``previews``).
+``mapping.rasterise`` (with ``overlap``, ``surface_raster``, ``mosaic`` and ``previews``).
 """
 
 from __future__ import annotations

@@ -13,7 +13,6 @@ from roadsurf.core.parallel import SharedCache
 from roadsurf.io.drive import Camera, Frame, read_image
 from roadsurf.io.formats import GridSpec
 from roadsurf.mapping.config import MappingConfig
-from roadsurf.mapping.footprint import project
 from roadsurf.mapping.raster import GridToEnu, TileLattice
 from roadsurf.mapping.surface import LocalSurface
 from roadsurf.mapping.types import Trajectory
@@ -104,7 +103,7 @@ def mosaic_tile(
         W = traj.world_from_cam[i]
         X = np.stack([e[sl] - W[0, 3], n[sl] - W[1, 3], zz - W[2, 3]], axis=-1)
         Xc = X @ W[:3, :3]  # R^T (X - c), row-vector form
-        u, v = project(cam, Xc)
+        u, v = cam.project(Xc)
         d = np.minimum.reduce(
             [u - border, cam.width - 1 - border - u, v - border, cam.height - 1 - border - v]
         )

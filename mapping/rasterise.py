@@ -17,8 +17,8 @@ from roadsurf.io.drive import Drive, Frame
 from roadsurf.io.formats import GridSpec
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.export import export_xyz
-from roadsurf.mapping.footprint import check_frame_overlap, footprint_enu
 from roadsurf.mapping.mosaic import ImageCache, mosaic_tile
+from roadsurf.mapping.overlap import check_frame_overlap
 from roadsurf.mapping.previews import Previews
 from roadsurf.mapping.raster import LOCAL_CRS, GridToEnu, TiledWriter, corridor_tiles
 from roadsurf.mapping.surface import LocalSurface
@@ -61,7 +61,7 @@ def rasterise(
     for i in range(len(traj)):
         W = traj.world_from_cam[i]
         road_z[i] = zr[i] if np.isfinite(zr[i]) else W[2, 3] - cam.height_m
-        fp = footprint_enu(cam, W, road_z[i])
+        fp = cam.footprint_grid_enu(W, road_z[i])
         fp_grid.append(export_xyz(fp, ef)[:, :2] if len(fp) else np.zeros((0, 2)))
     check_frame_overlap(cfg, fp_grid, prod)
     samples = [f for f in fp_grid if len(f)]

@@ -12,7 +12,6 @@ import numpy as np
 from roadsurf.io.drive import Camera
 from roadsurf.io.formats import GridSpec
 from roadsurf.mapping.config import MappingConfig
-from roadsurf.mapping.footprint import project
 from roadsurf.mapping.raster import GridToEnu, fill_nodata_capped, interpolate_to_grid
 from roadsurf.mapping.surface import LocalSurface
 from roadsurf.mapping.types import Trajectory
@@ -179,7 +178,7 @@ def two_view_mask(
         Wi = traj.world_from_cam[i]
         zz = np.where(np.isfinite(z[sl]), z[sl], road_z[i])
         X = np.stack([e[sl] - Wi[0, 3], n[sl] - Wi[1, 3], zz - Wi[2, 3]], axis=-1)
-        u, v = project(cam, X @ Wi[:3, :3])
+        u, v = cam.project(X @ Wi[:3, :3])
         with np.errstate(invalid="ignore"):
             inside[i] = (u >= 0) & (u <= cam.width - 1) & (v >= 0) & (v <= cam.height - 1)
     for a, b, (r0, r1, c0, c1) in todo:

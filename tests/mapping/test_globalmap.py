@@ -241,7 +241,7 @@ def test_no_gps_map_stays_in_the_local_frame(tmp_path: Path) -> None:
 
 def test_consecutive_overlap_and_its_warning() -> None:
     """Share of each footprint the next one sees; a median below min_frame_overlap warns."""
-    from roadsurf.mapping.footprint import check_frame_overlap, consecutive_overlap
+    from roadsurf.mapping.overlap import check_frame_overlap, consecutive_overlap
     from roadsurf.mapping.types import MapProducts
 
     def square(y0: float) -> np.ndarray:  # 1 m x 0.8 m footprint, as a 5 x 5 point grid

@@ -16,7 +16,7 @@ import rasterio
 
 from roadsurf.core.geometry import enu_from_lla, lla_from_utm
 from roadsurf.io.formats import GridSpec
-from roadsurf.mapping import footprint, globalmap, poses, surface_raster
+from roadsurf.mapping import globalmap, poses, surface_raster
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.raster import fill_nodata_capped
 from tests.mapping.synth import make_pair, make_synthetic, write_images
@@ -142,7 +142,7 @@ def _two_view_fraction(
     def inside(i: int) -> np.ndarray:
         W = traj.world_from_cam[i]
         Xc = (enu - W[:3, 3]) @ W[:3, :3]
-        u, v = footprint.project(cam, Xc)
+        u, v = cam.project(Xc)
         with np.errstate(invalid="ignore"):
             return (
                 (u >= tol_px)
