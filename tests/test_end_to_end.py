@@ -107,7 +107,7 @@ def test_outputs_are_georeferenced_against_truth(sample_run) -> None:
 @pytest.mark.slow
 def test_evaluate_scores_the_run(sample_run) -> None:
     drive, out, _ = sample_run
-    from roadsurf.mapping.evaluate import evaluate_run
+    from roadsurf.evaluation.report import evaluate_run
 
     ev = evaluate_run(out, drive / "truth")
     assert ev["trajectory_rmse_m"] < 0.1

@@ -143,7 +143,7 @@ def evaluate(
 ) -> None:
     """Score run folders against simulator truth (trajectory, surface, coverage, seams,
     detection); writes RUN/evaluation.json and .md and prints a markdown table."""
-    from roadsurf.mapping.evaluate import evaluate_run, markdown_table
+    from roadsurf.evaluation.report import evaluate_run, markdown_table
 
     results = [evaluate_run(r, truth) for r in runs]
     typer.echo(markdown_table(results, [str(r) for r in runs]))
