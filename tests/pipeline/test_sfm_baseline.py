@@ -1,4 +1,5 @@
-"""pycolmap incremental-SfM baseline on a small simulated drive, read back with real readers."""
+"""The pycolmap SfM baseline (roadsurf.pipeline.sfm) on a small simulated drive, read back
+with real readers."""
 
 from __future__ import annotations
 
@@ -11,17 +12,15 @@ import cv2
 import numpy as np
 import pytest
 
-from roadsurf.io.drive import Camera, load_drive
+from roadsurf.core.camera import Camera
+from roadsurf.io.drive import load_drive
 from roadsurf.io.formats import LOCAL_CRS, read_csv, read_geojson, read_geotiff, read_ply
-from roadsurf.reconstruction.sfm_baseline import (
-    SfmBaselineConfig,
-    _colmap_camera,
-    fit_plane_ransac,
-    local_surface_residuals,
-    rasterise_mean,
-    robust_fit_2d,
-    run,
-)
+from roadsurf.pipeline.sfm import run, run_from_paths
+from roadsurf.pipeline.sfm.colmap_run import colmap_camera
+from roadsurf.pipeline.sfm.config import SfmBaselineConfig
+from roadsurf.pipeline.sfm.fits import fit_plane_ransac, robust_fit_2d
+from roadsurf.pipeline.sfm.georef import _fit_vertical_tilt, _neighbour_heading_dev
+from roadsurf.pipeline.sfm.surface import local_surface_residuals, rasterise_mean
 
 N_FRAMES = 12
 BLANK = "blank"  # the frame we replace with a textureless image
@@ -167,12 +166,12 @@ def test_cli_command(sim_drive: Path, sfm_out: Path, tmp_path: Path) -> None:
 
 def test_colmap_camera_principal_point_convention() -> None:
     cam = Camera(320, 240, 300.0, 301.0, 159.5, 119.5, 1.1, 15.0)
-    model, params = _colmap_camera(cam)
+    model, params = colmap_camera(cam)
     assert model == "PINHOLE" and params == "300.0,301.0,160.0,120.0"
     cam_d = Camera(320, 240, 300.0, 300.0, 159.5, 119.5, 1.1, 15.0, (-0.1, 0.01, 0.0, 0.0, 0.0))
-    assert _colmap_camera(cam_d)[0] == "OPENCV"
+    assert colmap_camera(cam_d)[0] == "OPENCV"
     cam_k3 = Camera(320, 240, 300.0, 300.0, 159.5, 119.5, 1.1, 15.0, (-0.1, 0.0, 0.0, 0.0, 0.01))
-    assert _colmap_camera(cam_k3)[0] == "FULL_OPENCV"
+    assert colmap_camera(cam_k3)[0] == "FULL_OPENCV"
 
 
 def test_plane_ransac_ignores_pothole_and_outliers() -> None:
@@ -226,8 +225,6 @@ def test_local_residuals_and_raster() -> None:
 
 
 def test_vertical_tilt_follows_good_gps_altitude_only() -> None:
-    from roadsurf.reconstruction.sfm_baseline import _fit_vertical_tilt
-
     rng = np.random.default_rng(4)
     s = np.linspace(0, 20, 40)
     c_h = np.column_stack([0.6 * s, 0.8 * s, np.zeros_like(s)])  # heading ~37°, flat in z
@@ -246,8 +243,6 @@ def test_vertical_tilt_follows_good_gps_altitude_only() -> None:
 
 
 def test_neighbour_heading_deviation_flags_a_flipped_pose() -> None:
-    from roadsurf.reconstruction.sfm_baseline import _neighbour_heading_dev
-
     h = np.array([10.0, 11.0, 9.5, 190.0, 10.5, 359.0 + 12.0 - 360.0, 10.0])
     dev = _neighbour_heading_dev(h)
     assert dev[3] > 170 and np.all(np.delete(dev, 3) < 5)
@@ -291,7 +286,6 @@ def test_textureless_drive_fails_with_reasons(tmp_path: Path) -> None:
 
 def test_config_file_rejects_unknown_keys(tmp_path: Path) -> None:
     from roadsurf.core.errors import ConfigError
-    from roadsurf.reconstruction.sfm_baseline import run_from_paths
 
     cfg = tmp_path / "c.yaml"
     cfg.write_text("sfm_baseline:\n  overlap: 3\n  ovrlap: 4\n")
