@@ -15,15 +15,19 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Literal
 from urllib.parse import quote
 
 import rerun as rr
+import rerun.blueprint as rrb
 
 from roadsurf.core.errors import RoadsurfError
+from roadsurf.io.runfolder import RECORDING_RRD
+from roadsurf.viewer.blueprint import layout_for
 from roadsurf.viewer.config import ViewerConfig
-from roadsurf.viewer.recording import APP_ID, layout_for, log_run
-from roadsurf.viewer.runfolder import RunData, load_run
+from roadsurf.viewer.recording import APP_ID, log_run
+from roadsurf.viewer.rundata import RunData
+from roadsurf.viewer.runfolder import load_run
 
 log = logging.getLogger(__name__)
 
@@ -80,7 +84,7 @@ def save_rrd(
     The file is written beside its final name and renamed, so a viewer never opens half a file."""
     cfg = cfg or ViewerConfig()
     data = load_run(run_dir, drive_dir, max_raster_side_px=cfg.max_mosaic_side_px)
-    out = Path(out) if out is not None else Path(run_dir) / "run.rrd"
+    out = Path(out) if out is not None else Path(run_dir) / RECORDING_RRD
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.stem}.tmp.rrd")
     rec = rr.RecordingStream(APP_ID)
@@ -121,7 +125,9 @@ def rerun_executable() -> str | None:
     return str(exe) if exe.exists() else shutil.which("rerun")
 
 
-def spawn_native(rec: rr.RecordingStream, bp: Any, hint: str = "roadsurf view RUN") -> None:
+def spawn_native(
+    rec: rr.RecordingStream, bp: rrb.Blueprint, hint: str = "roadsurf view RUN"
+) -> None:
     """Spawn the native viewer and connect ``rec`` to it; RoadsurfError when impossible."""
     require_display(hint)
     try:

@@ -1,10 +1,12 @@
 """Live streaming for `roadsurf run DRIVE --rerun`.
 
-The pipeline calls ``observer(stage_name, result)`` after each stage (see roadsurf/pipeline.py).
-Each stage has written its artifacts to the run folder before it returns, so the observer reads
-what is new from the folder with the same code as `roadsurf view` and logs it: frames with
-their matches after reconstruction, the trajectory and frusta after poses, the cloud and the
-mosaic after the global map, the defects after detection, the summary at the end.
+The CLI builds this observer (``make_observer``) and passes it to ``run_drive``, which calls
+``observer(stage_name, result)`` after each stage (see roadsurf/pipeline/run.py); the pipeline
+never imports the viewer. Each stage has written its artifacts to the run folder before it
+returns, so the observer reads what is new from the folder with the same code as
+`roadsurf view` and logs it: frames with their matches after reconstruction, the trajectory
+and frusta after poses, the cloud and the mosaic after the global map, the defects after
+detection, the summary at the end.
 
 Where the native viewer can open (a display), it is spawned; otherwise the stream goes to
 RUN/live.rrd and a warning says how to open it (`rerun RUN/live.rrd` or `roadsurf view --serve`).
@@ -19,21 +21,14 @@ from typing import Any
 import rerun as rr
 
 from roadsurf.core.errors import RoadsurfError
+from roadsurf.io.runfolder import LIVE_RRD
+from roadsurf.viewer.blueprint import blueprint, layout_for
 from roadsurf.viewer.config import ViewerConfig
-from roadsurf.viewer.recording import (
-    APP_ID,
-    blueprint,
-    layout_for,
-    log_camera_poses,
-    log_cloud,
-    log_defects,
-    log_frames,
-    log_mosaic,
-    log_setup,
-    log_trajectory,
-    summary_markdown,
-)
-from roadsurf.viewer.runfolder import RunData, load_run
+from roadsurf.viewer.recording import APP_ID, log_setup, summary_markdown
+from roadsurf.viewer.rundata import RunData
+from roadsurf.viewer.runfolder import load_run
+from roadsurf.viewer.scene import log_cloud, log_defects, log_mosaic, log_trajectory
+from roadsurf.viewer.timeline import log_camera_poses, log_frames
 
 log = logging.getLogger(__name__)
 
@@ -69,7 +64,7 @@ class LiveObserver:
                 return
             except RoadsurfError as e:
                 log.warning("%s", e)
-        self.rrd = self.run_dir / "live.rrd"
+        self.rrd = self.run_dir / LIVE_RRD
         self.run_dir.mkdir(parents=True, exist_ok=True)
         rec.save(self.rrd, default_blueprint=blueprint([]))
         log.warning(
@@ -85,6 +80,8 @@ class LiveObserver:
         )
 
     def __call__(self, stage: str, result: Any) -> None:
+        # ``result`` is the stage's own output (the pipeline's Observer protocol); only the
+        # drive's root is read here, everything else comes from the run folder
         rec, cfg = self.rec, self.cfg
         if stage == "drive":
             self.drive_dir = Path(result.root)
@@ -119,5 +116,5 @@ class LiveObserver:
 
 
 def make_observer(run_dir: str | Path, cfg: ViewerConfig | None = None) -> LiveObserver:
-    """The observer `roadsurf run --rerun` registers (roadsurf.pipeline imports this)."""
+    """The observer `roadsurf run --rerun` passes to the pipeline (the CLI imports this)."""
     return LiveObserver(run_dir, cfg)

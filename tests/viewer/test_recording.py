@@ -11,7 +11,8 @@ import pytest
 from roadsurf.core.geometry import ExportFrame
 from roadsurf.viewer.api import save_rrd
 from roadsurf.viewer.inspect import component_values, summarize_rrd
-from roadsurf.viewer.runfolder import depth_profile, enu_from_crs, load_run
+from roadsurf.viewer.profile import depth_profile
+from roadsurf.viewer.runfolder import enu_from_crs, load_run
 from tests.viewer.synthetic_run import REF, SyntheticRun, make_synthetic_run
 
 
