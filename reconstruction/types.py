@@ -27,6 +27,16 @@ STATUS_FAILED = (
 )
 
 
+class PairFailure(Exception):
+    """Internal to the estimators: a pair cannot be reconstructed. ``estimate_matches`` turns it
+    into the pair's status and reason; it never leaves that function."""
+
+    def __init__(self, status: str, reason: str) -> None:
+        super().__init__(reason)
+        self.status = status
+        self.reason = reason
+
+
 @dataclass
 class Features:
     """Keypoints and descriptors of one frame, computed once and reused by both its pairs."""
@@ -111,7 +121,7 @@ def pair_filename(index_a: int, index_b: int) -> str:
 
 def save_pair(path: str | Path, res: PairResult) -> Path:
     """Write a PairResult atomically as .npz (arrays as arrays, scalars/strings as 0-d arrays)."""
-    data: dict[str, Any] = {}
+    data: dict[str, np.ndarray] = {}
     for f in fields(PairResult):
         v = getattr(res, f.name)
         if f.name == "timings_s":

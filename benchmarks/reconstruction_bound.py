@@ -1,4 +1,5 @@
-"""The physical floor of the study: a first-order (Cramér–Rao-style) bound on ε (eq. 3.36).
+"""The physical floor of the parametric study: a first-order (Cramér–Rao-style) bound on ε
+(eq. 3.36).
 
 Derivation (see docs/reconstruction.md):
 1. With the pose known, the Cramér–Rao bound of point X_j from its four pixel coordinates with

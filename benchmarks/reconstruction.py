@@ -1,6 +1,10 @@
-"""Entry points of ``roadsurf bench reconstruction`` and ``roadsurf bench speed``.
+"""Benchmark: the reconstruction study (``make bench-reconstruction``).
 
-Each returns the printable report; the files go to the output folder (CSV, PNG, markdown).
+``python -m benchmarks.reconstruction [--out DIR] [--quick] ...``: the point-level parametric
+study (Figs. 3.6-3.12, the first-order bound, issue 3's targets; ``reconstruction_study``) and
+the accuracy on rendered simulator drives (``reconstruction_images``). The CSV files, figures
+and summary.md go to the output folder; the printed report and figures also go to
+benchmarks/results/reconstruction.json.
 """
 
 from __future__ import annotations
@@ -8,8 +12,8 @@ from __future__ import annotations
 import tempfile
 from pathlib import Path
 
+from benchmarks.reconstruction_study import write_rows_csv
 from roadsurf.core.atomic import write_text_atomic
-from roadsurf.reconstruction.io_helpers import write_rows_csv
 
 
 def bench_reconstruction(
@@ -27,7 +31,7 @@ def bench_reconstruction(
 
     study=False re-runs only the rendered-drive part and keeps the study's summary.md part.
     """
-    from roadsurf.reconstruction.study import run_study
+    from benchmarks.reconstruction_study import run_study
 
     out = Path(out)
     lines: list[str] = []
@@ -44,7 +48,7 @@ def bench_reconstruction(
     else:
         md = prev_md.split("\n## Rendered drives")[0]
     if images:
-        from roadsurf.reconstruction.bench_images import bench_images
+        from benchmarks.reconstruction_images import bench_images
 
         work = Path(work or Path(tempfile.gettempdir()) / "roadsurf_bench_drives")
         n = frames or (12 if quick else 30)
@@ -71,27 +75,53 @@ def bench_reconstruction(
     return "\n".join(lines)
 
 
-def bench_speed_report(
-    out: Path,
-    *,
-    frames: int = 60,
-    repeats: int = 5,
-    max_features: int | None = None,
-    kind: str = "sift",
-) -> str:
-    """Speed benchmark; returns the markdown report (also OUT/speed.md)."""
-    from dataclasses import replace
+def main(argv: list[str] | None = None) -> int:
+    """``python -m benchmarks.reconstruction`` (``make bench-reconstruction ARGS="..."``)."""
+    import argparse
 
-    from roadsurf.reconstruction.bench_speed import bench_speed
-    from roadsurf.reconstruction.config import ReconstructionConfig
+    from benchmarks._result import write_result
 
-    base = ReconstructionConfig()
-    mf = max_features or base.features.max_features
-    cfg = replace(base, features=replace(base.features, kind=kind, max_features=mf))  # type: ignore[arg-type]
-    res = bench_speed(Path(out), n_frames=frames, repeats=repeats, cfg=cfg)
-    d = res["drive"]
-    verdict = "MET" if d["pairs_per_s"] >= 5 else "NOT MET"
-    return (
-        res["markdown"]
-        + f"\n[{verdict}] ≥ 5 pairs/s with {kind} on this machine: {d['pairs_per_s']:.2f} pairs/s\n"
+    ap = argparse.ArgumentParser(
+        description="Parametric study (Figs. 3.6-3.12, bound, targets) and rendered-drive accuracy."
     )
+    ap.add_argument(
+        "--out",
+        "-o",
+        type=Path,
+        default=Path("docs/img/reconstruction"),
+        help="folder for CSV, figures, summary.md",
+    )
+    ap.add_argument("--quick", action="store_true", help="fewer cells, trials and frames")
+    ap.add_argument("--trials", type=int, default=None, help="Monte-Carlo trials per cell")
+    ap.add_argument("--workers", type=int, default=2, help="worker processes")
+    ap.add_argument(
+        "--images",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="also evaluate rendered drives",
+    )
+    ap.add_argument("--frames", type=int, default=None, help="frames per rendered drive")
+    ap.add_argument(
+        "--study",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="run the point-level study",
+    )
+    ap.add_argument("--json", type=Path, default=None, help="result file (default results/)")
+    a = ap.parse_args(argv)
+    report = bench_reconstruction(
+        a.out,
+        quick=a.quick,
+        trials=a.trials,
+        workers=a.workers,
+        images=a.images,
+        frames=a.frames,
+        study=a.study,
+    )
+    print(report)
+    write_result(a.json, "reconstruction", {"out": str(a.out), "report": report})
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,5 +1,5 @@
 """Reconstruction on rendered simulator drives, against the ground truth (part of
-``roadsurf bench reconstruction``).
+``python -m benchmarks.reconstruction``).
 
 Per pair and method: the height error of every reconstructed point against truth/residual.tif
 (height relative to the smooth road, negative below), split into flat road (true residual

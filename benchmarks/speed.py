@@ -1,4 +1,5 @@
-"""``roadsurf bench speed``: one 1024x768 pair end to end, and pairs/s over a 60-frame drive.
+"""Benchmark: reconstruction speed (``make bench-speed``): one 1024x768 pair end to end, and
+pairs/s over a 60-frame drive.
 
 Wall-clock and process CPU time (all threads) are both reported: on a shared machine the wall
 time depends on other jobs, the CPU time much less. Compared in the same run with pycolmap's
@@ -13,27 +14,33 @@ import platform
 import shutil
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import replace
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import cv2
 import numpy as np
 
-from roadsurf.io.drive import load_drive, read_gray
+from roadsurf.core.camera import Camera
+from roadsurf.io.drive import Drive, load_drive, read_gray
 from roadsurf.reconstruction import features as feat
 from roadsurf.reconstruction import stage
 from roadsurf.reconstruction.api import reconstruct_pair
 from roadsurf.reconstruction.config import ReconstructionConfig
 from roadsurf.reconstruction.estimators import estimate_matches
+from roadsurf.reconstruction.types import Features
 
 log = logging.getLogger(__name__)
 
 STEPS = ("features", "matching", "rejection", "geometry", "triangulation")
 
 
-def _timed(fn: Any, *args: Any, **kw: Any) -> tuple[Any, float, float]:
+T = TypeVar("T")
+
+
+def _timed(fn: Callable[..., T], *args: Any, **kw: Any) -> tuple[T, float, float]:
     w0, c0 = time.perf_counter(), time.process_time()
     out = fn(*args, **kw)
     return out, time.perf_counter() - w0, time.process_time() - c0
@@ -110,7 +117,7 @@ def bench_speed(
     return fig
 
 
-def _bench_drive(drive: Any, cfg: ReconstructionConfig) -> dict[str, Any]:
+def _bench_drive(drive: Drive, cfg: ReconstructionConfig) -> dict[str, Any]:
     run_dir = Path(tempfile.mkdtemp(prefix="speed_run_"))
     try:
         dcfg = replace(cfg, save_features=False, overwrite=True)
@@ -133,11 +140,14 @@ def _bench_drive(drive: Any, cfg: ReconstructionConfig) -> dict[str, Any]:
 
 
 def _bench_pycolmap(
-    ga: np.ndarray, gb: np.ndarray, cam: Any, cfg: ReconstructionConfig, repeats: int, threads: int
+    ga: np.ndarray,
+    gb: np.ndarray,
+    cam: Camera,
+    cfg: ReconstructionConfig,
+    repeats: int,
+    threads: int,
 ) -> dict[str, Any]:
     import pycolmap
-
-    from roadsurf.reconstruction.types import Features
 
     opts = pycolmap.FeatureExtractionOptions()
     opts.num_threads = threads
@@ -185,7 +195,7 @@ def speed_markdown(f: dict[str, Any]) -> str:
     cf = f["config"]
     ms = 1000.0
     lines = [
-        f"Command: `roadsurf bench speed` — {f['image']} frames, {cf['features']} "
+        f"Command: `python -m benchmarks.speed` — {f['image']} frames, {cf['features']} "
         f"(max {cf['max_features']}, {cf['matcher']}), method {cf['method']}, "
         f"cv2 threads {cf['threads']}; {f['machine']}; {f['date']}.",
         "",
@@ -226,3 +236,59 @@ def speed_markdown(f: dict[str, Any]) -> str:
             f"(ratio {c['total'] / s['wall']:.2f}x)."
         )
     return "\n".join(lines) + "\n"
+
+
+def bench_speed_report(
+    out: Path,
+    *,
+    frames: int = 60,
+    repeats: int = 5,
+    max_features: int | None = None,
+    kind: str = "sift",
+) -> str:
+    """Speed benchmark; returns the markdown report (also OUT/speed.md)."""
+    base = ReconstructionConfig()
+    mf = max_features or base.features.max_features
+    cfg = replace(base, features=replace(base.features, kind=kind, max_features=mf))  # type: ignore[arg-type]
+    res = bench_speed(Path(out), n_frames=frames, repeats=repeats, cfg=cfg)
+    d = res["drive"]
+    verdict = "MET" if d["pairs_per_s"] >= 5 else "NOT MET"
+    return (
+        res["markdown"]
+        + f"\n[{verdict}] ≥ 5 pairs/s with {kind} on this machine: {d['pairs_per_s']:.2f} pairs/s\n"
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m benchmarks.speed`` (``make bench-speed ARGS="..."``)."""
+    import argparse
+
+    from benchmarks._result import write_result
+
+    ap = argparse.ArgumentParser(
+        description="Reconstruction speed: one 1024x768 pair (breakdown) and pairs/s over a drive."
+    )
+    ap.add_argument(
+        "--out", "-o", type=Path, default=Path("out/bench_speed"), help="work/output folder"
+    )
+    ap.add_argument("--frames", type=int, default=60, help="frames of the timed drive")
+    ap.add_argument("--repeats", type=int, default=5, help="repeats of the single-pair timing")
+    ap.add_argument(
+        "--max-features",
+        type=int,
+        default=None,
+        help="keypoints per frame (default: the config's)",
+    )
+    ap.add_argument("--features", default="sift", help="sift | orb | akaze")
+    ap.add_argument("--json", type=Path, default=None, help="result file (default results/)")
+    a = ap.parse_args(argv)
+    report = bench_speed_report(
+        a.out, frames=a.frames, repeats=a.repeats, max_features=a.max_features, kind=a.features
+    )
+    print(report)
+    write_result(a.json, "speed", {"markdown": report})
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from roadsurf.reconstruction.study import paired_vs_colmap
+from benchmarks.reconstruction_study import paired_vs_colmap
 
 
 def _rows(eps_ra: np.ndarray, eps_colmap: np.ndarray, sweep: str = "s") -> list[dict]:
