@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -25,6 +25,9 @@ from roadsurf.detection.config import MapSegmentConfig, SeverityConfig
 from roadsurf.detection.meanshift import mean_shift_flat
 from roadsurf.detection.planefit import nanmedian_last, robust_sigma
 from roadsurf.io.formats import GridSpec
+
+if TYPE_CHECKING:
+    from roadsurf.detection.rutrecord import RutTrace
 
 log = logging.getLogger(__name__)
 
@@ -51,7 +54,7 @@ class Region:
     support_idx: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # evidence ids
     noise_m: float = float("nan")  # σ of the raster window it was segmented in (m)
     seed_m: float = float("nan")  # T_d used in that window (m)
-    rut: Any = None  # detection.ruts.RutTrace when the region is a traced rut
+    rut: RutTrace | None = None  # set when the region is a traced rut (``ruts``)
 
 
 @dataclass

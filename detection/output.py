@@ -1,4 +1,5 @@
-"""Writers (and the resume reader) for the detection outputs (output contract).
+"""Writers, the resume signature and the resume reader of the detection outputs (output
+contract).
 
 - ``defects.geojson``: RFC 7946 FeatureCollection in WGS84 lon/lat, one Polygon per defect with
   properties id, type, severity, max_depth_m, mean_depth_m, area_m2, volume_m3, length_m,
@@ -11,17 +12,25 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from roadsurf.core.atomic import read_json, write_json_atomic, write_text_atomic
+from roadsurf.core.config import to_dict
+from roadsurf.detection.config import DetectionConfig
 from roadsurf.detection.mapframe import MapFrame
 from roadsurf.detection.types import Defect, DetectionResult, FrameLabel
 from roadsurf.io.formats import feature, polygon_geometry, write_csv, write_geojson
+from roadsurf.mapping.types import Trajectory
+from roadsurf.reconstruction.types import PairResult
+
+if TYPE_CHECKING:
+    from roadsurf.detection.classifier.fusion import FusionRule
 
 log = logging.getLogger(__name__)
 
@@ -173,3 +182,34 @@ def load_result(run_dir: Path, signature: str) -> DetectionResult | None:
     )
     res.files = {n: run_dir / n for n in (*names, "detection.json")}
     return res
+
+
+def signature(
+    cfg: DetectionConfig,
+    pairs: list[PairResult],
+    traj: Trajectory,
+    run_dir: Path,
+    frame_probs: dict[str, float] | None,
+    fusion: FusionRule | None = None,
+) -> str:
+    """Hash of everything the outputs depend on (config, pairs, poses, raster, CNN scores)."""
+    h = hashlib.sha256()
+    h.update(json.dumps(to_dict(cfg), sort_keys=True).encode())
+    for p in pairs:
+        h.update(f"{p.frame_a}|{p.frame_b}|{p.status}|{p.n_points}|{p.method}".encode())
+        if p.n_points:
+            h.update(np.ascontiguousarray(p.plane_dist_m, dtype=np.float64).tobytes()[:4096])
+    h.update(np.ascontiguousarray(traj.world_from_cam, dtype=np.float64).tobytes())
+    h.update(json.dumps(traj.reference.to_dict() if traj.reference else None).encode())
+    for name in ("surface.tif", "surface.vrt", "map_points.npz"):
+        p = Path(run_dir) / name
+        if p.exists():
+            st = p.stat()
+            h.update(f"{name}|{st.st_size}|{st.st_mtime_ns}".encode())
+    h.update(json.dumps(sorted((frame_probs or {}).items())).encode())
+    if fusion is not None:
+        h.update(
+            repr((fusion.threshold, fusion.confirm_defect_with_3d, fusion.context_frames)).encode()
+        )
+        h.update(json.dumps(sorted(fusion.decide_3d)).encode())
+    return h.hexdigest()

@@ -1,17 +1,26 @@
-"""Per-pair defect points (dissertation Ch. 4): recursive plane fit, then 2D + 3D refinement."""
+"""Per-pair defect points (dissertation Ch. 4): recursive plane fit, then 2D + 3D refinement.
+
+``analyse_pair`` does one pair; ``analyse_pairs`` every ok pair of a run, on threads, writing
+each pair's refined 2D defect mask (RUN/masks/<frame stem>.png).
+"""
 
 from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from pathlib import Path
 
+import cv2
 import numpy as np
+from tqdm import tqdm
 
+from roadsurf.core.atomic import atomic_path
+from roadsurf.core.parallel import ordered_map
 from roadsurf.detection.config import DetectionConfig
 from roadsurf.detection.cracks import PairCracks, PairView, detect_pair_cracks
 from roadsurf.detection.planefit import recursive_plane_fit
 from roadsurf.detection.refine import binarise, correct_defects, refined_mask
-from roadsurf.io.drive import Camera
+from roadsurf.io.drive import Camera, Drive, GrayFrames
 from roadsurf.reconstruction.types import PairResult
 
 log = logging.getLogger(__name__)
@@ -51,7 +60,7 @@ def analyse_pair(
 
     With ``gray`` and ``m_per_px`` (ground size of a pixel, m) cracks are detected too; with
     image b (``gray_b``, raw pixels) and the ``camera`` their depth is also measured densely
-    from the parallax across each crack (``detection.cracks.dense_crack_depth``).
+    from the parallax across each crack (``detection.crackdepth.dense_crack_depth``).
     """
     if not pair.ok or pair.n_points < max(3, cfg.plane.min_points):
         return None
@@ -105,9 +114,7 @@ def _raw_px(px: np.ndarray, camera: Camera | None) -> np.ndarray:
     """(N, 2) ideal pinhole pixels -> raw image pixels (unchanged without lens distortion)."""
     if camera is None or not camera.has_distortion:
         return px
-    from roadsurf.detection.dense import _distort
-
-    return _distort(px, camera)
+    return camera.distort_px(px)
 
 
 def _area_per_point(P: np.ndarray) -> float:
@@ -115,3 +122,58 @@ def _area_per_point(P: np.ndarray) -> float:
     over their count (the reconstruction spreads points over the image with a feature grid)."""
     lo, hi = np.percentile(P[:, :2], [1, 99], axis=0)
     return float(np.prod(np.maximum(hi - lo, 1e-6))) / len(P)
+
+
+def analyse_pairs(
+    cfg: DetectionConfig,
+    drive: Drive,
+    pairs: list[PairResult],
+    masks_dir: Path | None = None,
+) -> dict[int, PairDefects]:
+    """Plane fit + 2D/3D refinement of every ok pair; keyed by the pair's position in ``pairs``.
+
+    With ``masks_dir`` the refined 2D defect mask of each pair's image a is written there as
+    ``<frame stem>.png`` (uint8, 255 = defect, 0 = not) and not kept in memory.
+    """
+    out: dict[int, PairDefects] = {}
+    ok = [(k, p) for k, p in enumerate(pairs) if p.ok]
+    workers = max(1, int(cfg.pair_workers))
+    # consecutive pairs share a frame (b, then a); each thread is a pair or two apart
+    image = GrayFrames(
+        drive.frames, 2 * workers + 2, "detection: pairs with this frame use 3D only"
+    ).get
+
+    def one(kp: tuple[int, PairResult]) -> PairDefects | None:
+        _, p = kp
+        gray = gray_b = None
+        if cfg.use_images and cfg.refine.enabled:
+            gray = image(p.frame_a)
+            # Image b only for the dense crack depth (parallax across each crack).
+            if gray is not None and cfg.crack.enabled and cfg.crack.dense:
+                gray_b = image(p.frame_b)
+        return analyse_pair(
+            p, gray, cfg, m_per_px=drive.camera.height_m / drive.camera.fx,
+            gray_b=gray_b, camera=drive.camera,
+        )  # fmt: skip
+
+    # pairs are independent: threads analyse them (NumPy and OpenCV release the GIL), and the
+    # results are taken in pair order, so they are the same on any thread count
+    results = ordered_map(one, ok, workers)
+    bar = tqdm(total=len(ok), desc="detection: pairs", unit="pair", disable=len(ok) < 20)
+    with bar:
+        for (k, _), res in zip(ok, results, strict=True):
+            bar.update(1)
+            if res is None:
+                continue
+            if masks_dir is not None and res.mask is not None:
+                _write_mask(Path(masks_dir) / f"{Path(res.frame_a).stem}.png", res.mask)
+            res.mask = None  # bounded memory: a few image masks at a time
+            out[k] = res
+    return out
+
+
+def _write_mask(path: Path, mask: np.ndarray) -> None:
+    """Write a refined 2D defect mask as an 8-bit PNG (255 = defect), atomically."""
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), np.where(mask, 255, 0).astype(np.uint8)):
+            raise OSError(f"{path}: could not write the defect mask PNG (disk full?)")

@@ -1,4 +1,4 @@
-"""Dense crack depth (detection.cracks.dense_crack_depth): the parallax across a crack's centre
+"""Dense crack depth (detection.crackdepth.dense_crack_depth): the parallax across a crack's centre
 line, against a road band beside it, on a two-view render with true relief."""
 
 import cv2
@@ -7,7 +7,7 @@ import pytest
 
 from roadsurf.core.geometry import invert_pose, transform_points
 from roadsurf.detection.config import CrackConfig
-from roadsurf.detection.cracks import PairView, dense_crack_depth
+from roadsurf.detection.crackdepth import PairView, dense_crack_depth
 from roadsurf.io.drive import Camera, read_gray
 from tests.detection.synthetic import Scene, Trough, build_two_view, poses
 

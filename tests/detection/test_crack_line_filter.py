@@ -1,4 +1,4 @@
-"""The oriented line filter of the crack detector (detection.cracks.thin_dark_components) on a
+"""The oriented line filter of the crack detector (detection.crackfilter.thin_dark_components) on a
 real gravel photo (skimage.data.gravel): its stone gaps answer a point-wise black top-hat as
 strongly as a clearly visible crack does; averaging along 4 cm segments separates them."""
 
@@ -8,7 +8,7 @@ import pytest
 import skimage.data
 
 from roadsurf.detection.config import CrackConfig
-from roadsurf.detection.cracks import thin_dark_components
+from roadsurf.detection.crackfilter import thin_dark_components
 
 M_PER_PX = 0.0015  # ground size of a pixel (m), as on a survey camera 1-2 mm/px
 

@@ -5,7 +5,8 @@ import pytest
 
 from roadsurf.detection import stage
 from roadsurf.detection.config import CrackConfig, DetectionConfig
-from roadsurf.detection.cracks import cluster_cracks, crack_evidence, thin_dark_components
+from roadsurf.detection.crackfilter import thin_dark_components
+from roadsurf.detection.crackmap import cluster_cracks, crack_defects, crack_evidence
 from tests.detection.synthetic import Pothole, Scene, Trough, build
 
 CFG = DetectionConfig()
@@ -97,6 +98,6 @@ def test_crack_evidence_from_a_failed_reconstruction_is_vetoed():
 
     traj = Trajectory(["000000.png"], np.arange(1), np.zeros(1), poses(1), ["gps"], None)
     args = (traj, {"000000.png": 0}, MapFrame.create(None), {}, [])
-    ok = stage._crack_defects(CFG, {0: _crack_pair(0.004)}, *args)
+    ok = crack_defects(CFG, {0: _crack_pair(0.004)}, *args)
     assert [d.type for d in ok] == ["crack"] and ok[0].max_depth_m == pytest.approx(0.004)
-    assert stage._crack_defects(CFG, {0: _crack_pair(0.8)}, *args) == []
+    assert crack_defects(CFG, {0: _crack_pair(0.8)}, *args) == []

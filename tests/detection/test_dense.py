@@ -86,22 +86,21 @@ def test_partial_dense_reading_still_counts_for_max_depth(tmp_path):
 
 def test_distort_undistort_round_trip():
     """Tracks run on the raw (distorted) images; the pair's pixels are ideal pinhole ones."""
-    from roadsurf.detection.dense import _distort, _undistort
     from roadsurf.io.drive import Camera
 
     cam = Camera(640, 480, 600.0, 600.0, 319.5, 239.5, 1.1, 15.0, (-0.12, 0.03, 0.0005, -0.0005, 0))
     rng = np.random.default_rng(3)
     px = np.c_[rng.uniform(20, 620, 200), rng.uniform(20, 460, 200)]
-    raw = _distort(px, cam)
+    raw = cam.distort_px(px)
     assert np.abs(raw - px).max() > 5.0  # the lens moves the corners by pixels
-    assert np.allclose(_undistort(raw, cam), px, atol=0.05)
+    assert np.allclose(cam.undistort_px(raw), px, atol=0.05)
 
 
 def test_tracks_that_slid_along_the_epipolar_line_are_dropped():
     """A rut running with the direction of travel gave tracks 0.3-4.5 m 'deep' that passed the
     forward-backward and epipolar checks (they slide along the line); one such cluster set the
     rut's max depth to 0.75 m. The neighbour check drops them and keeps a steep-walled bowl."""
-    from roadsurf.detection.dense import _consistent
+    from roadsurf.detection.densecheck import consistent
 
     rng = np.random.default_rng(3)
     shape = (40, 60)
@@ -115,7 +114,7 @@ def test_tracks_that_slid_along_the_epipolar_line_are_dropped():
     d[np.ravel_multi_index((21, 31), shape)] = 0.9  # one inside the bowl, too
     use = np.ones(d.size, bool)
     ok = np.ones(d.size, bool)
-    keep = _consistent(d, ok, use, shape, 0.001)
+    keep = consistent(d, ok, use, shape, 0.001)
     assert not keep[spikes].any()
     assert not keep[np.ravel_multi_index((21, 31), shape)]
     good = np.setdiff1d(np.arange(d.size), spikes)
@@ -130,7 +129,7 @@ def test_patches_of_tracks_that_slid_together_are_dropped():
     each other, so the 5 x 5 neighbour check keeps them, and one set the depth to 122 mm. An
     island of tracks where LK failed all around, and a small patch far deeper than the valid
     tracks around it, are dropped; a steep-walled floor and a narrow crack groove stay."""
-    from roadsurf.detection.dense import _consistent, _no_deep_patch
+    from roadsurf.detection.densecheck import consistent, no_deep_patch
 
     rng = np.random.default_rng(5)
     shape = (60, 80)
@@ -154,10 +153,10 @@ def test_patches_of_tracks_that_slid_together_are_dropped():
     ok[island] = True
     d[island] = rng.uniform(0.13, 0.15, island.size)
     use = np.ones(d.size, bool)
-    keep = ok & _consistent(d, ok, use, shape, 0.001)
+    keep = ok & consistent(d, ok, use, shape, 0.001)
     # the neighbour check alone keeps the patch's core and the whole island
     assert keep[patch].sum() >= 9 and keep[island].all()
-    keep &= _no_deep_patch(d, keep, use, shape, 0.001, half=6)
+    keep &= no_deep_patch(d, keep, use, shape, 0.001, half=6)
     assert not keep[patch].any()
     assert not keep[island].any()
     floor = ok & (r.ravel() < 0.9)

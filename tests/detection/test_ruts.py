@@ -8,7 +8,10 @@ from scipy import ndimage
 
 from roadsurf.detection.config import DetectionConfig
 from roadsurf.detection.mapseg import Region
-from roadsurf.detection.ruts import longest_trough_m, scan_seeds, trace_rut, trace_ruts
+from roadsurf.detection.rutrecord import longest_trough_m
+from roadsurf.detection.ruts import trace_ruts
+from roadsurf.detection.rutscan import scan_seeds
+from roadsurf.detection.ruttrace import trace_rut
 from roadsurf.io.formats import GridSpec
 
 CFG = DetectionConfig()

@@ -263,7 +263,7 @@ def _write_map_points(run_dir, xy, res_m):
 def test_pairs_analysed_by_threads_match_one_thread(tmp_path):
     """analyse_pairs on 1 and 3 threads: the same refined points, distances, scores, cracks and
     mask files, in pair order; an unreadable frame leaves its pairs to 3D only on both."""
-    from roadsurf.detection.pairs import PairDefects
+    from roadsurf.detection.pairs import PairDefects, analyse_pairs
 
     scene = Scene(
         potholes=[Pothole(0.1, 1.0, 0.15, 0.030), Pothole(-0.1, 2.0, 0.1, 0.02)],
@@ -276,9 +276,7 @@ def test_pairs_analysed_by_threads_match_one_thread(tmp_path):
     def analyse(workers: int) -> tuple[dict[int, PairDefects], dict[str, bytes]]:
         masks = tmp_path / f"masks{workers}"
         masks.mkdir()
-        out = stage.analyse_pairs(
-            dataclasses.replace(CFG, pair_workers=workers), drive, pairs, masks
-        )
+        out = analyse_pairs(dataclasses.replace(CFG, pair_workers=workers), drive, pairs, masks)
         return out, {p.name: p.read_bytes() for p in sorted(masks.iterdir())}
 
     one, masks1 = analyse(1)

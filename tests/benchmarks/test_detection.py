@@ -1,6 +1,12 @@
-"""Pooling, table and docs section of `roadsurf bench detection` (no simulation here)."""
+"""Pooling, table and options of the detection benchmark (no simulation here)."""
 
-from roadsurf.detection.bench import DOC_BEGIN, DOC_END, _pool, table_markdown, update_docs
+from pathlib import Path
+
+import pytest
+
+from benchmarks.detection import METHODS, parser, redetect
+from benchmarks.detection_table import pool, table_markdown
+from roadsurf.core.errors import RoadsurfError
 
 
 def _res(tp, tn, fp, fn, pred, truth, matched, errs, areas, fa=0):
@@ -25,7 +31,7 @@ def _res(tp, tn, fp, fn, pred, truth, matched, errs, areas, fa=0):
 def test_pool_sums_counts_and_pools_errors():
     a = _res(5, 20, 0, 1, 2, 2, 2, [-0.002, 0.004], [0.1, 0.3])
     b = _res(0, 10, 1, 0, 1, 0, 0, [], [], fa=1)
-    p = _pool([a, b])
+    p = pool([a, b])
     assert (p["TP"], p["TN"], p["FP"], p["FN"]) == (5, 30, 1, 1)
     assert p["accuracy"] == 35 / 37
     assert p["defect_precision"] == 2 / 3 and p["defect_recall"] == 1.0
@@ -35,8 +41,8 @@ def test_pool_sums_counts_and_pools_errors():
 
 
 def test_table_lists_methods_and_targets():
-    p = _pool([_res(5, 20, 0, 0, 2, 2, 2, [0.001, -0.001], [0.05, 0.1])])
-    q = _pool([_res(2, 18, 2, 3, 6, 2, 1, [0.01], [0.6], fa=2)])
+    p = pool([_res(5, 20, 0, 0, 2, 2, 2, [0.001, -0.001], [0.05, 0.1])])
+    q = pool([_res(2, 18, 2, 3, 6, 2, 1, [0.01], [0.6], fa=2)])
     md = table_markdown({"rotation_aware": p, "classic": q}, {"map (product)": p})
     assert "| | rotation_aware | classic |" in md
     assert "frame accuracy >= 99%: 100.0% — **met**" in md
@@ -44,32 +50,19 @@ def test_table_lists_methods_and_targets():
     assert "| map (product) | 5/20/0/0 |" in md
 
 
-def test_update_docs_rewrites_only_its_section(tmp_path):
-    doc = tmp_path / "benchmarks.md"
-    doc.write_text("# Benchmarks\n\n## mapping\n\nkeep me\n", encoding="utf-8")
-    update_docs(doc, "TABLE ONE", "roadsurf bench detection", 60.0, (("flat", 1, 10),))
-    update_docs(doc, "TABLE TWO", "roadsurf bench detection", 60.0, (("flat", 1, 10),))
-    text = doc.read_text(encoding="utf-8")
-    assert "keep me" in text and "TABLE TWO" in text and "TABLE ONE" not in text
-    assert text.count(DOC_BEGIN) == 1 and text.count(DOC_END) == 1
-
-
-def test_update_docs_says_when_only_detection_was_rerun(tmp_path):
-    doc = tmp_path / "benchmarks.md"
-    update_docs(
-        doc, "T", "roadsurf bench detection --detection-only", 1800.0, (("flat", 1, 10),), 90.0
+def test_options_are_those_of_the_removed_cli_command():
+    a = parser().parse_args([])
+    assert a.work == Path("out/bench_detection") and not a.quick and not a.detection_only
+    assert (
+        tuple(a.methods.split(","))
+        == METHODS
+        == ("rotation_aware", "proposed", "classic", "colmap")
     )
-    text = doc.read_text(encoding="utf-8")
-    assert "detection stage re-run alone" in text and "1.5 min wall" in text
-    assert "load average" in text and "30 min for a cold run" in text
+    a = parser().parse_args(["--work", "w", "--quick", "--methods", "classic", "--detection-only"])
+    assert (a.work, a.quick, a.methods, a.detection_only) == (Path("w"), True, "classic", True)
 
 
 def test_detection_only_needs_the_runs(tmp_path):
-    import pytest
-
-    from roadsurf.core.errors import RoadsurfError
-    from roadsurf.detection.bench import redetect
-
     (tmp_path / "run").mkdir()
     with pytest.raises(RoadsurfError, match="without --detection-only"):
         redetect(tmp_path / "run", tmp_path / "drive")
