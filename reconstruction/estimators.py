@@ -15,6 +15,7 @@ import time
 import cv2
 import numpy as np
 
+from roadsurf.core.camera import normalised_from_px, px_from_cam
 from roadsurf.core.geometry import check_shape
 from roadsurf.reconstruction import geometry as g
 from roadsurf.reconstruction.config import ReconstructionConfig
@@ -147,13 +148,13 @@ def _estimate(
     res.timings_s["geometry"] = t2 - t1
 
     pa, pb, idx = pa[cand], pb[cand], idx[cand]
-    xa, xb = g.normalised_from_px(pa, K), g.normalised_from_px(pb, K)
+    xa, xb = normalised_from_px(pa, K), normalised_from_px(pb, K)
     X = g.triangulate(xa, xb, R, t)
     Xb = X @ R.T + t
     ok = (X[:, 2] > 0) & (Xb[:, 2] > 0)
     err = np.maximum(
-        np.linalg.norm(g.px_from_cam(X, K) - pa, axis=1),
-        np.linalg.norm(g.px_from_cam(Xb, K) - pb, axis=1),
+        np.linalg.norm(px_from_cam(X, K) - pa, axis=1),
+        np.linalg.norm(px_from_cam(Xb, K) - pb, axis=1),
     )
     if method != "stereo":  # the rig's calibrated pose is trusted as is (that is the baseline)
         ok &= err < cfg.max_reproj_px

@@ -9,28 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from roadsurf.core.geometry import check_shape
-
-
-def skew(v: np.ndarray) -> np.ndarray:
-    """(3,) -> (3, 3) cross-product matrix [v]x."""
-    v = check_shape("v", v, (3,))
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
-def normalised_from_px(px: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """(N, 2) pixels -> (N, 2) normalised image coordinates x/z, y/z."""
-    px = check_shape("px", px, (None, 2))
-    return np.stack(
-        [(px[:, 0] - K[0, 2]) / K[0, 0], (px[:, 1] - K[1, 2]) / K[1, 1]], axis=1
-    ).astype(float)
-
-
-def px_from_cam(X: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """(N, 3) camera-frame points -> (N, 2) pixels."""
-    X = check_shape("X", X, (None, 3))
-    z = X[:, 2]
-    return np.stack([K[0, 0] * X[:, 0] / z + K[0, 2], K[1, 1] * X[:, 1] / z + K[1, 2]], axis=1)
+from roadsurf.core.camera import normalised_from_px
+from roadsurf.core.geometry import check_shape, skew
 
 
 def rotation_from_axis_angle(w: np.ndarray) -> np.ndarray:

@@ -7,6 +7,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from roadsurf.core.camera import normalised_from_px
 from roadsurf.reconstruction import geometry as g
 from roadsurf.reconstruction.config import ReconstructionConfig
 from roadsurf.reconstruction.types import PairFailure
@@ -24,7 +25,7 @@ def pose_classic(
         raise PairFailure("geometry_failed", "8-point RANSAC found no fundamental matrix")
     inl = mask.ravel().astype(bool)
     E = K.T @ F @ K
-    xa, xb = g.normalised_from_px(px_a[inl], K), g.normalised_from_px(px_b[inl], K)
+    xa, xb = normalised_from_px(px_a[inl], K), normalised_from_px(px_b[inl], K)
     R, t, n_front = g.decompose_essential(E, xa, xb)
     if n_front <= 0:
         raise PairFailure("geometry_failed", "no cheirality-valid pose from the 8-point F")

@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import least_squares
 
+from roadsurf.core.camera import normalised_from_px
 from roadsurf.reconstruction import geometry as g
 
 
@@ -41,8 +42,8 @@ def refine_pose_plane_parallax(
     an analytic Jacobian (covariance held at the linearisation point), ``max_iter`` steps
     per κ (the two t columns by forward differences); ~5-15 ms for 2000 matches.
     """
-    xa = np.column_stack([g.normalised_from_px(px_a, K), np.ones(len(px_a))])
-    xb = g.normalised_from_px(px_b, K)
+    xa = np.column_stack([normalised_from_px(px_a, K), np.ones(len(px_a))])
+    xb = normalised_from_px(px_b, K)
     R, t, m = R0.copy(), t0 / np.linalg.norm(t0), np.asarray(m0, float).copy()
 
     def state(R: np.ndarray, t: np.ndarray, m: np.ndarray, kappa: float) -> dict:

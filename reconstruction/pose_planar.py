@@ -13,6 +13,8 @@ import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
+from roadsurf.core.camera import normalised_from_px
+from roadsurf.core.geometry import skew
 from roadsurf.reconstruction import geometry as g
 from roadsurf.reconstruction.config import ReconstructionConfig
 from roadsurf.reconstruction.types import PairFailure
@@ -64,9 +66,9 @@ def pose_proposed(
     the current R and t (t re-solved from the epipolar constraint with R fixed) until t settles.
     Returns (R, unit t, iterations used).
     """
-    xa, xb = g.normalised_from_px(px_a, K), g.normalised_from_px(px_b, K)
+    xa, xb = normalised_from_px(px_a, K), normalised_from_px(px_b, K)
     e_px = np.append(px_b.mean(axis=0) - px_a.mean(axis=0), 0.0)  # homogeneous difference
-    F = g.skew(e_px) @ H
+    F = skew(e_px) @ H
     E = K.T @ F @ K
     R, t, n_front = g.decompose_essential(E, xa, xb)
     if n_front <= 0:
@@ -76,7 +78,7 @@ def pose_proposed(
         n_it = it
         t_new = _t_from_rotation(xa, xb, R, t)
         converged = np.linalg.norm(t_new - t) < cfg.f_tol
-        F = g.skew(K @ t_new) @ H  # F = [e']x H with the epipole e' = K t
+        F = skew(K @ t_new) @ H  # F = [e']x H with the epipole e' = K t
         R, t, n_front = g.decompose_essential(K.T @ F @ K, xa, xb)
         if n_front <= 0:
             raise PairFailure("geometry_failed", "no cheirality-valid pose in the F rebuild loop")
@@ -92,7 +94,7 @@ def refine_homography_sampson(
     x_b × H x_a = 0 (Hartley & Zisserman §4.2.6) over the 8 entries (h33 = 1), in normalised
     coordinates. OpenCV's refinement only weighs the transfer error in image b."""
     Ki = np.linalg.inv(K)
-    xa, xb = g.normalised_from_px(px_a, K), g.normalised_from_px(px_b, K)
+    xa, xb = normalised_from_px(px_a, K), normalised_from_px(px_b, K)
     Hn0 = Ki @ H0 @ K
     Hn0 = Hn0 / Hn0[2, 2]
     u, v = xa[:, 0], xa[:, 1]
@@ -139,7 +141,7 @@ def pose_plane_from_homography(
     """(R, unit t, m) with K⁻¹HK ∝ R + t mᵀ (m = plane normal / distance, in units of |t|),
     choosing the decomposition whose plane faces camera a along +z (the road prior)."""
     n_sol, Rs, ts, ns = cv2.decomposeHomographyMat(H, K)
-    xa = g.normalised_from_px(px_a, K)
+    xa = normalised_from_px(px_a, K)
     best, best_score = None, -np.inf
     for R, t, n in zip(Rs, ts, ns, strict=True):
         n = n.ravel()

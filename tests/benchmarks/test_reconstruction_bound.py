@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from benchmarks.reconstruction_bound import epsilon_bound, ratio_to_plane
+from roadsurf.core.camera import normalised_from_px
 from roadsurf.reconstruction import geometry as g
 from roadsurf.simulation.points import PointScene, simulate_points
 
@@ -25,8 +26,8 @@ def test_bound_matches_known_pose_monte_carlo(delta_m: float) -> None:
         na = pp.px_a_true + rng.normal(0, 0.2, pp.px_a_true.shape)
         nb = pp.px_b_true + rng.normal(0, 0.2, pp.px_b_true.shape)
         X = g.triangulate(
-            g.normalised_from_px(na, pp.K),
-            g.normalised_from_px(nb, pp.K),
+            normalised_from_px(na, pp.K),
+            normalised_from_px(nb, pp.K),
             pp.R_b_from_a,
             pp.t_b_from_a_m,
         )

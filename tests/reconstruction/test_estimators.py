@@ -8,6 +8,7 @@ import pytest
 
 from benchmarks.reconstruction_bound import epsilon_bound
 from benchmarks.reconstruction_study import epsilon
+from roadsurf.core.camera import normalised_from_px
 from roadsurf.reconstruction.config import ReconstructionConfig
 from roadsurf.reconstruction.estimators import estimate_matches
 from roadsurf.reconstruction.motion_prior import motion_prior_mask
@@ -88,8 +89,8 @@ def test_point_covariance_matches_monte_carlo() -> None:
         nb = pp.px_b_true + rng.normal(0, 0.3, pp.px_b_true.shape)
         draws.append(
             g.triangulate(
-                g.normalised_from_px(na, pp.K),
-                g.normalised_from_px(nb, pp.K),
+                normalised_from_px(na, pp.K),
+                normalised_from_px(nb, pp.K),
                 pp.R_b_from_a,
                 pp.t_b_from_a_m,
             )
