@@ -13,10 +13,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from roadsurf.core.camera import Camera
+from roadsurf.core.fits import robust_sigma
 from roadsurf.detection.config import CrackConfig
 from roadsurf.detection.densepair import as_u8
-from roadsurf.detection.planefit import robust_sigma
-from roadsurf.io.drive import Camera
 from roadsurf.reconstruction.features import track_forward_backward
 from roadsurf.reconstruction.types import PairResult
 

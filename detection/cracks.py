@@ -35,10 +35,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from roadsurf.core.camera import Camera
 from roadsurf.detection.config import CrackConfig
 from roadsurf.detection.crackdepth import DenseCrack, PairView, dense_crack_depth
 from roadsurf.detection.crackfilter import centre_line, thin_dark_components
-from roadsurf.io.drive import Camera
 
 log = logging.getLogger(__name__)
 

@@ -25,11 +25,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from roadsurf.core.camera import Camera
 from roadsurf.core.parallel import ordered_map
 from roadsurf.detection.config import DenseConfig
 from roadsurf.detection.densepair import PairDense, measure_dense
 from roadsurf.detection.planefit import nanmedian_last
-from roadsurf.io.drive import Camera, Drive, GrayFrames
+from roadsurf.io.drive import Drive, GrayFrames
 from roadsurf.reconstruction.types import PairResult
 
 if TYPE_CHECKING:

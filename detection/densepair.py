@@ -15,12 +15,12 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
+from roadsurf.core.camera import Camera, normalised_from_px
+from roadsurf.core.fits import plane_signed_distance, robust_plane_z, robust_sigma
 from roadsurf.core.geometry import skew
 from roadsurf.detection.densecheck import cell_area, consistent, no_deep_patch
-from roadsurf.detection.planefit import robust_plane, robust_sigma, signed_distance
-from roadsurf.io.drive import Camera
 from roadsurf.reconstruction.features import track_forward_backward
-from roadsurf.reconstruction.geometry import normalised_from_px, triangulate
+from roadsurf.reconstruction.geometry import triangulate
 from roadsurf.reconstruction.types import PairResult
 
 if TYPE_CHECKING:
@@ -158,10 +158,10 @@ def measure_dense(
     if road_ok.sum() < 30 or (ok & ins_u).sum() < 10:
         return _none("too few valid tracks")
     lev = P[road_ok] if road_cam_m is None else np.vstack([P[road_ok], road_cam_m])
-    plane = robust_plane(lev, iterations=4)
+    plane = robust_plane_z(lev, iterations=4)
     if plane is None:
         return _none("no road plane")
-    d = -signed_distance(P, plane)  # positive below the road
+    d = -plane_signed_distance(P, plane)  # positive below the road
     noise = max(robust_sigma(d[road_ok]), 1e-4)
     # A track that slid along the epipolar line (weak texture along it, e.g. a rut running
     # with the direction of travel) passes both checks above with a wildly wrong depth. Drop

@@ -13,7 +13,6 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from roadsurf.detection.config import DetectionConfig
-from roadsurf.detection.footprint import footprint_enu
 from roadsurf.detection.mapframe import MapFrame
 from roadsurf.detection.mapseg import choose_gsd
 from roadsurf.detection.pairs import PairDefects
@@ -140,7 +139,7 @@ def frame_footprints(drive: Drive, traj: Trajectory, mframe: MapFrame) -> dict[s
     out: dict[str, Polygon] = {}
     corners, names = [], []
     for fn, T in zip(traj.filenames, traj.world_from_cam, strict=True):
-        fp = footprint_enu(T, drive.camera)
+        fp = drive.camera.footprint_corners_enu(T)
         if fp is not None:
             corners.append(fp)
             names.append(fn)

@@ -21,9 +21,10 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
+from roadsurf.core.fits import robust_sigma
 from roadsurf.detection.config import MapSegmentConfig, SeverityConfig
 from roadsurf.detection.meanshift import mean_shift_flat
-from roadsurf.detection.planefit import nanmedian_last, robust_sigma
+from roadsurf.detection.planefit import nanmedian_last
 from roadsurf.io.formats import GridSpec
 
 if TYPE_CHECKING:

@@ -15,10 +15,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from roadsurf.core.fits import plane_signed_distance, robust_plane_z
 from roadsurf.detection.config import DetectionConfig, MapSegmentConfig
 from roadsurf.detection.dense import DenseContext, measure_defect_dense
 from roadsurf.detection.mapseg import Segmentation, classify, measure, severity
-from roadsurf.detection.planefit import robust_plane, signed_distance
 from roadsurf.detection.types import Defect
 
 if TYPE_CHECKING:
@@ -230,13 +230,13 @@ def pair_max_depth(
         ring = contains_xy(outer, q[:, 0], q[:, 1]) & ~contains_xy(inner, q[:, 0], q[:, 1])
         if ins.sum() < max(3, mc.min_support_points) or ring.sum() < 20:
             continue
-        plane = robust_plane(Q[ring])
+        plane = robust_plane_z(Q[ring])
         if plane is None:
             continue
         # The deepest point: the points sample a pothole's bottom sparsely, so lower
         # percentiles under-read it (bench: 2nd-deepest 4.4 mm MAE vs 3.5 mm); a single pair's
         # mismatch is voted out by the median over pairs.
-        est.append((int(ins.sum()), float(-signed_distance(Q[ins], plane).min())))
+        est.append((int(ins.sum()), float(-plane_signed_distance(Q[ins], plane).min())))
     if not est:
         return None
     n_best = max(n for n, _ in est)

@@ -15,12 +15,13 @@ import numpy as np
 from tqdm import tqdm
 
 from roadsurf.core.atomic import atomic_path
+from roadsurf.core.camera import Camera
 from roadsurf.core.parallel import ordered_map
 from roadsurf.detection.config import DetectionConfig
 from roadsurf.detection.cracks import PairCracks, PairView, detect_pair_cracks
 from roadsurf.detection.planefit import recursive_plane_fit
 from roadsurf.detection.refine import binarise, correct_defects, refined_mask
-from roadsurf.io.drive import Camera, Drive, GrayFrames
+from roadsurf.io.drive import Drive, GrayFrames
 from roadsurf.reconstruction.types import PairResult
 
 log = logging.getLogger(__name__)

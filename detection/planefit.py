@@ -2,7 +2,8 @@
 
 Points are in camera-a coordinates (x right, y backward, z down, metres); the road plane is
 Z = p0 X + p1 Y + p2 and the signed distance d_i is negative below the road (further from the
-camera), matching ``PairResult.plane_dist_m``.
+camera), matching ``PairResult.plane_dist_m``. The plane fits and robust σ themselves are
+``roadsurf.core.fits``.
 """
 
 from __future__ import annotations
@@ -11,19 +12,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from roadsurf.core.fits import MAD_TO_SIGMA, fit_plane_z, plane_signed_distance, robust_sigma
 from roadsurf.core.geometry import check_shape
 from roadsurf.detection.config import PlaneFitConfig
-
-MAD_TO_SIGMA = 1.4826  # σ of a normal distribution from its median absolute deviation
-
-
-def robust_sigma(values: np.ndarray) -> float:
-    """σ estimated as 1.4826 · MAD (robust to a minority of outliers); NaN for empty input."""
-    v = np.asarray(values, float)
-    v = v[np.isfinite(v)]
-    if v.size == 0:
-        return float("nan")
-    return float(MAD_TO_SIGMA * np.median(np.abs(v - np.median(v))))
 
 
 def nanmedian_last(a: np.ndarray) -> np.ndarray:
@@ -61,23 +52,6 @@ def road_sigma(d_m: np.ndarray) -> float:
     return float(MAD_TO_SIGMA * np.median(up)) if up.size else robust_sigma(v)
 
 
-def fit_plane(points_m: np.ndarray) -> np.ndarray:
-    """Least-squares plane Z = p0 X + p1 Y + p2 through (N, 3) points (N >= 3); returns (3,)."""
-    P = check_shape("points_m", points_m, (None, 3))
-    if P.shape[0] < 3:
-        raise ValueError(f"fit_plane: need at least 3 points, got {P.shape[0]}")
-    A = np.column_stack([P[:, 0], P[:, 1], np.ones(len(P))])
-    p, *_ = np.linalg.lstsq(A, P[:, 2], rcond=None)
-    return p
-
-
-def signed_distance(points_m: np.ndarray, plane: np.ndarray) -> np.ndarray:
-    """d_i = (p0 X + p1 Y - Z + p2) / sqrt(p0² + p1² + 1) (eq. 3.32); negative below the road."""
-    P = check_shape("points_m", points_m, (None, 3))
-    p0, p1, p2 = check_shape("plane", plane, (3,))
-    return (p0 * P[:, 0] + p1 * P[:, 1] - P[:, 2] + p2) / np.sqrt(p0 * p0 + p1 * p1 + 1.0)
-
-
 @dataclass
 class PlaneFitResult:
     candidate: np.ndarray  # (N,) bool: X^rd, below the road by at least T_d
@@ -89,37 +63,21 @@ class PlaneFitResult:
     iterations: int
 
 
-def robust_plane(points_m: np.ndarray, iterations: int = 3) -> np.ndarray | None:
-    """Plane (3,) through road points (N, 3) in camera coordinates, refit without the points
-    beyond 3 σ (MAD) of the previous fit, ``iterations`` fits in all; None with fewer than 10."""
-    P = check_shape("points_m", np.asarray(points_m, float), (None, 3))
-    keep = np.ones(len(P), bool)
-    plane = None
-    for _ in range(iterations):
-        if keep.sum() < 10:
-            return plane
-        plane = fit_plane(P[keep])
-        d = signed_distance(P, plane)
-        s = max(robust_sigma(d[keep]), 1e-4)
-        keep = np.abs(d - np.median(d[keep])) <= 3.0 * s
-    return plane
-
-
 def _start_plane(P: np.ndarray, floor_m: float) -> tuple[np.ndarray, np.ndarray]:
     """Plane and road mask to start the recursion from. A least-squares plane through every
     point tilts toward a large pothole; the road then spreads over ±10 mm and σ (hence T_d)
     swallows the pothole. Refits that drop the points more than the T_d floor below the plane
     (defects only lie below) bring it back onto the road. On a noisy road this trims a little of
     the lower tail; the recursion's own refits over |d| < T_d then restore the plane."""
-    plane = fit_plane(P)
+    plane = fit_plane_z(P)
     road = np.ones(len(P), bool)
     for _ in range(10):
-        d = signed_distance(P, plane)
+        d = plane_signed_distance(P, plane)
         keep = d > -floor_m
         if keep.sum() < max(3, len(P) // 2) or np.array_equal(keep, road):
             break
         road = keep
-        plane = fit_plane(P[road])
+        plane = fit_plane_z(P[road])
     return plane, road
 
 
@@ -139,12 +97,12 @@ def recursive_plane_fit(points_m: np.ndarray, cfg: PlaneFitConfig) -> PlaneFitRe
         )
     plane, road = _start_plane(P, cfg.depth_threshold_m)
     cand = np.zeros(n, bool)
-    d = signed_distance(P, plane)
+    d = plane_signed_distance(P, plane)
     T_d = cfg.depth_threshold_m
     sigma = robust_sigma(d)
     it = 0
     for it in range(1, cfg.max_iterations + 1):
-        d = signed_distance(P, plane)
+        d = plane_signed_distance(P, plane)
         sigma = road_sigma(d[road])
         T_d = max(cfg.depth_threshold_m, cfg.noise_k * sigma)
         new_cand = (d < 0) & (np.abs(d) >= T_d) & (np.abs(d) <= cfg.max_depth_m)
@@ -159,8 +117,8 @@ def recursive_plane_fit(points_m: np.ndarray, cfg: PlaneFitConfig) -> PlaneFitRe
         if np.array_equal(new_cand, cand) and it > 1:
             break
         cand, road = new_cand, new_road
-        plane = fit_plane(P[road])
-    d = signed_distance(P, plane)
+        plane = fit_plane_z(P[road])
+    d = plane_signed_distance(P, plane)
     cand = (d < 0) & (np.abs(d) >= T_d) & (np.abs(d) <= cfg.max_depth_m)
     share = 1.0 - float(cand.sum()) / n
     return PlaneFitResult(cand, d, plane, float(T_d), float(sigma), share, it)

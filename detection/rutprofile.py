@@ -14,8 +14,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from roadsurf.core.fits import robust_sigma
 from roadsurf.detection.config import MapSegmentConfig, RutConfig
-from roadsurf.detection.planefit import robust_sigma
 from roadsurf.detection.windows import WindowSource
 from roadsurf.io.formats import GridSpec
 

@@ -170,7 +170,7 @@ def build(
     n_points: int = 2500,
 ) -> tuple[Drive, list[PairResult], Trajectory]:
     """Write tiny images under ``root/frames`` and return (drive, pairs, trajectory)."""
-    from roadsurf.detection.planefit import fit_plane, signed_distance
+    from roadsurf.core.fits import fit_plane_z, plane_signed_distance
 
     rng = np.random.default_rng(seed)
     Ts = poses(n_frames)
@@ -185,7 +185,7 @@ def build(
     for k in range(n_frames - 1):
         keep = keep_per_pair(k) if keep_per_pair is not None else None
         Pc, px = pair_points(scene, Ts[k], rng, n_points, keep=keep)
-        plane = fit_plane(Pc)
+        plane = fit_plane_z(Pc)
         pairs.append(
             PairResult(
                 frame_a=frames[k].filename,
@@ -198,7 +198,7 @@ def build(
                 px_a=px,
                 px_b=px,
                 cov_m2=np.zeros((len(Pc), 3, 3)),
-                plane_dist_m=signed_distance(Pc, plane),
+                plane_dist_m=plane_signed_distance(Pc, plane),
                 plane=plane,
             )
         )
@@ -250,7 +250,6 @@ def write_truth(scene: Scene, truth_dir: Path, traj: Trajectory, camera: Camera 
     import json
 
     from roadsurf.core.geometry import ExportFrame
-    from roadsurf.detection.footprint import footprint_enu
     from roadsurf.io.formats import feature, polygon_geometry, write_csv, write_geojson
 
     truth_dir.mkdir(parents=True, exist_ok=True)
@@ -271,7 +270,7 @@ def write_truth(scene: Scene, truth_dir: Path, traj: Trajectory, camera: Camera 
     from matplotlib.path import Path as MplPath
 
     for f, T in zip(traj.filenames, traj.world_from_cam, strict=True):
-        fp = footprint_enu(T, camera)
+        fp = camera.footprint_corners_enu(T)
         inside = MplPath(fp).contains_points(np.column_stack([gx[deep], gy[deep]]))
         area = inside.sum() * 0.005**2
         rows.append((f, int(area >= 0.002), area * 1e4, 0.0))
@@ -374,7 +373,7 @@ def build_two_view(
     """Two frames rendered with true relief and ONE pair whose sparse matches (with exact
     R, t, H) avoid the pothole floor: features only where the surface is shallower than
     ``max_feature_depth_m`` (a dark, smooth pothole bottom holds no features)."""
-    from roadsurf.detection.planefit import fit_plane, signed_distance
+    from roadsurf.core.fits import fit_plane_z, plane_signed_distance
 
     cam = camera or Camera(
         width=320, height=240, fx=300.0, fy=300.0, cx=159.5, cy=119.5, height_m=1.0, fps=10.0
@@ -415,7 +414,7 @@ def build_two_view(
     R, t = T_ba[:3, :3], T_ba[:3, 3]
     # Road plane in camera a: Z = h (camera z points down at the road), n = (0, 0, 1), d = h.
     H = cam.K @ (R + np.outer(t, [0.0, 0.0, 1.0]) / cam.height_m) @ np.linalg.inv(cam.K)
-    plane = fit_plane(Pa)
+    plane = fit_plane_z(Pa)
     pair = PairResult(
         frame_a=frames[0].filename,
         frame_b=frames[1].filename,
@@ -427,7 +426,7 @@ def build_two_view(
         px_a=px_a,
         px_b=px_b,
         cov_m2=np.zeros((len(Pa), 3, 3)),
-        plane_dist_m=signed_distance(Pa, plane),
+        plane_dist_m=plane_signed_distance(Pa, plane),
         plane=plane,
         R_b_from_a=R,
         t_b_from_a_m=t,

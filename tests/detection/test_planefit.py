@@ -3,14 +3,9 @@
 import numpy as np
 import pytest
 
+from roadsurf.core.fits import fit_plane_z, plane_signed_distance, robust_sigma
 from roadsurf.detection.config import PlaneFitConfig
-from roadsurf.detection.planefit import (
-    fit_plane,
-    nanmedian_last,
-    recursive_plane_fit,
-    robust_sigma,
-    signed_distance,
-)
+from roadsurf.detection.planefit import nanmedian_last, recursive_plane_fit
 
 
 def _cloud(rng, n=3000, noise=0.0005, tilt=(0.02, -0.01), h=1.0):
@@ -23,11 +18,13 @@ def _cloud(rng, n=3000, noise=0.0005, tilt=(0.02, -0.01), h=1.0):
 def test_fit_plane_and_sign_convention():
     rng = np.random.default_rng(1)
     P = _cloud(rng, noise=0.0)
-    p = fit_plane(P)
+    p = fit_plane_z(P)
     np.testing.assert_allclose(p, [0.02, -0.01, 1.0], atol=1e-9)
     # A point further from the camera (larger Z, camera z points down) is below the road.
     below = np.array([[0.0, 0.0, 1.01]])
-    assert signed_distance(below, p)[0] == pytest.approx(-0.01 / np.sqrt(1 + 0.02**2 + 0.01**2))
+    assert plane_signed_distance(below, p)[0] == pytest.approx(
+        -0.01 / np.sqrt(1 + 0.02**2 + 0.01**2)
+    )
 
 
 def test_recursive_fit_finds_pothole_points_and_unbiased_plane():
@@ -43,7 +40,7 @@ def test_recursive_fit_finds_pothole_points_and_unbiased_plane():
     assert not res.candidate[~inside].any()
     # The refit on road points removes most of the pothole's pull on the plane.
     np.testing.assert_allclose(res.plane, [0.02, -0.01, 1.0], atol=4e-4)
-    one_shot = fit_plane(P)
+    one_shot = fit_plane_z(P)
     assert abs(res.plane[2] - 1.0) < 0.5 * abs(one_shot[2] - 1.0)
     assert res.noise_m == pytest.approx(0.0005, rel=0.2)
     assert res.iterations >= 2
