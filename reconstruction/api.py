@@ -15,8 +15,9 @@ import time
 
 import numpy as np
 
+from roadsurf.core.camera import Camera
 from roadsurf.core.errors import FrameReadError
-from roadsurf.io.drive import Camera, Frame, read_gray
+from roadsurf.io.drive import Frame, read_gray
 from roadsurf.reconstruction import features as feat
 from roadsurf.reconstruction.config import ReconstructionConfig
 from roadsurf.reconstruction.estimators import estimate_matches

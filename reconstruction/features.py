@@ -12,8 +12,8 @@ import cv2
 import numpy as np
 
 from roadsurf.core.atomic import write_npz_atomic
+from roadsurf.core.camera import Camera
 from roadsurf.core.errors import ConfigError
-from roadsurf.io.drive import Camera
 from roadsurf.reconstruction.config import FeatureConfig
 from roadsurf.reconstruction.types import Features
 

@@ -30,16 +30,16 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from roadsurf.core.camera import Camera
 from roadsurf.core.errors import FrameReadError
-from roadsurf.io.drive import Camera, Drive, read_gray
+from roadsurf.io.drive import Drive, read_gray
+from roadsurf.io.runfolder import RunFolder
 from roadsurf.reconstruction.api import reconstruct_matches
 from roadsurf.reconstruction.config import ProbeConfig, ReconstructionConfig
 from roadsurf.reconstruction.features import to_gray, track_forward_backward
 from roadsurf.reconstruction.types import PairResult, load_pair, save_pair
 
 log = logging.getLogger(__name__)
-
-PROBES_DIR = "probes"
 
 
 def _coarse_homography(
@@ -140,7 +140,7 @@ def _failed(cfg: ReconstructionConfig, status: str, reason: str, t0: float) -> P
 def _probe_path(run_dir: Path, a: int, b: int, cfg: ReconstructionConfig) -> Path:
     # the settings are in the name, so a changed config never reuses a stale probe
     digest = hashlib.sha1(repr((cfg.probe, cfg.method)).encode()).hexdigest()[:8]
-    return run_dir / PROBES_DIR / f"{a:06d}_{b:06d}_{digest}.npz"
+    return RunFolder(run_dir).probes_dir / f"{a:06d}_{b:06d}_{digest}.npz"
 
 
 def run(
@@ -161,7 +161,7 @@ def run(
     if len(todo) != len(only_pairs):
         missing = sorted(set(only_pairs) - set(todo))
         raise ValueError(f"probe pairs {missing[:5]} name frames this drive does not have")
-    (run_dir / PROBES_DIR).mkdir(parents=True, exist_ok=True)
+    RunFolder(run_dir).probes_dir.mkdir(parents=True, exist_ok=True)
 
     def one(pair: tuple[int, int]) -> PairResult:
         fa, fb = frames[pair[0]], frames[pair[1]]

@@ -21,10 +21,11 @@ from tqdm import tqdm
 
 from roadsurf.core.errors import FrameReadError
 from roadsurf.io.drive import Drive, Frame, read_gray
+from roadsurf.io.runfolder import RunFolder
 from roadsurf.reconstruction import features as feat
 from roadsurf.reconstruction.api import reconstruct_features
 from roadsurf.reconstruction.config import ReconstructionConfig
-from roadsurf.reconstruction.types import Features, PairResult, load_pair, pair_filename, save_pair
+from roadsurf.reconstruction.types import Features, PairResult, load_pair, save_pair
 
 log = logging.getLogger(__name__)
 
@@ -42,7 +43,7 @@ def _feature_path(run_dir: Path, frame: Frame, cfg: ReconstructionConfig) -> Pat
     )
     digest = hashlib.sha1(repr(det).encode()).hexdigest()[:8]
     tag = f"{f.kind}{f.max_features}_{digest}"
-    return run_dir / "features" / f"{frame.index:06d}_{tag}.npz"
+    return RunFolder(run_dir).features_dir / f"{frame.index:06d}_{tag}.npz"
 
 
 class _FeatureCache:
@@ -125,8 +126,8 @@ def run(
     """
     feat.check_available(cfg.features)  # a config problem stops the run before any work
     run_dir = Path(run_dir)
-    pairs_dir = run_dir / "pairs"
-    pairs_dir.mkdir(parents=True, exist_ok=True)
+    rf = RunFolder(run_dir)
+    rf.pairs_dir.mkdir(parents=True, exist_ok=True)
     frames = drive.frames
     todo = [(frames[i], frames[i + 1]) for i in range(len(frames) - 1)]
     if only_pairs is not None:
@@ -134,7 +135,7 @@ def run(
     cached: dict[tuple[int, int], PairResult] = {}
     if not cfg.overwrite:
         for a, b in todo:
-            path = pairs_dir / pair_filename(a.index, b.index)
+            path = rf.pair(a.index, b.index)
             if path.is_file():
                 try:
                     res = load_pair(path)
@@ -158,7 +159,7 @@ def run(
                 results.append(cached[key])
                 continue
             res = _one_pair(cfg, drive, cache, fa_frame, fb_frame)
-            save_pair(pairs_dir / pair_filename(*key), res)
+            save_pair(rf.pair(*key), res)
             results.append(res)
     finally:
         cache.close()

@@ -115,10 +115,6 @@ class PairResult:
         return T
 
 
-def pair_filename(index_a: int, index_b: int) -> str:
-    return f"{index_a:06d}_{index_b:06d}.npz"
-
-
 def save_pair(path: str | Path, res: PairResult) -> Path:
     """Write a PairResult atomically as .npz (arrays as arrays, scalars/strings as 0-d arrays)."""
     data: dict[str, np.ndarray] = {}

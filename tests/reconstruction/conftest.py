@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from roadsurf.io.drive import Camera
+from roadsurf.core.camera import Camera
 from roadsurf.reconstruction.geometry import rotation_from_euler_deg
 
 

@@ -11,7 +11,9 @@ import numpy as np
 import pytest
 
 import roadsurf.reconstruction.probe as probe
-from roadsurf.io.drive import Camera, Drive, Frame
+from roadsurf.core.camera import Camera
+from roadsurf.io.drive import Drive, Frame
+from roadsurf.io.runfolder import RunFolder
 from roadsurf.reconstruction.api import reconstruct_pair
 from roadsurf.reconstruction.config import FeatureConfig, ReconstructionConfig
 from roadsurf.reconstruction.geometry import rotation_from_euler_deg
@@ -142,7 +144,7 @@ def test_probe_stage_caches_resumes_and_reports_unreadable_frames(
     ]
     assert res[0].ok, res[0].reason
     assert res[1].status == "unreadable_frame" and "003.png" in res[1].reason
-    assert len(list((run_dir / probe.PROBES_DIR).glob("*.npz"))) == 2
+    assert len(list(RunFolder(run_dir).probes_dir.glob("*.npz"))) == 2
     calls = []
     orig = probe.probe_pair
     monkeypatch.setattr(probe, "probe_pair", lambda *a, **k: calls.append(1) or orig(*a, **k))

@@ -10,8 +10,8 @@ import numpy as np
 import roadsurf.reconstruction.api as api
 import roadsurf.reconstruction.stage as stage
 from roadsurf.io.drive import Drive, Frame
+from roadsurf.io.runfolder import RunFolder
 from roadsurf.reconstruction.config import FeatureConfig, ReconstructionConfig
-from roadsurf.reconstruction.types import pair_filename
 from tests.reconstruction.conftest import render_pair
 
 CFG = ReconstructionConfig(features=FeatureConfig(max_features=500))
@@ -39,14 +39,14 @@ def test_stage_runs_and_resumes(tmp_path, cam, monkeypatch) -> None:
     res = stage.run(CFG, drive, run_dir)
     assert [(r.index_a, r.index_b) for r in res] == [(0, 1), (1, 2), (2, 3)]
     assert all(r.ok for r in res), [r.reason for r in res]
-    assert all((run_dir / "pairs" / pair_filename(i, i + 1)).is_file() for i in range(3))
+    assert all(RunFolder(run_dir).pair(i, i + 1).is_file() for i in range(3))
     assert len(list((run_dir / "features").glob("*.npz"))) == 4
     calls = []
     orig = api.reconstruct_features
     monkeypatch.setattr(
         stage, "reconstruct_features", lambda *a, **k: calls.append(1) or orig(*a, **k)
     )
-    (run_dir / "pairs" / pair_filename(1, 2)).unlink()
+    RunFolder(run_dir).pair(1, 2).unlink()
     res2 = stage.run(CFG, drive, run_dir)
     assert len(calls) == 1  # only the deleted pair is recomputed
     assert [r.status for r in res2] == ["ok"] * 3
