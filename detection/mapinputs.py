@@ -18,6 +18,7 @@ from roadsurf.detection.mapseg import choose_gsd
 from roadsurf.detection.pairs import PairDefects
 from roadsurf.detection.windows import PointsSource, RasterSource, WindowSource
 from roadsurf.io.drive import Drive
+from roadsurf.io.runfolder import MAP_POINTS, SURFACE_TIF, SURFACE_VRT
 from roadsurf.mapping.types import Trajectory
 from roadsurf.reconstruction.types import PairResult
 
@@ -61,12 +62,12 @@ def depth_points(
     """The 3D points with their residual (m, negative below) in the grid frame, and where they
     came from: the fused map points (RUN/map_points.npz) when mapping wrote them, else every
     pair's points ("pairs")."""
-    mp = run_dir / "map_points.npz"
+    mp = run_dir / MAP_POINTS
     if mp.exists():
         with np.load(mp, allow_pickle=False) as z:
             if len(z["xyz"]):
                 xy = mframe.grid_from_enu(np.asarray(z["xyz"], float))
-                return xy, np.asarray(z["residual_m"], float), "map_points.npz"
+                return xy, np.asarray(z["residual_m"], float), MAP_POINTS
     xyz_l, res_l = [], []
     for k, pd in per_pair.items():
         i = pose_of.get(pd.frame_a)
@@ -117,7 +118,7 @@ def load_surface(
 ) -> tuple[WindowSource | None, MapFrame]:
     """The residual raster as a windowed source: RUN/surface.tif (or .vrt), else the map points
     or the pairs' points gridded per window. Nothing is read here."""
-    for name in ("surface.tif", "surface.vrt"):
+    for name in (SURFACE_TIF, SURFACE_VRT):
         path = run_dir / name
         if path.exists():
             src = RasterSource(path)

@@ -12,7 +12,6 @@ contract).
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 from pathlib import Path
@@ -22,10 +21,21 @@ import numpy as np
 
 from roadsurf.core.atomic import read_json, write_json_atomic, write_text_atomic
 from roadsurf.core.config import to_dict
+from roadsurf.core.fingerprint import Fingerprint
 from roadsurf.detection.config import DetectionConfig
 from roadsurf.detection.mapframe import MapFrame
 from roadsurf.detection.types import Defect, DetectionResult, FrameLabel
 from roadsurf.io.formats import feature, polygon_geometry, write_csv, write_geojson
+from roadsurf.io.runfolder import (
+    DEFECTS_CSV,
+    DEFECTS_GEOJSON,
+    DETECTION_JSON,
+    FRAME_LABELS_CSV,
+    MAP_POINTS,
+    SURFACE_TIF,
+    SURFACE_VRT,
+    RunFolder,
+)
 from roadsurf.mapping.types import Trajectory
 from roadsurf.reconstruction.types import PairResult
 
@@ -81,8 +91,8 @@ def write_outputs(
     result: DetectionResult, mframe: MapFrame, signature: str, config: dict[str, Any]
 ) -> None:
     """Write defects.geojson, defects.csv, frames.csv and detection.json into result.run_dir."""
-    run_dir = Path(result.run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
+    run = RunFolder(result.run_dir)
+    run.root.mkdir(parents=True, exist_ok=True)
     feats, rows = [], []
     for d in result.defects:
         if mframe.georeferenced:
@@ -100,7 +110,7 @@ def write_outputs(
         "seed_threshold_m": result.seed_threshold_m,
         "surface_source": result.surface_source,
     }
-    gj = run_dir / "defects.geojson"
+    gj = run.defects_geojson
     if mframe.georeferenced:
         write_geojson(gj, feats, {"generator": "roadsurf detection", **meta})
     else:
@@ -109,14 +119,14 @@ def write_outputs(
         fc = {"type": "FeatureCollection", "features": feats, "properties": meta}
         write_text_atomic(gj, json.dumps(fc, indent=1) + "\n")
         log.warning("detection: no GPS reference; defects are written in local ENU metres")
-    write_csv(run_dir / "defects.csv", DEFECT_COLUMNS, rows)
+    write_csv(run.path(DEFECTS_CSV), DEFECT_COLUMNS, rows)
     write_csv(
-        run_dir / "frames.csv",
+        run.frame_labels,
         FRAME_COLUMNS,
         [(f.filename, f.defect, round(f.p_defect, 4), f.source) for f in result.frames],
     )
     write_json_atomic(
-        run_dir / "detection.json",
+        run.path(DETECTION_JSON),
         {
             "signature": signature,
             **meta,
@@ -129,18 +139,16 @@ def write_outputs(
         },
     )
     result.files = {
-        "defects.geojson": gj,
-        "defects.csv": run_dir / "defects.csv",
-        "frames.csv": run_dir / "frames.csv",
-        "detection.json": run_dir / "detection.json",
+        name: run.path(name)
+        for name in (DEFECTS_GEOJSON, DEFECTS_CSV, FRAME_LABELS_CSV, DETECTION_JSON)
     }
 
 
 def load_result(run_dir: Path, signature: str) -> DetectionResult | None:
     """The saved result when detection.json matches ``signature`` and all files exist."""
     run_dir = Path(run_dir)
-    meta_p = run_dir / "detection.json"
-    names = ("defects.geojson", "defects.csv", "frames.csv")
+    meta_p = run_dir / DETECTION_JSON
+    names = (DEFECTS_GEOJSON, DEFECTS_CSV, FRAME_LABELS_CSV)
     if not meta_p.exists() or not all((run_dir / n).exists() for n in names):
         return None
     try:
@@ -180,7 +188,7 @@ def load_result(run_dir: Path, signature: str) -> DetectionResult | None:
         crs=str(meta.get("crs_of_e_n", "")),
         surface_source=str(meta.get("surface_source", "")),
     )
-    res.files = {n: run_dir / n for n in (*names, "detection.json")}
+    res.files = {n: run_dir / n for n in (*names, DETECTION_JSON)}
     return res
 
 
@@ -193,23 +201,18 @@ def signature(
     fusion: FusionRule | None = None,
 ) -> str:
     """Hash of everything the outputs depend on (config, pairs, poses, raster, CNN scores)."""
-    h = hashlib.sha256()
-    h.update(json.dumps(to_dict(cfg), sort_keys=True).encode())
+    fp = Fingerprint().add_json(to_dict(cfg), default_str=False)
     for p in pairs:
-        h.update(f"{p.frame_a}|{p.frame_b}|{p.status}|{p.n_points}|{p.method}".encode())
+        fp.add_text(f"{p.frame_a}|{p.frame_b}|{p.status}|{p.n_points}|{p.method}")
         if p.n_points:
-            h.update(np.ascontiguousarray(p.plane_dist_m, dtype=np.float64).tobytes()[:4096])
-    h.update(np.ascontiguousarray(traj.world_from_cam, dtype=np.float64).tobytes())
-    h.update(json.dumps(traj.reference.to_dict() if traj.reference else None).encode())
-    for name in ("surface.tif", "surface.vrt", "map_points.npz"):
-        p = Path(run_dir) / name
-        if p.exists():
-            st = p.stat()
-            h.update(f"{name}|{st.st_size}|{st.st_mtime_ns}".encode())
-    h.update(json.dumps(sorted((frame_probs or {}).items())).encode())
+            fp.add_array(p.plane_dist_m, max_bytes=4096)
+    fp.add_array(traj.world_from_cam)
+    # the reference as json.dumps writes it (keys in their own order)
+    fp.add_text(json.dumps(traj.reference.to_dict() if traj.reference else None))
+    for name in (SURFACE_TIF, SURFACE_VRT, MAP_POINTS):
+        fp.add_file_stat(Path(run_dir) / name, label=name)
+    fp.add_json(sorted((frame_probs or {}).items()), default_str=False)
     if fusion is not None:
-        h.update(
-            repr((fusion.threshold, fusion.confirm_defect_with_3d, fusion.context_frames)).encode()
-        )
-        h.update(json.dumps(sorted(fusion.decide_3d)).encode())
-    return h.hexdigest()
+        fp.add_repr((fusion.threshold, fusion.confirm_defect_with_3d, fusion.context_frames))
+        fp.add_json(sorted(fusion.decide_3d), default_str=False)
+    return fp.hexdigest()

@@ -46,6 +46,7 @@ from roadsurf.detection.rutscan import scan_seeds
 from roadsurf.detection.types import Defect, DetectionResult
 from roadsurf.detection.windows import PointsSource, segment_windows
 from roadsurf.io.drive import Drive
+from roadsurf.io.runfolder import RunFolder
 from roadsurf.mapping.types import Trajectory
 from roadsurf.reconstruction.types import PairResult
 
@@ -85,7 +86,7 @@ def run(
     # ---- 1. per pair
     steps_s: dict[str, float] = {}  # wall time of the main steps, logged (docs/benchmarks.md)
     t0 = time.perf_counter()
-    per_pair = analyse_pairs(cfg, drive, pairs, masks_dir=run_dir / "masks")
+    per_pair = analyse_pairs(cfg, drive, pairs, masks_dir=RunFolder(run_dir).masks_dir)
     steps_s["pairs"] = time.perf_counter() - t0
     pose_of = {fn: i for i, fn in enumerate(traj.filenames)}
     ev_enu, ev_pair = evidence_points(pairs, per_pair, traj, pose_of)
