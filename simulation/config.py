@@ -7,6 +7,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
+from roadsurf.core.camera import Camera
+
 GpsProfile = Literal["rtk", "consumer"]
 Texture = Literal["gravel", "asphalt", "brick", "grass"]
 ImageFormat = Literal["jpg", "png"]
@@ -101,3 +103,19 @@ class SimConfig:
     gps_dropout_s: float = 2.0  # length of one GPS outage (s)
     obd_rate_hz: float = 10.0  # OBD speed rate (Hz)
     obd_quant_kmh: float = 1.0  # OBD speed quantisation (km/h), as OBD-II PID 0x0D reports
+
+    def camera(self) -> Camera:
+        """The rendered camera, as written to camera.yaml: square pixels (fy = fx), principal
+        point at the image centre in the pixel-centre convention (cx = (width - 1) / 2), lens
+        distortion ``distortion``."""
+        return Camera(
+            width=self.width,
+            height=self.height,
+            fx=self.fx,
+            fy=self.fx,
+            cx=(self.width - 1) / 2.0,
+            cy=(self.height - 1) / 2.0,
+            height_m=self.camera_height_m,
+            fps=self.fps,
+            dist=tuple(float(k) for k in self.distortion),
+        )

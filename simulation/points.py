@@ -53,6 +53,12 @@ class PointPair:
 
 
 def camera_matrix(scene: PointScene) -> np.ndarray:
+    """(3, 3) K of the study camera, fx = fy = ``f_px``, principal point (width/2, height/2).
+
+    Deliberately the pixel-corner convention (origin at the top-left corner of the image, not
+    at the centre of its first pixel as ``roadsurf.core.camera.Camera`` and camera.yaml have
+    it): points are drawn with u ~ U[0, width), so the study is self-consistent and its
+    published numbers stay reproducible. Do not replace it by a ``Camera``'s K."""
     return np.array(
         [
             [scene.f_px, 0.0, scene.width / 2.0],

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from roadsurf.core.camera import RENDER_UNDISTORT_CRITERIA
 from roadsurf.simulation.route import Pose
 from roadsurf.simulation.world import World
 
@@ -52,8 +53,12 @@ class Renderer:
         u = (np.arange(W, dtype=np.float64) + 0.5) / self.ss - 0.5
         v = (np.arange(H, dtype=np.float64) + 0.5) / self.ss - 0.5
         U, V = np.meshgrid(u, v)
-        uu, vv = self.normalised(U, V)
-        self.rays_cam = np.stack([uu, vv, np.ones_like(uu)], axis=-1).astype(np.float32)  # z = 1
+        self.camera = c.camera()
+        n = self.camera.normalised_from_raw_px(
+            np.column_stack([U.ravel(), V.ravel()]), criteria=RENDER_UNDISTORT_CRITERIA
+        )
+        rays = np.column_stack([n, np.ones(len(n))]).reshape(H, W, 3)
+        self.rays_cam = rays.astype(np.float32)  # z = 1
         az, el = math.radians(c.sun_azimuth_deg), math.radians(c.sun_elevation_deg)
         self.light = np.array(
             [math.sin(az) * math.cos(el), math.cos(az) * math.cos(el), math.sin(el)], np.float32
@@ -110,30 +115,22 @@ class Renderer:
         return H, R, D, a0 * n * g, -b0 * n * g
 
     # ---- frames
-    def normalised(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Pixel positions -> normalised camera coordinates (x/z, y/z), undoing the lens
-        distortion (OpenCV model, ``cfg.distortion``) when there is one."""
-        c = self.world.cfg
-        cx, cy = (c.width - 1) / 2.0, (c.height - 1) / 2.0
-        if not any(abs(k) > 0 for k in c.distortion):
-            return (u - cx) / c.fx, (v - cy) / c.fx
-        K = np.array([[c.fx, 0.0, cx], [0.0, c.fx, cy], [0.0, 0.0, 1.0]])
-        pts = np.stack([u.ravel(), v.ravel()], axis=-1).reshape(-1, 1, 2).astype(np.float64)
-        crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-9)
-        und = cv2.undistortPoints(pts, K, np.asarray(c.distortion, float), None, None, None, crit)
-        und = und.reshape(-1, 2)
-        return und[:, 0].reshape(u.shape), und[:, 1].reshape(v.shape)
-
     def footprint(self, pose: Pose, z_ground: float) -> np.ndarray:
         """(16, 2) points around the image border on the plane z = z_ground (local metres);
-        the first, fifth, ninth and thirteenth are the image corners."""
+        the first, fifth, ninth and thirteenth are the image corners.
+
+        Not ``Camera.footprint_corners_enu``/``footprint_grid_enu``: 16 pixel-edge points, lens
+        distortion undone with the renderer's stopping rule, so the rendered mosaic covers the
+        distorted image."""
         c = self.world.cfg
         f = np.linspace(0.0, 1.0, 4, endpoint=False)
         w, h = c.width - 0.5, c.height - 0.5
         u = np.concatenate([-0.5 + f * c.width, np.full(4, w), w - f * c.width, np.full(4, -0.5)])
         v = np.concatenate([np.full(4, -0.5), -0.5 + f * c.height, np.full(4, h), h - f * c.height])
-        x, y = self.normalised(u, v)
-        d = np.column_stack([x, y, np.ones_like(x)]) @ pose.R.T
+        n = self.camera.normalised_from_raw_px(
+            np.column_stack([u, v]), criteria=RENDER_UNDISTORT_CRITERIA
+        )
+        d = np.column_stack([n, np.ones(len(n))]) @ pose.R.T
         t = (z_ground - pose.C[2]) / d[:, 2]
         return pose.C[:2] + t[:, None] * d[:, :2]
 

@@ -288,16 +288,16 @@ def simulate(
 
 def _write_drive_files(world, out: Path, names: list[str]) -> None:
     cfg = world.cfg
-    cx, cy = (cfg.width - 1) / 2.0, (cfg.height - 1) / 2.0
+    cam = cfg.camera()
     write_text_atomic(
         out / "camera.yaml",
         "# written by roadsurf simulate\n"
-        "model: pinhole\n"
-        f"width: {cfg.width}\nheight: {cfg.height}\n"
-        f"fx: {cfg.fx!r}\nfy: {cfg.fx!r}\ncx: {cx!r}\ncy: {cy!r}\n"
-        f"dist: [{', '.join(repr(float(k)) for k in cfg.distortion)}]\n"
-        f"height_m: {cfg.camera_height_m!r}\n"
-        f"fps: {cfg.fps!r}\n",
+        f"model: {cam.model}\n"
+        f"width: {cam.width}\nheight: {cam.height}\n"
+        f"fx: {cam.fx!r}\nfy: {cam.fy!r}\ncx: {cam.cx!r}\ncy: {cam.cy!r}\n"
+        f"dist: [{', '.join(repr(k) for k in cam.dist)}]\n"
+        f"height_m: {cam.height_m!r}\n"
+        f"fps: {cam.fps!r}\n",
     )
     off = time_offset_s(cfg)
     write_csv(
