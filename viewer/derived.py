@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from roadsurf.core.geometry import enu_from_lla, lla_from_enu
+from roadsurf.core.geometry import enu_from_lla, invert_pose, transform_points
 from roadsurf.io.formats import GridSpec
 from roadsurf.viewer.rundata import DefectView, RunData
 
@@ -57,14 +57,14 @@ def defect_rings_3d(data: RunData) -> list[tuple[DefectView, np.ndarray]]:
 def project_to_image(
     world_from_cam: np.ndarray, cam: Camera, pts_enu_m: np.ndarray
 ) -> np.ndarray | None:
-    """(K, 3) ENU points -> (K, 2) pixels (u right, v down) of a pinhole camera (no distortion);
-    None when any point is behind the camera or none falls inside the image."""
-    from roadsurf.core.geometry import invert_pose, transform_points
-
+    """(K, 3) ENU points -> (K, 2) raw pixels (u right, v down), lens distortion included (the
+    images shown are the raw frames); None when any point is behind the camera or none falls
+    inside the image."""
     pc = transform_points(invert_pose(world_from_cam), pts_enu_m)
     if np.any(pc[:, 2] <= 1e-3):
         return None
-    uv = (pc @ cam.K.T)[:, :2] / pc[:, 2:3]
+    u, v = cam.project(pc)
+    uv = np.column_stack([u, v])
     inside = (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
     return uv if inside.any() else None
 
@@ -77,8 +77,3 @@ def rowcol_from_enu(data: RunData, grid: GridSpec, enu_m: np.ndarray) -> np.ndar
     ef = data.export_frame
     xy = enu[:, :2] if ef is None else ef.utm_from_enu(enu)[:, :2]
     return grid.rowcol_from_xy(xy)
-
-
-def lla_of_enu(data: RunData, enu_m: np.ndarray) -> np.ndarray | None:
-    """(N, 3) ENU -> (N, 3) lat, lon, alt, or None without a reference."""
-    return None if data.reference is None else lla_from_enu(enu_m, data.reference)

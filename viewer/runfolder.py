@@ -64,7 +64,7 @@ def load_run(
     missing: list[str] = []
     report = _read_optional_json(run.report, missing) or {}
     traj = _load_trajectory(run, missing)
-    reference = _reference(run, report, traj)
+    reference = _reference(report, traj)
     crs = report.get("crs") or _reference_crs(run)
     cloud, rgb, resid = _load_cloud(run, crs, reference, missing)
     defects = _load_defects(run, reference, missing)
@@ -110,9 +110,8 @@ def _load_trajectory(run: RunFolder, missing: list[str]) -> Trajectory | None:
     return load_trajectory(run.root)
 
 
-def _reference(
-    run: RunFolder, report: dict[str, Any], traj: Trajectory | None
-) -> EnuReference | None:
+def _reference(report: dict[str, Any], traj: Trajectory | None) -> EnuReference | None:
+    """The trajectory's ENU reference, else the one report.json names, else None."""
     if traj is not None and traj.reference is not None:
         return traj.reference
     ref = report.get("reference")

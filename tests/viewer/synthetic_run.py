@@ -32,8 +32,9 @@ from roadsurf.io.formats import (
     write_geotiff,
     write_ply,
 )
+from roadsurf.io.runfolder import pair_filename
 from roadsurf.mapping.types import Trajectory, save_trajectory
-from roadsurf.reconstruction.types import PairResult, pair_filename, save_pair
+from roadsurf.reconstruction.types import PairResult, save_pair
 
 REF = EnuReference(45.0, 7.0, 200.0)
 W, H = 160, 120
