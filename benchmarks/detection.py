@@ -38,6 +38,15 @@ from roadsurf.detection.planefit import recursive_plane_fit
 from roadsurf.detection.refine import binarise
 from roadsurf.evaluation.detection import evaluate_detection
 from roadsurf.io.drive import load_drive, read_gray
+from roadsurf.io.runfolder import (
+    MAP_POINTS,
+    PAIRS_DIR,
+    POSES_NPZ,
+    REFERENCE_JSON,
+    SURFACE_TIF,
+    SURFACE_VRT,
+    TILES_DIR,
+)
 from roadsurf.mapping.types import load_trajectory
 from roadsurf.pipeline import run_drive
 from roadsurf.reconstruction.types import load_pair
@@ -70,18 +79,18 @@ def _variant(run_dir: Path, drive_dir: Path, name: str, **cfg_changes: Any) -> P
     """Re-run detection only, with changed config, into RUN/../<run>_<name> (maps reused)."""
     out = run_dir.parent / f"{run_dir.name}_{name}"
     out.mkdir(parents=True, exist_ok=True)
-    for f in ("surface.tif", "surface.vrt", "map_points.npz", "poses.npz", "reference.json"):
+    for f in (SURFACE_TIF, SURFACE_VRT, MAP_POINTS, POSES_NPZ, REFERENCE_JSON):
         src = run_dir / f
         if src.exists() and not (out / f).exists():
             os.symlink(src.resolve(), out / f)
     # surface.vrt points at tiles relative to the run folder; link those too.
-    for tiles in run_dir.glob("tiles*"):
+    for tiles in run_dir.glob(f"{TILES_DIR}*"):
         if not (out / tiles.name).exists():
             os.symlink(tiles.resolve(), out / tiles.name)
     refine = cfg_changes.pop("refine", RefineConfig())
     cfg = dataclasses.replace(DetectionConfig(), refine=refine, **cfg_changes)
     drive = load_drive(drive_dir)
-    pairs = [load_pair(p) for p in sorted((run_dir / "pairs").glob("*.npz"))]
+    pairs = [load_pair(p) for p in sorted((run_dir / PAIRS_DIR).glob("*.npz"))]
     stage.run(cfg, drive, pairs, load_trajectory(run_dir), out)
     return out
 
@@ -89,13 +98,13 @@ def _variant(run_dir: Path, drive_dir: Path, name: str, **cfg_changes: Any) -> P
 def redetect(run_dir: Path, drive_dir: Path) -> Path:
     """Re-run the detection stage alone, in place, on a finished run (its pairs, poses and map
     are reused; the defaults of ``DetectionConfig``, as ``roadsurf run`` uses them)."""
-    if not (run_dir / "poses.npz").exists():
+    if not (run_dir / POSES_NPZ).exists():
         raise RoadsurfError(
             f"{run_dir}: no poses.npz; run `python -m benchmarks.detection` once without "
             "--detection-only to make the runs"
         )
     drive = load_drive(drive_dir)
-    pairs = [load_pair(p) for p in sorted((run_dir / "pairs").glob("*.npz"))]
+    pairs = [load_pair(p) for p in sorted((run_dir / PAIRS_DIR).glob("*.npz"))]
     stage.run(DetectionConfig(overwrite=True), drive, pairs, load_trajectory(run_dir), run_dir)
     return run_dir
 
@@ -108,7 +117,7 @@ def binarisation_stats(run_dir: Path, drive_dir: Path, mode: str) -> dict[str, i
     drive = load_drive(drive_dir)
     frames = {f.filename: f for f in drive.frames}
     out = {"road": 0, "road_dark": 0, "defect": 0, "defect_dark": 0}
-    for path in sorted((run_dir / "pairs").glob("*.npz")):
+    for path in sorted((run_dir / PAIRS_DIR).glob("*.npz")):
         p = load_pair(path)
         if not p.ok or p.n_points < cfg.plane.min_points or p.frame_a not in frames:
             continue

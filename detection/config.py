@@ -95,7 +95,8 @@ class CrackConfig:
 
 @dataclass(frozen=True)
 class DenseConfig:
-    """Dense measurement inside each candidate defect, per pair (LK tracks, see detection/dense.py)."""
+    """Dense measurement inside each candidate defect, per pair (LK tracks, see detection/dense.py
+    and densepair.py)."""
 
     enabled: bool = True  # measure depths, area and volume from dense tracks (needs the images)
     step_px: float = 2.0  # track every step_px-th pixel of image a inside the defect (px)

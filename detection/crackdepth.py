@@ -176,7 +176,7 @@ def dense_crack_depth(
     ok &= rbv[:, 1] < hb - half
     if ok[:n_c].sum() < win or ok[n_c:].sum() < 2 * win:
         return None
-    # Forward-backward error against its own robust spread (as in detection/dense.py).
+    # Forward-backward error against its own robust spread (as in detection/densepair.py).
     fb = np.linalg.norm((ra2 - ra).reshape(-1, 2), axis=1)
     ok &= fb <= np.median(fb[ok]) + 3.0 * max(robust_sigma(fb[ok]), 0.02)
     pb = cam.undistort_px(rbv.astype(float))
@@ -198,7 +198,7 @@ def dense_crack_depth(
         use = np.abs(res) <= 3.0 * sig
         if use.sum() < 2 * win:
             return None
-    # Floor: LK's sub-pixel precision (0.02 px, as the forward-backward floor in dense.py)
+    # Floor: LK's sub-pixel precision (0.02 px, as the forward-backward floor in densepair.py)
     # over the parallax across the crack per metre of depth: a noiseless render is not exact.
     floor = 0.02 / max(float(np.median(np.abs(cj[:n_c][c_ok]))), 1e-9)
     sig = max(robust_sigma(res[use]), floor)

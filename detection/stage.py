@@ -1,8 +1,8 @@
 """Detection stage entry point: per-pair 3D segmentation, global-map defects, GIS outputs.
 
-``run(cfg, drive, pairs, traj, run_dir, *, frame_probs=None) -> DetectionResult`` writes
-RUN/defects.geojson, RUN/defects.csv, RUN/frames.csv and RUN/detection.json (provenance and
-resume state). See docs/detection.md.
+``run(cfg, drive, pairs, traj, run_dir, *, frame_probs=None, fusion=None)`` returns a
+``DetectionResult`` and writes RUN/defects.geojson, RUN/defects.csv, RUN/frames.csv and
+RUN/detection.json (provenance and resume state). See docs/detection.md.
 
 Steps:
 1. per pair: recursive plane fit (eq. 4.8-4.10) and CORRECT_DEFECTS (Fig. 4.3) -> refined
@@ -13,6 +13,11 @@ Steps:
    measured;
 3. frame labels: the deep defect area inside each frame's footprint (the simulator's rule);
    fused with CNN probabilities when ``frame_probs`` is given.
+
+This module only sequences the steps. Step 1: ``pairs`` (and ``planefit``, ``refine``,
+``cracks``); the map's inputs: ``mapinputs``; step 2: ``windows`` + ``mapseg`` (segmentation),
+``ruts`` (traced ruts), ``measurement`` (vetting, depths; ``dense`` for the dense reading),
+``crackmap`` (cracks pooled over pairs); step 3: ``framelabels``; files: ``output``.
 """
 
 from __future__ import annotations

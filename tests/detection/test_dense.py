@@ -1,4 +1,4 @@
-"""Dense measurement inside candidate defects (detection/dense.py) on a two-view render with
+"""Dense measurement inside candidate defects (detection/dense.py, densepair.py, densecheck.py) on a two-view render with
 true parallax, where the sparse matches miss the pothole floor."""
 
 import dataclasses
