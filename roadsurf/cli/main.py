@@ -164,7 +164,7 @@ def sfm_baseline(
 ) -> None:
     """Baseline: pycolmap incremental SfM, scaled by camera height, aligned to GPS; writes the
     same cloud.ply, surface.tif, trajectory.geojson and report.json as `roadsurf run`."""
-    from roadsurf.reconstruction.sfm_baseline import run_from_paths
+    from roadsurf.pipeline.sfm import run_from_paths
 
     res = run_from_paths(drive, out, config_path=config, overwrite=overwrite)
     typer.echo(
