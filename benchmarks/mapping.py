@@ -24,6 +24,7 @@ _CHILD = r"""
 import json, resource, sys, time, logging
 logging.basicConfig(level=logging.WARNING)
 from pathlib import Path
+from roadsurf.io.runfolder import RunFolder
 mode, drive, out = sys.argv[1], sys.argv[2], sys.argv[3]
 t0 = time.perf_counter()
 if mode == "run":
@@ -37,7 +38,7 @@ elif mode == "detection":  # detection only, on the cached pairs and map of a pr
     from roadsurf.detection.config import DetectionConfig
     from roadsurf.detection import stage
     drive_ = load_drive(drive)
-    pairs = [load_pair(p) for p in sorted((Path(out) / "pairs").glob("*.npz"))]
+    pairs = [load_pair(p) for p in sorted(RunFolder(out).pairs_dir.glob("*.npz"))]
     t1 = time.perf_counter()
     stage.run(DetectionConfig(overwrite=True), drive_, pairs, load_trajectory(out), Path(out))
     extra = {"detection_s": time.perf_counter() - t1}
@@ -47,7 +48,7 @@ else:  # mapping stages only, on the pairs cached by a previous full run
     from roadsurf.mapping.config import MappingConfig
     from roadsurf.mapping import poses, globalmap
     drive_ = load_drive(drive)
-    pairs = [load_pair(p) for p in sorted((Path(out) / "pairs").glob("*.npz"))]
+    pairs = [load_pair(p) for p in sorted(RunFolder(out).pairs_dir.glob("*.npz"))]
     cfg = MappingConfig(overwrite=True)
     t1 = time.perf_counter()
     traj = poses.run(cfg, drive_, pairs, out)
@@ -86,6 +87,7 @@ def run_benchmark(
     per-length figures plus a markdown table. ``width`` < 640 renders smaller images (same
     footprint: fx scales, no supersampling) so the 600-frame drive renders in reasonable time
     on 2 cores; both lengths then use the same image size."""
+    from roadsurf.io.runfolder import RunFolder
     from roadsurf.simulation.scenarios import simulate
 
     work = Path(work)
@@ -107,7 +109,7 @@ def run_benchmark(
             simulate(scenario, drive, n_frames=n, **over)
         out = work / f"run_{scenario}{n}{tag}"
         row: dict[str, Any] = {"frames": n, "image": f"{width}x{width * 3 // 4}"}
-        if full or not (out / "pairs").is_dir():
+        if full or not RunFolder(out).pairs_dir.is_dir():
             t0 = time.perf_counter()
             try:
                 row["run"] = _child("run", drive, out)

@@ -22,8 +22,6 @@ This module is the stage (``run``, ``build_map``); steps 1-2 are in ``mapping.cl
 
 from __future__ import annotations
 
-import hashlib
-import json
 import logging
 import time
 from pathlib import Path
@@ -33,6 +31,9 @@ import numpy as np
 
 from roadsurf.core.atomic import read_json, write_json_atomic, write_npz_atomic
 from roadsurf.core.config import to_dict
+from roadsurf.core.fingerprint import Fingerprint
+from roadsurf.core.fits import robust_sigma
+from roadsurf.io import runfolder as rf
 from roadsurf.io.drive import Drive
 from roadsurf.mapping.cloud import align_patches, collect_points, voxel_fuse
 from roadsurf.mapping.config import NOT_IN_FINGERPRINT, MappingConfig
@@ -46,9 +47,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-MAP_REPORT = "map_report.json"
-
-
 # =========================================================================== entry point
 
 
@@ -58,7 +56,7 @@ def run(
     """Build and write the global map products into ``run_dir`` (resumes when unchanged)."""
     run_dir = Path(run_dir)
     key = _fingerprint(cfg, pairs, traj)
-    rep_path = run_dir / MAP_REPORT
+    rep_path = run_dir / rf.MAP_REPORT
     if not cfg.overwrite and rep_path.is_file():
         try:
             rep = read_json(rep_path)
@@ -76,13 +74,14 @@ def run(
 
 
 def _fingerprint(cfg: MappingConfig, pairs: list[PairResult], traj: Trajectory) -> str:
-    h = hashlib.sha256()
-    c = {k: v for k, v in to_dict(cfg).items() if k not in NOT_IN_FINGERPRINT}
-    h.update(json.dumps(c, sort_keys=True, default=str).encode())
-    h.update(np.ascontiguousarray(traj.world_from_cam, float).tobytes())
+    """What the map depends on (fixed byte stream: stored fingerprints stay valid): the config,
+    the poses and every pair's status and point count."""
+    fp = Fingerprint()
+    fp.add_json({k: v for k, v in to_dict(cfg).items() if k not in NOT_IN_FINGERPRINT})
+    fp.add_array(traj.world_from_cam)
     for p in pairs:
-        h.update(f"{p.index_a},{p.index_b},{p.status},{p.n_points}".encode())
-    return h.hexdigest()[:16]
+        fp.add_text(f"{p.index_a},{p.index_b},{p.status},{p.n_points}")
+    return fp.hexdigest(16)
 
 
 # =========================================================================== building
@@ -128,24 +127,24 @@ def build_map(
             "p01": float(np.percentile(resid, 1)),
             "median": float(np.median(resid)),
             "p99": float(np.percentile(resid, 99)),
-            "mad": float(1.4826 * np.median(np.abs(resid - np.median(resid)))),
+            "mad": robust_sigma(resid),  # all finite: the same as the plain 1.4826 MAD
         }
 
     # ---------------------------------------------------------------- 5 point products
     t2 = time.perf_counter()
     write_npz_atomic(
-        run_dir / "map_points.npz",
+        run_dir / rf.MAP_POINTS,
         xyz=xyz,
         rgb=rgb,
         residual_m=resid.astype(np.float32),
         frame_index=frame_idx,
         n_obs=nobs,
     )
-    prod.files["map_points"] = "map_points.npz"
+    prod.files["map_points"] = rf.MAP_POINTS
     write_cloud_ply(
-        run_dir / "cloud.ply", xyz, rgb, resid, ef, extra={"n_obs": nobs.astype(np.int32)}
+        run_dir / rf.CLOUD_PLY, xyz, rgb, resid, ef, extra={"n_obs": nobs.astype(np.int32)}
     )
-    prod.files["cloud"] = "cloud.ply"
+    prod.files["cloud"] = rf.CLOUD_PLY
     prod.timings_s["cloud"] = round(time.perf_counter() - t2, 3)
 
     # ---------------------------------------------------------------- 4 rasters

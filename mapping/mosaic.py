@@ -8,9 +8,10 @@ import logging
 import cv2
 import numpy as np
 
+from roadsurf.core.camera import Camera
 from roadsurf.core.errors import FrameReadError
 from roadsurf.core.parallel import SharedCache
-from roadsurf.io.drive import Camera, Frame, read_image
+from roadsurf.io.drive import Frame, read_image
 from roadsurf.io.formats import GridSpec
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.raster import GridToEnu, TileLattice

@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from roadsurf.core.fits import fit_rigid_2d
 from roadsurf.core.geometry import invert_pose, world_from_cam
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.pose_gps import GpsFixes, gps_at, gps_margin_s, gps_track_yaw, interp_weights
@@ -40,16 +41,6 @@ def _yaw_matrix(yaw_rad: float) -> np.ndarray:
     return T
 
 
-def _rigid_2d(src: np.ndarray, dst: np.ndarray, w: np.ndarray) -> tuple[float, np.ndarray]:
-    """Weighted 2D rigid fit dst ≈ R(yaw) src + t; returns (yaw_rad, t (2,))."""
-    w = w / w.sum()
-    ms, md = w @ src, w @ dst
-    S = ((src - ms) * w[:, None]).T @ (dst - md)
-    yaw = math.atan2(S[0, 1] - S[1, 0], S[0, 0] + S[1, 1])
-    R = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
-    return yaw, md - R @ ms
-
-
 def _robust_rigid_2d(
     src: np.ndarray, dst: np.ndarray, sigma: np.ndarray, cfg: MappingConfig
 ) -> tuple[float, np.ndarray]:
@@ -74,7 +65,8 @@ def _robust_rigid_2d(
         if best is None or score > best:
             best, best_inl = score, inl
     inl = best_inl if best_inl is not None and best_inl.sum() >= 2 else np.ones(m, bool)
-    return _rigid_2d(src[inl], dst[inl], 1.0 / sigma[inl] ** 2)
+    fit = fit_rigid_2d(src[inl], dst[inl], 1.0 / sigma[inl] ** 2)
+    return fit.yaw_rad, fit.t
 
 
 def initial_poses(

@@ -25,8 +25,6 @@ This module is the stage (``run``, ``estimate_trajectory``); the GPS preprocessi
 
 from __future__ import annotations
 
-import hashlib
-import json
 import logging
 import time
 from pathlib import Path
@@ -36,7 +34,10 @@ import numpy as np
 
 from roadsurf.core.atomic import read_json, write_json_atomic
 from roadsurf.core.config import to_dict
+from roadsurf.core.fingerprint import Fingerprint
+from roadsurf.io import runfolder as rf
 from roadsurf.io.drive import Drive
+from roadsurf.io.runfolder import RunFolder
 from roadsurf.mapping.config import NOT_IN_FINGERPRINT, MappingConfig
 from roadsurf.mapping.export import write_trajectory_csv, write_trajectory_geojson
 from roadsurf.mapping.pose_gps import gps_enu
@@ -49,9 +50,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-POSES_REPORT = "poses_report.json"
-
-
 # =========================================================================== entry point
 
 
@@ -63,41 +61,43 @@ def run(
 ) -> Trajectory:
     """Fuse GPS and pairs into the trajectory; writes RUN/poses.npz, reference.json,
     trajectory.geojson and poses_report.json. Resumes when the inputs did not change."""
-    run_dir = Path(run_dir)
+    run = RunFolder(run_dir)
     key = _fingerprint(cfg, drive, pairs)
-    rep_path = run_dir / POSES_REPORT
-    if not cfg.overwrite and (run_dir / "poses.npz").is_file() and rep_path.is_file():
+    rep_path = run.path(rf.POSES_REPORT)
+    geojson = run.path(rf.TRAJECTORY_GEOJSON)
+    if not cfg.overwrite and run.poses_npz.is_file() and rep_path.is_file():
         try:
             if read_json(rep_path).get("fingerprint") == key:
-                log.info("poses: inputs unchanged, reusing %s", run_dir / "poses.npz")
-                traj = load_trajectory(run_dir)
-                if not (run_dir / "trajectory.geojson").is_file():
-                    write_trajectory_geojson(run_dir / "trajectory.geojson", traj, drive)
+                log.info("poses: inputs unchanged, reusing %s", run.poses_npz)
+                traj = load_trajectory(run.root)
+                if not geojson.is_file():
+                    write_trajectory_geojson(geojson, traj, drive)
                 return traj
         except (OSError, ValueError, KeyError) as e:
             log.info("poses: cached result unreadable (%s); recomputing", e)
     t0 = time.perf_counter()
     traj, report = estimate_trajectory(cfg, drive, pairs)
-    save_trajectory(run_dir, traj)
-    write_trajectory_geojson(run_dir / "trajectory.geojson", traj, drive)
-    write_trajectory_csv(run_dir / "trajectory.csv", traj)
+    save_trajectory(run.root, traj)
+    write_trajectory_geojson(geojson, traj, drive)
+    write_trajectory_csv(run.path(rf.TRAJECTORY_CSV), traj)
     elapsed = round(time.perf_counter() - t0, 3)  # kept for resumed runs' report.json
     write_json_atomic(rep_path, {"fingerprint": key, "elapsed_s": elapsed, **report.to_dict()})
     return traj
 
 
 def _fingerprint(cfg: MappingConfig, drive: Drive, pairs: list[PairResult]) -> str:
-    h = hashlib.sha256()
-    c = {k: v for k, v in to_dict(cfg).items() if k not in NOT_IN_FINGERPRINT}
-    h.update(json.dumps(c, sort_keys=True, default=str).encode())
-    h.update(json.dumps([(f.filename, f.timestamp_s) for f in drive.frames]).encode())
+    """What the trajectory depends on; the byte stream is fixed so stored fingerprints stay
+    valid: the config, the frames' names and times, the GPS fixes and every pair's transform."""
+    fp = Fingerprint()
+    fp.add_json({k: v for k, v in to_dict(cfg).items() if k not in NOT_IN_FINGERPRINT})
+    fp.add_json([(f.filename, f.timestamp_s) for f in drive.frames], default_str=False)
     if drive.gps is not None:
         for a in (drive.gps.timestamp_s, drive.gps.lat_deg, drive.gps.lon_deg, drive.gps.hdop):
-            h.update(np.ascontiguousarray(a, dtype=float).tobytes())
+            fp.add_array(a)
     for p in pairs:
-        h.update(f"{p.index_a},{p.index_b},{p.status}".encode())
-        h.update(np.ascontiguousarray(p.cam_b_from_cam_a, dtype=float).tobytes())
-    return h.hexdigest()[:16]
+        fp.add_text(f"{p.index_a},{p.index_b},{p.status}")
+        fp.add_array(p.cam_b_from_cam_a)
+    return fp.hexdigest(16)
 
 
 def estimate_trajectory(

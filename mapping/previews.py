@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 
 from roadsurf.core.atomic import atomic_path
+from roadsurf.io import runfolder as rf
 from roadsurf.io.formats import GridSpec
 from roadsurf.mapping.raster import TileLattice
 
@@ -50,7 +51,7 @@ class Previews:
     def write(self, run_dir: Path) -> None:
         from matplotlib import colormaps
 
-        with atomic_path(run_dir / "mosaic_preview.png") as tmp:
+        with atomic_path(run_dir / rf.MOSAIC_PREVIEW) as tmp:
             cv2.imwrite(str(tmp), cv2.cvtColor(self.mos, cv2.COLOR_RGB2BGR))
         fin = np.isfinite(self.res)
         lim = 0.005
@@ -63,5 +64,5 @@ class Previews:
         pad = np.full((28, img.shape[1], 3), 255, np.uint8)
         cv2.putText(pad, label, (4, 19), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
         out = np.vstack([img, pad]) if img.shape[1] >= 200 else img
-        with atomic_path(run_dir / "surface_preview.png") as tmp:
+        with atomic_path(run_dir / rf.SURFACE_PREVIEW) as tmp:
             cv2.imwrite(str(tmp), cv2.cvtColor(out, cv2.COLOR_RGB2BGR))

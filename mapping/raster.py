@@ -20,6 +20,7 @@ import numpy as np
 
 from roadsurf.core.atomic import atomic_path, write_text_atomic
 from roadsurf.core.geometry import EnuReference, ExportFrame, enu_from_lla, lla_from_utm
+from roadsurf.io import runfolder as rf
 from roadsurf.io.formats import LOCAL_CRS, GridSpec, geotiff_profile
 
 
@@ -288,7 +289,7 @@ class TiledWriter:
             tp = self.lat.tile_px
             self._full.write(bands, window=Window(c * tp, r * tp, tp, tp))
         if self.write_tiles:
-            rel = f"tiles/{self.name}_{r:04d}_{c:04d}.tif"
+            rel = f"{rf.TILES_DIR}/{rf.tile_filename(self.name, r, c)}"
             grid = self.lat.tile_grid(r, c)
             with atomic_path(self.run_dir / rel) as tmp:
                 with rasterio.open(
@@ -362,7 +363,9 @@ def file_size_mb(path: Path) -> float:
     return os.path.getsize(path) / 1e6 if path.exists() else 0.0
 
 
-def iter_tiles(run_dir: str | Path, name: str = "surface") -> Iterator[tuple[GridSpec, np.ndarray]]:
+def iter_tiles(
+    run_dir: str | Path, name: str = rf.SURFACE
+) -> Iterator[tuple[GridSpec, np.ndarray]]:
     """Yield (GridSpec, data) for each non-empty tile of RUN's ``name`` raster ("surface" or
     "mosaic"), one at a time, from the tile list in RUN/map_report.json (the per-tile files, or
     windows of the monolithic GeoTIFF). Memory stays bounded by one tile; use it instead of
@@ -373,7 +376,7 @@ def iter_tiles(run_dir: str | Path, name: str = "surface") -> Iterator[tuple[Gri
     from roadsurf.core.atomic import read_json
 
     run_dir = Path(run_dir)
-    rep = read_json(run_dir / "map_report.json")
+    rep = read_json(run_dir / rf.MAP_REPORT)
     g = rep["grid"]
     tp = int(g["tile_px"])
     full = run_dir / f"{name}.tif"

@@ -13,6 +13,7 @@ import numpy as np
 from tqdm import tqdm
 
 from roadsurf.core.parallel import ordered_map
+from roadsurf.io import runfolder as rf
 from roadsurf.io.drive import Drive, Frame
 from roadsurf.io.formats import GridSpec
 from roadsurf.mapping.config import MappingConfig
@@ -123,7 +124,7 @@ def rasterise(
     try:
         sw = TiledWriter(
             prod.run_dir,
-            "surface",
+            rf.SURFACE,
             lat,
             1,
             "float32",
@@ -133,7 +134,7 @@ def rasterise(
             tags={"units": "m", "description": "height above the local road, negative below"},
         )
         writers.append(sw)
-        mw = TiledWriter(prod.run_dir, "mosaic", lat, 3, "uint8", 0, write_tiles, write_full)
+        mw = TiledWriter(prod.run_dir, rf.MOSAIC, lat, 3, "uint8", 0, write_tiles, write_full)
         writers.append(mw)
         prev = Previews(fg, cfg.preview_max_px)
         workers = max(1, int(cfg.raster_workers))
@@ -207,8 +208,8 @@ def rasterise(
                 ],
             }
             if write_tiles:
-                info["surface"] = f"tiles/surface_{t[0]:04d}_{t[1]:04d}.tif"
-                info["mosaic"] = f"tiles/mosaic_{t[0]:04d}_{t[1]:04d}.tif"
+                info["surface"] = f"{rf.TILES_DIR}/{rf.tile_filename(rf.SURFACE, *t)}"
+                info["mosaic"] = f"{rf.TILES_DIR}/{rf.tile_filename(rf.MOSAIC, *t)}"
             prod.tiles.append(info)
             prev.add(t, lat, res_t, mos_t)
         for w in writers:
@@ -218,11 +219,11 @@ def rasterise(
             w.abort()
         raise
     if write_full:
-        prod.files["surface"] = "surface.tif"
-        prod.files["mosaic"] = "mosaic.tif"
+        prod.files["surface"] = rf.SURFACE_TIF
+        prod.files["mosaic"] = rf.MOSAIC_TIF
     if write_tiles:
-        prod.files["surface_vrt"] = "surface.vrt"
-        prod.files["mosaic_vrt"] = "mosaic.vrt"
+        prod.files["surface_vrt"] = rf.SURFACE_VRT
+        prod.files["mosaic_vrt"] = rf.MOSAIC_VRT
     prev.write(prod.run_dir)
-    prod.files["mosaic_preview"] = "mosaic_preview.png"
-    prod.files["surface_preview"] = "surface_preview.png"
+    prod.files["mosaic_preview"] = rf.MOSAIC_PREVIEW
+    prod.files["surface_preview"] = rf.SURFACE_PREVIEW

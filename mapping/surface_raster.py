@@ -9,7 +9,7 @@ from collections.abc import Callable
 import cv2
 import numpy as np
 
-from roadsurf.io.drive import Camera
+from roadsurf.core.camera import Camera
 from roadsurf.io.formats import GridSpec
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.raster import GridToEnu, fill_nodata_capped, interpolate_to_grid

@@ -16,6 +16,7 @@ import numpy as np
 
 from roadsurf.core.atomic import read_json, write_json_atomic, write_npz_atomic
 from roadsurf.core.geometry import EnuReference, ExportFrame, heading_deg_from_world_rotation
+from roadsurf.io import runfolder as rf
 
 POSE_SOURCES = ("gps", "visual", "fused")
 
@@ -55,7 +56,7 @@ class Trajectory:
 def save_trajectory(run_dir: str | Path, traj: Trajectory) -> None:
     run_dir = Path(run_dir)
     write_npz_atomic(
-        run_dir / "poses.npz",
+        run_dir / rf.POSES_NPZ,
         filenames=np.array(traj.filenames, dtype=str),
         frame_indices=np.asarray(traj.frame_indices, dtype=np.int64),
         timestamp_s=np.asarray(traj.timestamp_s, dtype=float),
@@ -70,16 +71,16 @@ def save_trajectory(run_dir: str | Path, traj: Trajectory) -> None:
         ef = ExportFrame.for_reference(traj.reference)
         ref = {**traj.reference.to_dict(), "crs": ef.crs}
     write_json_atomic(
-        run_dir / "reference.json",
+        run_dir / rf.REFERENCE_JSON,
         {"reference": ref, "frame": "ENU (x east, y north, z up), metres"},
     )
 
 
 def load_trajectory(run_dir: str | Path) -> Trajectory:
     run_dir = Path(run_dir)
-    meta = read_json(run_dir / "reference.json")
+    meta = read_json(run_dir / rf.REFERENCE_JSON)
     ref = EnuReference.from_dict(meta["reference"]) if meta.get("reference") else None
-    with np.load(run_dir / "poses.npz", allow_pickle=False) as z:
+    with np.load(run_dir / rf.POSES_NPZ, allow_pickle=False) as z:
         return Trajectory(
             filenames=z["filenames"].tolist(),
             frame_indices=z["frame_indices"],

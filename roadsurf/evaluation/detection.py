@@ -27,7 +27,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from roadsurf.core.errors import RoadsurfError
+from roadsurf.core.fits import fit_rigid_2d
 from roadsurf.core.geometry import ExportFrame
+from roadsurf.io import runfolder as rf
 from roadsurf.io.formats import read_csv, read_geojson
 from roadsurf.mapping.types import load_trajectory
 
@@ -69,16 +71,6 @@ def frame_metrics(pred: dict[str, int], truth: dict[str, int]) -> dict[str, Any]
     }
 
 
-def rigid_2d(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares rotation R (2, 2) and translation t (2,) with dst ≈ src @ R.T + t."""
-    ms, md = src.mean(axis=0), dst.mean(axis=0)
-    H = (src - ms).T @ (dst - md)
-    U, _, Vt = np.linalg.svd(H)
-    D = np.diag([1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    R = Vt.T @ D @ U.T
-    return R, md - ms @ R.T
-
-
 def _truth_crs(truth_dir: Path) -> str:
     sc = json.loads((truth_dir / "scenario.json").read_text())
     return str(sc["crs"])
@@ -102,10 +94,10 @@ def _run_geometries(run_dir: Path, crs: str) -> tuple[list[Outline], bool]:
     """The run's defects as (geometry in ``crs`` or local ENU metres, properties), georef flag."""
     import shapely.geometry
 
-    fc = json.loads((run_dir / "defects.geojson").read_text())
+    fc = json.loads((run_dir / rf.DEFECTS_GEOJSON).read_text())
     georef = "coordinates" not in (fc.get("properties") or {})
     if georef:
-        return _project(read_geojson(run_dir / "defects.geojson"), crs), True
+        return _project(read_geojson(run_dir / rf.DEFECTS_GEOJSON), crs), True
     return [
         (shapely.geometry.shape(f["geometry"]), f["properties"]) for f in fc.get("features", [])
     ], False
@@ -117,7 +109,9 @@ def _trajectory_alignment(run_dir: Path, truth_dir: Path, crs: str, georef: bool
     truth = {r["filename"]: r for r in read_csv(truth_dir / "poses.csv")}
     idx = [i for i, f in enumerate(traj.filenames) if f in truth]
     if len(idx) < 2:
-        raise RoadsurfError(f"{run_dir}/poses.npz shares < 2 frames with {truth_dir}/poses.csv")
+        raise RoadsurfError(
+            f"{run_dir}/{rf.POSES_NPZ} shares < 2 frames with {truth_dir}/poses.csv"
+        )
     enu = traj.positions_enu_m[idx]
     if georef and traj.reference is not None:
         from pyproj import Transformer
@@ -139,7 +133,8 @@ def _trajectory_alignment(run_dir: Path, truth_dir: Path, crs: str, georef: bool
             for i in idx
         ]
     )
-    R, t = rigid_2d(src, dst)
+    fit = fit_rigid_2d(src, dst)
+    R, t = fit.R, fit.t
     before = float(np.sqrt(np.mean(np.sum((src - dst) ** 2, axis=1))))
     after = float(np.sqrt(np.mean(np.sum((src @ R.T + t - dst) ** 2, axis=1))))
     return {
@@ -157,7 +152,11 @@ def _local_transform(al: dict[str, Any], centre: np.ndarray) -> list[float]:
     """Affine parameters of the rigid fit of the trajectory within LOCAL_RADIUS_M of ``centre``
     (the map is only locally consistent under consumer GPS); the global fit when too few frames."""
     near = np.linalg.norm(al["src"] - centre, axis=1) <= LOCAL_RADIUS_M
-    R, t = (al["R"], al["t"]) if near.sum() < 4 else rigid_2d(al["src"][near], al["dst"][near])
+    if near.sum() < 4:
+        R, t = al["R"], al["t"]
+    else:
+        fit = fit_rigid_2d(al["src"][near], al["dst"][near])
+        R, t = fit.R, fit.t
     return [R[0, 0], R[0, 1], R[1, 0], R[1, 1], t[0], t[1]]
 
 
@@ -265,10 +264,14 @@ def evaluate_detection(run_dir: str | Path, truth_dir: str | Path) -> dict[str, 
     from shapely import affinity
 
     run_dir, truth_dir = Path(run_dir), Path(truth_dir)
-    for p in (run_dir / "frames.csv", run_dir / "defects.geojson", truth_dir / "frame_labels.csv"):
+    for p in (
+        run_dir / rf.FRAME_LABELS_CSV,
+        run_dir / rf.DEFECTS_GEOJSON,
+        truth_dir / "frame_labels.csv",
+    ):
         if not p.exists():
             raise RoadsurfError(f"{p}: missing; run `roadsurf run` / `roadsurf simulate` first")
-    pred = {r["filename"]: int(r["defect"]) for r in read_csv(run_dir / "frames.csv")}
+    pred = {r["filename"]: int(r["defect"]) for r in read_csv(run_dir / rf.FRAME_LABELS_CSV)}
     truth = {r["filename"]: int(r["defect"]) for r in read_csv(truth_dir / "frame_labels.csv")}
     out: dict[str, Any] = {"frames": frame_metrics(pred, truth)}
 

@@ -32,6 +32,7 @@ from roadsurf.evaluation.trajectory import (
     trajectory_metrics,
     truth_poses,
 )
+from roadsurf.io import runfolder as rf
 
 log = logging.getLogger(__name__)
 
@@ -88,14 +89,14 @@ def evaluate_run(run_dir: str | Path, truth_dir: str | Path) -> dict[str, Any]:
     out.update(surf)
     out["seam_step_max_m"], out["seam_step_p95_m"], out["seam_pairs"] = seam_steps(run_dir)
     out["targets"] = _targets(out, scen)
-    if (run_dir / "defects.geojson").is_file():
+    if (run_dir / rf.DEFECTS_GEOJSON).is_file():
         try:
             out["detection"] = evaluate_detection(run_dir, truth_dir)
         except Exception as e:  # noqa: BLE001 - a detection scoring problem must not hide ours
             log.warning("detection evaluation failed: %s", e)
             out["detection_error"] = str(e)
-    write_json_atomic(run_dir / "evaluation.json", out)
-    write_text_atomic(run_dir / "evaluation.md", markdown_table([out]))
+    write_json_atomic(run_dir / rf.EVALUATION_JSON, out)
+    write_text_atomic(run_dir / rf.EVALUATION_MD, markdown_table([out]))
     return out
 
 

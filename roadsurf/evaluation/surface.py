@@ -10,6 +10,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from roadsurf.io import runfolder as rf
+from roadsurf.io.drive.camera_yaml import load_camera
 from roadsurf.io.formats import read_geojson
 
 if TYPE_CHECKING:
@@ -17,7 +19,7 @@ if TYPE_CHECKING:
 
 
 def _open_surface(run_dir: Path) -> Path | None:
-    for name in ("surface.tif", "surface.vrt"):
+    for name in (rf.SURFACE_TIF, rf.SURFACE_VRT):
         if (run_dir / name).exists():
             return run_dir / name
     return None
@@ -28,23 +30,16 @@ def _corridor_polygon(
 ) -> Geometry | None:
     """Union of the true camera footprints on the road (truth CRS), or None."""
     import shapely
-    import yaml
+    from scipy.spatial.transform import Rotation
 
     cam_yaml = truth_dir.parent / "camera.yaml"
     if not cam_yaml.is_file():
         return None
-    cam = yaml.safe_load(cam_yaml.read_text())
-    from scipy.spatial.transform import Rotation
-
-    w, h = float(cam["width"]), float(cam["height"])
+    cam = load_camera(cam_yaml)
+    w, h = float(cam.width), float(cam.height)
     corners = np.array([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]], float)
-    rays = np.column_stack(
-        [
-            (corners[:, 0] - cam["cx"]) / cam["fx"],
-            (corners[:, 1] - cam["cy"]) / cam["fy"],
-            np.ones(4),
-        ]
-    )
+    # distortion ignored, as before (the raw corners are treated as ideal pixels)
+    rays = np.column_stack([cam.normalised_from_px(corners), np.ones(4)])
     q = truth["q"]
     Rs = Rotation.from_quat(np.column_stack([q[:, 1], q[:, 2], q[:, 3], q[:, 0]])).as_matrix()
     polys = []
@@ -55,7 +50,7 @@ def _corridor_polygon(
         rw = rays @ Rs[k].T
         if np.any(rw[:, 2] >= -1e-6):
             continue
-        lam = -float(cam["height_m"]) / rw[:, 2]
+        lam = -cam.height_m / rw[:, 2]
         xy = truth["xy"][k] + lam[:, None] * rw[:, :2]
         polys.append(shapely.Polygon(xy))
     if stereo:  # seen by two consecutive frames: what a two-view method can measure
@@ -209,7 +204,7 @@ def surface_metrics(
 def seam_steps(run_dir: Path) -> tuple[float, float, int]:
     """Height disagreement between neighbouring patches: for patches k and the next one, the
     median residual difference of nearby points (within 1.5 cm) on flat road (|r| < 1 cm)."""
-    path = run_dir / "map_points.npz"
+    path = run_dir / rf.MAP_POINTS
     if not path.is_file():
         return float("nan"), float("nan"), 0
     from scipy.spatial import cKDTree

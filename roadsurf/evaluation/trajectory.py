@@ -10,6 +10,8 @@ from typing import Any
 
 import numpy as np
 
+from roadsurf.core.fits import fit_rigid_2d
+from roadsurf.io import runfolder as rf
 from roadsurf.io.formats import read_csv, read_geojson
 
 log = logging.getLogger(__name__)
@@ -27,7 +29,7 @@ def truth_poses(truth_dir: Path) -> dict[str, Any]:
 
 
 def run_trajectory(run_dir: Path, crs: str | None) -> dict[str, Any] | None:
-    path = run_dir / "trajectory.geojson"
+    path = run_dir / rf.TRAJECTORY_GEOJSON
     if not path.is_file() or crs is None:
         return None
     from pyproj import Transformer
@@ -46,22 +48,14 @@ def run_trajectory(run_dir: Path, crs: str | None) -> dict[str, Any] | None:
     return {"filename": names, "xy": np.column_stack([x, y]), "heading_deg": np.array(hd)}
 
 
-def rigid_2d(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares 2D rotation R (2, 2) and translation t (2,) with dst ≈ src @ R.T + t."""
-    ms, md = src.mean(0), dst.mean(0)
-    S = (src - ms).T @ (dst - md)
-    yaw = math.atan2(S[0, 1] - S[1, 0], S[0, 0] + S[1, 1])
-    R = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
-    return R, md - ms @ R.T
-
-
 def trajectory_metrics(est: dict[str, Any], truth: dict[str, Any]) -> dict[str, Any]:
     idx = {n: i for i, n in enumerate(truth["filename"])}
     pairs = [(i, idx[n]) for i, n in enumerate(est["filename"]) if n in idx]
     e = est["xy"][[a for a, _ in pairs]]
     t = truth["xy"][[b for _, b in pairs]]
     err = np.linalg.norm(e - t, axis=1)
-    R, tr = rigid_2d(e, t)
+    fit = fit_rigid_2d(e, t)
+    R, tr = fit.R, fit.t
     ea = e @ R.T + tr
     err_a = np.linalg.norm(ea - t, axis=1)
     # relative drift (relative pose error): the displacement over windows of 5 m of true travel,

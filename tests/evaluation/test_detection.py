@@ -5,9 +5,10 @@ import dataclasses
 import numpy as np
 import pytest
 
+from roadsurf.core.fits import fit_rigid_2d
 from roadsurf.detection import stage
 from roadsurf.detection.config import DetectionConfig
-from roadsurf.evaluation.detection import evaluate_detection, frame_metrics, rigid_2d, targets
+from roadsurf.evaluation.detection import evaluate_detection, frame_metrics, targets
 from roadsurf.mapping.types import save_trajectory
 from tests.detection.synthetic import Pothole, Scene, build, write_truth
 
@@ -21,15 +22,16 @@ def test_frame_metrics_counts():
     assert m["precision"] == pytest.approx(2 / 3) and m["recall"] == pytest.approx(2 / 3)
 
 
-def test_rigid_2d_recovers_motion():
+def test_fit_rigid_2d_recovers_motion():
+    # the evaluation aligns the run's trajectory with core's fit_rigid_2d (no local copy)
     rng = np.random.default_rng(0)
     src = rng.normal(size=(20, 2))
     a = np.deg2rad(3.0)
     R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
     dst = src @ R.T + [5.0, -2.0]
-    R2, t2 = rigid_2d(src, dst)
-    np.testing.assert_allclose(R2, R, atol=1e-12)
-    np.testing.assert_allclose(t2, [5.0, -2.0], atol=1e-12)
+    fit = fit_rigid_2d(src, dst)
+    np.testing.assert_allclose(fit.R, R, atol=1e-12)
+    np.testing.assert_allclose(fit.t, [5.0, -2.0], atol=1e-12)
 
 
 @pytest.mark.parametrize("gps_offset_m", [0.0, 0.8])

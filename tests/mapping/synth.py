@@ -12,8 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
+from roadsurf.core.camera import Camera
 from roadsurf.core.geometry import EnuReference, invert_pose, lla_from_enu, world_from_cam
-from roadsurf.io.drive import Camera, Drive, Frame, GpsTrack, ObdLog
+from roadsurf.io.drive import Drive, Frame, GpsTrack, ObdLog
 from roadsurf.reconstruction.types import PairResult
 
 REF = EnuReference(43.6532, -79.3832, 100.0)  # Toronto: UTM 17N, EPSG:32617
