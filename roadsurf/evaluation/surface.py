@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from roadsurf.core.camera import RENDER_UNDISTORT_CRITERIA
 from roadsurf.io import runfolder as rf
 from roadsurf.io.drive.camera_yaml import load_camera
 from roadsurf.io.formats import read_geojson
@@ -38,8 +39,9 @@ def _corridor_polygon(
     cam = load_camera(cam_yaml)
     w, h = float(cam.width), float(cam.height)
     corners = np.array([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]], float)
-    # distortion ignored, as before (the raw corners are treated as ideal pixels)
-    rays = np.column_stack([cam.normalised_from_px(corners), np.ones(4)])
+    # the raw image's corners, undistorted as the simulator renders them (the truth's camera)
+    und = cam.normalised_from_raw_px(corners, criteria=RENDER_UNDISTORT_CRITERIA)
+    rays = np.column_stack([und, np.ones(4)])
     q = truth["q"]
     Rs = Rotation.from_quat(np.column_stack([q[:, 1], q[:, 2], q[:, 3], q[:, 0]])).as_matrix()
     polys = []
