@@ -61,7 +61,7 @@ class ClassifierConfig:
     # num_threads): nothing else runs then, and the 200-frame long drive screens in 1.2 s
     # with 2 threads against 2.1 s with 1 on the 2-core bench machine
     screen_num_threads: int = 2
-    # screen in a worker process (detection.classifier.screen_job) so torch's import (1.3-2 s)
+    # screen in a worker process (classifier.screen_job) so torch's import (1.3-2 s)
     # and the screening overlap the pipeline's own start-up on another core; False screens in
     # the pipeline's process (same probabilities)
     screen_in_subprocess: bool = True

@@ -32,13 +32,12 @@ import logging
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from roadsurf.core.atomic import write_json_atomic
 from roadsurf.detection.classifier.config import ClassifierConfig
-from roadsurf.detection.classifier.dataset import figures_from_pairs, label_frame
 from roadsurf.detection.classifier.fusion import (
     FusionRule,
     audit_pairs,
@@ -48,10 +47,16 @@ from roadsurf.detection.classifier.fusion import (
     grow_pairs,
     pairs_to_reconstruct,
 )
+from roadsurf.detection.classifier.selflabel import figures_from_pairs, label_frame
+from roadsurf.io.runfolder import SCREENING_JSON, RunFolder
+
+if TYPE_CHECKING:
+    from roadsurf.reconstruction.types import PairResult
 
 log = logging.getLogger(__name__)
 
-SCREENING_FILE = "screening.json"
+ProbeSummary = dict[str, str | int | float | None]  # one audit probe in RUN/screening.json
+
 MAX_GROWTH_ROUNDS = 200  # safety bound; each round adds at least one pair
 UNSURE_WARN_SHARE = 0.5  # warn when the CNN is unsure about more than this share of frames
 
@@ -60,11 +65,11 @@ UNSURE_WARN_SHARE = 0.5  # warn when the CNN is unsure about more than this shar
 class GuidedResult:
     """The pairs a fused run reconstructed and the fusion rule its detection stage applies."""
 
-    pairs: list[Any]  # PairResults in frame order
+    pairs: list[PairResult]  # in frame order
     rule: FusionRule
     reasons: dict[str, str]  # filename -> why 3D ran (unsure, defect, context, audit, grown)
     rounds: int  # reconstruction rounds (1 + growth rounds)
-    probes: list[Any] = field(default_factory=list)  # audit probes (PairResults), frame order
+    probes: list[PairResult] = field(default_factory=list)  # audit probes, frame order
     cleared: frozenset[str] = frozenset()  # audited frames a probe showed clear (no full pair)
 
 
@@ -120,13 +125,13 @@ def plan_pairs(
     return pairs, own, reasons
 
 
-def probe_depth_points(probe: Any, camera_height_m: float, cfg: ClassifierConfig) -> int:
+def probe_depth_points(probe: PairResult, camera_height_m: float, cfg: ClassifierConfig) -> int:
     """Points of a probe PairResult deeper than ``audit_probe_depth_frac`` x Z^d (count)."""
     zd = cfg.audit_probe_depth_frac * cfg.depth_threshold_m(camera_height_m)
     return int(np.count_nonzero(np.asarray(probe.plane_dist_m, float) < -zd))
 
 
-def _probe_summary(probe: Any, n_deep: int | None) -> dict[str, Any]:
+def _probe_summary(probe: PairResult, n_deep: int | None) -> ProbeSummary:
     d = np.asarray(probe.plane_dist_m, float)
     return {
         "status": probe.status,
@@ -141,10 +146,10 @@ def run(
     filenames: list[str],
     frame_probs: Mapping[str, float],
     camera_height_m: float,
-    reconstruct: Callable[[set[tuple[int, int]]], list[Any]],
+    reconstruct: Callable[[set[tuple[int, int]]], list[PairResult]],
     run_dir: Path | None = None,
     along_m: Sequence[float] | None = None,
-    probe: Callable[[set[tuple[int, int]]], list[Any]] | None = None,
+    probe: Callable[[set[tuple[int, int]]], list[PairResult]] | None = None,
 ) -> GuidedResult:
     """Reconstruct what the screened drive needs; ``reconstruct(only_pairs)`` runs the
     reconstruction stage on those (index_a, index_b) pairs (cached pairs are reused) and
@@ -158,8 +163,8 @@ def run(
     if along_m is not None and len(along_m) != n:
         raise ValueError(f"along_m has {len(along_m)} values for {n} frames")
     todo, audit, reasons = plan_pairs(frame_probs, filenames, cfg, along_m)
-    probes: list[Any] = []
-    probe_info: dict[str, dict[str, Any]] = {}
+    probes: list[PairResult] = []
+    probe_info: dict[str, ProbeSummary] = {}
     cleared: set[str] = set()
     if probe is not None and cfg.audit_probe and audit:
         probes = list(probe(set(audit.values())))
@@ -257,7 +262,7 @@ def run(
         log.warning(warnings[-1])
     if run_dir is not None:
         write_json_atomic(
-            Path(run_dir) / SCREENING_FILE,
+            RunFolder(run_dir).path(SCREENING_JSON),
             {
                 "fusion_threshold": cfg.fusion_threshold,
                 "context_frames": cfg.context_frames,

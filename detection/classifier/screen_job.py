@@ -6,8 +6,8 @@ core while the pipeline reads the drive and imports its own stages (SciPy, raste
 scikit-image: ~1 s); threads could not overlap them, since imports hold the GIL. The pipeline
 process of a fused run never imports torch.
 
-The worker is ``python -m detection.classifier.screen_job RESULT HEADER``: the header (JSON:
-model path, classifier settings) comes on the command line, so the worker imports torch and
+The worker is ``python -m roadsurf.detection.classifier.screen_job RESULT HEADER``: the header
+(JSON: model path, classifier settings) comes on the command line, so the worker imports torch and
 loads the model at once; the frames follow on stdin when the pipeline has read the drive. It
 logs and shows its progress bar on the shared stderr, and writes
 ``{"probs": {filename: p_defect}}`` or ``{"error": {...}}`` to the result file the parent
@@ -158,12 +158,12 @@ def _work(out: Path, header: dict[str, Any]) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Worker entry point: ``python -m detection.classifier.screen_job RESULT_JSON HEADER_JSON``,
-    then the frames on stdin."""
+    """Worker entry point: ``python -m roadsurf.detection.classifier.screen_job RESULT_JSON
+    HEADER_JSON``, then the frames on stdin."""
     args = sys.argv[1:] if argv is None else argv
     if len(args) != 2:
         sys.stderr.write(
-            "usage: python -m detection.classifier.screen_job RESULT HEADER < frames\n"
+            "usage: python -m roadsurf.detection.classifier.screen_job RESULT HEADER < frames\n"
         )
         return 2
     header = json.loads(args[1])

@@ -22,6 +22,7 @@ import numpy as np
 
 from roadsurf.core.errors import RoadsurfError
 from roadsurf.detection.classifier.config import ClassifierConfig
+from roadsurf.io.runfolder import RunFolder
 
 if TYPE_CHECKING:
     from roadsurf.reconstruction.types import PairResult
@@ -53,12 +54,12 @@ def frame_figures(
 ) -> dict[str, FrameFigures]:
     """Depth and extent of each frame from RUN/pairs/*.npz (eq. 5.8-5.9); see
     ``figures_from_pairs``. ``filenames`` are the drive's valid frames in capture order."""
-    from roadsurf.reconstruction.types import load_pair, pair_filename
+    from roadsurf.reconstruction.types import load_pair
 
-    pair_dir = Path(run_dir) / "pairs"
+    run = RunFolder(run_dir)
     pairs = []
     for i in range(len(filenames) - 1):
-        p = pair_dir / pair_filename(i, i + 1)
+        p = run.pair(i, i + 1)
         if not p.is_file():
             continue
         try:
@@ -125,7 +126,7 @@ def read_defect_types(run_dir: Path) -> dict[str, set[str]]:
     (the features' ``frames`` property); {} when the file does not exist."""
     from roadsurf.io.formats import read_geojson
 
-    path = Path(run_dir) / "defects.geojson"
+    path = RunFolder(run_dir).defects_geojson
     if not path.is_file():
         return {}
     out: dict[str, set[str]] = {}
@@ -152,7 +153,7 @@ def skip_for_cnn(label: int | None, types: set[str] | None, cfg: ClassifierConfi
 
 def read_physics_labels(run_dir: Path) -> dict[str, tuple[bool, str]] | None:
     """RUN/frames.csv -> {filename: (defect, source)}; None when the file does not exist."""
-    path = Path(run_dir) / "frames.csv"
+    path = RunFolder(run_dir).frame_labels
     if not path.is_file():
         return None
     out: dict[str, tuple[bool, str]] = {}

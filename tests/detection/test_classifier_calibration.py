@@ -10,10 +10,11 @@ import pytest
 import torch
 
 from roadsurf.core.errors import ModelFileError, RoadsurfError
+from roadsurf.detection.classifier.calibration import fit_temperature
 from roadsurf.detection.classifier.config import ClassifierConfig
 from roadsurf.detection.classifier.modelfile import load_model, save_model
 from roadsurf.detection.classifier.network import DefectNet
-from roadsurf.detection.classifier.train import fit_temperature, make_scheduler
+from roadsurf.detection.classifier.train import make_scheduler
 
 
 def _logits_with_temperature(t_true: float, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -80,7 +81,7 @@ def test_cosine_schedule_warms_up_then_decays() -> None:
 
 def test_prior_shift_and_bias_calibration(tmp_path: Path) -> None:
     """Balanced sampling trains at 1:1; a fitted logit bias moves p to the data's prior."""
-    from roadsurf.detection.classifier.train import prior_shift, training_priors
+    from roadsurf.detection.classifier.calibration import prior_shift, training_priors
 
     assert prior_shift(0.5, 0.25) == pytest.approx(np.log(1 / 3))
     assert prior_shift(0.2, 0.2) == 0.0
@@ -94,7 +95,7 @@ def test_prior_shift_and_bias_calibration(tmp_path: Path) -> None:
 
     # a net whose posterior is right at 1:1 but too sharp (T = 2), validation drawn at a 1:4
     # prior: the joint fit recovers both the temperature and the prior shift
-    from roadsurf.detection.classifier.train import fit_temperature_bias
+    from roadsurf.detection.classifier.calibration import fit_temperature_bias
 
     rng = np.random.default_rng(0)
     z = rng.normal(0.0, 4.0, 8000)

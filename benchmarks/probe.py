@@ -1,4 +1,4 @@
-"""`roadsurf bench probe DRIVE...`: does the audit's cheap probe see what a full pair sees?
+"""Benchmark: does the fused run's audit probe see what a full pair sees?
 
 For every ``step``-th consecutive pair of each drive, the probe (``reconstruction.probe``) and
 the full pair (SIFT on both frames + ``reconstruct_features``, as the reconstruction stage
@@ -8,10 +8,13 @@ comparable. Each full pair's frame a is labelled by the self-labelling rule (eq.
 it a full pair) when it fails or has more than ``audit_probe_max_deep_points`` points deeper
 than ``audit_probe_depth_frac`` x Z^d. A *miss* is a pair whose full pair is not clear while
 the probe did not escalate: the audit would have passed over depth a full pair sees.
+
+``python -m benchmarks.probe DRIVE... [--step N] [--config YAML]`` (``make bench-probe``).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,8 +22,8 @@ from pathlib import Path
 from tqdm import tqdm
 
 from roadsurf.detection.classifier.config import ClassifierConfig
-from roadsurf.detection.classifier.dataset import figures_from_pairs, label_frame
 from roadsurf.detection.classifier.guided import probe_depth_points
+from roadsurf.detection.classifier.selflabel import figures_from_pairs, label_frame
 from roadsurf.io.drive import load_drive, read_gray
 from roadsurf.reconstruction import features as feat
 from roadsurf.reconstruction.api import reconstruct_features
@@ -114,3 +117,38 @@ def report(rows: list[ProbeBenchRow]) -> str:
             f"| {r.probe_s / max(r.full_s, 1e-9):.2f} |"
         )
     return "\n".join(out)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m benchmarks.probe DRIVE...`` (``make bench-probe ARGS="DRIVE..."``)."""
+    import argparse
+
+    from benchmarks._result import write_result
+    from roadsurf.pipeline.run import load_pipeline_config
+
+    ap = argparse.ArgumentParser(
+        description="The fused run's audit probe against a full pair on every pair: misses "
+        "and time."
+    )
+    ap.add_argument("drives", nargs="+", type=Path, help="drive folders")
+    ap.add_argument("--step", type=int, default=1, help="compare every step-th pair")
+    ap.add_argument(
+        "--config",
+        type=Path,
+        default=None,
+        help="YAML config (reconstruction and classifier sections)",
+    )
+    ap.add_argument("--json", type=Path, default=None, help="result file (default results/)")
+    a = ap.parse_args(argv)
+    cfg = load_pipeline_config(a.config)
+    rows = bench_probe(a.drives, a.step, cfg.reconstruction, cfg.classifier)
+    table = report(rows)
+    print(table)
+    write_result(
+        a.json, "probe", {"markdown": table, "rows": [dataclasses.asdict(r) for r in rows]}
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

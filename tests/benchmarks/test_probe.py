@@ -1,4 +1,4 @@
-"""`roadsurf bench probe`: the audit probe against full pairs on a rendered strip of road."""
+"""benchmarks.probe: the audit probe against full pairs on a rendered strip of road."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from roadsurf.detection.classifier.bench_probe import bench_probe, report
+from benchmarks.probe import bench_probe, report
 from roadsurf.reconstruction.config import FeatureConfig, ReconstructionConfig
 from tests.reconstruction.conftest import texture
 from tests.reconstruction.test_probe import _rut, render_surface
