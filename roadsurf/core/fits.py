@@ -95,23 +95,32 @@ def robust_plane_z(points_m: np.ndarray, iterations: int = 3) -> np.ndarray | No
 # ---------------------------------------------------------------------------------- 2D rigid
 @dataclass(frozen=True)
 class Rigid2D:
-    """dst ≈ R @ src + t, with R a rotation by ``yaw_rad`` (counter-clockwise)."""
+    """dst ≈ s R @ src + t, with R a rotation by ``yaw_rad`` (counter-clockwise) and s the
+    scale (1 for a rigid fit)."""
 
     yaw_rad: float
     R: np.ndarray  # (2, 2)
     t: np.ndarray  # (2,) metres
+    scale: float = 1.0
 
     def apply(self, xy: np.ndarray) -> np.ndarray:
         """(N, 2) -> (N, 2)."""
-        return xy @ self.R.T + self.t
+        return self.scale * xy @ self.R.T + self.t
 
 
-def fit_rigid_2d(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) -> Rigid2D:
+def fit_rigid_2d(
+    src: np.ndarray,
+    dst: np.ndarray,
+    weights: np.ndarray | None = None,
+    *,
+    with_scale: bool = False,
+) -> Rigid2D:
     """Least-squares 2D rigid transform dst ≈ R src + t between (N, 2) point sets (metres).
 
     Closed form: the rotation angle is atan2 of the cross-covariance's antisymmetric and
     symmetric parts, exact in 2D and free of SVD reflection cases. ``weights`` (N,), if given,
-    weigh each pair (normalised to sum 1)."""
+    weigh each pair (normalised to sum 1). ``with_scale`` (unweighted only) also fits the
+    scale s of a similarity dst ≈ s R src + t (Umeyama's estimate, in closed form)."""
     src = check_shape("src", np.asarray(src, float), (None, 2))
     dst = check_shape("dst", np.asarray(dst, float), (None, 2))
     if weights is None:
@@ -119,7 +128,13 @@ def fit_rigid_2d(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = 
         S = (src - ms).T @ (dst - md)
         yaw = math.atan2(S[0, 1] - S[1, 0], S[0, 0] + S[1, 1])
         R = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
-        return Rigid2D(yaw, R, md - ms @ R.T)
+        if not with_scale:
+            return Rigid2D(yaw, R, md - ms @ R.T)
+        var = float(((src - ms) ** 2).sum())
+        s = math.hypot(S[0, 0] + S[1, 1], S[0, 1] - S[1, 0]) / var if var > 0 else 1.0
+        return Rigid2D(yaw, R, md - s * ms @ R.T, s)
+    if with_scale:
+        raise ValueError("fit_rigid_2d: with_scale needs an unweighted fit")
     w = weights / weights.sum()
     ms, md = w @ src, w @ dst
     S = ((src - ms) * w[:, None]).T @ (dst - md)
