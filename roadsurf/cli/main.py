@@ -197,9 +197,9 @@ def label(
     ] = None,
 ) -> None:
     """Self-label frames with the 3D physics pipeline into a CNN dataset (eq. 5.8-5.9)."""
-    from roadsurf.detection.classifier import commands
+    from roadsurf.pipeline.label import run_label
 
-    bal = commands.label(
+    bal = run_label(
         drives, out, runs=run_dirs, runs_dir=runs_dir, config_path=config, augment=augment
     )
     typer.echo(f"Dataset in {out}/: before augmentation {bal['before_augmentation']}, ")
@@ -222,9 +222,9 @@ def train(
     ] = False,
 ) -> None:
     """Train the defect CNN on a labelled dataset (resumes an interrupted training)."""
-    from roadsurf.detection.classifier import commands
+    from roadsurf.pipeline.train import run_train
 
-    meta = commands.train(
+    meta = run_train(
         dataset,
         out,
         config_path=config,
