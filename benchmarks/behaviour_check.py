@@ -54,7 +54,10 @@ VOLATILE_KEYS = {
     "run_dir",
     "truth",
     "runs",
+    "signature",  # detection's resume hash includes the mtime of surface.tif
 }
+# npz members that hold wall times
+VOLATILE_NPZ = ("timings",)
 SKIP_SUFFIXES = {".rrd", ".log"}
 
 
@@ -121,6 +124,16 @@ def _same_ply(a: Path, b: Path) -> bool:
     return va.dtype == vb.dtype and bool(np.array_equal(va, vb))
 
 
+def _same_npz(a: Path, b: Path) -> bool:
+    import numpy as np
+
+    with np.load(a, allow_pickle=False) as za, np.load(b, allow_pickle=False) as zb:
+        keys = [k for k in za.files if not any(v in k for v in VOLATILE_NPZ)]
+        if sorted(keys) != sorted(k for k in zb.files if not any(v in k for v in VOLATILE_NPZ)):
+            return False
+        return all(np.array_equal(za[k], zb[k], equal_nan=za[k].dtype.kind == "f") for k in keys)
+
+
 def _same_png(a: Path, b: Path) -> bool:
     import cv2
     import numpy as np
@@ -149,6 +162,7 @@ def compare_file(a: Path, b: Path) -> str:
         ".tif": _same_tif,
         ".ply": _same_ply,
         ".png": _same_png,
+        ".npz": _same_npz,
         ".md": _same_text,
         ".html": _same_text,
     }.get(suffix)
