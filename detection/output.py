@@ -24,7 +24,7 @@ from roadsurf.core.config import to_dict
 from roadsurf.core.fingerprint import Fingerprint
 from roadsurf.detection.config import DetectionConfig
 from roadsurf.detection.mapframe import MapFrame
-from roadsurf.detection.types import Defect, DetectionResult, FrameLabel
+from roadsurf.detection.types import DEFECT_COLUMNS, Defect, DetectionResult, FrameLabel
 from roadsurf.io.formats import feature, polygon_geometry, write_csv, write_geojson
 from roadsurf.io.runfolder import (
     DEFECTS_CSV,
@@ -44,47 +44,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-DEFECT_COLUMNS = (
-    "id",
-    "type",
-    "severity",
-    "max_depth_m",
-    "mean_depth_m",
-    "area_m2",
-    "volume_m3",
-    "length_m",
-    "width_m",
-    "confidence",
-    "frames",
-    "centroid_lon",
-    "centroid_lat",
-    "centroid_e_m",
-    "centroid_n_m",
-)
 FRAME_COLUMNS = ("filename", "defect", "p_defect", "source")
-
-
-def _props(d: Defect, lonlat: np.ndarray | None, exact: bool = False) -> dict[str, Any]:
-    def r(v: float, n: int) -> float:
-        return float(v) if exact else round(float(v), n)
-
-    return {
-        "id": d.id,
-        "type": d.type,
-        "severity": d.severity,
-        "max_depth_m": r(d.max_depth_m, 5),
-        "mean_depth_m": r(d.mean_depth_m, 5),
-        "area_m2": r(d.area_m2, 6),
-        "volume_m3": r(d.volume_m3, 8),
-        "length_m": r(d.length_m, 4),
-        "width_m": r(d.width_m, 4),
-        "confidence": r(d.confidence, 3),
-        "frames": list(d.frames),
-        "centroid_lon": None if lonlat is None else float(lonlat[0]),
-        "centroid_lat": None if lonlat is None else float(lonlat[1]),
-        "centroid_e_m": r(d.centroid_xy_m[0], 4),
-        "centroid_n_m": r(d.centroid_xy_m[1], 4),
-    }
 
 
 def write_outputs(
@@ -100,7 +60,7 @@ def write_outputs(
             c = mframe.lonlat_from_grid(d.centroid_xy_m[None])[0]
         else:
             ring, c = np.asarray(d.outline_xy_m, float), None
-        props = _props(d, c)
+        props = d.to_properties(c)
         feats.append(feature(polygon_geometry(ring), props))
         rows.append([props[k] if k != "frames" else ";".join(d.frames) for k in DEFECT_COLUMNS])
     meta = {
@@ -132,7 +92,10 @@ def write_outputs(
             **meta,
             "config": config,
             "defects": [
-                {**_props(d, None, exact=True), "outline_xy_m": np.asarray(d.outline_xy_m).tolist()}
+                {
+                    **d.to_properties(None, exact=True),
+                    "outline_xy_m": np.asarray(d.outline_xy_m).tolist(),
+                }
                 for d in result.defects
             ],
             "frames": [[f.filename, f.defect, f.p_defect, f.source] for f in result.frames],
@@ -159,19 +122,9 @@ def load_result(run_dir: Path, signature: str) -> DetectionResult | None:
         return None
     defects = [
         Defect(
-            id=int(d["id"]),
-            type=d["type"],
-            severity=d["severity"],
+            **Defect.fields_from_properties(d),
             outline_xy_m=np.asarray(d["outline_xy_m"], float),
             centroid_xy_m=np.array([d["centroid_e_m"], d["centroid_n_m"]], float),
-            max_depth_m=float(d["max_depth_m"]),
-            mean_depth_m=float(d["mean_depth_m"]),
-            area_m2=float(d["area_m2"]),
-            volume_m3=float(d["volume_m3"]),
-            length_m=float(d["length_m"]),
-            width_m=float(d["width_m"]),
-            confidence=float(d["confidence"]),
-            frames=list(d["frames"]),
         )
         for d in meta.get("defects", [])
     ]

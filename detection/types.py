@@ -2,11 +2,40 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+# The serialised defect record: defects.geojson properties and defects.csv columns, in order.
+DEFECT_COLUMNS = (
+    "id",
+    "type",
+    "severity",
+    "max_depth_m",
+    "mean_depth_m",
+    "area_m2",
+    "volume_m3",
+    "length_m",
+    "width_m",
+    "confidence",
+    "frames",
+    "centroid_lon",
+    "centroid_lat",
+    "centroid_e_m",
+    "centroid_n_m",
+)
+_MEASURES = ("max_depth_m", "mean_depth_m", "area_m2", "volume_m3", "length_m", "width_m")
+
+
+def _num(props: dict[str, Any], key: str) -> float:
+    try:
+        v = props.get(key)
+        return float(v) if v is not None else math.nan
+    except (TypeError, ValueError):
+        return math.nan
 
 
 @dataclass
@@ -27,6 +56,48 @@ class Defect:
     width_m: float  # short side of the minimum-area rectangle
     confidence: float  # 0-1
     frames: list[str] = field(default_factory=list)  # filenames whose footprint saw it
+
+    def to_properties(self, lonlat: np.ndarray | None, exact: bool = False) -> dict[str, Any]:
+        """The record as written (DEFECT_COLUMNS order): rounded for the GIS files, ``exact``
+        for detection.json. ``lonlat`` (2,) is the centroid in WGS84, None without GPS."""
+
+        def r(v: float, n: int) -> float:
+            return float(v) if exact else round(float(v), n)
+
+        return {
+            "id": self.id,
+            "type": self.type,
+            "severity": self.severity,
+            "max_depth_m": r(self.max_depth_m, 5),
+            "mean_depth_m": r(self.mean_depth_m, 5),
+            "area_m2": r(self.area_m2, 6),
+            "volume_m3": r(self.volume_m3, 8),
+            "length_m": r(self.length_m, 4),
+            "width_m": r(self.width_m, 4),
+            "confidence": r(self.confidence, 3),
+            "frames": list(self.frames),
+            "centroid_lon": None if lonlat is None else float(lonlat[0]),
+            "centroid_lat": None if lonlat is None else float(lonlat[1]),
+            "centroid_e_m": r(self.centroid_xy_m[0], 4),
+            "centroid_n_m": r(self.centroid_xy_m[1], 4),
+        }
+
+    @staticmethod
+    def fields_from_properties(props: dict[str, Any], default_id: int = 0) -> dict[str, Any]:
+        """The record's fields read back from written properties, tolerantly (missing or
+        non-numeric measures become NaN): every field but the outline and centroid."""
+        try:
+            ident = int(props.get("id", default_id))
+        except (TypeError, ValueError):
+            ident = default_id
+        return {
+            "id": ident,
+            "type": str(props.get("type", "defect")),
+            "severity": str(props.get("severity", "unknown")),
+            **{k: _num(props, k) for k in _MEASURES},
+            "confidence": _num(props, "confidence"),
+            "frames": [str(x) for x in (props.get("frames") or [])],
+        }
 
 
 @dataclass

@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from roadsurf.core.geometry import EnuReference, ExportFrame
+from roadsurf.detection.types import Defect
 from roadsurf.io.formats import GridSpec
 
 if TYPE_CHECKING:
@@ -49,27 +50,18 @@ def severity_rgb(sev: object) -> tuple[int, int, int]:
     return SEVERITY_RGB.get(s, UNKNOWN_RGB)
 
 
-@dataclass
-class DefectView:
-    """One defect as the viewer needs it (ENU metres, lon/lat when georeferenced)."""
+@dataclass(kw_only=True)
+class DefectView(Defect):
+    """The detection stage's defect record as the viewer holds it: ``outline_xy_m`` and
+    ``centroid_xy_m`` in the local ENU frame (m) instead of the map's grid frame, plus the
+    closed ring in ENU and, when georeferenced, in lon/lat."""
 
-    id: str
-    type: str
-    severity: str
-    max_depth_m: float
-    mean_depth_m: float
-    area_m2: float
-    volume_m3: float
-    length_m: float
-    width_m: float
-    confidence: float
     ring_enu_m: np.ndarray  # (K, 2) closed outline, east/north (m)
-    ring_lonlat: np.ndarray | None  # (K, 2) lon/lat degrees, None without GPS
-    frames: list[str] = field(default_factory=list)
+    ring_lonlat: np.ndarray | None = None  # (K, 2) lon/lat degrees, None without GPS
 
     @property
     def centroid_enu_m(self) -> np.ndarray:
-        return self.ring_enu_m[:-1].mean(axis=0) if len(self.ring_enu_m) > 1 else self.ring_enu_m[0]
+        return self.centroid_xy_m
 
     @property
     def label(self) -> str:

@@ -23,6 +23,7 @@ import numpy as np
 from roadsurf.core.atomic import read_json
 from roadsurf.core.errors import RoadsurfError
 from roadsurf.core.geometry import EnuReference, enu_from_lla, lla_from_utm
+from roadsurf.detection.types import Defect
 from roadsurf.io.formats import GridSpec, read_csv, read_ply, validate_geojson
 from roadsurf.io.runfolder import (
     CLOUD_PLY,
@@ -183,14 +184,6 @@ def _ring_enu(coords: np.ndarray, georef: bool, reference: EnuReference | None) 
     return enu_from_lla(c[:, 1], c[:, 0], 0.0, reference)[:, :2]
 
 
-def _fnum(props: dict[str, Any], key: str) -> float:
-    v = props.get(key)
-    try:
-        return float(v) if v is not None else math.nan
-    except (TypeError, ValueError):
-        return math.nan
-
-
 def _load_defects(
     run: RunFolder, reference: EnuReference | None, missing: list[str]
 ) -> list[DefectView]:
@@ -218,19 +211,11 @@ def _load_defects(
         enu = _ring_enu(ring, georef, reference)
         out.append(
             DefectView(
-                id=str(p.get("id", i + 1)),
-                type=str(p.get("type", "defect")),
-                severity=str(p.get("severity", "unknown")),
-                max_depth_m=_fnum(p, "max_depth_m"),
-                mean_depth_m=_fnum(p, "mean_depth_m"),
-                area_m2=_fnum(p, "area_m2"),
-                volume_m3=_fnum(p, "volume_m3"),
-                length_m=_fnum(p, "length_m"),
-                width_m=_fnum(p, "width_m"),
-                confidence=_fnum(p, "confidence"),
+                **Defect.fields_from_properties(p, default_id=i + 1),
+                outline_xy_m=enu[:-1] if len(enu) > 1 else enu,
+                centroid_xy_m=enu[:-1].mean(axis=0) if len(enu) > 1 else enu[0],
                 ring_enu_m=enu,
                 ring_lonlat=ring[:, :2] if georef else None,
-                frames=[str(x) for x in (p.get("frames") or [])],
             )
         )
     return sort_defects(out)
