@@ -68,7 +68,7 @@ def pair_frame_scores(
     cover its whole image. The deep refined points of both are binned on an image grid whose
     cells are one point spacing wide, and the occupied cells give the deep area.
     """
-    m_per_px = drive.camera.height_m / drive.camera.fx
+    m_per_px = drive.camera.ground_px_m()
     items: dict[str, list[tuple[np.ndarray, float]]] = {}
     for k, pd in per_pair.items():
         p = pairs[k]

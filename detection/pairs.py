@@ -153,7 +153,7 @@ def analyse_pairs(
             if gray is not None and cfg.crack.enabled and cfg.crack.dense:
                 gray_b = image(p.frame_b)
         return analyse_pair(
-            p, gray, cfg, m_per_px=drive.camera.height_m / drive.camera.fx,
+            p, gray, cfg, m_per_px=drive.camera.ground_px_m(),
             gray_b=gray_b, camera=drive.camera,
         )  # fmt: skip
 

@@ -13,7 +13,6 @@ calibrated on the validation split (``calibration``).
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import logging
 import math
 import time
@@ -28,6 +27,7 @@ from tqdm import tqdm
 from roadsurf.core.atomic import atomic_path, write_json_atomic
 from roadsurf.core.config import to_dict
 from roadsurf.core.errors import RoadsurfError
+from roadsurf.core.fingerprint import Fingerprint
 from roadsurf.detection.classifier import augment
 from roadsurf.detection.classifier.calibration import calibrate_model, training_priors
 from roadsurf.detection.classifier.config import CLASS_NAMES, ClassifierConfig
@@ -167,11 +167,9 @@ _NOT_TRAINING = frozenset(
 
 
 def _fingerprint(ds: Dataset, cfg: ClassifierConfig) -> str:
-    h = hashlib.sha256()
-    h.update((ds.root / "labels.csv").read_bytes())
     keep = {k: v for k, v in to_dict(cfg).items() if k not in _NOT_TRAINING}
-    h.update(repr(sorted(keep.items())).encode())
-    return h.hexdigest()[:16]
+    fp = Fingerprint().add_file_bytes(ds.root / "labels.csv").add_repr(sorted(keep.items()))
+    return fp.hexdigest(16)
 
 
 def train_steps(
