@@ -77,7 +77,7 @@ def initial_plan(
     frame_probs: Mapping[str, float],
     filenames: list[str],
     cfg: ClassifierConfig,
-    along_m: Sequence[float] | None = None,
+    along_m: Sequence[float] | np.ndarray | None = None,
 ) -> tuple[set[tuple[int, int]], dict[str, str]]:
     """Pairs before any 3D result is known, and the reason of each frame that gets 3D.
     ``along_m`` (n,): each frame's distance along the drive (m) for the audit's spacing
@@ -90,7 +90,7 @@ def plan_pairs(
     frame_probs: Mapping[str, float],
     filenames: list[str],
     cfg: ClassifierConfig,
-    along_m: Sequence[float] | None = None,
+    along_m: Sequence[float] | np.ndarray | None = None,
 ) -> tuple[set[tuple[int, int]], dict[int, tuple[int, int]], dict[str, str]]:
     """``initial_plan`` split in two: (pairs the CNN's decisions need, {audited frame: its
     audit pair} for pairs only the audit needs, reasons)."""
@@ -148,7 +148,7 @@ def run(
     camera_height_m: float,
     reconstruct: Callable[[set[tuple[int, int]]], list[PairResult]],
     run_dir: Path | None = None,
-    along_m: Sequence[float] | None = None,
+    along_m: Sequence[float] | np.ndarray | None = None,
     probe: Callable[[set[tuple[int, int]]], list[PairResult]] | None = None,
 ) -> GuidedResult:
     """Reconstruct what the screened drive needs; ``reconstruct(only_pairs)`` runs the
