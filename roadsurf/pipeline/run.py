@@ -22,7 +22,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from roadsurf.core.atomic import (
     output_error,
@@ -38,7 +38,16 @@ from roadsurf.io import runfolder as rf
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.reconstruction.config import ReconstructionConfig
 
+if TYPE_CHECKING:
+    from roadsurf.detection.classifier.fusion import FusionRule
+    from roadsurf.detection.classifier.screen_job import ScreeningJob
+    from roadsurf.detection.types import DetectionResult
+    from roadsurf.io.drive import Drive
+    from roadsurf.mapping.types import MapProducts, Trajectory
+    from roadsurf.reconstruction.types import PairResult
+
 log = logging.getLogger(__name__)
+T = TypeVar("T")
 
 Observer = Callable[[str, Any], None]
 
@@ -87,7 +96,9 @@ _FUSED_RUN_IMPORTS = (
 )
 
 
-def _screen(model: Path, drive: Any, cfg: ClassifierConfig, job: Any) -> dict[str, float]:
+def _screen(
+    model: Path, drive: Drive, cfg: ClassifierConfig, job: ScreeningJob | None
+) -> dict[str, float]:
     """CNN screening of every frame -> {filename: p_defect}: by the worker process ``job``
     (``screen_job``, started with the run) while this process imports what the rest of the
     run needs (imports hold the GIL, so a thread could not overlap them), or in this process
@@ -175,7 +186,7 @@ def _run_drive(
     classifier: str | Path | None,
     overwrite: bool,
     observers: Sequence[Observer] | None,
-    job: Any,
+    job: ScreeningJob | None,
     t_start: float,
 ) -> dict[str, Any]:
     """``run_drive`` with its config loaded and its screening worker (``job``, or None) started."""
@@ -202,7 +213,7 @@ def _run_drive(
             except Exception as e:  # noqa: BLE001 - a viewer problem must not kill the run
                 log.warning("observer failed on stage %s: %s", stage, e)
 
-    def timed(name: str, fn: Callable[[], Any]) -> Any:
+    def timed(name: str, fn: Callable[[], T]) -> T:
         started[name] = time.time()
         t0 = time.perf_counter()
         res = fn()
@@ -221,7 +232,7 @@ def _run_drive(
             raise ConfigError(f"--method {method}: the reconstruction stage has no method option")
         rec_cfg = from_dict(type(rec_cfg), {**to_dict(rec_cfg), "method": method}, "--method")
     frame_probs: dict[str, float] | None = None
-    fusion_rule: Any = None
+    fusion_rule: FusionRule | None = None
     if classifier is None:
         pairs = timed("reconstruction", lambda: reconstruction_stage.run(rec_cfg, drive, out))
     else:
@@ -231,7 +242,7 @@ def _run_drive(
         from roadsurf.detection.classifier import guided
         from roadsurf.reconstruction import probe
 
-        def reconstruct_guided() -> list[Any]:
+        def reconstruct_guided() -> list[PairResult]:
             nonlocal fusion_rule
             g = guided.run(
                 cfg.classifier,
@@ -326,7 +337,7 @@ def _previous_stage_timings(out: Path) -> dict[str, Any]:
     return {k: {"computed_s": v} for k, v in t.items() if k != "total"}
 
 
-def _own_timings(out: Path, pairs: list[Any]) -> dict[str, float | None]:
+def _own_timings(out: Path, pairs: list[PairResult]) -> dict[str, float | None]:
     """Compute times the stages recorded in their own artifacts (for resumed stages)."""
     own: dict[str, float | None] = {}
     secs = [sum(getattr(p, "timings_s", {}).values()) for p in pairs]
@@ -402,11 +413,11 @@ def _with_overwrite(cfg: PipelineConfig) -> PipelineConfig:
 
 
 def _build_report(
-    drive: Any,
-    pairs: list[Any],
-    traj: Any,
-    products: Any,
-    detections: Any,
+    drive: Drive,
+    pairs: list[PairResult],
+    traj: Trajectory | None,
+    products: MapProducts | None,
+    detections: DetectionResult | None,
     cfg: PipelineConfig,
     method: str | None,
     timings: dict[str, float],
