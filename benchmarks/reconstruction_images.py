@@ -22,6 +22,7 @@ from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
 from roadsurf.core.errors import FrameReadError
+from roadsurf.core.fits import MAD_TO_SIGMA
 from roadsurf.io.drive import Drive, load_drive, read_gray
 from roadsurf.io.formats import read_csv, read_geotiff
 from roadsurf.reconstruction import features as feat
@@ -100,7 +101,7 @@ def pair_errors(res: PairResult, truth: Truth) -> dict[str, float]:
         c = np.linalg.lstsq(A, err[flat], rcond=None)[0]
         for _ in range(2):  # one robust re-fit without gross errors
             r = err[flat] - A @ c
-            keep = np.abs(r) < 3 * 1.4826 * np.median(np.abs(r)) + 1e-9
+            keep = np.abs(r) < 3 * MAD_TO_SIGMA * np.median(np.abs(r)) + 1e-9
             if keep.sum() >= 10:
                 c = np.linalg.lstsq(A[keep], err[flat][keep], rcond=None)[0]
         err = err - (c[0] * X[:, 0] + c[1] * X[:, 1] + c[2])
@@ -125,8 +126,8 @@ def evaluate_drive(
         if prev is not None and cur is not None:
             (fa_fr, fa), (fb_fr, fb) = prev, cur
             ia, ib = feat.match(fa, fb, cfg.features)
-            pa = feat.undistort_px(fa.keypoints_px[ia], cam)
-            pb = feat.undistort_px(fb.keypoints_px[ib], cam)
+            pa = cam.undistort_px(fa.keypoints_px[ia])
+            pb = cam.undistort_px(fb.keypoints_px[ib])
             for m in methods:
                 res = estimate_matches(
                     pa,

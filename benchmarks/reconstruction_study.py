@@ -26,7 +26,7 @@ from tqdm import tqdm
 from benchmarks.reconstruction_bound import epsilon_bound
 from benchmarks.reconstruction_report import evaluate_targets, make_plots, summary_markdown
 from roadsurf.core.atomic import atomic_path, write_text_atomic
-from roadsurf.reconstruction import geometry as g
+from roadsurf.core.fits import camera_plane_distance
 from roadsurf.reconstruction.config import ReconstructionConfig
 from roadsurf.reconstruction.estimators import estimate_matches
 from roadsurf.reconstruction.types import PairResult
@@ -46,7 +46,7 @@ def epsilon(res: PairResult, pp: PointPair) -> float:
     d_true = pp.d_true_m[res.match_idx]
     if res.method == "stereo":
         return float(np.mean(np.abs(res.plane_dist_m - d_true)))
-    r = res.plane_dist_m / g.camera_plane_distance(res.plane)
+    r = res.plane_dist_m / camera_plane_distance(res.plane)
     return float(np.mean(np.abs(pp.h_measured_m * r - d_true)))
 
 

@@ -28,8 +28,8 @@ def reconstruct_matches(
     px_a: np.ndarray, px_b: np.ndarray, camera: Camera, cfg: ReconstructionConfig
 ) -> PairResult:
     """Matched raw pixels (N, 2) in a and b -> metric PairResult (undistorted when needed)."""
-    pa = feat.undistort_px(px_a, camera)
-    pb = feat.undistort_px(px_b, camera)
+    pa = camera.undistort_px(px_a)
+    pb = camera.undistort_px(px_b)
     return estimate_matches(
         pa, pb, camera.K, camera.height_m, cfg, image_size=(camera.width, camera.height)
     )

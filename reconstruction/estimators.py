@@ -16,6 +16,12 @@ import cv2
 import numpy as np
 
 from roadsurf.core.camera import normalised_from_px, px_from_cam
+from roadsurf.core.fits import (
+    MAD_TO_SIGMA,
+    camera_plane_distance,
+    fit_plane_z_trimmed,
+    plane_signed_distance,
+)
 from roadsurf.core.geometry import check_shape
 from roadsurf.reconstruction import geometry as g
 from roadsurf.reconstruction.config import ReconstructionConfig
@@ -163,8 +169,8 @@ def _estimate(
             "geometry_failed", f"only {int(ok.sum())} points triangulate in front of both cameras"
         )
     X, pa, pb, idx = X[ok], pa[ok], pb[ok], idx[ok]
-    p, _ = g.fit_plane(X, cfg.plane_trim_k)
-    d_c = g.camera_plane_distance(p)
+    p, _ = fit_plane_z_trimmed(X, cfg.plane_trim_k)
+    d_c = camera_plane_distance(p)
     if not np.isfinite(d_c) or d_c <= 0:
         raise PairFailure("scale_failed", f"camera-to-plane distance d_c={d_c} is not positive")
     alpha = 1.0 if method == "stereo" else height_m / d_c
@@ -172,11 +178,11 @@ def _estimate(
     res.points_cam_a_m = Xm
     res.px_a, res.px_b, res.match_idx = pa, pb, idx.astype(np.int64)
     res.plane = np.array([p[0], p[1], alpha * p[2]])
-    res.plane_dist_m = g.plane_distance(Xm, res.plane)
+    res.plane_dist_m = plane_signed_distance(Xm, res.plane)
     sigma = cfg.pixel_sigma_px
     if cfg.estimate_sigma and method != "stereo" and len(pa) >= 8:
         s = g.sampson_px(g.fundamental_from_pose(R, t, K), pa, pb)
-        sigma = float(1.4826 * np.median(np.abs(s))) or sigma
+        sigma = float(MAD_TO_SIGMA * np.median(np.abs(s))) or sigma
     res.cov_m2 = alpha**2 * g.point_covariance(X, R, t, K, sigma)
     res.R_b_from_a, res.t_b_from_a_m = R, alpha * t
     if method != "stereo" and res.F is not None:

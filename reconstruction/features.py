@@ -1,7 +1,7 @@
 """Feature detection (SIFT default, ORB, AKAZE) and mutual nearest-neighbour + ratio matching.
 
-Keypoints are stored raw (as detected); ``undistort_px`` maps them to the ideal pinhole before
-any geometry when the camera has distortion.
+Keypoints are stored raw (as detected); ``Camera.undistort_px`` maps them to the ideal pinhole
+before any geometry when the camera has distortion.
 """
 
 from __future__ import annotations
@@ -12,7 +12,6 @@ import cv2
 import numpy as np
 
 from roadsurf.core.atomic import write_npz_atomic
-from roadsurf.core.camera import Camera
 from roadsurf.core.errors import ConfigError
 from roadsurf.reconstruction.config import FeatureConfig
 from roadsurf.reconstruction.types import Features
@@ -178,17 +177,6 @@ def track_forward_backward(
     rb, st, _ = cv2.calcOpticalFlowPyrLK(a8, b8, ra, rb0.copy(), **lk)
     ra2, st2, _ = cv2.calcOpticalFlowPyrLK(b8, a8, rb, ra.copy(), **lk)
     return rb, ra2, (st.ravel() == 1) & (st2.ravel() == 1)
-
-
-def undistort_px(px: np.ndarray, camera: Camera) -> np.ndarray:
-    """(N, 2) raw pixels -> ideal pinhole pixels (identity when the camera has no distortion)."""
-    px = np.asarray(px, dtype=np.float64).reshape(-1, 2)
-    if not camera.has_distortion or len(px) == 0:
-        return px
-    und = cv2.undistortPoints(
-        px.reshape(-1, 1, 2), camera.K, np.asarray(camera.dist, float), P=camera.K
-    )
-    return und.reshape(-1, 2)
 
 
 def save_features(path: str | Path, f: Features) -> Path:

@@ -23,15 +23,6 @@ def rotation_from_axis_angle(w: np.ndarray) -> np.ndarray:
     return np.eye(3) + np.sin(th) * k + (1.0 - np.cos(th)) * (k @ k)
 
 
-def rotation_from_euler_deg(theta_x: float, theta_y: float, theta_z: float) -> np.ndarray:
-    """R = Rz @ Ry @ Rx for small vibration angles in degrees."""
-    ax, ay, az = np.radians([theta_x, theta_y, theta_z])
-    rx = np.array([[1, 0, 0], [0, np.cos(ax), -np.sin(ax)], [0, np.sin(ax), np.cos(ax)]])
-    ry = np.array([[np.cos(ay), 0, np.sin(ay)], [0, 1, 0], [-np.sin(ay), 0, np.cos(ay)]])
-    rz = np.array([[np.cos(az), -np.sin(az), 0], [np.sin(az), np.cos(az), 0], [0, 0, 1]])
-    return rz @ ry @ rx
-
-
 def fundamental_from_pose(R: np.ndarray, t: np.ndarray, K: np.ndarray) -> np.ndarray:
     """F = K^-T [t]x R K^-1, so that x_b^T F x_a = 0 in pixels (eq. 3.9)."""
     Ki = np.linalg.inv(K)
@@ -116,41 +107,6 @@ def point_covariance(
 
     G = np.concatenate([proj_jac(X), proj_jac(X @ R.T + t) @ R], axis=1)
     return sigma_px**2 * np.linalg.inv(np.einsum("nki,nkj->nij", G, G))
-
-
-def fit_plane(
-    X: np.ndarray, trim_k: float = 0.0, iterations: int = 3
-) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares plane Z = p0 X + p1 Y + p2 (eq. 3.31).
-
-    trim_k > 0 refits without points further than trim_k robust sigmas (MAD) from the plane,
-    so potholes do not tilt the road plane. Returns (p (3,), used mask (N,)).
-    """
-    X = check_shape("X", X, (None, 3))
-    used = np.ones(X.shape[0], dtype=bool)
-    p = np.full(3, np.nan)
-    for _ in range(max(1, iterations if trim_k > 0 else 1)):
-        A = np.column_stack([X[used, 0], X[used, 1], np.ones(int(used.sum()))])
-        p = np.linalg.lstsq(A, X[used, 2], rcond=None)[0]
-        if trim_k <= 0:
-            break
-        r = X[:, 2] - (p[0] * X[:, 0] + p[1] * X[:, 1] + p[2])
-        s = 1.4826 * np.median(np.abs(r[used] - np.median(r[used]))) + 1e-12
-        new = np.abs(r - np.median(r[used])) <= trim_k * s
-        if new.sum() < 3 or np.array_equal(new, used):
-            break
-        used = new
-    return p, used
-
-
-def plane_distance(X: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """(N,) signed distance to Z = p0 X + p1 Y + p2 (eq. 3.32); negative below the road."""
-    return (p[0] * X[:, 0] + p[1] * X[:, 1] - X[:, 2] + p[2]) / np.sqrt(p[0] ** 2 + p[1] ** 2 + 1)
-
-
-def camera_plane_distance(p: np.ndarray) -> float:
-    """d_c = |p2| / sqrt(p0² + p1² + 1) (eq. 3.33)."""
-    return float(abs(p[2]) / np.sqrt(p[0] ** 2 + p[1] ** 2 + 1))
 
 
 def decompose_essential(

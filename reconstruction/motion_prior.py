@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from roadsurf.core.fits import MAD_TO_SIGMA
 from roadsurf.reconstruction.config import ReconstructionConfig
 
 
@@ -29,7 +30,7 @@ def motion_prior_mask(
 
     def window(r: np.ndarray) -> np.ndarray:
         c = np.median(r, axis=0)
-        mad = 1.4826 * np.median(np.abs(r - c), axis=0)
+        mad = MAD_TO_SIGMA * np.median(np.abs(r - c), axis=0)
         return np.all(np.abs(r - c) <= np.maximum(cfg.lambda_prior * mad, floor), axis=1)
 
     keep = window(d)

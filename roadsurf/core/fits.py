@@ -141,3 +141,53 @@ def fit_rigid_2d(
     yaw = math.atan2(S[0, 1] - S[1, 0], S[0, 0] + S[1, 1])
     R = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
     return Rigid2D(yaw, R, md - R @ ms)
+
+
+# ---------------------------------------------------------------------- planes, normal form
+def fit_plane_tls(points: np.ndarray) -> tuple[np.ndarray, float]:
+    """Total-least-squares plane through (N, 3) points (N >= 3): unit normal n (3,) and offset
+    d (same unit as the points) with n·x + d = 0, minimising PERPENDICULAR distances (SVD of
+    the centred points). Unlike ``fit_plane_z`` it has no preferred axis, so it suits point
+    clouds in an arbitrary frame (e.g. a COLMAP model)."""
+    pts = check_shape("points", points, (None, 3))
+    c = pts.mean(axis=0)
+    _, _, vt = np.linalg.svd(pts - c, full_matrices=False)
+    n = vt[-1]
+    return n, -float(n @ c)
+
+
+def fit_plane_ransac(
+    points: np.ndarray, thr: float, iterations: int, rng: np.random.Generator
+) -> tuple[np.ndarray, float, np.ndarray]:
+    """Robust plane in normal form: RANSAC over 3-point samples with the MSAC score
+    (sum of min(distance, thr)), then two total-least-squares refits on the inliers.
+
+    points: (N, 3), thr: inlier distance (same unit), ``iterations`` samples drawn from
+    ``rng``. Returns (unit normal (3,), d, inlier mask (N,)) with n·x + d = 0."""
+    pts = check_shape("points", points, (None, 3))
+    n_pts = len(pts)
+    if n_pts < 3:
+        raise ValueError("a plane needs at least 3 points")
+    best_cost, best = math.inf, None
+    for _ in range(iterations):
+        s = pts[rng.choice(n_pts, 3, replace=False)]
+        nrm = np.cross(s[1] - s[0], s[2] - s[0])
+        ln = np.linalg.norm(nrm)
+        if ln < 1e-12:
+            continue
+        nrm /= ln
+        r = np.abs(pts @ nrm - nrm @ s[0])
+        cost = float(np.minimum(r, thr).sum())
+        if cost < best_cost:
+            best_cost, best = cost, (nrm, -float(nrm @ s[0]))
+    if best is None:
+        n, d = fit_plane_tls(pts)
+    else:
+        n, d = best
+    inl = np.abs(pts @ n + d) < thr
+    for _ in range(2):  # refine on the inliers
+        if inl.sum() < 3:
+            break
+        n, d = fit_plane_tls(pts[inl])
+        inl = np.abs(pts @ n + d) < thr
+    return n, d, inl

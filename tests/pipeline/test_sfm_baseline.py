@@ -18,7 +18,7 @@ from roadsurf.io.formats import LOCAL_CRS, read_csv, read_geojson, read_geotiff,
 from roadsurf.pipeline.sfm import run, run_from_paths
 from roadsurf.pipeline.sfm.colmap_run import colmap_camera
 from roadsurf.pipeline.sfm.config import SfmBaselineConfig
-from roadsurf.pipeline.sfm.fits import fit_plane_ransac, robust_fit_2d
+from roadsurf.pipeline.sfm.fits import robust_fit_2d
 from roadsurf.pipeline.sfm.georef import _fit_vertical_tilt, _neighbour_heading_dev
 from roadsurf.pipeline.sfm.surface import local_surface_residuals, rasterise_mean
 
@@ -172,22 +172,6 @@ def test_colmap_camera_principal_point_convention() -> None:
     assert colmap_camera(cam_d)[0] == "OPENCV"
     cam_k3 = Camera(320, 240, 300.0, 300.0, 159.5, 119.5, 1.1, 15.0, (-0.1, 0.0, 0.0, 0.0, 0.01))
     assert colmap_camera(cam_k3)[0] == "FULL_OPENCV"
-
-
-def test_plane_ransac_ignores_pothole_and_outliers() -> None:
-    rng = np.random.default_rng(1)
-    xy = rng.uniform(-1, 1, (600, 2))
-    z = 0.02 * xy[:, 0] - 0.01 * xy[:, 1] + 3.0 + rng.normal(0, 0.001, 600)
-    z[:60] -= 0.05  # a pothole
-    z[60:80] += rng.uniform(0.2, 1.0, 20)  # gross outliers
-    pts = np.column_stack([xy, z])
-    n, d, inl = fit_plane_ransac(pts, 0.01, 200, rng)
-    n_true = np.array([0.02, -0.01, -1.0])
-    n_true /= np.linalg.norm(n_true)
-    assert abs(abs(n @ n_true) - 1) < 1e-4
-    assert not inl[:80].any() and inl[80:].mean() > 0.98
-    # distance of (0, 0, 0) to the plane z = ... + 3
-    assert abs(abs(d) - 3.0 / math.sqrt(1 + 0.02**2 + 0.01**2)) < 0.005
 
 
 def test_robust_fit_2d_recovers_rotation_despite_outliers() -> None:

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from roadsurf.core.camera import Camera
-from roadsurf.reconstruction.geometry import rotation_from_euler_deg
+from roadsurf.core.geometry import rotation_from_euler_xyz
 
 
 def make_camera(width: int = 512, height: int = 384, f: float = 480.0, h: float = 1.1) -> Camera:
@@ -35,7 +35,7 @@ def render_pair(
     pad = cam.width
     big = texture((cam.height + 2 * pad, cam.width + 2 * pad), seed)
     K = cam.K
-    R = rotation_from_euler_deg(*theta_deg)
+    R = rotation_from_euler_xyz(*np.radians(theta_deg))
     n = np.array([0.0, 0.0, 1.0])
     Hn = R + np.outer(np.asarray(t_m), n) / cam.height_m
     H_b_from_a = K @ Hn @ np.linalg.inv(K)

@@ -12,11 +12,11 @@ import pytest
 
 import roadsurf.reconstruction.probe as probe
 from roadsurf.core.camera import Camera
+from roadsurf.core.geometry import rotation_from_euler_xyz
 from roadsurf.io.drive import Drive, Frame
 from roadsurf.io.runfolder import RunFolder
 from roadsurf.reconstruction.api import reconstruct_pair
 from roadsurf.reconstruction.config import FeatureConfig, ReconstructionConfig
-from roadsurf.reconstruction.geometry import rotation_from_euler_deg
 from roadsurf.reconstruction.types import STATUS_FAILED
 from tests.reconstruction.conftest import texture
 
@@ -67,7 +67,7 @@ def scene():
 
 def _pair(scene, depth_m, t=(0.0, 0.25, 0.0), euler=(0.3, -0.2, 0.5)):
     cam, tex, gsd = scene
-    R = rotation_from_euler_deg(*euler)
+    R = rotation_from_euler_xyz(*np.radians(euler))
     a = render_surface(cam, tex, gsd, depth_m)
     b = render_surface(cam, tex, gsd, depth_m, R, np.asarray(t))
     return a, b

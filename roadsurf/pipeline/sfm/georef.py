@@ -24,10 +24,16 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from roadsurf.core.geometry import EnuReference, enu_from_lla, heading_deg_from_world_rotation
+from roadsurf.core.fits import MAD_TO_SIGMA, fit_plane_ransac
+from roadsurf.core.geometry import (
+    EnuReference,
+    enu_from_lla,
+    heading_deg_from_world_rotation,
+    skew,
+)
 from roadsurf.io.drive import Drive, Frame
 from roadsurf.pipeline.sfm.config import SfmBaselineConfig
-from roadsurf.pipeline.sfm.fits import fit_plane_ransac, robust_fit_2d
+from roadsurf.pipeline.sfm.fits import robust_fit_2d
 
 if TYPE_CHECKING:
     import pycolmap
@@ -141,7 +147,7 @@ def _rotation_a_to_b(a: np.ndarray, b: np.ndarray) -> np.ndarray:
             axis = np.cross(a, [0.0, 1.0, 0.0])
         axis /= np.linalg.norm(axis)
         return 2 * np.outer(axis, axis) - np.eye(3)
-    vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    vx = skew(v)
     return np.eye(3) + vx + vx @ vx / (1 + c)
 
 
@@ -170,7 +176,7 @@ def _fit_vertical_tilt(
     for _ in range(4):
         coef, *_ = np.linalg.lstsq(A[w], dz[w], rcond=None)
         r = dz - A @ coef
-        sig = 1.4826 * float(np.median(np.abs(r[w]))) + 1e-6
+        sig = MAD_TO_SIGMA * float(np.median(np.abs(r[w]))) + 1e-6
         new = np.abs(r) <= 3 * sig
         if new.sum() < 5 or np.array_equal(new, w):
             break

@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from roadsurf.core.fits import MAD_TO_SIGMA
 from roadsurf.core.geometry import check_shape
 from roadsurf.io.formats import LOCAL_CRS, GridSpec
 from roadsurf.pipeline.sfm.config import SfmBaselineConfig
@@ -68,7 +69,7 @@ def local_surface_residuals(
         for _ in range(5):
             coef, *_ = np.linalg.lstsq(A[w], p[w, 2], rcond=None)
             r = p[:, 2] - A @ coef
-            sig = 1.4826 * float(np.median(np.abs(r[w]))) + 1e-6
+            sig = MAD_TO_SIGMA * float(np.median(np.abs(r[w]))) + 1e-6
             new = np.abs(r) <= min(inlier_m, 3 * sig) + 1e-6
             if new.sum() < n_min or np.array_equal(new, w):
                 break
