@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from roadsurf.detection.meanshift import mean_shift_flat
+from roadsurf.detection.meanshift import grid_seeds, mean_shift_flat, merge_modes
 
 
 def _disc(rng, c, r, n):
@@ -40,3 +40,19 @@ def test_window_size_decides():
 def test_empty_input():
     labels, modes = mean_shift_flat(np.zeros((0, 2)), 0.3)
     assert labels.shape == (0,) and modes.shape == (0, 2)
+
+
+def test_grid_seeds_are_cell_centres_of_mass():
+    pts = np.array([[0.05, 0.05], [0.15, 0.05], [0.35, 0.05], [0.95, 0.95]])
+    seeds = grid_seeds(pts, 0.3)
+    assert np.allclose(seeds, [[0.1, 0.05], [0.35, 0.05], [0.95, 0.95]])
+    # No cell holds 2 points but the first: min_points drops the others.
+    assert np.allclose(grid_seeds(pts, 0.3, min_points=2), [[0.1, 0.05]])
+    assert np.allclose(grid_seeds(pts, 0.3, min_points=3), [pts.mean(axis=0)])
+
+
+def test_merge_modes_chains_within_merge_distance():
+    modes = np.array([[0.0, 0.0], [0.1, 0.1], [0.2, 0.2], [1.0, 0.0]])
+    groups = merge_modes(modes, 0.1)  # Chebyshev: 0.1 apart along the chain, 0.8 to the last
+    assert groups[0] == groups[1] == groups[2] != groups[3]
+    assert merge_modes(modes[:1], 0.1).tolist() == [0]
