@@ -126,7 +126,10 @@ def voxel_fuse(
     xyz: np.ndarray, rgb: np.ndarray, frame_idx: np.ndarray, voxel_m: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Fuse points in the same voxel (numpy hash): mean xyz and colour, first frame index, and
-    the observation count. Returns (xyz (M,3), rgb (M,3) uint8, frame (M,), n_obs (M,))."""
+    the observation count. Returns (xyz (M,3), rgb (M,3) uint8, frame (M,), n_obs (M,)).
+
+    Not open3d: its voxel_down_sample_and_trace gives the same arrays 11-22x slower (its trace
+    is a Python list per voxel; benchmarks/voxel_fuse.py, docs/mapping.md "Libraries")."""
     if len(xyz) == 0 or voxel_m <= 0:
         return xyz, rgb, frame_idx, np.ones(len(xyz), np.int64)
     q = np.floor((xyz - xyz.min(0)) / voxel_m).astype(np.int64)
