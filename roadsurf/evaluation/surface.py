@@ -51,6 +51,7 @@ def _corridor_polygon(
             continue
         rw = rays @ Rs[k].T
         if np.any(rw[:, 2] >= -1e-6):
+            polys.append(None)  # keeps polys aligned with the frames for the stereo pairs
             continue
         lam = -cam.height_m / rw[:, 2]
         xy = truth["xy"][k] + lam[:, None] * rw[:, :2]
