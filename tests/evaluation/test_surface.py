@@ -42,3 +42,20 @@ def test_corridor_follows_the_lens_distortion(tmp_path: Path) -> None:
 def test_no_camera_yaml_no_corridor(tmp_path: Path) -> None:
     (tmp_path / "truth").mkdir()
     assert _corridor_polygon(tmp_path / "truth", _nadir_truth(), {"a.png"}) is None
+
+
+def test_two_view_corridor_pairs_consecutive_frames_after_a_skyward_frame(tmp_path: Path) -> None:
+    """Frames a, b (nadir, far apart), c (looking up: no footprint), d, e (nadir, overlapping).
+    The two-view corridor is d∩e only; a shifted list would also intersect b with d."""
+    up = [1.0, 0.0, 0.0, 0.0]  # identity: camera z points up, its rays miss the road
+    down = [0.0, 1.0, 0.0, 0.0]
+    truth = {
+        "filename": ["a", "b", "c", "d", "e"],
+        "xy": np.array([[0.0, 0.0], [5.0, 0.0], [9.0, 0.0], [5.2, 0.0], [5.4, 0.0]]),
+        "q": np.array([down, down, up, down, down]),
+    }
+    seen = {"a", "b", "c", "d", "e"}
+    poly = _corridor_polygon(_drive(tmp_path, [0.0] * 5), truth, seen, stereo=True)
+    assert poly is not None
+    w, h = 639 / 600 * 1.1, 479 / 600 * 1.1
+    assert poly.area == pytest.approx((w - 0.2) * h, rel=1e-9)
