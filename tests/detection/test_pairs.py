@@ -7,7 +7,6 @@ import numpy as np
 from roadsurf.detection.config import DetectionConfig
 from roadsurf.detection.pairs import _raw_px, analyse_pair
 from roadsurf.io.drive import Camera
-from roadsurf.reconstruction.features import undistort_px
 from roadsurf.reconstruction.types import PairResult
 
 CAM = Camera(640, 480, 500.0, 500.0, 319.5, 239.5, 1.0, 15.0, (-0.3, 0.08, 0.0, 0.0, 0.0))
@@ -19,7 +18,7 @@ def test_raw_px_round_trips_and_is_identity_without_distortion():
     ideal = np.c_[rng.uniform(20, 620, 200), rng.uniform(20, 460, 200)]
     raw = _raw_px(ideal, CAM)
     assert np.abs(raw - ideal).max() > 10  # strong barrel distortion near the corners
-    assert np.allclose(undistort_px(raw, CAM), ideal, atol=0.05)
+    assert np.allclose(CAM.undistort_px(raw), ideal, atol=0.05)
     assert _raw_px(ideal, CAM_IDEAL) is ideal
     assert _raw_px(ideal, None) is ideal
 
