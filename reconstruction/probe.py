@@ -20,7 +20,6 @@ It is not a map pair: the map and detection stages never read ``RUN/probes``.
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -32,6 +31,7 @@ from tqdm import tqdm
 
 from roadsurf.core.camera import Camera
 from roadsurf.core.errors import FrameReadError
+from roadsurf.core.fingerprint import Fingerprint
 from roadsurf.io.drive import Drive, read_gray
 from roadsurf.io.runfolder import RunFolder
 from roadsurf.reconstruction.api import reconstruct_matches
@@ -139,7 +139,7 @@ def _failed(cfg: ReconstructionConfig, status: str, reason: str, t0: float) -> P
 
 def _probe_path(run_dir: Path, a: int, b: int, cfg: ReconstructionConfig) -> Path:
     # the settings are in the name, so a changed config never reuses a stale probe
-    digest = hashlib.sha1(repr((cfg.probe, cfg.method)).encode()).hexdigest()[:8]
+    digest = Fingerprint().add_repr((cfg.probe, cfg.method)).hexdigest(8)
     return RunFolder(run_dir).probes_dir / f"{a:06d}_{b:06d}_{digest}.npz"
 
 

@@ -1,25 +1,31 @@
 """Reconstruction stage: every consecutive valid-frame pair (i, i+1) of a drive -> PairResult.
 
 Artifacts (atomic writes, resumable):
-- ``RUN/features/<index>_<kind><max>.npz``: keypoints + descriptors of one frame, computed once
-  and reused by both pairs the frame belongs to;
+- ``RUN/features/<index>_<kind><max>_<digest>.npz``: keypoints + descriptors of one frame,
+  computed once and reused by both pairs the frame belongs to; the digest covers the detection
+  settings and the image file's identity (size, mtime);
 - ``RUN/pairs/<index_a>_<index_b>.npz``: one PairResult (``reconstruction.types.save_pair``),
-  written for failed pairs too (status + reason), so a resumed run skips them.
+  written for failed pairs too (status + reason), so a resumed run skips them; beside it
+  ``<index_a>_<index_b>.fingerprint`` (``pair_fingerprint``: the settings that shape a pair, the
+  camera and both image files). A pair is reused only when that fingerprint still matches.
 A failed pair is a PairResult with status != "ok"; nothing here raises for bad frames.
 """
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import time
 from collections import Counter
 from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import asdict
 from pathlib import Path
 
 from tqdm import tqdm
 
+from roadsurf.core.atomic import write_text_atomic
+from roadsurf.core.camera import Camera
 from roadsurf.core.errors import FrameReadError
+from roadsurf.core.fingerprint import Fingerprint
 from roadsurf.io.drive import Drive, Frame, read_gray
 from roadsurf.io.runfolder import RunFolder
 from roadsurf.reconstruction import features as feat
@@ -28,6 +34,11 @@ from roadsurf.reconstruction.config import ReconstructionConfig
 from roadsurf.reconstruction.types import Features, PairResult, load_pair, save_pair
 
 log = logging.getLogger(__name__)
+
+# beside RUN/pairs/<a>_<b>.npz: the fingerprint of what produced it
+PAIR_FINGERPRINT_SUFFIX = ".fingerprint"
+# ReconstructionConfig fields that never change a pair's result
+NOT_IN_PAIR_FINGERPRINT = ("probe", "workers", "overwrite", "save_features")
 
 
 def _feature_path(run_dir: Path, frame: Frame, cfg: ReconstructionConfig) -> Path:
@@ -41,9 +52,32 @@ def _feature_path(run_dir: Path, frame: Frame, cfg: ReconstructionConfig) -> Pat
         f.clahe_tiles,
         f.border_pad_px,
     )
-    digest = hashlib.sha1(repr(det).encode()).hexdigest()[:8]
+    # ... and so is the image file's identity: a re-rendered frame is detected again
+    digest = Fingerprint().add_repr(det).add_file_stat(frame.path, frame.filename).hexdigest(8)
     tag = f"{f.kind}{f.max_features}_{digest}"
     return RunFolder(run_dir).features_dir / f"{frame.index:06d}_{tag}.npz"
+
+
+def pair_fingerprint(cfg: ReconstructionConfig, camera: Camera, a: Frame, b: Frame) -> str:
+    """16 hex digits (sha256) over what decides the pair (a, b): the reconstruction settings
+    (all but ``NOT_IN_PAIR_FINGERPRINT``), the camera (intrinsics, distortion, height) and both
+    frames' index, name, file size and mtime."""
+    settings = {k: v for k, v in asdict(cfg).items() if k not in NOT_IN_PAIR_FINGERPRINT}
+    fp = Fingerprint().add_json(settings).add_json(asdict(camera))
+    for f in (a, b):
+        fp.add_text(f"|{f.index}|{f.filename}|").add_file_stat(f.path, "file")
+    return fp.hexdigest(16)
+
+
+def _fingerprint_path(pair_path: Path) -> Path:
+    return pair_path.with_suffix(PAIR_FINGERPRINT_SUFFIX)
+
+
+def _stored_fingerprint(pair_path: Path) -> str | None:
+    try:
+        return _fingerprint_path(pair_path).read_text().strip()
+    except OSError:
+        return None  # written by older code, or never finished: recompute
 
 
 class _FeatureCache:
@@ -121,8 +155,10 @@ def run(
 ) -> list[PairResult]:
     """Reconstruct the consecutive valid-frame pairs of ``drive`` into ``run_dir/pairs``.
 
-    only_pairs restricts the work to those (index_a, index_b) pairs. Cached pair files are
-    reused unless cfg.overwrite. Returns the PairResults in frame order (failed ones included).
+    only_pairs restricts the work to those (index_a, index_b) pairs. A cached pair file is
+    reused, unless cfg.overwrite, when its stored ``pair_fingerprint`` matches the current
+    settings, camera and image files. Returns the PairResults in frame order (failed ones
+    included).
     """
     feat.check_available(cfg.features)  # a config problem stops the run before any work
     run_dir = Path(run_dir)
@@ -132,18 +168,24 @@ def run(
     todo = [(frames[i], frames[i + 1]) for i in range(len(frames) - 1)]
     if only_pairs is not None:
         todo = [(a, b) for a, b in todo if (a.index, b.index) in only_pairs]
+    fingerprints = {(a.index, b.index): pair_fingerprint(cfg, drive.camera, a, b) for a, b in todo}
     cached: dict[tuple[int, int], PairResult] = {}
+    stale = 0
     if not cfg.overwrite:
         for a, b in todo:
-            path = rf.pair(a.index, b.index)
-            if path.is_file():
-                try:
-                    res = load_pair(path)
-                except (OSError, ValueError, KeyError) as e:
-                    log.warning("%s: unreadable cached pair (%s); recomputing", path, e)
-                    continue
-                if res.method == cfg.method:
-                    cached[(a.index, b.index)] = res
+            key = (a.index, b.index)
+            path = rf.pair(*key)
+            if not path.is_file():
+                continue
+            if _stored_fingerprint(path) != fingerprints[key]:
+                stale += 1  # other settings, camera or image files: recompute
+                continue
+            try:
+                cached[key] = load_pair(path)
+            except (OSError, ValueError, KeyError) as e:
+                log.warning("%s: unreadable cached pair (%s); recomputing", path, e)
+    if stale:
+        log.info("reconstruction: %d cached pair(s) made from other inputs; recomputing", stale)
     need: list[Frame] = []
     for a, b in todo:
         if (a.index, b.index) not in cached:
@@ -159,7 +201,11 @@ def run(
                 results.append(cached[key])
                 continue
             res = _one_pair(cfg, drive, cache, fa_frame, fb_frame)
-            save_pair(rf.pair(*key), res)
+            path = rf.pair(*key)
+            # the old fingerprint goes first: a pair file never sits beside another's fingerprint
+            _fingerprint_path(path).unlink(missing_ok=True)
+            save_pair(path, res)
+            write_text_atomic(_fingerprint_path(path), fingerprints[key] + "\n")
             results.append(res)
     finally:
         cache.close()

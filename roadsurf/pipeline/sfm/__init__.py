@@ -29,7 +29,13 @@ import numpy as np
 from roadsurf.core.atomic import write_json_atomic
 from roadsurf.core.errors import RoadsurfError
 from roadsurf.io.drive import load_drive
-from roadsurf.pipeline.sfm.colmap_run import not_registered_reasons, run_colmap
+from roadsurf.io.runfolder import RunFolder
+from roadsurf.pipeline.sfm.colmap_run import (
+    COLMAP_DATABASE,
+    COLMAP_DIR,
+    not_registered_reasons,
+    run_colmap,
+)
 from roadsurf.pipeline.sfm.config import SfmBaselineConfig, SfmBaselineResult, load_config
 from roadsurf.pipeline.sfm.georef import gps_reference, place_models
 from roadsurf.pipeline.sfm.outputs import build_report, write_products
@@ -51,7 +57,7 @@ def run(
     names = [f.filename for f in drive.frames]
     timings: dict[str, float] = {"load_s": time.perf_counter() - t_start}
 
-    models, colmap_t = run_colmap(cfg, drive, out / "colmap", overwrite)
+    models, colmap_t = run_colmap(cfg, drive, out / COLMAP_DIR, overwrite)
     timings.update(colmap_t)
     t0 = time.perf_counter()
     sizes = {k: m.num_reg_images() for k, m in models.items()}
@@ -60,7 +66,7 @@ def run(
     names_out = {f.filename for g2 in parts for f in g2.frames}
     missing = [n for n in names if n not in names_out]
     reasons = not_registered_reasons(
-        out / "colmap" / "database.db",
+        out / COLMAP_DIR / COLMAP_DATABASE,
         [n for n in missing if n not in outlier_reasons],
         models,
         notes,
@@ -108,7 +114,7 @@ def run(
         grid=grid,
         timings=timings,
     )
-    write_json_atomic(out / "report.json", report)
+    write_json_atomic(RunFolder(out).report, report)
     log.info(
         "sfm-baseline: %d/%d images in the outputs (models used %s of %d), α = %.4f m/unit, "
         "%d points, GPS fit rms %s m -> %s",

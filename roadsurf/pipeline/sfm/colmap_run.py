@@ -8,8 +8,6 @@ model the mapper makes is kept in ``OUT/colmap/sparse/<k>/``.
 
 from __future__ import annotations
 
-import hashlib
-import json
 import logging
 import shutil
 import time
@@ -20,6 +18,7 @@ import numpy as np
 
 from roadsurf.core.atomic import read_json, write_json_atomic
 from roadsurf.core.camera import Camera
+from roadsurf.core.fingerprint import Fingerprint
 from roadsurf.io.drive import Drive
 from roadsurf.pipeline.sfm.config import SfmBaselineConfig
 
@@ -27,6 +26,13 @@ if TYPE_CHECKING:
     import pycolmap
 
 log = logging.getLogger(__name__)
+
+# The pipeline's own names inside OUT (the rest of OUT follows roadsurf.io.runfolder)
+COLMAP_DIR = "colmap"  # everything COLMAP writes, resumable
+COLMAP_DATABASE = "database.db"  # features, matches, two-view geometries
+COLMAP_SPARSE = "sparse"  # one sub-folder per model the mapper made
+COLMAP_STATE = "state.json"  # finished steps with the fingerprint of their settings
+DRIVE_FRAMES_DIR = "frames"  # the drive's image folder (drive format), COLMAP's image_path
 
 
 def colmap_camera(cam: Camera) -> tuple[str, str]:
@@ -39,10 +45,6 @@ def colmap_camera(cam: Camera) -> tuple[str, str]:
     if k3 == 0.0:
         return "OPENCV", f"{cam.fx},{cam.fy},{cx},{cy},{k1},{k2},{p1},{p2}"
     return "FULL_OPENCV", f"{cam.fx},{cam.fy},{cx},{cy},{k1},{k2},{p1},{p2},{k3},0,0,0"
-
-
-def _fingerprint(obj: object) -> str:
-    return hashlib.sha1(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
 class _State:
@@ -78,11 +80,11 @@ def run_colmap(
     # COLMAP's own (glog) output: as configured, or everything with `roadsurf -v`.
     verbose = log.isEnabledFor(logging.DEBUG)
     pycolmap.logging.minloglevel = 0 if verbose else int(cfg.colmap_log_level)
-    db_path = colmap_dir / "database.db"
-    sparse_dir = colmap_dir / "sparse"
-    state = _State(colmap_dir / "state.json")
+    db_path = colmap_dir / COLMAP_DATABASE
+    sparse_dir = colmap_dir / COLMAP_SPARSE
+    state = _State(colmap_dir / COLMAP_STATE)
     names = [f.filename for f in drive.frames]
-    image_dir = drive.root / "frames"
+    image_dir = drive.root / DRIVE_FRAMES_DIR
     model, params = colmap_camera(drive.camera)
     timings: dict[str, float] = {}
     steps = ["features", "matches", "mapping"]
@@ -90,17 +92,17 @@ def run_colmap(
     # Image identity (size, mtime) is part of the fingerprint: a re-rendered or edited drive
     # with the same filenames must not reuse stale features.
     stats = [(f.path.stat().st_size, f.path.stat().st_mtime_ns) for f in drive.frames]
-    fp_feat = _fingerprint(
-        [
-            names,
-            stats,
-            model,
-            params,
-            cfg.max_num_features,
-            cfg.max_image_size,
-            pycolmap.__version__,
-        ]
-    )
+    # each step's fingerprint: its settings (and the previous step's) as sorted JSON, sha256
+    feat_settings = [
+        names,
+        stats,
+        model,
+        params,
+        cfg.max_num_features,
+        cfg.max_image_size,
+        pycolmap.__version__,
+    ]
+    fp_feat = Fingerprint().add_json(feat_settings).hexdigest(16)
     if not state.done("features", fp_feat):
         state.invalidate_from(steps)
         if db_path.exists():
@@ -126,7 +128,8 @@ def run_colmap(
     else:
         log.info("COLMAP: features already extracted (resume)")
 
-    fp_match = _fingerprint([fp_feat, cfg.overlap, cfg.min_num_inliers, cfg.seed])
+    match_settings = [fp_feat, cfg.overlap, cfg.min_num_inliers, cfg.seed]
+    fp_match = Fingerprint().add_json(match_settings).hexdigest(16)
     if not state.done("matches", fp_match):
         state.invalidate_from(steps[1:])
         with pycolmap.Database.open(db_path) as db:  # drop partial matches of a killed run
@@ -152,10 +155,11 @@ def run_colmap(
     else:
         log.info("COLMAP: matches already computed (resume)")
 
-    fp_map = _fingerprint([fp_match, cfg.min_num_matches, cfg.init_min_tri_angle_deg, cfg.seed])
+    map_settings = [fp_match, cfg.min_num_matches, cfg.init_min_tri_angle_deg, cfg.seed]
+    fp_map = Fingerprint().add_json(map_settings).hexdigest(16)
     if not state.done("mapping", fp_map) or not sparse_dir.is_dir():
         state.invalidate_from(steps[2:])
-        tmp = colmap_dir / "sparse.tmp"
+        tmp = colmap_dir / f"{COLMAP_SPARSE}.tmp"
         for p in (tmp, sparse_dir):
             if p.exists():
                 shutil.rmtree(p)

@@ -15,6 +15,7 @@ from roadsurf.core.config import to_dict
 from roadsurf.core.geometry import EnuReference
 from roadsurf.io.drive import Drive, Frame
 from roadsurf.io.formats import GridSpec, write_geotiff
+from roadsurf.io.runfolder import TRAJECTORY_GEOJSON, RunFolder
 from roadsurf.mapping.export import export_xyz, write_cloud_ply, write_trajectory_geojson
 from roadsurf.mapping.types import Trajectory, save_trajectory
 from roadsurf.pipeline.sfm.colmap_run import colmap_camera, software_versions
@@ -57,17 +58,18 @@ def write_products(
     save_trajectory(out, traj)
     ef = traj.export_frame
     crs = ef.crs if ef is not None else None
-    write_cloud_ply(out / "cloud.ply", p_w, rgb, residual, ef)
+    run = RunFolder(out)
+    write_cloud_ply(run.cloud_ply, p_w, rgb, residual, ef)
     xy_out = export_xyz(p_w, ef)[:, :2]
     raster, grid = rasterise_mean(xy_out, residual, cfg.gsd_m, cfg.max_raster_px, crs)
     write_geotiff(
-        out / "surface.tif",
+        run.surface_tif,
         raster,
         grid,
         nodata=float("nan"),
         tags={"source": "roadsurf sfm-baseline", "units": "m, negative below the road"},
     )
-    write_trajectory_geojson(out / "trajectory.geojson", traj, extra={"producer": "sfm-baseline"})
+    write_trajectory_geojson(run.path(TRAJECTORY_GEOJSON), traj, extra={"producer": "sfm-baseline"})
     return crs, raster, grid
 
 
