@@ -27,7 +27,7 @@ from roadsurf.core.camera import Camera
 from roadsurf.core.errors import FrameReadError
 from roadsurf.core.fingerprint import Fingerprint
 from roadsurf.io.drive import Drive, Frame, read_gray
-from roadsurf.io.runfolder import RunFolder
+from roadsurf.io.runfolder import RunFolder, feature_filename, pair_fingerprint_filename
 from roadsurf.reconstruction import features as feat
 from roadsurf.reconstruction.api import reconstruct_features
 from roadsurf.reconstruction.config import ReconstructionConfig
@@ -35,8 +35,6 @@ from roadsurf.reconstruction.types import Features, PairResult, load_pair, save_
 
 log = logging.getLogger(__name__)
 
-# beside RUN/pairs/<a>_<b>.npz: the fingerprint of what produced it
-PAIR_FINGERPRINT_SUFFIX = ".fingerprint"
 # ReconstructionConfig fields that never change a pair's result
 NOT_IN_PAIR_FINGERPRINT = ("probe", "workers", "overwrite", "save_features")
 
@@ -55,7 +53,7 @@ def _feature_path(run_dir: Path, frame: Frame, cfg: ReconstructionConfig) -> Pat
     # ... and so is the image file's identity: a re-rendered frame is detected again
     digest = Fingerprint().add_repr(det).add_file_stat(frame.path, frame.filename).hexdigest(8)
     tag = f"{f.kind}{f.max_features}_{digest}"
-    return RunFolder(run_dir).features_dir / f"{frame.index:06d}_{tag}.npz"
+    return RunFolder(run_dir).features_dir / feature_filename(frame.index, tag)
 
 
 def pair_fingerprint(cfg: ReconstructionConfig, camera: Camera, a: Frame, b: Frame) -> str:
@@ -70,7 +68,8 @@ def pair_fingerprint(cfg: ReconstructionConfig, camera: Camera, a: Frame, b: Fra
 
 
 def _fingerprint_path(pair_path: Path) -> Path:
-    return pair_path.with_suffix(PAIR_FINGERPRINT_SUFFIX)
+    a, b = (int(x) for x in pair_path.stem.split("_"))
+    return pair_path.with_name(pair_fingerprint_filename(a, b))
 
 
 def _stored_fingerprint(pair_path: Path) -> str | None:

@@ -54,6 +54,21 @@ def pair_filename(index_a: int, index_b: int) -> str:
     return f"{index_a:06d}_{index_b:06d}.npz"
 
 
+def pair_fingerprint_filename(index_a: int, index_b: int) -> str:
+    """``000012_000013.fingerprint``: what produced the pair file of the same stem."""
+    return f"{index_a:06d}_{index_b:06d}.fingerprint"
+
+
+def feature_filename(frame_index: int, tag: str) -> str:
+    """``000012_sift4000_<digest>.npz``: one frame's keypoint cache; ``tag`` names the settings."""
+    return f"{frame_index:06d}_{tag}.npz"
+
+
+def probe_filename(index_a: int, index_b: int, digest: str) -> str:
+    """``000012_000013_<digest>.npz``: a fused run's audit probe of one pair."""
+    return f"{index_a:06d}_{index_b:06d}_{digest}.npz"
+
+
 def tile_filename(kind: str, row: int, col: int) -> str:
     """``surface_0001_0002.tif``: one GeoTIFF tile of a tiled raster."""
     return f"{kind}_{row:04d}_{col:04d}.tif"
