@@ -19,6 +19,7 @@ import argparse
 import hashlib
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -59,6 +60,7 @@ VOLATILE_KEYS = {
 # npz members that hold wall times
 VOLATILE_NPZ = ("timings",)
 SKIP_SUFFIXES = {".rrd", ".log"}
+CACHE_DIRS = {"features", "probes"}
 
 
 def _cli(args: list[str], pythonpath: str | None) -> None:
@@ -172,25 +174,35 @@ def compare_file(a: Path, b: Path) -> str:
         return f"DIFFERENT ({e})"
 
 
-def compare(old: Path, new: Path) -> dict[str, Any]:
-    rows: dict[str, str] = {}
+def _key(rel: Path) -> str:
+    """Match key of an output: cache files carry their settings' digest in the name
+    (features/000003_sift4000_<digest>.npz), which changes when the digest scheme does."""
+    if rel.parts and rel.parts[-2:-1] and rel.parts[-2] in CACHE_DIRS:
+        return str(rel.parent / re.sub(r"_[0-9a-f]{8,}(?=\.npz$)", "", rel.name))
+    return str(rel)
+
+
+def _files(root: Path) -> dict[str, Path]:
+    out = {}
     for sub in ("drives", "runs", "sfm"):
-        for fa in sorted((old / sub).rglob("*")):
-            if not fa.is_file() or fa.suffix in SKIP_SUFFIXES:
-                continue
-            rel = fa.relative_to(old)
-            fb = new / rel
-            rows[str(rel)] = compare_file(fa, fb) if fb.is_file() else "MISSING"
-        for fb in sorted((new / sub).rglob("*")):
-            rel = fb.relative_to(new)
-            if fb.is_file() and fb.suffix not in SKIP_SUFFIXES and str(rel) not in rows:
-                rows[str(rel)] = "EXTRA"
+        for f in sorted((root / sub).rglob("*")):
+            if f.is_file() and f.suffix not in SKIP_SUFFIXES:
+                out[_key(f.relative_to(root))] = f
+    return out
+
+
+def compare(old: Path, new: Path) -> dict[str, Any]:
+    """Every output of ``old`` against ``new``: 'bytes' / 'numbers' when equal, else
+    DIFFERENT or MISSING; files only ``new`` has are listed as added (new artifacts)."""
+    fa, fb = _files(old), _files(new)
+    rows = {k: (compare_file(p, fb[k]) if k in fb else "MISSING") for k, p in fa.items()}
     bad = {k: v for k, v in rows.items() if v not in ("bytes", "numbers")}
     return {
         "files": len(rows),
         "identical_bytes": sum(v == "bytes" for v in rows.values()),
         "identical_numbers": sum(v == "numbers" for v in rows.values()),
         "different": bad,
+        "added": sorted(k for k in fb if k not in fa),
     }
 
 
@@ -211,9 +223,12 @@ def main(argv: list[str] | None = None) -> int:
     res = compare(a.old, a.new)
     for k, v in res["different"].items():
         print(f"{v:12s} {k}")
+    for k in res["added"]:
+        print(f"{'added':12s} {k}")
     print(
         f"{res['files']} files: {res['identical_bytes']} byte-identical, "
-        f"{res['identical_numbers']} identical in numbers, {len(res['different'])} different"
+        f"{res['identical_numbers']} identical in numbers, {len(res['different'])} different; "
+        f"{len(res['added'])} new files"
     )
     if a.json is not None:
         from benchmarks._result import write_result
