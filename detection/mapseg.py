@@ -147,22 +147,11 @@ def choose_gsd(xy_m: np.ndarray, gsd_min_m: float, gsd_max_m: float = 0.1) -> fl
 
 def crop_to_data(res: np.ndarray, grid: GridSpec, pad: int = 4) -> tuple[np.ndarray, GridSpec]:
     """Crop a raster to the bounding box of its observed cells (plus ``pad`` cells)."""
-    valid = np.isfinite(res)
-    if not valid.any():
+    box = grid.crop_to(np.isfinite(res), pad)
+    if box is None:
         return res, grid
-    rows = np.flatnonzero(valid.any(axis=1))
-    cols = np.flatnonzero(valid.any(axis=0))
-    r0, r1 = max(0, rows[0] - pad), min(res.shape[0], rows[-1] + pad + 1)
-    c0, c1 = max(0, cols[0] - pad), min(res.shape[1], cols[-1] + pad + 1)
-    g = GridSpec(
-        grid.crs,
-        grid.x0_m + c0 * grid.gsd_m,
-        grid.y0_m - r0 * grid.gsd_m,
-        grid.gsd_m,
-        c1 - c0,
-        r1 - r0,
-    )
-    return res[r0:r1, c0:c1], g
+    rs, cs, g = box
+    return res[rs, cs], g
 
 
 @dataclass

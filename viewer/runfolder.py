@@ -274,14 +274,11 @@ def _load_raster(path: Path, max_side: int, missing: list[str]) -> Raster | None
 def crop_to_data(r: Raster, margin_px: int = 8) -> Raster:
     """The raster cut to the bounding box of its observed pixels (+ margin); same if empty."""
     valid = np.isfinite(r.data) if r.data.ndim == 2 else np.any(r.data > 0, axis=2)
-    rows, cols = np.nonzero(np.any(valid, axis=1))[0], np.nonzero(np.any(valid, axis=0))[0]
-    if rows.size == 0:
+    box = r.grid.crop_to(valid, margin_px)
+    if box is None:
         return r
-    r0, r1 = max(0, rows[0] - margin_px), min(r.data.shape[0], rows[-1] + 1 + margin_px)
-    c0, c1 = max(0, cols[0] - margin_px), min(r.data.shape[1], cols[-1] + 1 + margin_px)
-    g = r.grid
-    grid = GridSpec(g.crs, g.x0_m + c0 * g.gsd_m, g.y0_m - r0 * g.gsd_m, g.gsd_m, c1 - c0, r1 - r0)
-    return Raster(r.data[r0:r1, c0:c1], grid, r.path)
+    rs, cs, grid = box
+    return Raster(r.data[rs, cs], grid, r.path)
 
 
 def _find_masks(run: RunFolder) -> dict[str, Path]:

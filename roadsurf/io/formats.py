@@ -122,6 +122,25 @@ class GridSpec:
         row = (self.y0_m - xy[:, 1]) / self.gsd_m - 0.5
         return np.column_stack([row, col])
 
+    def crop_to(self, valid: np.ndarray, pad: int = 0) -> tuple[slice, slice, GridSpec] | None:
+        """The bounding box of the ``valid`` (height, width) cells plus ``pad`` cells, as
+        (row slice, column slice, the cropped grid); None when no cell is valid."""
+        rows = np.flatnonzero(valid.any(axis=1))
+        cols = np.flatnonzero(valid.any(axis=0))
+        if rows.size == 0:
+            return None
+        r0, r1 = max(0, rows[0] - pad), min(valid.shape[0], rows[-1] + pad + 1)
+        c0, c1 = max(0, cols[0] - pad), min(valid.shape[1], cols[-1] + pad + 1)
+        g = GridSpec(
+            self.crs,
+            self.x0_m + c0 * self.gsd_m,
+            self.y0_m - r0 * self.gsd_m,
+            self.gsd_m,
+            int(c1 - c0),
+            int(r1 - r0),
+        )
+        return slice(r0, r1), slice(c0, c1), g
+
 
 LOCAL_CRS = (
     "LOCAL_ENU"  # GridSpec.crs of a run without GPS: written without a CRS, read back as this
