@@ -74,6 +74,11 @@ def _cli(args: list[str], pythonpath: str | None) -> None:
 
 def record(out: Path, pythonpath: str | None) -> None:
     out.mkdir(parents=True, exist_ok=True)
+    tree = Path(pythonpath) if pythonpath else ROOT
+    rev = subprocess.run(
+        ["git", "-C", str(tree), "rev-parse", "--short", "HEAD"], capture_output=True, text=True
+    ).stdout.strip()
+    (out / "recorded_from.json").write_text(json.dumps({"tree": str(tree), "commit": rev}))
     drives = {"sample": ROOT / "data_samples" / "drive"}
     for name, scenario, seed, frames in DRIVES:
         d = out / "drives" / name
@@ -197,7 +202,16 @@ def compare(old: Path, new: Path) -> dict[str, Any]:
     fa, fb = _files(old), _files(new)
     rows = {k: (compare_file(p, fb[k]) if k in fb else "MISSING") for k, p in fa.items()}
     bad = {k: v for k, v in rows.items() if v not in ("bytes", "numbers")}
+
+    def origin(root: Path) -> str:
+        try:
+            return str(json.loads((root / "recorded_from.json").read_text())["commit"])
+        except (OSError, ValueError, KeyError):
+            return "unknown"
+
     return {
+        "old_commit": origin(old),
+        "new_commit": origin(new),
         "files": len(rows),
         "identical_bytes": sum(v == "bytes" for v in rows.values()),
         "identical_numbers": sum(v == "numbers" for v in rows.values()),
