@@ -15,12 +15,13 @@ import pytest
 from roadsurf.core.camera import Camera
 from roadsurf.io.drive import load_drive
 from roadsurf.io.formats import LOCAL_CRS, read_csv, read_geojson, read_geotiff, read_ply
+from roadsurf.mapping.raster import corridor_tiles
 from roadsurf.pipeline.sfm import run, run_from_paths
 from roadsurf.pipeline.sfm.colmap_run import colmap_camera
 from roadsurf.pipeline.sfm.config import SfmBaselineConfig
 from roadsurf.pipeline.sfm.fits import robust_fit_2d
 from roadsurf.pipeline.sfm.georef import _fit_vertical_tilt, _neighbour_heading_dev
-from roadsurf.pipeline.sfm.surface import local_surface_residuals, rasterise_mean
+from roadsurf.pipeline.sfm.surface import local_surface, surface_raster
 
 N_FRAMES = 12
 BLANK = "blank"  # the frame we replace with a textureless image
@@ -89,7 +90,12 @@ def test_outputs_read_back_in_utm(sim_drive: Path, sfm_out: Path) -> None:
     assert np.isfinite(surf).sum() > 50 and np.isnan(surf).any()
     # the raster sits on the truth raster's ground (same UTM area)
     _, tgrid, _ = read_geotiff(sim_drive / "truth" / "residual.tif")
-    assert abs(grid.x0_m - tgrid.x0_m) < 5 and abs(grid.y0_m - tgrid.y0_m) < 5
+    centre = tgrid.xy_from_rowcol(np.array([tgrid.height / 2]), np.array([tgrid.width / 2]))
+    r, c = grid.rowcol_from_xy(centre)[0]
+    assert 0 <= r < grid.height and 0 <= c < grid.width
+    # on the tile lattice of `roadsurf run` (origin on multiples of tile_px x gsd_m)
+    tile_m = rep["config"]["tile_px"] * grid.gsd_m
+    assert abs(grid.x0_m / tile_m - round(grid.x0_m / tile_m)) < 1e-6
     # points lie inside the surface grid
     rc = grid.rowcol_from_xy(ply["xyz"][:, :2])
     assert (rc >= -1).all() and (rc[:, 0] <= grid.height).all() and (rc[:, 1] <= grid.width).all()
@@ -181,12 +187,11 @@ def test_robust_fit_2d_recovers_rotation_despite_outliers() -> None:
     R = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
     dst = src @ R.T + [100.0, -50.0] + rng.normal(0, 0.02, src.shape)
     dst[5] += [8.0, -3.0]  # a GPS jump
-    R2, t2, s2, inl = robust_fit_2d(src, dst, False, 3.0)
+    fit, inl = robust_fit_2d(src, dst, False, 3.0)
     assert not inl[5] and inl.sum() >= 35
-    assert abs(math.degrees(math.atan2(R2[1, 0], R2[0, 0])) - 37.0) < 0.2
-    assert np.allclose(t2, [100.0, -50.0], atol=0.05) and s2 == 1.0
-    _, _, s3, _ = robust_fit_2d(src * 0.5, dst, True, 3.0)
-    assert abs(s3 - 2.0) < 0.01
+    assert abs(math.degrees(fit.yaw_rad) - 37.0) < 0.2
+    assert np.allclose(fit.t, [100.0, -50.0], atol=0.05) and fit.scale == 1.0
+    assert abs(robust_fit_2d(src * 0.5, dst, True, 3.0)[0].scale - 2.0) < 0.01
 
 
 def test_local_residuals_and_raster() -> None:
@@ -195,17 +200,25 @@ def test_local_residuals_and_raster() -> None:
     z = 0.03 * xy[:, 0] + 0.2 * np.sin(xy[:, 1] / 3) + rng.normal(0, 0.0005, len(xy))
     hole = np.linalg.norm(xy - [2.0, 2.0], axis=1) < 0.25
     z[hole] -= 0.04
-    res, ok = local_surface_residuals(np.column_stack([xy, z]), 1.0, 0.01)
+    xyz = np.column_stack([xy, z])
+    res = local_surface(SfmBaselineConfig(), xyz).residual(xyz)
+    ok = np.isfinite(res)
     assert ok.mean() > 0.99
     assert abs(np.median(res[hole]) + 0.04) < 0.006
     assert np.percentile(np.abs(res[~hole & ok]), 90) < 0.004
-    img, grid = rasterise_mean(xy, res, 0.1, 10_000_000, "EPSG:32617")
+    cfg = SfmBaselineConfig(gsd_m=0.1, tile_px=16)
+    xy_utm = xy + [500_003.0, 4_400_007.0]
+    img, grid = surface_raster(xy_utm, res, cfg, "EPSG:32617")
     assert img.shape == (grid.height, grid.width) and img.dtype == np.float32
-    rc = grid.rowcol_from_xy(np.array([[2.0, 2.0]])).round().astype(int)[0]
+    rc = grid.rowcol_from_xy(np.array([[500_005.0, 4_400_009.0]])).round().astype(int)[0]
     assert img[rc[0], rc[1]] < -0.03
+    # the grid of `roadsurf run`'s surface.tif: the mapping tile lattice (origin on tile multiples)
+    lat = corridor_tiles(xy_utm, "EPSG:32617", 0.1, 16)[0]
+    assert grid == lat.full_grid and grid.x0_m % 1.6 == pytest.approx(0.0, abs=1e-6)
     # a too-large raster is coarsened, never allocated
-    _, g2 = rasterise_mean(np.array([[0.0, 0.0], [1000.0, 1000.0]]), np.zeros(2), 0.01, 10**6, None)
-    assert g2.width * g2.height <= 10**6
+    big = SfmBaselineConfig(gsd_m=0.01, tile_px=16, max_raster_px=10**6)
+    _, g2 = surface_raster(np.array([[0.0, 0.0], [1000.0, 1000.0]]), np.zeros(2), big, None)
+    assert g2.width * g2.height <= 10**6 and g2.crs == LOCAL_CRS
 
 
 def test_vertical_tilt_follows_good_gps_altitude_only() -> None:

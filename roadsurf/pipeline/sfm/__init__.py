@@ -12,10 +12,12 @@
 3. Georeferencing, per model: a robust 2D fit of the camera centres to GPS, the vertical from
    the GPS altitude; the largest model first, then smaller ones fill the frames it lacks.
    Without GPS: only the largest model, in a local metric frame, ``crs`` null and no lat/lon
-   exports (``georef``).
+   exports (``georef``). The ENU origin and the GPS at frame times are the mapping stage's
+   (``mapping.pose_gps``).
 4. Outputs in OUT, in the run-folder format of ``roadsurf run`` (``outputs``). residual_m is
-   relative to a local robust quadric road surface fitted per model (3 x 3 cells of 1 m;
-   ``surface``).
+   relative to the product's local road surface (``mapping.surface.LocalSurface``: robust
+   planes on a 1 m node lattice, 2 m windows) fitted per model; surface.tif is the mean
+   residual per cell on the tile lattice of ``roadsurf run`` (``surface``).
 """
 
 from __future__ import annotations
@@ -37,7 +39,7 @@ from roadsurf.pipeline.sfm.colmap_run import (
     run_colmap,
 )
 from roadsurf.pipeline.sfm.config import SfmBaselineConfig, SfmBaselineResult, load_config
-from roadsurf.pipeline.sfm.georef import gps_reference, place_models
+from roadsurf.pipeline.sfm.georef import drive_gps, place_models
 from roadsurf.pipeline.sfm.outputs import build_report, write_products
 from roadsurf.pipeline.sfm.surface import road_points
 
@@ -61,8 +63,8 @@ def run(
     timings.update(colmap_t)
     t0 = time.perf_counter()
     sizes = {k: m.num_reg_images() for k, m in models.items()}
-    ref = gps_reference(drive)
-    parts, notes, outlier_reasons, ref = place_models(models, sizes, drive, cfg, ref)
+    ref, gps = drive_gps(drive)
+    parts, notes, outlier_reasons, ref = place_models(models, sizes, drive, cfg, ref, gps)
     names_out = {f.filename for g2 in parts for f in g2.frames}
     missing = [n for n in names if n not in names_out]
     reasons = not_registered_reasons(

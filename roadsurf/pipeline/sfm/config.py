@@ -32,13 +32,15 @@ class SfmBaselineConfig:
     # when that explains the altitudes clearly better than a constant offset (RTK-grade logs)
     gps_tilt_max_deg: float = 5.0  # never tilt a model by more than this (degrees)
     max_gps_gap_s: float = 2.0  # frames further than this from a GPS fix get no GPS position (s)
-    local_fit_cell_m: float = 1.0  # cell of the local road-surface fit for residual_m (m)
+    local_fit_cell_m: float = 0.5  # node spacing of the local road surface for residual_m (m)
+    local_fit_window_m: float = 1.0  # side of the window of each node's robust plane fit (m)
     local_fit_inlier_m: float = 0.01  # points further than this from the local fit are not road (m)
     max_abs_residual_m: float = 0.25  # points further than this above/below the local road surface
     # are triangulation outliers or off-road objects (deep potholes are ~0.1-0.2 m) (m)
-    local_fit_order: int = 2  # 1: plane, 2: quadric (follows camber/undulation), per 3x3 cells
     max_point_dist_m: float = 5.0  # drop 3D points further than this from every camera (m)
     gsd_m: float = 0.02  # surface.tif pixel (m); SfM points are sparse, so coarser than `run`
+    tile_px: int = 1024  # surface.tif lies on the tile lattice of `roadsurf run` (mapping
+    # tile_px): origin on multiples of tile_px x gsd_m, so equal settings give equal cells (px)
     max_raster_px: int = 100_000_000  # coarsen the GSD when the raster would be larger (px)
     colmap_log_level: int = 1  # glog min level for COLMAP's own output: 0 info, 1 warning, 2 error
 

@@ -6,15 +6,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from roadsurf.core.fits import MAD_TO_SIGMA, fit_rigid_2d
+from roadsurf.core.fits import MAD_TO_SIGMA, Rigid2D, fit_rigid_2d
 
 
 def robust_fit_2d(
     src: np.ndarray, dst: np.ndarray, with_scale: bool, k: float
-) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+) -> tuple[Rigid2D, np.ndarray]:
     """Iteratively reweighted (trimmed) 2D fit dst ≈ s R src + t of (N, 2) points (metres):
     refit without pairs whose residual exceeds k robust sigmas (MAD), at most 5 rounds.
-    Returns (R (2, 2), t (2,), s, inlier mask (N,))."""
+    Returns (the fit, inlier mask (N,))."""
     inl = np.ones(len(src), bool)
     fit = fit_rigid_2d(src, dst, with_scale=with_scale)
     for _ in range(5):
@@ -25,4 +25,4 @@ def robust_fit_2d(
             break
         inl = new
         fit = fit_rigid_2d(src[inl], dst[inl], with_scale=with_scale)
-    return fit.R, fit.t, fit.scale, inl
+    return fit, inl

@@ -27,11 +27,14 @@ import numpy as np
 from roadsurf.core.fits import MAD_TO_SIGMA, fit_plane_ransac
 from roadsurf.core.geometry import (
     EnuReference,
-    enu_from_lla,
     heading_deg_from_world_rotation,
+    rotation_from_euler_xyz,
     skew,
 )
 from roadsurf.io.drive import Drive, Frame
+from roadsurf.mapping.config import MappingConfig
+from roadsurf.mapping.pose_gps import GpsFixes, gps_at, gps_enu
+from roadsurf.mapping.types import PoseReport
 from roadsurf.pipeline.sfm.config import SfmBaselineConfig
 from roadsurf.pipeline.sfm.fits import robust_fit_2d
 
@@ -41,17 +44,21 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 
-def gps_reference(drive: Drive) -> EnuReference | None:
-    """The ENU origin: the first GPS fix (its altitude, or the first finite one, else 0). None
-    without at least 2 fixes; a drive without GPS gets a warning for the report."""
-    ref: EnuReference | None = None
-    if drive.gps is not None and len(drive.gps) >= 2:
-        g = drive.gps
-        alt0 = float(g.alt_m[np.isfinite(g.alt_m)][0]) if np.isfinite(g.alt_m).any() else 0.0
-        ref = EnuReference(float(g.lat_deg[0]), float(g.lon_deg[0]), alt0)
-    elif drive.gps is None:
+def drive_gps(drive: Drive) -> tuple[EnuReference | None, GpsFixes | None]:
+    """The ENU origin and the GPS fixes in it, chosen as the pose fusion chooses them
+    (``mapping.pose_gps.gps_enu``: the first fix, its altitude or the first finite one; fixes
+    within its default margin of the frame times). (None, None) without 2 such fixes; a drive
+    without GPS gets a warning for the report."""
+    if drive.gps is None:
         drive.warnings.append("no GPS: outputs are in a local metric frame (crs null)")
-    return ref
+        return None, None
+    if len(drive.gps) < 2 or not drive.frames:
+        return None, None
+    t = np.array([f.timestamp_s for f in drive.frames])
+    ref, gps = gps_enu(MappingConfig(), drive, t, PoseReport())
+    if ref is None or gps is None or len(gps.t_s) < 2:
+        return None, None
+    return ref, gps
 
 
 def place_models(
@@ -60,8 +67,10 @@ def place_models(
     drive: Drive,
     cfg: SfmBaselineConfig,
     ref: EnuReference | None,
+    gps: GpsFixes | None,
 ) -> tuple[list[ModelGeo], dict[int, str], dict[str, str], EnuReference | None]:
-    """Georeference the models (``sizes``: registered images per model), largest first.
+    """Georeference the models (``sizes``: registered images per model), largest first, on the
+    GPS fixes ``gps`` (ENU about ``ref``; both None without GPS).
     Returns (the models used, a note per model not used, filename -> why its pose was dropped,
     the reference: None when the outputs end up in a local frame)."""
     order = sorted(sizes, key=lambda k: (-sizes[k], k))  # largest model first
@@ -77,7 +86,9 @@ def place_models(
             notes[k] = "without GPS only the largest model can be placed (local frame)"
             continue
         try:
-            geo = georeference_model(k, models[k], drive, cfg, ref, claimed)
+            geo = georeference_model(
+                k, models[k], drive, cfg, gps if ref is not None else None, claimed
+            )
         except ModelRejected as e:
             notes[k] = str(e)
             log.info("model %d (%d images) not used: %s", k, sizes[k], e)
@@ -92,26 +103,16 @@ def place_models(
     return parts, notes, outlier_reasons, ref
 
 
-def _interp_gps_enu(
-    drive: Drive, times: np.ndarray, ref: EnuReference, max_gap_s: float
-) -> np.ndarray:
-    """GPS ENU (N, 3) at ``times`` (linear between fixes); NaN rows where no fix is near."""
-    g = drive.gps
-    if g is None:
-        raise ValueError(f"{drive.root}: no GPS log to align the SfM model to")
-    alt = np.where(np.isfinite(g.alt_m), g.alt_m, ref.alt_m)
-    enu = enu_from_lla(g.lat_deg, g.lon_deg, alt, ref)
-    out = np.column_stack([np.interp(times, g.timestamp_s, enu[:, k]) for k in range(3)])
-    # distance in time to the nearest fix; outside the log or in long gaps -> no position
-    j = np.clip(np.searchsorted(g.timestamp_s, times), 1, len(g) - 1) if len(g) > 1 else None
-    if j is None:
-        gap = np.abs(times - g.timestamp_s[0])
-        bracket = gap
-    else:
-        gap = np.minimum(np.abs(times - g.timestamp_s[j - 1]), np.abs(g.timestamp_s[j] - times))
-        bracket = g.timestamp_s[j] - g.timestamp_s[j - 1]
-    bad = (times < g.timestamp_s[0] - max_gap_s) | (times > g.timestamp_s[-1] + max_gap_s)
-    bad |= (gap > max_gap_s) & (bracket > 2 * max_gap_s)
+def _gps_at_frames(gps: GpsFixes, times: np.ndarray, max_gap_s: float) -> np.ndarray:
+    """GPS ENU (N, 3) at ``times`` (``mapping.pose_gps.gps_at``: linear between fixes); NaN rows
+    where no fix is near: more than ``max_gap_s`` outside the log, or inside a gap longer than
+    2 ``max_gap_s`` and more than ``max_gap_s`` from both its fixes."""
+    ts = gps.t_s
+    out = np.array([gps_at(gps, float(t)) for t in times]).reshape(-1, 3)
+    j = np.clip(np.searchsorted(ts, times), 1, len(ts) - 1)
+    gap = np.minimum(np.abs(times - ts[j - 1]), np.abs(ts[j] - times))
+    bad = (times < ts[0] - max_gap_s) | (times > ts[-1] + max_gap_s)
+    bad |= (gap > max_gap_s) & (ts[j] - ts[j - 1] > 2 * max_gap_s)
     out[bad] = np.nan
     return out
 
@@ -210,7 +211,7 @@ def georeference_model(
     rec: pycolmap.Reconstruction,
     drive: Drive,
     cfg: SfmBaselineConfig,
-    ref: EnuReference | None,
+    gps: GpsFixes | None,
     claimed: set[str],
 ) -> ModelGeo:
     """Scale one COLMAP model by the camera height (α = h / d_c), level it with the road
@@ -290,9 +291,9 @@ def georeference_model(
     # ---- placement
     align: dict[str, Any] = {"kind": "none"}
     gps_enu = None
-    if ref is not None:
+    if gps is not None:
         times = np.array([f.timestamp_s for f in reg])
-        gps_enu = _interp_gps_enu(drive, times, ref, cfg.max_gps_gap_s)
+        gps_enu = _gps_at_frames(gps, times, cfg.max_gps_gap_s)
         ok = np.isfinite(gps_enu).all(axis=1) & good
         if ok.sum() < 2:
             if claimed:  # a secondary model that the GPS cannot place is not used
@@ -302,15 +303,14 @@ def georeference_model(
     if gps_enu is not None:
         ok = np.isfinite(gps_enu).all(axis=1) & good
         sim = cfg.gps_fit == "similarity"
-        R2, t2, s2, inl2 = robust_fit_2d(c_lv[ok, :2], gps_enu[ok, :2], sim, cfg.gps_outlier_k)
-        _, _, s_sim, _ = robust_fit_2d(c_lv[ok, :2], gps_enu[ok, :2], True, cfg.gps_outlier_k)
+        fit, inl2 = robust_fit_2d(c_lv[ok, :2], gps_enu[ok, :2], sim, cfg.gps_outlier_k)
+        s_sim = robust_fit_2d(c_lv[ok, :2], gps_enu[ok, :2], True, cfg.gps_outlier_k)[0].scale
         if sim:  # the GPS scale replaces α
-            c_lv, p_lv = c_lv * s2, p_lv * s2
-            scale["alpha_m_per_unit"] = alpha * s2
-        R3 = np.eye(3)
-        R3[:2, :2] = R2
-        c_h = c_lv @ R3.T + np.array([*t2, 0.0])  # horizontally placed, not yet vertically
-        p_h = p_lv @ R3.T + np.array([*t2, 0.0])
+            c_lv, p_lv = c_lv * fit.scale, p_lv * fit.scale
+            scale["alpha_m_per_unit"] = alpha * fit.scale
+        R3 = rotation_from_euler_xyz(0.0, 0.0, fit.yaw_rad)  # = fit.R about the vertical
+        c_h = c_lv @ R3.T + np.array([*fit.t, 0.0])  # horizontally placed, not yet vertically
+        p_h = p_lv @ R3.T + np.array([*fit.t, 0.0])
         tilt = _fit_vertical_tilt(c_h, gps_enu, ok & np.isfinite(gps_enu[:, 2]), cfg)
         if tilt is not None:
             R_t, pivot, tilt_deg = tilt
@@ -329,7 +329,7 @@ def georeference_model(
             "n_inliers": int(inl2.sum()),
             "rms_m": float(np.sqrt(np.mean(resid[inl2] ** 2))),
             "max_m": float(resid.max()),
-            "rotation_deg": float(math.degrees(math.atan2(R2[1, 0], R2[0, 0]))),
+            "rotation_deg": math.degrees(fit.yaw_rad),
             "gps_scale_over_height_scale": float(s_sim) if not sim else 1.0,
             "gps_extent_m": spread,
             "vertical_offset_m": dz,
@@ -352,9 +352,7 @@ def georeference_model(
     else:
         # Local frame: first camera at the origin, its forward (-y camera axis) along +y.
         fwd = -R_wc_lv[0][:, 1]
-        ang = math.atan2(fwd[0], fwd[1])  # rotate the forward azimuth onto north
-        c, s_ = math.cos(ang), math.sin(ang)
-        R3 = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
+        R3 = rotation_from_euler_xyz(0.0, 0.0, math.atan2(fwd[0], fwd[1]))  # forward onto north
         c_w, p_w = c_lv @ R3.T, p_lv @ R3.T
     R_wc = np.einsum("ij,njk->nik", R3, R_wc_lv)
 

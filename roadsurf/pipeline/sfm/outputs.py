@@ -17,11 +17,12 @@ from roadsurf.io.drive import Drive, Frame
 from roadsurf.io.formats import GridSpec, write_geotiff
 from roadsurf.io.runfolder import TRAJECTORY_GEOJSON, RunFolder
 from roadsurf.mapping.export import export_xyz, write_cloud_ply, write_trajectory_geojson
+from roadsurf.mapping.rasterise import NODATA_SURFACE
 from roadsurf.mapping.types import Trajectory, save_trajectory
 from roadsurf.pipeline.sfm.colmap_run import colmap_camera, software_versions
 from roadsurf.pipeline.sfm.config import SfmBaselineConfig
 from roadsurf.pipeline.sfm.georef import ModelGeo
-from roadsurf.pipeline.sfm.surface import rasterise_mean
+from roadsurf.pipeline.sfm.surface import surface_raster
 
 if TYPE_CHECKING:
     import pycolmap
@@ -61,12 +62,12 @@ def write_products(
     run = RunFolder(out)
     write_cloud_ply(run.cloud_ply, p_w, rgb, residual, ef)
     xy_out = export_xyz(p_w, ef)[:, :2]
-    raster, grid = rasterise_mean(xy_out, residual, cfg.gsd_m, cfg.max_raster_px, crs)
+    raster, grid = surface_raster(xy_out, residual, cfg, crs)
     write_geotiff(
         run.surface_tif,
         raster,
         grid,
-        nodata=float("nan"),
+        nodata=NODATA_SURFACE,
         tags={"source": "roadsurf sfm-baseline", "units": "m, negative below the road"},
     )
     write_trajectory_geojson(run.path(TRAJECTORY_GEOJSON), traj, extra={"producer": "sfm-baseline"})
