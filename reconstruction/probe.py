@@ -14,7 +14,8 @@ light is invisible to a single image). The probe answers that in about 60 ms:
    F = [x̄_k − x̄_{k−1}]× H_k, R, t, triangulation, scale α = h / d_c).
 
 The result is an ordinary metric ``PairResult`` with about as many points as a full pair
-(LK tracks are sub-pixel, so depth noise is similar), saved as ``RUN/probes/<a>_<b>.npz``.
+(LK tracks are sub-pixel, so depth noise is similar), saved as
+``RUN/probes/<a>_<b>_<settings>.npz`` with the ``pair_fingerprint`` of its inputs beside it.
 It is not a map pair: the map and detection stages never read ``RUN/probes``.
 """
 
@@ -29,14 +30,16 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from roadsurf.core.atomic import write_text_atomic
 from roadsurf.core.camera import Camera
 from roadsurf.core.errors import FrameReadError
 from roadsurf.core.fingerprint import Fingerprint
 from roadsurf.io.drive import Drive, read_gray
-from roadsurf.io.runfolder import RunFolder
+from roadsurf.io.runfolder import RunFolder, probe_filename
 from roadsurf.reconstruction.api import reconstruct_matches
 from roadsurf.reconstruction.config import ProbeConfig, ReconstructionConfig
 from roadsurf.reconstruction.features import to_gray, track_forward_backward
+from roadsurf.reconstruction.stage import pair_fingerprint
 from roadsurf.reconstruction.types import PairResult, load_pair, save_pair
 
 log = logging.getLogger(__name__)
@@ -138,9 +141,23 @@ def _failed(cfg: ReconstructionConfig, status: str, reason: str, t0: float) -> P
 
 
 def _probe_path(run_dir: Path, a: int, b: int, cfg: ReconstructionConfig) -> Path:
-    # the settings are in the name, so a changed config never reuses a stale probe
+    # the probe settings are in the name (they are not in ``pair_fingerprint``), so probes of
+    # other settings sit side by side
     digest = Fingerprint().add_repr((cfg.probe, cfg.method)).hexdigest(8)
-    return RunFolder(run_dir).probes_dir / f"{a:06d}_{b:06d}_{digest}.npz"
+    return RunFolder(run_dir).probes_dir / probe_filename(a, b, digest)
+
+
+def _fingerprint_path(probe_path: Path) -> Path:
+    """``<a>_<b>_<digest>.fingerprint`` beside the probe: the ``pair_fingerprint`` it was made
+    from (estimator settings, camera, both image files)."""
+    return probe_path.with_suffix(".fingerprint")
+
+
+def _stored_fingerprint(probe_path: Path) -> str | None:
+    try:
+        return _fingerprint_path(probe_path).read_text().strip()
+    except OSError:
+        return None  # written by older code, or never finished: recompute
 
 
 def run(
@@ -151,8 +168,9 @@ def run(
 ) -> list[PairResult]:
     """Probe the consecutive pairs (index_a, index_b) in ``only_pairs``; results in frame order.
 
-    Each result is cached as ``RUN/probes/<a>_<b>_<settings>.npz`` (failed ones too) and reused
-    unless ``cfg.overwrite``. Unreadable frames give status ``unreadable_frame``. Pairs run on
+    Each result is cached as ``RUN/probes/<a>_<b>_<settings>.npz`` (failed ones too) and reused,
+    unless ``cfg.overwrite``, when the ``pair_fingerprint`` stored beside it (``.fingerprint``)
+    matches the current estimator settings, camera and image files, as full pairs are. Unreadable frames give status ``unreadable_frame``. Pairs run on
     ``cfg.workers`` threads (OpenCV releases the GIL).
     """
     run_dir = Path(run_dir)
@@ -166,7 +184,8 @@ def run(
     def one(pair: tuple[int, int]) -> PairResult:
         fa, fb = frames[pair[0]], frames[pair[1]]
         path = _probe_path(run_dir, *pair, cfg)
-        if path.is_file() and not cfg.overwrite:
+        fingerprint = pair_fingerprint(cfg, drive.camera, fa, fb)
+        if path.is_file() and not cfg.overwrite and _stored_fingerprint(path) == fingerprint:
             try:
                 return load_pair(path)
             except (OSError, ValueError, KeyError) as e:
@@ -187,7 +206,10 @@ def run(
             fa.index,
             fb.index,
         )
+        # the old fingerprint goes first: a probe never sits beside another's fingerprint
+        _fingerprint_path(path).unlink(missing_ok=True)
         save_pair(path, res)
+        write_text_atomic(_fingerprint_path(path), fingerprint + "\n")
         return res
 
     if not todo:

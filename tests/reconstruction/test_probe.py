@@ -158,3 +158,41 @@ def test_probe_stage_caches_resumes_and_reports_unreadable_frames(
     cv2.imwrite(str(root / "frames" / "001.png"), np.zeros((100, 100), np.uint8))
     odd = probe.run(ReconstructionConfig(overwrite=True), drive, run_dir, {(1, 2)})
     assert odd[0].status == "geometry_failed" and "differ in size" in odd[0].reason
+
+
+def test_probe_cache_is_keyed_by_images_and_settings(scene, tmp_path: Path, monkeypatch) -> None:
+    """A probe is reused only while its pair_fingerprint (estimator settings, camera, both
+    image files) still matches; a changed image or estimator setting recomputes it."""
+    cam, tex, gsd = scene
+    root = tmp_path / "d"
+    (root / "frames").mkdir(parents=True)
+    frames = []
+    for i in range(2):
+        img = render_surface(cam, tex, gsd, lambda x, y: 0.0 * x, t_m=np.array([0, -0.2 * i, 0]))
+        p = root / "frames" / f"{i:03d}.png"
+        cv2.imwrite(str(p), img)
+        frames.append(Frame(i, p.name, p, float(i)))
+    drive = Drive(root, cam, frames, None, None)
+    run_dir = tmp_path / "run"
+    probe.run(CFG, drive, run_dir, {(0, 1)})
+    stored = list(RunFolder(run_dir).probes_dir.glob("*.fingerprint"))
+    assert len(stored) == 1 and stored[0].with_suffix(".npz").is_file()
+    calls = []
+    orig = probe.probe_pair
+    monkeypatch.setattr(probe, "probe_pair", lambda *a, **k: calls.append(1) or orig(*a, **k))
+    probe.run(CFG, drive, run_dir, {(0, 1)})
+    assert calls == []  # unchanged: reused
+    # an estimator setting outside ``cfg.probe`` (not in the file name) recomputes it
+    other = ReconstructionConfig(features=FeatureConfig(max_features=1500), min_matches=25)
+    probe.run(other, drive, run_dir, {(0, 1)})
+    assert len(calls) == 1
+    probe.run(other, drive, run_dir, {(0, 1)})
+    assert len(calls) == 1  # ... and is reused under the new settings
+    # a re-rendered frame recomputes it
+    img = cv2.imread(str(frames[1].path), cv2.IMREAD_GRAYSCALE)
+    cv2.imwrite(str(frames[1].path), np.ascontiguousarray(img[:, ::-1]))
+    res = probe.run(other, drive, run_dir, {(0, 1)})
+    assert len(calls) == 2 and res[0].index_b == 1
+    probe.run(other, drive, run_dir, {(0, 1)})
+    assert len(calls) == 2
+    assert len(list(RunFolder(run_dir).probes_dir.glob("*"))) == 2  # one probe, one fingerprint
