@@ -35,7 +35,7 @@ from roadsurf.core.camera import Camera
 from roadsurf.core.errors import FrameReadError
 from roadsurf.core.fingerprint import Fingerprint
 from roadsurf.io.drive import Drive, read_gray
-from roadsurf.io.runfolder import RunFolder, probe_filename
+from roadsurf.io.runfolder import RunFolder, fingerprint_path, probe_filename, read_fingerprint
 from roadsurf.reconstruction.api import reconstruct_matches
 from roadsurf.reconstruction.config import ProbeConfig, ReconstructionConfig
 from roadsurf.reconstruction.features import to_gray, track_forward_backward
@@ -147,19 +147,6 @@ def _probe_path(run_dir: Path, a: int, b: int, cfg: ReconstructionConfig) -> Pat
     return RunFolder(run_dir).probes_dir / probe_filename(a, b, digest)
 
 
-def _fingerprint_path(probe_path: Path) -> Path:
-    """``<a>_<b>_<digest>.fingerprint`` beside the probe: the ``pair_fingerprint`` it was made
-    from (estimator settings, camera, both image files)."""
-    return probe_path.with_suffix(".fingerprint")
-
-
-def _stored_fingerprint(probe_path: Path) -> str | None:
-    try:
-        return _fingerprint_path(probe_path).read_text().strip()
-    except OSError:
-        return None  # written by older code, or never finished: recompute
-
-
 def run(
     cfg: ReconstructionConfig,
     drive: Drive,
@@ -185,7 +172,7 @@ def run(
         fa, fb = frames[pair[0]], frames[pair[1]]
         path = _probe_path(run_dir, *pair, cfg)
         fingerprint = pair_fingerprint(cfg, drive.camera, fa, fb)
-        if path.is_file() and not cfg.overwrite and _stored_fingerprint(path) == fingerprint:
+        if path.is_file() and not cfg.overwrite and read_fingerprint(path) == fingerprint:
             try:
                 return load_pair(path)
             except (OSError, ValueError, KeyError) as e:
@@ -207,9 +194,9 @@ def run(
             fb.index,
         )
         # the old fingerprint goes first: a probe never sits beside another's fingerprint
-        _fingerprint_path(path).unlink(missing_ok=True)
+        fingerprint_path(path).unlink(missing_ok=True)
         save_pair(path, res)
-        write_text_atomic(_fingerprint_path(path), fingerprint + "\n")
+        write_text_atomic(fingerprint_path(path), fingerprint + "\n")
         return res
 
     if not todo:

@@ -27,7 +27,7 @@ from roadsurf.core.camera import Camera
 from roadsurf.core.errors import FrameReadError
 from roadsurf.core.fingerprint import Fingerprint
 from roadsurf.io.drive import Drive, Frame, read_gray
-from roadsurf.io.runfolder import RunFolder, feature_filename, pair_fingerprint_filename
+from roadsurf.io.runfolder import RunFolder, feature_filename, fingerprint_path, read_fingerprint
 from roadsurf.reconstruction import features as feat
 from roadsurf.reconstruction.api import reconstruct_features
 from roadsurf.reconstruction.config import ReconstructionConfig
@@ -65,18 +65,6 @@ def pair_fingerprint(cfg: ReconstructionConfig, camera: Camera, a: Frame, b: Fra
     for f in (a, b):
         fp.add_text(f"|{f.index}|{f.filename}|").add_file_stat(f.path, "file")
     return fp.hexdigest(16)
-
-
-def _fingerprint_path(pair_path: Path) -> Path:
-    a, b = (int(x) for x in pair_path.stem.split("_"))
-    return pair_path.with_name(pair_fingerprint_filename(a, b))
-
-
-def _stored_fingerprint(pair_path: Path) -> str | None:
-    try:
-        return _fingerprint_path(pair_path).read_text().strip()
-    except OSError:
-        return None  # written by older code, or never finished: recompute
 
 
 class _FeatureCache:
@@ -176,7 +164,7 @@ def run(
             path = rf.pair(*key)
             if not path.is_file():
                 continue
-            if _stored_fingerprint(path) != fingerprints[key]:
+            if read_fingerprint(path) != fingerprints[key]:
                 stale += 1  # other settings, camera or image files: recompute
                 continue
             try:
@@ -202,9 +190,9 @@ def run(
             res = _one_pair(cfg, drive, cache, fa_frame, fb_frame)
             path = rf.pair(*key)
             # the old fingerprint goes first: a pair file never sits beside another's fingerprint
-            _fingerprint_path(path).unlink(missing_ok=True)
+            fingerprint_path(path).unlink(missing_ok=True)
             save_pair(path, res)
-            write_text_atomic(_fingerprint_path(path), fingerprints[key] + "\n")
+            write_text_atomic(fingerprint_path(path), fingerprints[key] + "\n")
             results.append(res)
     finally:
         cache.close()

@@ -54,9 +54,19 @@ def pair_filename(index_a: int, index_b: int) -> str:
     return f"{index_a:06d}_{index_b:06d}.npz"
 
 
-def pair_fingerprint_filename(index_a: int, index_b: int) -> str:
-    """``000012_000013.fingerprint``: what produced the pair file of the same stem."""
-    return f"{index_a:06d}_{index_b:06d}.fingerprint"
+def fingerprint_path(artifact: Path) -> Path:
+    """``X.fingerprint`` beside the cached artifact ``X.npz``: the fingerprint of what produced
+    it (a pair, a probe)."""
+    return artifact.with_suffix(".fingerprint")
+
+
+def read_fingerprint(artifact: Path) -> str | None:
+    """The fingerprint stored beside ``artifact``; None when there is none (written by older
+    code, or never finished): the artifact must be recomputed."""
+    try:
+        return fingerprint_path(artifact).read_text().strip()
+    except OSError:
+        return None
 
 
 def feature_filename(frame_index: int, tag: str) -> str:
