@@ -10,7 +10,7 @@ renders and real roads with different noise.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import ClassVar, Literal
 
 BinariseMode = Literal["adaptive", "fixed"]
 FrameLabelMode = Literal["map", "pair"]
@@ -29,6 +29,16 @@ class PlaneFitConfig:
     min_points: int = 30  # a pair with fewer points is not segmented (count)
     max_depth_m: float = 0.25  # points further below the plane are mismatches, not defects (m)
 
+    # valid values (interval notation; see roadsurf.core.config)
+    RANGES: ClassVar[dict[str, str]] = {
+        "depth_threshold_m": "[0, 1]; a T_d above 1 m is a unit mistake (mm typed as m?)",
+        "noise_k": "[0, inf)",
+        "min_road_share": "[0, 1]",
+        "max_iterations": "[1, inf)",
+        "min_points": "[3, inf); a plane needs 3 points",
+        "max_depth_m": "(0, 10]; a defect deeper than 10 m is a unit mistake",
+    }
+
 
 @dataclass(frozen=True)
 class RefineConfig:
@@ -45,6 +55,18 @@ class RefineConfig:
     grow_depth_frac: float = 0.5  # grow: a point joins when inside the region and d_i <= -frac*T_d
     strong_factor: float = 2.5  # candidates deeper than strong_factor * T_d need no 2D support
     max_iterations: int = 10  # grow until the set is stable, at most this many rounds (count)
+
+    RANGES: ClassVar[dict[str, str]] = {
+        "fixed_threshold": "[0, 255]; an 8-bit grey level",
+        "adaptive_window_frac": "(0, 1]",
+        "adaptive_dark_k": "[0, inf)",
+        "adaptive_min_drop": "[0, 1]",
+        "adaptive_blur_frac": "[0, 1]",
+        "window_px": "[1, inf)",
+        "grow_depth_frac": "[0, 1]",
+        "strong_factor": "[0, inf)",
+        "max_iterations": "[1, inf)",
+    }
 
 
 @dataclass(frozen=True)
@@ -92,6 +114,30 @@ class CrackConfig:
     link_m: float = 0.08  # samples closer than this on the map are one crack (m)
     join_m: float = 0.2  # confirmed cracks closer than this are joined into one (m)
 
+    RANGES: ClassVar[dict[str, str]] = {
+        "tophat_m": "(0, 1]; a top-hat disc above 1 m is a unit mistake",
+        "line_m": "(0, inf)",
+        "line_long_m": "[0, inf); 0 = off",
+        "long_contrast_k": "[0, inf)",
+        "line_long_gsd_m": "(0, 1]; a pixel above 1 m is a unit mistake",
+        "line_gsd_m": "(0, 1]; a pixel above 1 m is a unit mistake",
+        "contrast_k": "[0, inf)",
+        "min_contrast": "[0, 1]",
+        "min_length_m": "[0, inf)",
+        "max_width_m": "(0, inf)",
+        "min_elongation": "[1, inf); length / width",
+        "near_px": "[0, inf)",
+        "min_points": "[1, inf)",
+        "min_below_share": "[0, 1]",
+        "z_k": "[0, inf)",
+        "dense_window_px": "[3, inf); OpenCV's Lucas-Kanade needs a window wider than 2 px",
+        "dense_min_across": "[0, 1]",
+        "dense_max_depth_m": "(0, 1]; a crack deeper than 1 m is a unit mistake",
+        "max_samples": "[1, inf)",
+        "link_m": "[0, inf)",
+        "join_m": "[0, inf)",
+    }
+
 
 @dataclass(frozen=True)
 class DenseConfig:
@@ -114,6 +160,17 @@ class DenseConfig:
     area_extrapolate: bool = True
     area: bool = True  # area from the dense points (False: cells of the raster outline)
 
+    RANGES: ClassVar[dict[str, str]] = {
+        "step_px": "(0, inf)",
+        "window_px": "[3, inf); OpenCV's Lucas-Kanade needs a window wider than 2 px",
+        "edge_m": "[0, inf)",
+        "ring_m": "(0, inf)",
+        "rim_noise_k": "[0, inf)",
+        "min_coverage": "[0, 1]",
+        "max_noise_k": "(0, inf)",
+        "patch_window_m": "(0, inf)",
+    }
+
 
 @dataclass(frozen=True)
 class SeverityConfig:
@@ -127,6 +184,18 @@ class SeverityConfig:
     crack_width_high_m: float = 0.019  # FHWA DIM crack width moderate/high: 19 mm (m)
     rut_depth_low_m: float = 0.013  # ASTM D6433 rutting: low < 13 mm (m)
     rut_depth_high_m: float = 0.025  # ASTM D6433 rutting: high > 25 mm (m)
+
+    # band edges above 1 m are unit mistakes (mm typed as m?)
+    RANGES: ClassVar[dict[str, str]] = {
+        "depth_low_m": "(0, 1]",
+        "depth_high_m": "(0, 1]",
+        "diameter_small_m": "(0, 10]",
+        "diameter_large_m": "(0, 10]",
+        "crack_width_low_m": "(0, 1]",
+        "crack_width_high_m": "(0, 1]",
+        "rut_depth_low_m": "(0, 1]",
+        "rut_depth_high_m": "(0, 1]",
+    }
 
 
 @dataclass(frozen=True)
@@ -162,6 +231,35 @@ class MapSegmentConfig:
     elongation_min: float = 3.0  # length / width above this = elongated (crack or rut) (unitless)
     frame_depth_m: float = 0.010  # frame label: deeper than this counts (m); truth uses 10 mm
     frame_min_area_m2: float = 0.002  # frame label: footprint holds at least this deep area (m²)
+
+    RANGES: ClassVar[dict[str, str]] = {
+        "depth_threshold_m": "[0, 1]; a T_d above 1 m is a unit mistake (mm typed as m?)",
+        "noise_k": "[0, inf)",
+        "rim_threshold_m": "[0, 1]",
+        "rim_noise_k": "[0, inf)",
+        "rim_max_grow_frac": "[0, inf)",
+        "rim_max_grow_min_m": "[0, inf)",
+        "level_window_m": "[0, inf); 0 = off",
+        "level_ring_m": "(0, inf)",
+        "smooth_m": "[0, 1]; 0 = off",
+        "fill_px": "[0, inf)",
+        "window_core_m": "(0, inf)",
+        "window_margin_m": "[0, inf)",
+        "fallback_gsd_m": "(0, 1]; a raster cell above 1 m is a unit mistake",
+        "mean_shift_window_m": "(0, inf)",
+        "mean_shift_max_iter": "[1, inf)",
+        "mean_shift_tol_m": "(0, inf)",
+        "min_area_m2": "[0, inf)",
+        "min_depth_m": "[0, 1]",
+        "min_support_pairs": "[0, inf)",
+        "min_support_points": "[0, inf)",
+        "point_support_radius_m": "[0, inf)",
+        "crack_max_width_m": "[0, inf)",
+        "rut_min_length_m": "[0, inf)",
+        "elongation_min": "[1, inf); length / width",
+        "frame_depth_m": "[0, 1]",
+        "frame_min_area_m2": "[0, inf)",
+    }
 
 
 @dataclass(frozen=True)
@@ -210,6 +308,34 @@ class RutConfig:
     # report ruts at least this deep (m): ASTM D6433 rates rutting low from 6 mm (1/4 in)
     min_depth_m: float = 0.006
 
+    RANGES: ClassVar[dict[str, str]] = {
+        "straightedge_m": "(0, inf)",
+        "strip_m": "(0, inf)",
+        "step_m": "(0, inf)",
+        "profile_smooth_m": "[0, inf)",
+        "trace_min_m": "[0, 1]",
+        "trace_noise_k": "[0, inf)",
+        "min_width_m": "[0, inf)",
+        "max_width_m": "(0, inf)",
+        "min_road_side_m": "[0, inf)",
+        "follow_m": "[0, inf)",
+        "direction_stations": "[1, inf)",
+        "max_gap_m": "[0, inf)",
+        "flat_gap_m": "[0, inf)",
+        "flat_gap_frac": "[0, 1]",
+        "flat_gap_ref_m": "[0, inf)",
+        "max_unobserved_m": "[0, inf)",
+        "max_length_m": "(0, inf)",
+        "seed_min_length_m": "[0, inf)",
+        "seed_elongation": "[1, inf); length / width",
+        "seed_width_ratio": "[0, inf)",
+        "seed_directions": "[1, inf)",
+        "depth_window_m": "(0, inf)",
+        "scan_step_m": "[0, inf); 0 = no scan",
+        "scan_half_width_m": "[0, inf)",
+        "min_depth_m": "[0, 1]",
+    }
+
 
 @dataclass(frozen=True)
 class DetectionConfig:
@@ -232,3 +358,8 @@ class DetectionConfig:
     frame_label: FrameLabelMode = "map"
     fusion_threshold: float = 0.95  # CNN decision stands when max(p) >= this (Fig. 5.6), 0.5-1
     overwrite: bool = False  # recompute even when RUN/defects.geojson exists
+
+    RANGES: ClassVar[dict[str, str]] = {
+        "pair_workers": "[1, inf)",
+        "fusion_threshold": "[0.5, 1]; max(p) of two classes is at least 0.5",
+    }

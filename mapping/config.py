@@ -7,7 +7,7 @@ Every field gives its unit and, where the dissertation names it, its symbol. Loa
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import ClassVar, Literal
 
 # settings that change how a result is computed, never the result: a run resumes across them
 NOT_IN_FINGERPRINT = ("overwrite", "raster_workers")
@@ -103,3 +103,50 @@ class MappingConfig:
     # the fill when the points are nearly noise-free
     surface_fill_relief_min_m: float = 0.002
     colour_from_images: bool = True  # sample point colours from image a at px_a
+
+    # valid values (interval notation; see roadsurf.core.config). Upper bounds only where a
+    # larger value is a unit mistake
+    RANGES: ClassVar[dict[str, str]] = {
+        "gps_sigma_m": "(0, 100]; a GPS σ above 100 m is a unit mistake",
+        "gps_sigma_per_hdop_m": "(0, 100]",
+        "gps_sigma_min_m": "(0, 100]; a floor of 0 gives RTK fixes infinite weight",
+        "gps_vertical_sigma_factor": "(0, inf)",
+        "visual_sigma_trans_m": "(0, inf)",
+        "visual_sigma_trans_rel": "[0, 1]",
+        "visual_sigma_rot_deg": "(0, 180]",
+        "heading_sigma_deg": "(0, 180]",
+        "heading_min_baseline_m": "[0, inf)",
+        "tilt_sigma_deg": "(0, 90]",
+        "gps_bridge_s": "[0, inf)",
+        "gps_extrapolate_s": "[0, inf)",
+        "gap_sigma_m": "(0, inf)",
+        "gap_sigma_rot_deg": "(0, 180]",
+        "gap_accel_sigma_mps2": "[0, inf); 0 = off",
+        "obd_sigma_mps": "(0, inf)",
+        "robust_scale": "(0, inf)",
+        "gps_outlier_sigmas": "(0, inf)",
+        "max_nfev": "[1, inf)",
+        "min_frame_overlap": "[0, 1]",
+        "voxel_m": "[0, 1]; 0 = no fusion; a voxel above 1 m is a unit mistake (mm typed as m?)",
+        "max_point_depth_m": "(0, inf)",
+        "local_fit_window_m": "(0, inf)",
+        "local_fit_cell_m": "(0, inf)",
+        "local_fit_inlier_m": "(0, inf)",
+        "gsd_m": "(0, 1]; a raster cell above 1 m is a unit mistake (cm typed as m?)",
+        "tile_px": "[16, 65536]; smaller tiles would be millions of files",
+        "tiled_vrt_min_tiles": "[0, inf)",
+        "mosaic_border_px": "[0, inf)",
+        "feather_px": "[0, inf)",
+        "max_raster_px": "[1, inf)",
+        "preview_max_px": "[16, inf); a PNG preview needs some pixels",
+        "raster_workers": "[1, inf)",
+        "surface_max_edge_m": "(0, inf)",
+        "surface_smooth_m": "[0, inf)",
+        "surface_smooth_flat_m": "[0, inf)",
+        "surface_detail_sigmas": "[0, inf)",
+        "surface_smooth_defect_m": "[0, inf)",
+        "surface_interp_step_px": "[1, inf)",
+        "surface_edge_factor": "(0, inf)",
+        "surface_fill_max_m": "[0, inf); 0 = off",
+        "surface_fill_relief_min_m": "[0, inf)",
+    }

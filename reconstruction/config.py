@@ -7,7 +7,7 @@ h (camera height, eq. 3.34), α = h / d_c (metric scale).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import ClassVar, Literal
 
 FeatureKind = Literal["sift", "orb", "akaze"]
 Method = Literal["proposed", "rotation_aware", "classic", "colmap", "stereo"]
@@ -47,6 +47,22 @@ class FeatureConfig:
     # grows with the area; 1024x768 -> 0.62x (same flat-road RMSE as 0.45 Mpx on the speed
     # drive, ~30% less detection CPU), 640x480 untouched (scales >= 0.95 are not applied)
 
+    # valid values (interval notation; see roadsurf.core.config)
+    RANGES: ClassVar[dict[str, str]] = {
+        "max_features": "[1, inf)",
+        "ratio": "(0, 1]; best/second-best distance",
+        "flann_checks": "[1, inf)",
+        "grid_cells": "[0, inf); 0 = off",
+        "contrast_threshold": "[0, 1]",
+        "n_octave_layers": "[1, inf)",
+        "candidates_per_feature": "[0, inf); 0 = no cap",
+        "clahe_clip": "[0, inf); 0 = off",
+        "clahe_tiles": "[1, inf)",
+        "border_pad_px": "[0, inf)",
+        "downscale": "(0, 1]; detection never upsamples",
+        "max_detect_megapixels": "[0, inf); 0 = off",
+    }
+
 
 @dataclass(frozen=True)
 class ProbeConfig:
@@ -64,6 +80,17 @@ class ProbeConfig:
     window_px: int = 21  # Lucas-Kanade window side (px)
     pyramid_levels: int = 2  # Lucas-Kanade pyramid levels above full resolution (count)
     max_fb_error_px: float = 0.3  # drop a track whose forward-backward error exceeds this (px)
+
+    RANGES: ClassVar[dict[str, str]] = {
+        "coarse_megapixels": "(0, inf)",
+        "coarse_features": "[1, inf)",
+        "corners": "[1, inf)",
+        "corner_quality": "(0, 1]; relative to the strongest corner",
+        "corner_spacing_px": "[0, inf)",
+        "window_px": "[3, inf); OpenCV's Lucas-Kanade needs a window wider than 2 px",
+        "pyramid_levels": "[0, inf)",
+        "max_fb_error_px": "(0, inf)",
+    }
 
 
 @dataclass(frozen=True)
@@ -111,3 +138,30 @@ class ReconstructionConfig:
     workers: int = 2  # threads extracting features ahead of the pair being solved (count)
     overwrite: bool = False  # recompute cached RUN/pairs and RUN/features files
     save_features: bool = True  # cache per-frame features in RUN/features/
+
+    RANGES: ClassVar[dict[str, str]] = {
+        "lambda_prior": "(0, inf)",
+        "prior_min_halfwidth_px": "[0, inf)",
+        "prior_min_halfwidth_frac": "[0, 1]",
+        "h_ransac_px": "(0, inf)",
+        "h_ransac_frac": "[0, 1]",
+        "planar_parallax_ratio": "(0, inf)",
+        "h_ransac_iters": "[1, inf)",
+        "near_planar_max_outlier": "[0, 1]",
+        "f_ransac_px": "(0, inf)",
+        "min_matches": "[8, inf); a two-view pose needs at least 8 matches",
+        "min_displacement_px": "[0, inf)",
+        "min_features": "[0, inf)",
+        "f_iterations": "[1, inf)",
+        "f_tol": "(0, inf)",
+        "ba_iterations": "[1, inf)",
+        "epi_inlier_px": "(0, inf)",
+        "plane_trim_k": "[0, inf); 0 = least squares",
+        "colmap_max_error_px": "(0, inf)",
+        "pixel_sigma_px": "(0, inf)",
+        "max_reproj_px": "(0, inf)",
+        "min_parallax_deg": "[0, 180); 0 = keep every point",
+        "stereo_baseline_m": "(0, 10]; a stereo baseline above 10 m is a unit mistake (cm typed as m?)",
+        "min_overlap": "[0, 1]",
+        "workers": "[1, inf)",
+    }

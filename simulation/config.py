@@ -5,7 +5,7 @@ of overrides of these fields; ``simulate(..., **overrides)`` accepts any field b
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import ClassVar, Literal
 
 from roadsurf.core.camera import Camera
 
@@ -103,6 +103,69 @@ class SimConfig:
     gps_dropout_s: float = 2.0  # length of one GPS outage (s)
     obd_rate_hz: float = 10.0  # OBD speed rate (Hz)
     obd_quant_kmh: float = 1.0  # OBD speed quantisation (km/h), as OBD-II PID 0x0D reports
+
+    # valid values (interval notation; see roadsurf.core.config); a tuple's range holds for
+    # each of its values. Upper bounds only where a larger value is a unit mistake
+    RANGES: ClassVar[dict[str, str]] = {
+        "origin_lat_deg": "[-90, 90]",
+        "origin_lon_deg": "[-180, 180]",
+        "origin_alt_m": "[-1000, 10000]; roads lie between the Dead Sea and the Andes",
+        "route_heading_deg": "[-360, 360]",
+        "route_curve_amp_deg": "[0, 180]",
+        "route_curve_wavelength_m": "(0, inf)",
+        "lateral_wander_m": "[0, inf)",
+        "width": "[16, inf)",
+        "height": "[16, inf)",
+        "fx": "(0, inf)",
+        "camera_height_m": "(0, 10]; a camera more than 10 m above the road is a unit mistake",
+        "fps": "(0, 1000]",
+        "distortion": "(-inf, inf)",
+        "speed_mps": "(0, 100]; 100 m/s is 360 km/h",
+        "speed_var": "[0, 1]",
+        "vibration_deg": "[0, 90]",
+        "yaw_noise_deg": "[0, 90]",
+        "height_noise_m": "[0, 1]",
+        "vibration_hz": "[0, inf)",
+        "unevenness_m": "[0, 1]",
+        "grade": "[-1, 1]; m/m, 1 = 45 deg",
+        "cross_slope": "[-1, 1]; m/m, 1 = 45 deg",
+        "undulation_m": "[0, 10]",
+        "n_potholes": "[0, inf)",
+        "pothole_darken": "(0, inf)",
+        "pothole_power": "(0, inf)",
+        "pothole_size_m": "(0, 10]",
+        "pothole_depth_m": "(0, 1]",
+        "n_cracks": "[0, inf)",
+        "n_ruts": "[0, inf)",
+        "n_lane_markings": "[0, inf)",
+        "n_shadows": "[0, inf)",
+        "n_oil_stains": "[0, inf)",
+        "defect_margin_m": "[0, inf)",
+        "texel_m": "(0, 1]",
+        "texture_cell_m": "(0, inf)",
+        "sun_azimuth_deg": "[-360, 360]",
+        "sun_elevation_deg": "[0, 90]",
+        "ambient": "[0, 1]",
+        "cloud_shadow": "[0, 1]",
+        "exposure": "(0, inf)",
+        "exposure_var": "[0, 1]",
+        "vignetting": "[0, 1]",
+        "noise_sigma": "[0, 255]; 8-bit DN",
+        "shot_noise": "[0, inf)",
+        "exposure_time_s": "[0, 1]",
+        "jpeg_quality": "[0, 100]",
+        "supersample": "[1, inf)",
+        "render_gsd_m": "(0, 1]; a raster cell above 1 m is a unit mistake",
+        "raycast_iters": "[1, inf)",
+        "truth_gsd_m": "(0, 1]; a raster cell above 1 m is a unit mistake",
+        "gps_rate_hz": "(0, 1000]",
+        "gps_sigma_m": "[0, 100]",
+        "gps_bias_m": "[0, 100]",
+        "gps_dropouts": "[0, inf)",
+        "gps_dropout_s": "[0, inf)",
+        "obd_rate_hz": "(0, 1000]",
+        "obd_quant_kmh": "[0, inf); 0 = no quantisation",
+    }
 
     def camera(self) -> Camera:
         """The rendered camera, as written to camera.yaml: square pixels (fy = fx), principal

@@ -6,6 +6,7 @@ The viewer only reads a finished (or running) run folder; nothing here changes a
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 
 @dataclass(frozen=True)
@@ -32,3 +33,18 @@ class ViewerConfig:
     max_overlay_points: int = 3000  # matched / rejected features drawn per frame, count
     profile_samples: int = 64  # samples along each defect's long axis for its depth profile, count
     report_max_defects: int = 500  # rows in the report's defect table (sorted by severity), count
+
+    # valid values (interval notation; see roadsurf.core.config)
+    RANGES: ClassVar[dict[str, str]] = {
+        "max_cloud_points": "[1, inf)",
+        "residual_range_percentile": "(0, 100]",
+        "min_residual_range_m": "(0, inf)",
+        "defect_point_depth_m": "[0, 1]",
+        "frame_stride": "[1, inf)",
+        "frustum_stride": "[1, inf)",
+        "frustum_size_m": "(0, inf)",
+        "max_mosaic_side_px": "[16, inf)",
+        "max_overlay_points": "[0, inf)",
+        "profile_samples": "[2, inf)",
+        "report_max_defects": "[0, inf)",
+    }

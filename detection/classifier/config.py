@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 CLASS_NAMES: tuple[str, str] = ("non-defect", "defect")  # softmax output order
 
@@ -131,6 +132,46 @@ class ClassifierConfig:
     # frame (1, 2, 4 or 8; 1 = off). Set at training, stored in the model file, used by
     # calibration and screening alike (1)
     tta_views: int = 8
+
+    # valid values (interval notation; see roadsurf.core.config)
+    RANGES: ClassVar[dict[str, str]] = {
+        "input_size_px": "[16, inf); three stride-2 poolings need some pixels",
+        "dropout": "[0, 1)",
+        "width": "[1, inf)",
+        "highpass_frac": "[0, 1]",
+        "learning_rate": "(0, inf)",
+        "lr_decay": "(0, 1]",
+        "lr_schedule": "{cosine, exponential}",
+        "warmup_epochs": "[0, inf)",
+        "defect_prior": "(0, 1); a prior of 0 or 1 has infinite log-odds",
+        "batch_size": "[1, inf)",
+        "epochs": "[1, inf)",
+        "min_steps_per_epoch": "[0, inf)",
+        "weight_decay": "[0, inf)",
+        "val_fraction": "[0, 1)",
+        "seed": "[0, 4294967295]; numpy seeds are 32-bit",
+        "device": "{auto, cpu, cuda}",
+        "num_threads": "[0, inf); 0 = torch default",
+        "screen_num_threads": "[0, inf); 0 = num_threads",
+        "defect_depth_m": "(0, 1]; a Z^d above 1 m is a unit mistake (mm typed as m?)",
+        "defect_alpha": "(0, 1]; α = Z^d / h",
+        "min_defect_area_cm2": "[0, inf)",
+        "min_defect_points": "[0, inf)",
+        "store_size_px": "[16, inf)",
+        "cnn_skip_types": "{pothole, crack, rut}",
+        "augment_max_copies": "[0, inf)",
+        "augment_target_ratio": "(0, inf)",
+        "rescale_range": "(0, inf); zoom factors",
+        "photometric_strength": "[0, inf); 0 = off",
+        "fusion_threshold": "[0.5, 1]; max(p) of two classes is at least 0.5",
+        "context_frames": "[0, inf)",
+        "audit_every_m": "[0, inf); 0 = count frames",
+        "audit_every_frames": "[0, inf); 0 (with audit_every_m 0) = no audit",
+        "audit_probe_depth_frac": "[0, 1]",
+        "audit_probe_max_deep_points": "[0, inf)",
+        "screen_batch_size": "[1, inf)",
+        "tta_views": "{1, 2, 4, 8}; flips and quarter turns",
+    }
 
     def depth_threshold_m(self, camera_height_m: float) -> float:
         """Z^d for a camera at height h (m): α·h when α is set, else ``defect_depth_m``."""

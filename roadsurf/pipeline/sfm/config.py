@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 
 @dataclass(frozen=True)
@@ -43,6 +43,34 @@ class SfmBaselineConfig:
     # tile_px): origin on multiples of tile_px x gsd_m, so equal settings give equal cells (px)
     max_raster_px: int = 100_000_000  # coarsen the GSD when the raster would be larger (px)
     colmap_log_level: int = 1  # glog min level for COLMAP's own output: 0 info, 1 warning, 2 error
+
+    # valid values (interval notation; see roadsurf.core.config)
+    RANGES: ClassVar[dict[str, str]] = {
+        "max_num_features": "[1, inf)",
+        "max_image_size": "[16, inf)",
+        "overlap": "[1, inf)",
+        "min_num_inliers": "[0, inf)",
+        "min_num_matches": "[0, inf)",
+        "init_min_tri_angle_deg": "[0, 180)",
+        "num_threads": "[-1, inf); -1 = all cores",
+        "seed": "[0, 2147483647]",
+        "plane_inlier_rel": "(0, 1]",
+        "plane_iterations": "[1, inf)",
+        "min_plane_points": "[3, inf); a plane needs 3 points",
+        "gps_outlier_k": "(0, inf)",
+        "gps_pose_outlier_min_m": "[0, inf)",
+        "gps_tilt_max_deg": "[0, 90]",
+        "max_gps_gap_s": "[0, inf)",
+        "local_fit_cell_m": "(0, inf)",
+        "local_fit_window_m": "(0, inf)",
+        "local_fit_inlier_m": "(0, inf)",
+        "max_abs_residual_m": "(0, inf)",
+        "max_point_dist_m": "(0, inf)",
+        "gsd_m": "(0, 1]; a raster cell above 1 m is a unit mistake (cm typed as m?)",
+        "tile_px": "[16, 65536]; smaller tiles would be millions of files",
+        "max_raster_px": "[1, inf)",
+        "colmap_log_level": "[0, 3]; glog: 0 info, 1 warning, 2 error, 3 fatal",
+    }
 
 
 @dataclass
