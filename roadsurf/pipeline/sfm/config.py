@@ -87,20 +87,12 @@ class SfmBaselineResult:
 def load_config(config_path: str | Path | None) -> SfmBaselineConfig:
     """The defaults, or a YAML file with an ``sfm_baseline:`` section (or the keys of
     ``SfmBaselineConfig`` at top level); unknown keys are rejected."""
-    import yaml
-
-    from roadsurf.core.config import from_dict
-    from roadsurf.core.errors import ConfigError
+    from roadsurf.core.config import from_dict, read_yaml_mapping
 
     cfg = SfmBaselineConfig()
     if config_path is not None:
         p = Path(config_path)
-        if not p.is_file():
-            raise ConfigError(f"{p}: config file not found")
-        try:
-            data = yaml.safe_load(p.read_text(encoding="utf-8")) or {}
-        except yaml.YAMLError as e:
-            raise ConfigError(f"{p}: not valid YAML ({e}). Fix the syntax.") from e
+        data = read_yaml_mapping(p) or {}
         if isinstance(data, dict) and "sfm_baseline" in data:
             data = data["sfm_baseline"]
         cfg = from_dict(SfmBaselineConfig, data, f"{p}:sfm_baseline")
