@@ -152,14 +152,15 @@ def detect_pair_cracks(
         nn.append(n)
         nb.append(int((d > 0).sum()))
         vv.append(n * noise_m**2)
-        # robust max: the second-deepest point; without points, the dense reading's 90th
-        # percentile (a lower bound, like every dense depth)
+        # robust max: the second-deepest point (two points must reach it); with fewer points,
+        # the dense reading's 90th percentile (a lower bound, like every dense depth), and a
+        # lone point only when there is nothing else
         if n >= 2:
             mx.append(float(np.sort(d)[-2]))
-        elif n == 1:
-            mx.append(float(d[0]))
         elif dn is not None:
             mx.append(float(np.percentile(dn.depth_m, 90)))
+        elif n == 1:
+            mx.append(float(d[0]))
         dense.append(dn)
     if not wd:
         return empty()

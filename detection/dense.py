@@ -30,6 +30,7 @@ from roadsurf.core.parallel import ordered_map
 from roadsurf.detection.config import DenseConfig
 from roadsurf.detection.densepair import PairDense, measure_dense
 from roadsurf.detection.planefit import nanmedian_last
+from roadsurf.detection.robust import DENSE_SUPPORT, SUPPORT_TOL_M, supported_max
 from roadsurf.io.drive import Drive, GrayFrames
 from roadsurf.reconstruction.types import PairResult
 
@@ -43,7 +44,7 @@ log = logging.getLogger(__name__)
 class DenseMeasure:
     """A defect measured from the dense points of all pairs that see it (metres)."""
 
-    max_depth_m: float  # deepest cell of the 3 x 3 median-filtered dense depth grid
+    max_depth_m: float  # deepest depth DENSE_SUPPORT cells of the 3 x 3 median grid reach
     mean_depth_m: float  # mean depth of the cells deeper than the rim threshold
     area_m2: float  # area of the cells deeper than the rim threshold
     volume_m3: float  # fill volume: depth summed over the cells inside the outline x cell area
@@ -76,8 +77,10 @@ def combine_dense(
     extrapolate: bool = True,
 ) -> DenseMeasure | None:
     """Grid the pairs' dense depths on one cell grid (one pair's mean per cell, then the median
-    over the pairs that saw the cell) and measure the defect on it: the deepest cell of the 3 x 3
-    median (one bad track cannot set it), the area and mean depth of the cells deeper than the
+    over the pairs that saw the cell, without a pair's reading the others do not support:
+    ``_drop_unsupported``) and measure the defect on it: the deepest depth that
+    ``DENSE_SUPPORT`` cells of the 3 x 3 median reach (``supported_max``: neither one bad track
+    nor one bad cell can set it), the area and mean depth of the cells deeper than the
     rim (max(rim floor, rim_k σ)), the fill volume. A defect no single pair saw whole is
     measured whole from the pairs that saw its parts."""
     from shapely import contains_xy
@@ -98,9 +101,10 @@ def combine_dense(
         np.add.at(n, iy * nx + ix, 1)
         with np.errstate(invalid="ignore", divide="ignore"):
             vals.append(np.where(n > 0, s / n, np.nan))
+    V = _drop_unsupported(np.vstack(vals), np.array([p.noise_m for p in got]))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        D = np.nanmedian(np.vstack(vals), axis=0).reshape(ny, nx)
+        D = np.nanmedian(V, axis=0).reshape(ny, nx)
     cx = x0 + (np.arange(nx) + 0.5) * c
     cy = y0 + (np.arange(ny) + 0.5) * c
     CX, CY = np.meshgrid(cx, cy)
@@ -110,7 +114,9 @@ def combine_dense(
     seen = in_core & np.isfinite(D)
     if not (in_poly & np.isfinite(Dm)).any():
         return None
-    max_d = float(np.nanmax(np.where(in_poly, Dm, np.nan)))
+    max_d = supported_max(Dm[in_poly], DENSE_SUPPORT)
+    if max_d is None:
+        return None
     noise = float(np.median([p.noise_m for p in got]))
     rim = max(rim_floor_m, rim_k * noise)
     cover = float(seen.sum()) / max(int(in_core.sum()), 1)
@@ -138,6 +144,28 @@ def combine_dense(
         cell_m=c,
         depth_grid_m=np.where(in_core, D, np.nan),
     )
+
+
+def _drop_unsupported(V: np.ndarray, noise_m: np.ndarray) -> np.ndarray:
+    """Pairs' cell depths (P, C) with a reading the other pairs that saw the cell do not
+    support set to NaN: deeper than their median by more than max(5 mm, 25 %, 6 σ of the pair).
+
+    A band of failed tracks in one pair reads decimetres deep where the other pairs read the
+    floor; with two pairs the median over them is the mean of the two (a pothole 18.6 mm deep
+    read 107.7 mm). Only the deeper reading is dropped: a failed track that finds a wrong
+    minimum invents depth the others do not see, and a max depth read a little shallow does
+    less harm than one read several times too deep. Cells one pair alone saw are kept.
+    """
+    if len(V) < 2:
+        return V
+    out = V.copy()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        for i in range(len(V)):
+            others = np.nanmedian(np.delete(V, i, axis=0), axis=0)
+            tol = np.maximum(np.maximum(SUPPORT_TOL_M, 6.0 * noise_m[i]), 0.25 * np.abs(others))
+            out[i, V[i] - others > tol] = np.nan  # NaN compares False: unshared cells stay
+    return out
 
 
 def _nanmedian3(D: np.ndarray) -> np.ndarray:

@@ -25,6 +25,7 @@ from roadsurf.core.fits import robust_sigma
 from roadsurf.detection.config import MapSegmentConfig, SeverityConfig
 from roadsurf.detection.meanshift import mean_shift_flat
 from roadsurf.detection.planefit import nanmedian_last
+from roadsurf.detection.robust import CELL_SUPPORT, supported_max
 from roadsurf.io.formats import GridSpec
 
 if TYPE_CHECKING:
@@ -292,9 +293,10 @@ def measure(region: Region, grid: GridSpec, frame_depth_m: float) -> Measured:
     xy = grid.xy_from_rowcol(region.rows, region.cols)
     area = float(len(region.rows) * gsd * gsd)
     volume = float(depth.sum() * gsd * gsd)
-    # Deepest cell of the (hole-filled, unsmoothed) surface: the smoothing used for the
-    # thresholds would shave a few millimetres off the bottom of a small pothole.
-    max_depth = float(depth.max()) if len(depth) else 0.0
+    # Deepest depth CELL_SUPPORT cells of the (hole-filled, unsmoothed) surface reach: the
+    # smoothing used for the thresholds would shave a few millimetres off the bottom of a small
+    # pothole, and one outlier point mapped into a few cells must not set it.
+    max_depth = float(supported_max(depth, CELL_SUPPORT) or 0.0)
     mean_depth = float(depth.mean()) if len(depth) else 0.0
     # Outline: external contour(s) of the cell mask, pushed out by half a cell.
     r0, c0 = region.rows.min(), region.cols.min()

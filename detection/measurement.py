@@ -4,7 +4,8 @@ reading, map points, pair frames or the rut's profiles), and number them along t
 The raster interpolates between the 3D points and smooths, which shaves pothole bottoms; so a
 defect's max depth comes from the dense tracks when they cover it, else from the deepest 3D
 points inside its outline (the map's and each pair's own, ``point_max_depth`` and
-``pair_max_depth``), the raster's depths scaled to match.
+``pair_max_depth``), the raster's depths scaled to match. Every one of these maxima is a
+supported maximum (``roadsurf.detection.robust``): one outlier point or cell cannot set it.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from roadsurf.core.fits import plane_signed_distance, robust_plane_z
 from roadsurf.detection.config import DetectionConfig, MapSegmentConfig
 from roadsurf.detection.dense import DenseContext, measure_defect_dense
 from roadsurf.detection.mapseg import Segmentation, classify, measure, severity
+from roadsurf.detection.robust import POINT_SUPPORT, supported_max
 from roadsurf.detection.types import Defect
 
 if TYPE_CHECKING:
@@ -178,8 +180,9 @@ def point_max_depth(
 ) -> float | None:
     """Deepest point inside ``poly`` relative to the median road level in a ring around it.
 
-    An isolated deepest point (deeper than the next by more than max(5 mm, 20 %)) is taken for
-    a mismatch and the next one is used. None with fewer than ``min_support_points`` inside.
+    The deepest depth at least ``POINT_SUPPORT`` points reach (``supported_max``): an isolated
+    deepest point (deeper than the next by more than max(5 mm, 20 %)) is taken for a mismatch
+    and the next one is used, and so on. None with fewer than ``min_support_points`` inside.
     """
     from shapely import contains_xy
 
@@ -197,10 +200,7 @@ def point_max_depth(
         poly.buffer(0.03), p[:, 0], p[:, 1]
     )
     level = float(np.median(r[ring])) if ring.sum() >= 10 else 0.0
-    d = np.sort(level - r[ins])[::-1]
-    if d[0] - d[1] > max(0.005, 0.2 * d[1]):
-        return float(d[1])
-    return float(d[0])
+    return supported_max(level - r[ins], POINT_SUPPORT)
 
 
 def pair_max_depth(
@@ -209,9 +209,11 @@ def pair_max_depth(
     """Max depth of the defect inside ``poly`` measured in each pair's OWN frame.
 
     Each pair whose points cover the outline: a robust plane through its road points in a ring
-    (``level_ring_m`` wide) around the outline, and the deepest of its points inside. The pairs that see most of the defect (at least
-    80 % of the best pair's points inside) are combined by their median. A pair's relative
-    geometry is accurate to ~2 mm, while the fused map's trajectory error shifts the walls.
+    (``level_ring_m`` wide) around the outline, and the deepest depth at least
+    ``POINT_SUPPORT`` of its points inside reach (``supported_max``). The pairs that see most
+    of the defect (at least 80 % of the best pair's points inside) are combined by their
+    median. A pair's relative geometry is accurate to ~2 mm, while the fused map's trajectory
+    error shifts the walls.
     None when no pair has ``min_support_points`` inside and a ring of road points.
     """
     from shapely import contains_xy
@@ -233,10 +235,13 @@ def pair_max_depth(
         plane = robust_plane_z(Q[ring])
         if plane is None:
             continue
-        # The deepest point: the points sample a pothole's bottom sparsely, so lower
-        # percentiles under-read it (bench: 2nd-deepest 4.4 mm MAE vs 3.5 mm); a single pair's
-        # mismatch is voted out by the median over pairs.
-        est.append((int(ins.sum()), float(-plane_signed_distance(Q[ins], plane).min())))
+        # The deepest point that another point corroborates: the points sample a pothole's
+        # bottom sparsely, so lower percentiles under-read it (bench: 2nd-deepest 4.4 mm MAE vs
+        # 3.5 mm), but one mismatch must not set it (with two or three pairs the median over
+        # pairs would keep it); a mismatch in several pairs is voted out by the median.
+        d = supported_max(-plane_signed_distance(Q[ins], plane), POINT_SUPPORT)
+        if d is not None:
+            est.append((int(ins.sum()), d))
     if not est:
         return None
     n_best = max(n for n, _ in est)

@@ -16,6 +16,7 @@ from tqdm import tqdm
 
 from roadsurf.core.atomic import atomic_path
 from roadsurf.core.camera import Camera
+from roadsurf.core.errors import OutputError
 from roadsurf.core.parallel import ordered_map
 from roadsurf.detection.config import DetectionConfig
 from roadsurf.detection.cracks import PairCracks, PairView, detect_pair_cracks
@@ -174,7 +175,13 @@ def analyse_pairs(
 
 
 def _write_mask(path: Path, mask: np.ndarray) -> None:
-    """Write a refined 2D defect mask as an 8-bit PNG (255 = defect), atomically."""
+    """Write a refined 2D defect mask as an 8-bit PNG (255 = defect), atomically and checked:
+    ``atomic_path`` fsyncs and refuses an empty file (cv2.imwrite reports success on a full
+    disk after writing nothing), and a False from cv2.imwrite is an ``OutputError`` too."""
     with atomic_path(path) as tmp:
         if not cv2.imwrite(str(tmp), np.where(mask, 255, 0).astype(np.uint8)):
-            raise OSError(f"{path}: could not write the defect mask PNG (disk full?)")
+            raise OutputError(
+                f"{path}: OpenCV could not write the defect mask PNG (disk full or unwritable "
+                "output?). Free some space or choose another --out, then run the same command "
+                "again to resume."
+            )

@@ -1,0 +1,68 @@
+"""The maximum depth of a defect as a robust statistic with a minimum support.
+
+A defect's reported ``max_depth_m`` sets its severity, so one wrong observation must not set
+it: a mismatched feature, a failed dense track or a raster cell filled from one such point can
+read decimetres deep (a fault campaign saw a pothole 18.6 mm deep reported at 107.7 mm).
+
+``supported_max`` is the deepest value that at least ``k`` observations reach: the deepest
+value ``v`` with ``k - 1`` others no shallower than ``v - tol``, where ``tol`` = max(``tol_m``,
+``tol_frac`` x the shallower value). Sorted deepest first, that is the first ``v[i]`` with
+``v[i] - v[i + k - 1] <= tol``; when no value has that support it is the ``k``-th deepest
+value (an order statistic, which ``k - 1`` outliers cannot move either).
+
+Why this and not a percentile or the mean of the deepest ``k``: a pothole's bottom is a small
+share of its outline (a P95 of a bowl reads it several millimetres shallow), and an outlier
+10 cm deep moves the mean of the deepest ``k`` by 10 cm / ``k``. The supported maximum keeps
+the true deepest value whenever ``k`` observations of the bottom agree within the tolerance
+(the bottom of a bowl is flat to a millimetre over its deepest few centimetres), and needs
+``k`` outliers that also agree with each other to be moved. The tolerance (5 mm or 20 %) is the
+rule the map points used before for one isolated deepest point.
+
+Minimum supports, by observation (module constants, not settings: they define the statistic):
+
+- sparse 3D points (map points, each pair's own points): ``POINT_SUPPORT`` = 2 independent
+  points; the pairs' readings are then combined by their median, so a mismatch must recur;
+- raster cells of the map's surface (5 mm GSD): ``CELL_SUPPORT`` = 4 cells (1 cm²), since
+  one mapped outlier point spreads into the cells around it;
+- dense depth cells (after their 3 x 3 median): ``DENSE_SUPPORT`` = 3 cells; before that,
+  a pair's cell reading the other pairs that saw the cell do not support is dropped
+  (``dense._drop_unsupported``: a band of failed tracks in one of two pairs).
+
+Cracks keep the median over their pieces of each piece's second-deepest point (at least two
+points per piece); ruts the largest running median of the stations' depths.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+POINT_SUPPORT = 2  # sparse 3D points that must reach the max depth (count)
+CELL_SUPPORT = 4  # raster cells of the surface map that must reach it (count; 1 cm² at 5 mm)
+DENSE_SUPPORT = 3  # dense depth cells (3 x 3 median-filtered) that must reach it (count)
+SUPPORT_TOL_M = 0.005  # observations within max(this, frac x depth) support a depth (m)
+SUPPORT_TOL_FRAC = 0.2  # ... relative part of that tolerance (0-1)
+
+
+def supported_max(
+    values: np.ndarray,
+    k: int,
+    tol_m: float = SUPPORT_TOL_M,
+    tol_frac: float = SUPPORT_TOL_FRAC,
+) -> float | None:
+    """Deepest value of ``values`` (N,) reached by at least ``k`` of them (see module doc).
+
+    NaN values are ignored. With fewer than ``k`` finite values: the smallest of them (no value
+    has the support, the shallowest is the one the others cannot have pushed up); None when
+    there is none.
+    """
+    v = np.asarray(values, float).ravel()
+    v = np.sort(v[np.isfinite(v)])[::-1]
+    if len(v) == 0:
+        return None
+    k = max(1, int(k))
+    if len(v) < k:
+        return float(v[-1])
+    lo = v[k - 1 :]
+    hi = v[: len(lo)]
+    ok = hi - lo <= np.maximum(tol_m, tol_frac * np.abs(lo))
+    return float(hi[np.argmax(ok)]) if ok.any() else float(v[k - 1])
