@@ -42,15 +42,16 @@ def make_drive(
     t0: float = 0.0,
     gps: str | None = "csv",
     gps_rows: list[str] | None = None,
+    frame_dt: float = 0.1,
 ) -> Path:
-    """n frames at 10 Hz from t0; GPS at 2 Hz covering the frames."""
+    """n frames every frame_dt s (10 Hz) from t0; GPS at 2 Hz covering the frames."""
     (root / "frames").mkdir(parents=True)
     (root / "camera.yaml").write_text(camera_yaml())
     rows = ["filename,timestamp_s"]
     for i in range(n):
         name = f"{i:06d}{ext}"
         cv2.imwrite(str(root / "frames" / name), texture(i))
-        rows.append(f"{name},{t0 + 0.1 * i:.3f}")
+        rows.append(f"{name},{t0 + frame_dt * i:.3f}")
     (root / "frames.csv").write_text("\n".join(rows) + "\n")
     if gps == "csv":
         if gps_rows is None:
@@ -60,3 +61,65 @@ def make_drive(
             ]
         (root / "gps.csv").write_text("timestamp_s,lat,lon,alt_m,hdop\n" + "\n".join(gps_rows))
     return root
+
+
+def moving_gps_rows(
+    t_start: float, t_end: float, speed_mps: float, rate_hz: float = 2.0, hdop: float = 0.8
+) -> list[str]:
+    """gps.csv rows of a receiver driving north at speed_mps (1 deg of latitude = 111.2 km)."""
+    n = round((t_end - t_start) * rate_hz) + 1
+    return [
+        f"{t_start + k / rate_hz:.3f},{LAT0 + speed_mps * k / rate_hz / 111_195.0:.9f},"
+        f"{LON0:.9f},100.0,{hdop}"
+        for k in range(n)
+    ]
+
+
+def nmea(body: str) -> str:
+    """$body*checksum."""
+    c = 0
+    for ch in body:
+        c ^= ord(ch)
+    return f"${body}*{c:02X}"
+
+
+def ddmm(v: float, pos: str, neg: str, width: int) -> str:
+    """Signed degrees -> NMEA ddmm.mmmm,H (width: 2 for latitude, 3 for longitude)."""
+    a = abs(v)
+    d = int(a)
+    return f"{d:0{width}d}{(a - d) * 60:07.4f},{pos if v >= 0 else neg}"
+
+
+def nmea_lines(t0: float, n: int, dt: float = 0.5, geoid_sep: str = "-34.0") -> list[str]:
+    """RMC + GGA per fix from t0 (UNIX s), moving north 1e-5 deg per fix; GGA altitude 120 m
+    (mean sea level) with the given geoid separation (field 11; "" for none)."""
+    from datetime import UTC, datetime
+
+    out = []
+    for k in range(n):
+        u = datetime.fromtimestamp(t0 + dt * k, UTC)
+        hms = u.strftime("%H%M%S") + f".{u.microsecond // 10000:02d}"
+        lat, lon = ddmm(LAT0 + 1e-5 * k, "N", "S", 2), ddmm(LON0, "E", "W", 3)
+        out.append(nmea(f"GPRMC,{hms},A,{lat},{lon},10.0,90.0,{u:%d%m%y},,"))
+        out.append(nmea(f"GPGGA,{hms},{lat},{lon},1,08,0.9,120.0,M,{geoid_sep},M,,"))
+    return out
+
+
+def gpx_text(t0: float, n: int, dt: float = 0.5, ele: bool = True) -> str:
+    """GPX 1.1 track of n points from t0 (UNIX s), moving north 1e-5 deg per point."""
+    from datetime import UTC, datetime
+
+    pts = []
+    for k in range(n):
+        iso = datetime.fromtimestamp(t0 + dt * k, UTC).strftime("%Y-%m-%dT%H:%M:%S.%fZ")
+        e = f"<ele>{100 + k}</ele>" if ele else ""
+        pts.append(
+            f'<trkpt lat="{LAT0 + 1e-5 * k:.8f}" lon="{LON0}">{e}<time>{iso}</time>'
+            f"<hdop>1.2</hdop></trkpt>"
+        )
+    return (
+        '<?xml version="1.0" encoding="UTF-8"?>\n<gpx version="1.1" '
+        'xmlns="http://www.topografix.com/GPX/1/1">\n<trk><trkseg>\n'
+        + "\n".join(pts)
+        + "\n</trkseg></trk></gpx>\n"
+    )

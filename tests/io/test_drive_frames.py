@@ -193,3 +193,15 @@ def test_check_images_is_fast_on_many_frames(tmp_path: Path) -> None:
     """Not a timing assertion: checks that 200 JPEG frames load and are all validated."""
     d = load_drive(make_drive(tmp_path / "d", n=200, ext=".jpg"))
     assert len(d.frames) == 200 and not d.skipped
+
+
+def test_filename_too_long_for_the_file_system_is_a_missing_image(tmp_path: Path) -> None:
+    """Found by tests/io/test_drive_fuzz.py: Path.is_file() raised ENAMETOOLONG."""
+    root = make_drive(tmp_path / "d")
+    rows = (root / "frames.csv").read_text().splitlines()
+    rows[1] = "9" * 400 + rows[1]
+    rows.insert(2, "frames/" + "8" * 400 + ".png,0.05")
+    (root / "frames.csv").write_text("\n".join(rows) + "\n")
+    d = load_drive(root)
+    assert len(d.frames) == 4
+    assert [s.line for s in d.skipped if s.file == "frames.csv"] == [2, 3]

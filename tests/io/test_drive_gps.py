@@ -151,7 +151,9 @@ def test_nmea_rmc_gga_checksum(tmp_path: Path) -> None:
     assert d.gps.timestamp_s[1] == pytest.approx(T0, abs=0.02)
     assert d.gps.lat_deg[3] == pytest.approx(LAT0 + 3e-5, abs=1e-7)
     assert d.gps.lon_deg[0] == pytest.approx(LON0, abs=1e-7)
-    assert d.gps.hdop[0] == pytest.approx(0.9) and d.gps.alt_m[2] == pytest.approx(122.0)
+    # GGA altitude is above mean sea level; + the geoid separation (-34 m) = ellipsoidal height
+    assert d.gps.hdop[0] == pytest.approx(0.9) and d.gps.alt_m[2] == pytest.approx(122.0 - 34.0)
+    assert d.gps.alt_datum == "WGS84 ellipsoidal height"
     (s,) = [s for s in d.skipped if s.file == "gps.nmea"]
     assert s.line == 3 and "checksum" in s.reason
 

@@ -14,8 +14,11 @@ See docs/formats.md. The loader validates everything; problems the run can live 
 unreadable image, a bad GPS row) are skipped and recorded in ``Drive.skipped``; problems it
 cannot live with raise ``DriveFormatError`` naming the file and line and saying what to do.
 
-Modules, imported only downward: ``types`` <- ``csvrows``, ``camera_yaml``, ``images`` <-
-``frames``, ``gps`` (+ ``gpx``, ``nmea``), ``obd`` <- ``loader``. They never import this facade.
+Modules, imported only downward: ``types``, ``textfile`` (UTF-8 reading) <- ``csvrows``,
+``camera_yaml``, ``images``, ``checks`` (plausibility between inputs) <- ``frames``, ``gps`` (+
+``gpx`` with gpxpy, ``nmea`` with pynmea2), ``obd`` <- ``loader``. They never import this facade.
+
+Heights: ``GpsTrack.alt_m`` with its vertical datum in ``GpsTrack.alt_datum`` (docs/formats.md).
 """
 
 from roadsurf.core.camera import Camera

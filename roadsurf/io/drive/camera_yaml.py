@@ -12,6 +12,7 @@ import yaml
 
 from roadsurf.core.camera import Camera
 from roadsurf.core.errors import DriveFormatError
+from roadsurf.io.drive.textfile import read_text
 from roadsurf.io.drive.types import FORMAT_HINT
 
 # camera.yaml: key -> (python type, required)
@@ -40,6 +41,16 @@ def _yaml_key_lines(text: str) -> dict[str, int]:
     return {str(k.value): k.start_mark.line + 1 for k, _ in node.value if hasattr(k, "value")}
 
 
+def _is_finite_number(v: object) -> bool:
+    """A YAML int or float that is finite as a float (a 400-digit integer is not)."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return False
+    try:
+        return math.isfinite(float(v))
+    except OverflowError:
+        return False
+
+
 def load_camera(path: Path) -> Camera:
     """Parse and validate camera.yaml. Raises DriveFormatError naming the file and line."""
     if not path.is_file():
@@ -47,13 +58,23 @@ def load_camera(path: Path) -> Camera:
             f"{path}: camera.yaml not found. Every drive needs one with keys model, width, "
             f"height, fx, fy, cx, cy, height_m, fps (dist optional). {FORMAT_HINT}"
         )
-    text = path.read_text(encoding="utf-8-sig")
+    text = read_text(path)
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         at = f"{path}:{mark.line + 1}" if mark is not None else str(path)
-        raise DriveFormatError(f"{at}: camera.yaml is not valid YAML ({e}). Fix the syntax.") from e
+        msg = " ".join(str(e).split())  # one line
+        raise DriveFormatError(
+            f"{at}: camera.yaml is not valid YAML ({msg}). Fix the syntax."
+        ) from e
+    except (ValueError, OverflowError, RecursionError) as e:
+        # PyYAML builds some scalars itself: a date like 2024-13-45 raises ValueError, deep
+        # nesting RecursionError. Neither is a camera.yaml value.
+        raise DriveFormatError(
+            f"{path}: camera.yaml has a value that cannot be read ({type(e).__name__}: {e}). "
+            f"Fix the file; the values are plain numbers. {FORMAT_HINT}"
+        ) from e
     if not isinstance(data, dict):
         raise DriveFormatError(
             f"{path}: camera.yaml must be a mapping of keys to values (got "
@@ -90,7 +111,7 @@ def load_camera(path: Path) -> Camera:
                     f"got {v!r}."
                 )
         elif tp is float:
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            if not _is_finite_number(v):
                 raise DriveFormatError(
                     f"{where(key)}: camera.yaml '{key}' must be a number, got {v!r}."
                 )
@@ -110,10 +131,7 @@ def load_camera(path: Path) -> Camera:
             if (
                 not isinstance(v, (list, tuple))
                 or len(v) not in (0, 4, 5)
-                or any(
-                    isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x)
-                    for x in v
-                )
+                or not all(_is_finite_number(x) for x in v)
             ):
                 raise DriveFormatError(
                     f"{where(key)}: camera.yaml 'dist' must be a list of 5 numbers "

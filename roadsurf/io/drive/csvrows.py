@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import io
 import logging
 import math
 from collections.abc import Iterator
@@ -11,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from roadsurf.core.errors import DriveFormatError
+from roadsurf.io.drive.textfile import read_text
 from roadsurf.io.drive.types import FORMAT_HINT
 
 log = logging.getLogger(__name__)
@@ -19,20 +21,21 @@ log = logging.getLogger(__name__)
 def csv_rows(
     path: Path, required: tuple[str, ...], optional: tuple[str, ...] = ()
 ) -> tuple[list[str], Iterator[tuple[int, dict[str, str]]]]:
-    """Open a CSV, check its header, and yield (line number, row dict) for non-empty rows."""
-    f = open(path, encoding="utf-8-sig", newline="")  # noqa: SIM115 - closed by the generator
+    """Read a CSV (UTF-8), check its header, and yield (line number, row dict) for non-empty
+    rows. Raises ``DriveFormatError`` for bytes that are not UTF-8 and for CSV syntax errors."""
+    f = io.StringIO(read_text(path), newline="")  # newline="": csv handles the line ends
     reader = csv.reader(f)
     try:
         header = next(reader)
     except StopIteration:
-        f.close()
         raise DriveFormatError(
             f"{path}:1: file is empty; it needs the header {','.join(required)}. {FORMAT_HINT}"
         ) from None
+    except csv.Error as e:
+        raise _csv_error(path, reader.line_num, e) from None
     header = [h.strip() for h in header]
     missing = [c for c in required if c not in header]
     if missing:
-        f.close()
         raise DriveFormatError(
             f"{path}:1: header {header} lacks column(s) {missing}; expected "
             f"{','.join(required)}{''.join(',' + o for o in optional)}. Fix the header line."
@@ -42,15 +45,24 @@ def csv_rows(
         log.warning("%s:1: ignoring unknown column(s) %s", path, extra)
 
     def gen() -> Iterator[tuple[int, dict[str, str]]]:
-        with f:
-            for row in reader:
-                if not row or all(not c.strip() for c in row):
-                    continue
-                if len(row) < len(header):
-                    row = row + [""] * (len(header) - len(row))
-                yield reader.line_num, {h: c.strip() for h, c in zip(header, row, strict=False)}
+        while True:
+            try:
+                row = next(reader)
+            except StopIteration:
+                return
+            except csv.Error as e:
+                raise _csv_error(path, reader.line_num, e) from None
+            if not row or all(not c.strip() for c in row):
+                continue
+            if len(row) < len(header):
+                row = row + [""] * (len(header) - len(row))
+            yield reader.line_num, {h: c.strip() for h, c in zip(header, row, strict=False)}
 
     return header, gen()
+
+
+def _csv_error(path: Path, line: int, e: csv.Error) -> DriveFormatError:
+    return DriveFormatError(f"{path}:{max(line, 1)}: not valid CSV ({e}). Fix the line.")
 
 
 def csv_float(s: str) -> float:

@@ -17,6 +17,14 @@ from roadsurf.io.drive.types import FORMAT_HINT, Frame, Skipped
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
 
 
+def _is_file(p: Path, exists: bool = False) -> bool:
+    """``p.is_file()`` (or ``p.exists()``), False for a name the file system refuses."""
+    try:
+        return p.exists() if exists else p.is_file()
+    except OSError:  # e.g. a name too long for the file system: there is no such image
+        return False
+
+
 def load_frames(
     root: Path, camera: Camera, check_images: bool, skipped: list[Skipped], warnings: list[str]
 ) -> list[Frame]:
@@ -39,7 +47,7 @@ def load_frames(
         name = row["filename"].replace("\\", "/")
         if not name:
             raise DriveFormatError(f"{csv_path}:{line}: empty filename. Fill it in or delete it.")
-        if name.startswith("frames/") and not (img_dir / name).exists():
+        if name.startswith("frames/") and not _is_file(img_dir / name, exists=True):
             # Written relative to the drive instead of frames/: accept it, say so once.
             name = name[len("frames/") :]
             if not prefixed:
@@ -86,7 +94,7 @@ def load_frames(
     present: list[int] = []
     for k, name in enumerate(names):
         p = img_dir / name
-        if not p.is_file():
+        if not _is_file(p):
             skipped.append(
                 Skipped("frames.csv", lines[k], f"image frames/{name} does not exist; row skipped")
             )

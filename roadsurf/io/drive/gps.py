@@ -9,8 +9,9 @@ from pathlib import Path
 import numpy as np
 
 from roadsurf.core.errors import DriveFormatError
+from roadsurf.io.drive.checks import reject_jumps
 from roadsurf.io.drive.csvrows import check_increasing, csv_float, csv_rows
-from roadsurf.io.drive.types import Frame, GpsTrack, Skipped
+from roadsurf.io.drive.types import ALT_ELLIPSOIDAL, ALT_NONE, NO_GEOREF, Frame, GpsTrack, Skipped
 
 
 def valid_latlon(lat: float, lon: float) -> str | None:
@@ -30,8 +31,10 @@ def gps_from_lists(
     n_bad: int,
     n_total: int,
     warnings: list[str],
+    alt_datum: str = ALT_ELLIPSOIDAL,
 ) -> GpsTrack | None:
-    """rows: (line, t, lat, lon, alt, hdop) of fixes that passed validation."""
+    """rows: (line, t, lat, lon, alt, hdop) of fixes that passed validation; ``alt_datum``: the
+    vertical datum of their altitudes. Fixes that jump impossibly far are rejected here."""
     # A row repeated verbatim (same time and position; some loggers write a fix twice) carries
     # no information: drop it. Any other non-increasing time is an error below.
     dedup: list[tuple[int | None, float, float, float, float, float]] = []
@@ -49,7 +52,10 @@ def gps_from_lists(
             f"see report skipped list)."
         )
     if not rows:
-        warnings.append(f"{path}: no valid GPS fix; running without GPS (local frame).")
+        warnings.append(
+            f"{path}: no valid GPS fix (all {n_total} record(s) rejected, see report skipped "
+            f"list); {NO_GEOREF}. Fix the GPS log to get a georeferenced map."
+        )
         return None
     arr = np.array([r[1:] for r in rows], dtype=float)
     lines = [r[0] or 0 for r in rows]
@@ -63,6 +69,11 @@ def gps_from_lists(
             )
     else:
         check_increasing(arr[:, 0], lines, path, "GPS")
+    keep = reject_jumps(
+        path, arr[:, 0], arr[:, 1], arr[:, 2], [r[0] for r in rows], skipped, warnings
+    )
+    arr = arr[keep]
+    datum = alt_datum if np.isfinite(arr[:, 3]).any() else ALT_NONE
     return GpsTrack(
         timestamp_s=arr[:, 0],
         lat_deg=arr[:, 1],
@@ -70,6 +81,7 @@ def gps_from_lists(
         alt_m=arr[:, 3],
         hdop=arr[:, 4],
         source=path.name,
+        alt_datum=datum,
     )
 
 
@@ -118,9 +130,9 @@ def check_overlap(gps: GpsTrack, frames: list[Frame], warnings: list[str]) -> Gp
     if g1 < t0 - slack or g0 > t1 + slack:
         warnings.append(
             f"{gps.source}: GPS times [{g0:.3f}, {g1:.3f}] s do not overlap the frame times "
-            f"[{t0:.3f}, {t1:.3f}] s (offset about {g0 - t0:+.1f} s), so the GPS is ignored and "
-            f"the map is built in a local frame without lat/lon. Write frames.csv times in the "
-            f"same clock as the GPS (UNIX seconds, UTC, for GPX/NMEA logs)."
+            f"[{t0:.3f}, {t1:.3f}] s (offset about {g0 - t0:+.1f} s), so the GPS is ignored: "
+            f"{NO_GEOREF}. Write frames.csv times in the same clock as the GPS (UNIX seconds, "
+            f"UTC, for GPX/NMEA logs)."
         )
         return None
     span = max(t1 - t0, 1e-9)

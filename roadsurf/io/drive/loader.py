@@ -12,9 +12,12 @@ Summary:
   missing, unreadable or truncated images, GPS fixes with NaN / non-numeric / out-of-range
   lat/lon (or the 0,0 no-fix placeholder), NMEA sentences with a bad checksum or bad fields,
   OBD rows with NaN or negative speed.
-- Warnings (``Drive.warnings``, also logged): no GPS log, a GPS log that does not overlap the
-  frame times (then ``gps=None``: mapping runs in a local frame), partial overlap, images in
-  frames/ that frames.csv does not list, several GPS logs present.
+- Warnings (``Drive.warnings``, also logged): no GPS log, no valid fix, or a GPS log that does
+  not overlap the frame times (then ``gps=None``: mapping runs in a local frame; these say
+  ``NO GEOREFERENCE``), partial overlap, images in frames/ that frames.csv does not list, several
+  GPS logs present, binary data skipped in NMEA, heights that are not ellipsoidal, GPS fixes that
+  jump impossibly far (rejected), a static receiver, OBD speed that disagrees with the GPS ground
+  speed (km/h: converted; otherwise the OBD log is ignored). See ``checks``.
 """
 
 from __future__ import annotations
@@ -24,12 +27,13 @@ from pathlib import Path
 
 from roadsurf.core.errors import DriveFormatError
 from roadsurf.io.drive.camera_yaml import load_camera
+from roadsurf.io.drive.checks import check_obd_vs_gps, check_static
 from roadsurf.io.drive.frames import load_frames
 from roadsurf.io.drive.gps import check_overlap, load_gps_csv
 from roadsurf.io.drive.gpx import load_gps_gpx
 from roadsurf.io.drive.nmea import load_gps_nmea
 from roadsurf.io.drive.obd import load_obd
-from roadsurf.io.drive.types import FORMAT_HINT, Drive, GpsTrack, Skipped
+from roadsurf.io.drive.types import FORMAT_HINT, NO_GEOREF, Drive, GpsTrack, Skipped
 
 log = logging.getLogger(__name__)
 
@@ -50,10 +54,7 @@ def load_drive(root: str | Path, check_images: bool = True) -> Drive:
     present = [name for name in GPS_FILES if (root / name).is_file()]
     gps: GpsTrack | None = None
     if not present:
-        warnings.append(
-            f"{root}: no GPS log (gps.csv, gps.gpx or gps.nmea); the map is built in a local "
-            f"frame without lat/lon."
-        )
+        warnings.append(f"{root}: no GPS log (gps.csv, gps.gpx or gps.nmea); {NO_GEOREF}.")
     else:
         if len(present) > 1:
             warnings.append(f"{root}: several GPS logs {present}; using {present[0]}.")
@@ -65,6 +66,9 @@ def load_drive(root: str | Path, check_images: bool = True) -> Drive:
 
     obd_path = root / "obd.csv"
     obd = load_obd(obd_path, skipped, warnings) if obd_path.is_file() else None
+    # A static receiver says nothing about the speed: then OBD is not judged against it.
+    if gps is not None and not check_static(gps, frames, warnings) and obd is not None:
+        obd = check_obd_vs_gps(obd_path, obd, gps, warnings)
 
     for w in warnings:
         log.warning("%s", w)

@@ -13,6 +13,15 @@ from roadsurf.core.geometry import EnuReference, enu_from_lla
 
 FORMAT_HINT = "See docs/formats.md for the drive format."
 
+# Plain words for every warning after which the run has no georeference (it must not read as success).
+NO_GEOREF = "NO GEOREFERENCE: the map will be in a local frame with no lon/lat outputs"
+
+# Vertical datum of ``GpsTrack.alt_m`` (outputs name it).
+ALT_ELLIPSOIDAL = "WGS84 ellipsoidal height"
+ALT_MSL = "mean sea level (geoid unknown)"
+ALT_GPX_ELE = "GPX ele (orthometric, geoid per the device)"
+ALT_NONE = "none (the log has no altitude)"
+
 
 @dataclass(frozen=True)
 class Frame:
@@ -31,9 +40,10 @@ class GpsTrack:
     timestamp_s: np.ndarray
     lat_deg: np.ndarray
     lon_deg: np.ndarray
-    alt_m: np.ndarray  # NaN where the log has no altitude
+    alt_m: np.ndarray  # NaN where the log has no altitude; vertical datum: ``alt_datum``
     hdop: np.ndarray  # NaN where the log has no HDOP
     source: str = "gps.csv"  # file it came from
+    alt_datum: str = ALT_ELLIPSOIDAL  # one of the ALT_* names above
 
     def __len__(self) -> int:
         return int(self.timestamp_s.shape[0])
