@@ -38,6 +38,9 @@ class Camera:
     fps: float  # frame rate (Hz)
     dist: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)  # k1,k2,p1,p2,k3
     model: str = "pinhole"
+    # mount angles from `roadsurf calibrate --ground` (deg): pitch forward from nadir, roll,
+    # yaw (convention in roadsurf.reconstruction.calibration.mount); None when not measured
+    mount_deg: tuple[float, float, float] | None = None
 
     @property
     def K(self) -> np.ndarray:

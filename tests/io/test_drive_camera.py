@@ -64,3 +64,24 @@ def test_bad_yaml_syntax(tmp_path: Path) -> None:
     (root / "camera.yaml").write_text("width: [64\nheight: 48\n")
     with pytest.raises(DriveFormatError, match="not valid YAML"):
         load_drive(root)
+
+
+def test_mount_angles_load_and_are_reported_as_not_used_yet(tmp_path: Path) -> None:
+    """`roadsurf calibrate --ground` writes mount angles; the loader keeps them and says
+    plainly that the pipeline does not use them yet (no silent ignore)."""
+    root = make_drive(tmp_path / "d")
+    (root / "camera.yaml").write_text(camera_yaml(mount_pitch_deg=25.0, mount_roll_deg=1.0))
+    d = load_drive(root)
+    assert d.camera.mount_deg == (25.0, 1.0, 0.0)
+    assert any("mount angles" in w and "not used yet" in w for w in d.warnings)
+    (root / "camera.yaml").write_text(camera_yaml())
+    assert load_drive(root).camera.mount_deg is None
+
+
+def test_mount_angle_out_of_range_names_key(tmp_path: Path) -> None:
+    root = make_drive(tmp_path / "d")
+    (root / "camera.yaml").write_text(camera_yaml(mount_pitch_deg=-5.0))
+    load_drive(root)
+    (root / "camera.yaml").write_text(camera_yaml(mount_pitch_deg=125.0))
+    with pytest.raises(DriveFormatError, match=r"mount_pitch_deg.*outside \[-90, 90\] degrees"):
+        load_drive(root)

@@ -27,7 +27,12 @@ _CAMERA_KEYS: dict[str, tuple[type, bool]] = {
     "dist": (list, False),
     "height_m": (float, True),
     "fps": (float, True),
+    "mount_pitch_deg": (float, False),
+    "mount_roll_deg": (float, False),
+    "mount_yaw_deg": (float, False),
 }
+_MOUNT_KEYS = ("mount_pitch_deg", "mount_roll_deg", "mount_yaw_deg")
+_MOUNT_LIMIT_DEG = {"mount_pitch_deg": 90.0, "mount_roll_deg": 45.0, "mount_yaw_deg": 45.0}
 
 
 def _yaml_key_lines(text: str) -> dict[str, int]:
@@ -118,6 +123,12 @@ def load_camera(path: Path) -> Camera:
             v = float(v)
             if key in ("fx", "fy", "height_m", "fps") and v <= 0:
                 raise DriveFormatError(f"{where(key)}: camera.yaml '{key}' must be > 0, got {v!r}.")
+            if key in _MOUNT_LIMIT_DEG and abs(v) > _MOUNT_LIMIT_DEG[key]:
+                lim = _MOUNT_LIMIT_DEG[key]
+                raise DriveFormatError(
+                    f"{where(key)}: camera.yaml '{key}' = {v!r} is outside [-{lim:g}, {lim:g}] "
+                    "degrees. Mount angles are in degrees (run `roadsurf calibrate --ground`)."
+                )
         elif tp is str:
             if not isinstance(v, str) or v.strip().lower() != "pinhole":
                 raise DriveFormatError(
@@ -150,6 +161,11 @@ def load_camera(path: Path) -> Camera:
         fps=vals["fps"],
         dist=vals.get("dist", (0.0,) * 5),
         model=vals.get("model", "pinhole"),
+        mount_deg=(
+            tuple(float(vals.get(k, 0.0)) for k in _MOUNT_KEYS)  # type: ignore[arg-type]
+            if any(k in vals for k in _MOUNT_KEYS)
+            else None
+        ),
     )
     if not (0 <= cam.cx <= cam.width and 0 <= cam.cy <= cam.height):
         raise DriveFormatError(
