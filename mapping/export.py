@@ -16,6 +16,7 @@ import numpy as np
 
 from roadsurf.core.geometry import ExportFrame
 from roadsurf.io.formats import feature, write_csv, write_geojson, write_ply
+from roadsurf.mapping.datum import RESIDUAL_DATUM
 from roadsurf.mapping.types import Trajectory
 
 if TYPE_CHECKING:
@@ -43,12 +44,23 @@ def write_cloud_ply(
     residual_m: np.ndarray,
     export_frame: ExportFrame | None,
     extra: dict[str, np.ndarray] | None = None,
+    vertical_datum: str | None = None,
 ) -> Path:
     """cloud.ply per the output contract: double x,y,z in the export CRS (UTM, or local ENU
-    without GPS), uchar red,green,blue, float residual_m (+ ``extra`` per-point properties)."""
+    without GPS), uchar red,green,blue, float residual_m (+ ``extra`` per-point properties).
+    With ``vertical_datum`` the header names the CRS and the datum of z and of residual_m."""
     xyz = export_xyz(xyz_enu_m, export_frame)
+    comments = []
+    if vertical_datum:
+        crs = export_frame.crs if export_frame is not None else "local ENU (no GPS reference)"
+        comments = [f"crs: {crs}", f"residual_m: {RESIDUAL_DATUM}"]
     return write_ply(
-        path, xyz, rgb, {"residual_m": np.asarray(residual_m, np.float32), **(extra or {})}
+        path,
+        xyz,
+        rgb,
+        {"residual_m": np.asarray(residual_m, np.float32), **(extra or {})},
+        vertical_datum=vertical_datum,
+        comments=comments,
     )
 
 
@@ -57,10 +69,12 @@ def write_trajectory_geojson(
     traj: Trajectory,
     drive: Drive | None = None,
     extra: dict[str, Any] | None = None,
+    vertical_datum: str | None = None,
 ) -> Path | None:
     """trajectory.geojson (RFC 7946, WGS84 lon/lat): one LineString of the fused path plus one
     Point per frame with filename, timestamp_s, heading_deg, source (and frame_index, segment,
-    easting_m, northing_m). Returns None (and writes nothing) without a reference (no GPS)."""
+    easting_m, northing_m, height_m in ``vertical_datum``, named in the collection's
+    properties). Returns None (and writes nothing) without a reference (no GPS)."""
     ef = traj.export_frame
     if ef is None:
         log.warning("trajectory.geojson not written: no GPS reference (local frame only)")
@@ -96,7 +110,7 @@ def write_trajectory_geojson(
             )
         )
     props = {"crs_utm": ef.crs, "reference": traj.reference.to_dict(), **(extra or {})}
-    return write_geojson(path, feats, props)
+    return write_geojson(path, feats, props, vertical_datum=vertical_datum)
 
 
 def write_trajectory_csv(path: str | Path, traj: Trajectory) -> Path:

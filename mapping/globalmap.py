@@ -22,6 +22,7 @@ This module is the stage (``run``, ``build_map``); steps 1-2 are in ``mapping.cl
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from pathlib import Path
@@ -35,8 +36,10 @@ from roadsurf.core.fingerprint import Fingerprint
 from roadsurf.core.fits import robust_sigma
 from roadsurf.io import runfolder as rf
 from roadsurf.io.drive import Drive
+from roadsurf.io.runfolder import RunFolder, read_fingerprint
 from roadsurf.mapping.cloud import align_patches, collect_points, voxel_fuse
 from roadsurf.mapping.config import NOT_IN_FINGERPRINT, MappingConfig
+from roadsurf.mapping.datum import vertical_datum
 from roadsurf.mapping.export import write_cloud_ply
 from roadsurf.mapping.rasterise import rasterise
 from roadsurf.mapping.surface import LocalSurface
@@ -55,7 +58,7 @@ def run(
 ) -> MapProducts:
     """Build and write the global map products into ``run_dir`` (resumes when unchanged)."""
     run_dir = Path(run_dir)
-    key = _fingerprint(cfg, pairs, traj)
+    key = _fingerprint(cfg, pairs, traj, drive, run_dir)
     rep_path = run_dir / rf.MAP_REPORT
     if not cfg.overwrite and rep_path.is_file():
         try:
@@ -73,14 +76,28 @@ def run(
     return prod
 
 
-def _fingerprint(cfg: MappingConfig, pairs: list[PairResult], traj: Trajectory) -> str:
-    """What the map depends on (fixed byte stream: stored fingerprints stay valid): the config,
-    the poses and every pair's status and point count."""
+def _fingerprint(
+    cfg: MappingConfig,
+    pairs: list[PairResult],
+    traj: Trajectory,
+    drive: Drive | None = None,
+    run_dir: Path | None = None,
+) -> str:
+    """What the map depends on (a fixed byte stream): the config, the poses, every pair's status
+    and content (its points and pixels, and the reconstruction's fingerprint of the pair's
+    settings, camera and image files when ``run_dir`` holds one), the camera and the vertical
+    datum of the exported heights."""
     fp = Fingerprint()
     fp.add_json({k: v for k, v in to_dict(cfg).items() if k not in NOT_IN_FINGERPRINT})
     fp.add_array(traj.world_from_cam)
+    run = RunFolder(run_dir) if run_dir is not None else None
     for p in pairs:
         fp.add_text(f"{p.index_a},{p.index_b},{p.status},{p.n_points}")
+        fp.add_array(p.points_cam_a_m).add_array(p.px_a)
+        if run is not None:
+            fp.add_text(read_fingerprint(run.pair(p.index_a, p.index_b)) or "-")
+    if drive is not None:
+        fp.add_json(dataclasses.asdict(drive.camera)).add_text(vertical_datum(cfg, drive))
     return fp.hexdigest(16)
 
 
@@ -141,8 +158,15 @@ def build_map(
         n_obs=nobs,
     )
     prod.files["map_points"] = rf.MAP_POINTS
+    datum = vertical_datum(cfg, drive, ef is not None)
     write_cloud_ply(
-        run_dir / rf.CLOUD_PLY, xyz, rgb, resid, ef, extra={"n_obs": nobs.astype(np.int32)}
+        run_dir / rf.CLOUD_PLY,
+        xyz,
+        rgb,
+        resid,
+        ef,
+        extra={"n_obs": nobs.astype(np.int32)},
+        vertical_datum=datum,
     )
     prod.files["cloud"] = rf.CLOUD_PLY
     prod.timings_s["cloud"] = round(time.perf_counter() - t2, 3)

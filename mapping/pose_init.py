@@ -24,7 +24,7 @@ if TYPE_CHECKING:
     from roadsurf.reconstruction.types import PairResult
 
 
-def _chain(comp_frames: np.ndarray, consecutive: dict[tuple[int, int], PairResult]) -> np.ndarray:
+def chain(comp_frames: np.ndarray, consecutive: dict[tuple[int, int], PairResult]) -> np.ndarray:
     """Chain the pair transforms over one component: (M, 4, 4) poses, first = level, heading 0."""
     W = np.empty((len(comp_frames), 4, 4))
     W[0] = world_from_cam(0.0)
@@ -82,7 +82,7 @@ def initial_poses(
     n = len(t)
     W = np.zeros((n, 4, 4))
     n_comp = int(comp.max()) + 1
-    chains = [_chain(np.flatnonzero(comp == c), consecutive) for c in range(n_comp)]
+    chains = [chain(np.flatnonzero(comp == c), consecutive) for c in range(n_comp)]
     placed = np.zeros(n_comp, bool)
 
     for c in range(n_comp):

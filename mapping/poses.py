@@ -39,10 +39,12 @@ from roadsurf.io import runfolder as rf
 from roadsurf.io.drive import Drive
 from roadsurf.io.runfolder import RunFolder
 from roadsurf.mapping.config import NOT_IN_FINGERPRINT, MappingConfig
+from roadsurf.mapping.datum import vertical_datum
 from roadsurf.mapping.export import write_trajectory_csv, write_trajectory_geojson
-from roadsurf.mapping.pose_gps import gps_enu
+from roadsurf.mapping.plausibility import CHECKS_VERSION, check, make_chains
+from roadsurf.mapping.pose_gps import gps_enu, interp_weights
 from roadsurf.mapping.pose_graph import PoseGraph
-from roadsurf.mapping.pose_init import initial_poses, segments
+from roadsurf.mapping.pose_init import chain, initial_poses, segments
 from roadsurf.mapping.types import PoseReport, Trajectory, load_trajectory, save_trajectory
 
 if TYPE_CHECKING:
@@ -71,14 +73,15 @@ def run(
                 log.info("poses: inputs unchanged, reusing %s", run.poses_npz)
                 traj = load_trajectory(run.root)
                 if not geojson.is_file():
-                    write_trajectory_geojson(geojson, traj, drive)
+                    datum = vertical_datum(cfg, drive, traj.reference is not None)
+                    write_trajectory_geojson(geojson, traj, drive, vertical_datum=datum)
                 return traj
         except (OSError, ValueError, KeyError) as e:
             log.info("poses: cached result unreadable (%s); recomputing", e)
     t0 = time.perf_counter()
     traj, report = estimate_trajectory(cfg, drive, pairs)
     save_trajectory(run.root, traj)
-    write_trajectory_geojson(geojson, traj, drive)
+    write_trajectory_geojson(geojson, traj, drive, vertical_datum=report.vertical_datum)
     write_trajectory_csv(run.path(rf.TRAJECTORY_CSV), traj)
     elapsed = round(time.perf_counter() - t0, 3)  # kept for resumed runs' report.json
     write_json_atomic(rep_path, {"fingerprint": key, "elapsed_s": elapsed, **report.to_dict()})
@@ -86,17 +89,24 @@ def run(
 
 
 def _fingerprint(cfg: MappingConfig, drive: Drive, pairs: list[PairResult]) -> str:
-    """What the trajectory depends on; the byte stream is fixed so stored fingerprints stay
-    valid: the config, the frames' names and times, the GPS fixes and every pair's transform."""
+    """What the trajectory depends on (a fixed byte stream): the config, the frames' names and
+    times, the GPS fixes (time, lat, lon, altitude, HDOP), the OBD speeds, every pair's
+    transform and the version of the plausibility checks whose warnings the report keeps."""
     fp = Fingerprint()
     fp.add_json({k: v for k, v in to_dict(cfg).items() if k not in NOT_IN_FINGERPRINT})
     fp.add_json([(f.filename, f.timestamp_s) for f in drive.frames], default_str=False)
     if drive.gps is not None:
-        for a in (drive.gps.timestamp_s, drive.gps.lat_deg, drive.gps.lon_deg, drive.gps.hdop):
+        g = drive.gps
+        for a in (g.timestamp_s, g.lat_deg, g.lon_deg, g.hdop):
             fp.add_array(a)
+        fp.add_text("alt").add_array(g.alt_m)
+        fp.add_text(f"datum:{vertical_datum(cfg, drive)}")
+    if drive.obd is not None:
+        fp.add_text("obd").add_array(drive.obd.timestamp_s).add_array(drive.obd.speed_mps)
     for p in pairs:
         fp.add_text(f"{p.index_a},{p.index_b},{p.status}")
         fp.add_array(p.cam_b_from_cam_a)
+    fp.add_text(f"checks:{CHECKS_VERSION}")
     return fp.hexdigest(16)
 
 
@@ -139,6 +149,29 @@ def estimate_trajectory(
     # ---------------------------------------------------------------- robust fusion
     problem = PoseGraph(cfg, t, init, ok_pairs, pos_of, gps, drive, comp)
     world = problem.solve(rep)
+
+    # ---------------------------------------------------------------- plausibility
+    if gps is not None:
+        chains = make_chains(
+            cfg,
+            comp,
+            {k: p.cam_b_from_cam_a[:3, 3] for k, p in consecutive.items()},
+            lambda fr: chain(fr, consecutive),
+        )
+
+        def errors_m() -> np.ndarray:
+            k, w = interp_weights(t, gps.t_s)
+            k1 = np.minimum(k + 1, n - 1)
+            pred = (1 - w)[:, None] * world[k, :3, 3] + w[:, None] * world[k1, :3, 3]
+            return np.linalg.norm(pred[:, :2] - gps.enu_m[:, :2], axis=1)
+
+        warns, rep.checks = check(
+            cfg, drive, t, chains, gps, ref, problem.gps_used, problem.gps_scale, errors_m
+        )
+        for w in warns:
+            log.warning("poses: %s", w)
+        rep.warnings += warns
+    rep.vertical_datum = vertical_datum(cfg, drive, ref is not None)
 
     # ---------------------------------------------------------------- sources
     has_visual = np.zeros(n, bool)

@@ -296,6 +296,8 @@ class TiledWriter:
                     tmp, "w", **geotiff_profile(grid, self.count, self.dtype, self.nodata)
                 ) as d:
                     d.write(bands)
+                    if self.tags:
+                        d.update_tags(**self.tags)
             self.tile_files.append((r, c, rel))
 
     def close(self) -> None:

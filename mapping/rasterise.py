@@ -17,6 +17,7 @@ from roadsurf.io import runfolder as rf
 from roadsurf.io.drive import Drive, Frame
 from roadsurf.io.formats import GridSpec
 from roadsurf.mapping.config import MappingConfig
+from roadsurf.mapping.datum import RESIDUAL_DATUM, vertical_datum
 from roadsurf.mapping.export import export_xyz
 from roadsurf.mapping.mosaic import ImageCache, mosaic_tile
 from roadsurf.mapping.overlap import check_frame_overlap
@@ -131,7 +132,12 @@ def rasterise(
             NODATA_SURFACE,
             write_tiles,
             write_full,
-            tags={"units": "m", "description": "height above the local road, negative below"},
+            tags={
+                "units": "m",
+                "description": "height above the local road, negative below",
+                "VERTICAL_DATUM": RESIDUAL_DATUM,
+                "ROAD_HEIGHT_DATUM": vertical_datum(cfg, drive, traj.reference is not None),
+            },
         )
         writers.append(sw)
         mw = TiledWriter(prod.run_dir, rf.MOSAIC, lat, 3, "uint8", 0, write_tiles, write_full)

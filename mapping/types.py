@@ -109,6 +109,9 @@ class PoseReport:
     cost_final: float = float("nan")
     n_iterations: int = 0
     warnings: list[str] = field(default_factory=list)
+    # figures of the plausibility checks (mapping.plausibility) and the heights' datum
+    checks: dict[str, Any] = field(default_factory=dict)
+    vertical_datum: str = ""
 
     def to_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)

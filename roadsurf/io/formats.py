@@ -32,11 +32,15 @@ def write_ply(
     xyz: np.ndarray,
     rgb: np.ndarray | None = None,
     extra: dict[str, np.ndarray] | None = None,
+    vertical_datum: str | None = None,
+    comments: Sequence[str] = (),
 ) -> Path:
     """Write a binary PLY point cloud.
 
     xyz: (N, 3) float64 coordinates (written as double); rgb: (N, 3) uint8 or None;
-    extra: name -> (N,) arrays (float -> float32 'float', ints -> int32), e.g. residual_m.
+    extra: name -> (N,) arrays (float -> float32 'float', ints -> int32), e.g. residual_m;
+    vertical_datum: the datum of z, written as a header comment ``vertical_datum: ...``
+    (with ``comments``, one header comment line each).
     """
     from plyfile import PlyData, PlyElement
 
@@ -65,7 +69,11 @@ def write_ply(
     for k, v in cols.items():
         data[k] = v
     with atomic_path(path) as tmp:
-        PlyData([PlyElement.describe(data, "vertex")], text=False, byte_order="<").write(str(tmp))
+        lines = list(comments) + ([f"vertical_datum: {vertical_datum}"] if vertical_datum else [])
+        ply = PlyData(
+            [PlyElement.describe(data, "vertex")], text=False, byte_order="<", comments=lines
+        )
+        ply.write(str(tmp))
     return Path(path)
 
 
@@ -179,8 +187,11 @@ def write_geotiff(
     grid: GridSpec,
     nodata: float | None = None,
     tags: dict[str, str] | None = None,
+    vertical_datum: str | None = None,
 ) -> Path:
-    """Write (H, W) float or (H, W, 3) uint8 data as a tiled, compressed, sparse GeoTIFF."""
+    """Write (H, W) float or (H, W, 3) uint8 data as a tiled, compressed, sparse GeoTIFF;
+    ``vertical_datum`` (of the values, when they are heights) goes to the VERTICAL_DATUM tag."""
+    tags = with_datum_tag(tags, vertical_datum)
     import rasterio
 
     arr = np.asarray(data)
@@ -208,11 +219,14 @@ def write_geotiff_blocks(
     dtype: str = "float32",
     nodata: float | None = None,
     tags: dict[str, str] | None = None,
+    vertical_datum: str | None = None,
 ) -> Path:
     """Write a single-band GeoTIFF window by window, for rasters whose full array would not fit
     in memory (e.g. the corridor of a long curved route). ``blocks`` yields (row0, col0, (h, w)
     array); blocks never written stay unstored (sparse) and read back as nodata. Same layout as
-    ``write_geotiff`` (tiled 256, deflate, sparse), plus a floating-point predictor."""
+    ``write_geotiff`` (tiled 256, deflate, sparse, VERTICAL_DATUM tag), plus a floating-point
+    predictor."""
+    tags = with_datum_tag(tags, vertical_datum)
     import rasterio
     from rasterio.windows import Window
 
@@ -225,6 +239,11 @@ def write_geotiff_blocks(
             if tags:
                 dst.update_tags(**tags)
     return Path(path)
+
+
+def with_datum_tag(tags: dict[str, str] | None, vertical_datum: str | None) -> dict[str, str]:
+    """``tags`` plus ``VERTICAL_DATUM`` (the GeoTIFF tag that names the heights' datum)."""
+    return {**(tags or {}), **({"VERTICAL_DATUM": vertical_datum} if vertical_datum else {})}
 
 
 def read_geotiff(path: str | Path) -> tuple[np.ndarray, GridSpec, float | None]:
@@ -313,10 +332,16 @@ def validate_geojson(fc: dict[str, Any]) -> None:
 
 
 def write_geojson(
-    path: str | Path, features: Iterable[dict[str, Any]], properties: dict[str, Any] | None = None
+    path: str | Path,
+    features: Iterable[dict[str, Any]],
+    properties: dict[str, Any] | None = None,
+    vertical_datum: str | None = None,
 ) -> Path:
     """Write an RFC 7946 FeatureCollection (validated) atomically. Extra top-level members
-    (``properties``) are allowed by RFC 7946 §6.1 and used for provenance."""
+    (``properties``) are allowed by RFC 7946 §6.1 and used for provenance; ``vertical_datum``
+    (of any heights in it) joins them."""
+    if vertical_datum:
+        properties = {**(properties or {}), "vertical_datum": vertical_datum}
     fc: dict[str, Any] = {"type": "FeatureCollection", "features": list(features)}
     if properties:
         fc["properties"] = _jsonable(properties)

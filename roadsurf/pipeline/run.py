@@ -36,6 +36,8 @@ from roadsurf.detection.classifier.config import ClassifierConfig
 from roadsurf.detection.config import DetectionConfig
 from roadsurf.io import runfolder as rf
 from roadsurf.mapping.config import MappingConfig
+from roadsurf.mapping.datum import vertical_datum
+from roadsurf.pipeline.run_checks import check_reconstruction, claim_run_folder
 from roadsurf.reconstruction.config import ReconstructionConfig
 
 if TYPE_CHECKING:
@@ -223,6 +225,7 @@ def _run_drive(
         return res
 
     drive = timed("drive", lambda: load_drive(drive_dir))
+    claim_run_folder(drive_dir, out, overwrite)  # refuses another drive's run folder
 
     if overwrite:
         cfg = _with_overwrite(cfg)
@@ -258,6 +261,7 @@ def _run_drive(
             return g.pairs
 
         pairs = timed("reconstruction", reconstruct_guided)
+    check_reconstruction(pairs, drive, rec_cfg, out)
     traj = timed("poses", lambda: poses.run(cfg.mapping, drive, pairs, out))
     products = timed("globalmap", lambda: globalmap.run(cfg.mapping, drive, pairs, traj, out))
     detections = timed(
@@ -433,6 +437,9 @@ def _build_report(
         "drive": str(Path(drive.root).resolve()),
         "method": method,
         "crs": ef.crs if ef is not None else None,
+        # the datum of every absolute height (cloud.ply z, trajectory heights); residuals and
+        # defect depths are relative to the local road surface
+        "vertical_datum": vertical_datum(cfg.mapping, drive, ef is not None),
         "reference": traj.reference.to_dict() if traj is not None and traj.reference else None,
         "counts": {
             "frames": len(drive.frames),

@@ -1,8 +1,10 @@
 """The stage fingerprints stored in poses_report.json and map_report.json must stay valid across
 refactors (a resumed old run must still resume): fixed inputs give fixed values.
 
-The expected values were computed once with the hashlib code that the core Fingerprint replaced
-(same byte stream, sha256[:16]). A change of MappingConfig's fields changes them legitimately."""
+The expected values were recomputed when issue 31 added the GPS altitude, OBD speeds and the
+plausibility checks' version to the poses key and the pairs' content, camera and vertical datum to
+the map key. A change of MappingConfig's fields changes them legitimately. The keys must also
+change with what the outputs depend on (below)."""
 
 from __future__ import annotations
 
@@ -16,9 +18,9 @@ from tests.mapping.synth import make_synthetic
 
 def test_poses_fingerprint_is_unchanged() -> None:
     syn = make_synthetic(n=6, seed=3, failed=(2,))
-    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "e241e0646fbb85a6"
+    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "25556b074837abbf"
     syn = make_synthetic(n=6, seed=3, with_gps=False)
-    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "583397a4f3b3b11b"
+    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "c260a5b1a6b4334a"
 
 
 def test_globalmap_fingerprint_is_unchanged() -> None:
@@ -32,4 +34,41 @@ def test_globalmap_fingerprint_is_unchanged() -> None:
         reference=None,
         segment=np.zeros(6, int),
     )
-    assert globalmap._fingerprint(MappingConfig(), syn.pairs, traj) == "aea61267cee16429"
+    assert globalmap._fingerprint(MappingConfig(), syn.pairs, traj) == "d85141eb8cc5461f"
+
+
+def test_poses_key_follows_the_gps_altitude() -> None:
+    syn = make_synthetic(n=6, seed=3, gps_hz=20.0)
+    assert len(syn.drive.gps) > 0
+    key = poses._fingerprint(MappingConfig(), syn.drive, syn.pairs)
+    syn.drive.gps.alt_m = syn.drive.gps.alt_m + 5.0
+    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) != key
+
+
+def test_map_key_follows_the_pairs_content(tmp_path) -> None:
+    """A recomputed pair with the same number of points (other content) rebuilds the map."""
+    import copy
+
+    from roadsurf.io.runfolder import RunFolder, fingerprint_path
+
+    syn = make_synthetic(n=6, seed=3)
+    traj = Trajectory(
+        filenames=[f.filename for f in syn.drive.frames],
+        frame_indices=np.arange(6),
+        timestamp_s=np.arange(6) * 0.05,
+        world_from_cam=syn.world_from_cam,
+        source=["fused"] * 6,
+        reference=None,
+    )
+    cfg = MappingConfig()
+    key = globalmap._fingerprint(cfg, syn.pairs, traj, syn.drive, tmp_path)
+    moved = copy.copy(syn.pairs[2])
+    moved.points_cam_a_m = moved.points_cam_a_m + [0.0, 0.0, 0.001]
+    changed = [*syn.pairs[:2], moved, *syn.pairs[3:]]
+    assert moved.n_points == syn.pairs[2].n_points
+    assert globalmap._fingerprint(cfg, changed, traj, syn.drive, tmp_path) != key
+    # the reconstruction's fingerprint of a pair (its settings, camera, image files) counts too
+    run = RunFolder(tmp_path)
+    run.pairs_dir.mkdir()
+    fingerprint_path(run.pair(0, 1)).write_text("0123456789abcdef\n")
+    assert globalmap._fingerprint(cfg, syn.pairs, traj, syn.drive, tmp_path) != key

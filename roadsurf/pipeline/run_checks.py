@@ -1,0 +1,154 @@
+"""Guards of ``roadsurf run`` around the stages: which drive a run folder belongs to, and a run
+in which no pair reconstructs (no 3D result: refused, never reported as "no defect").
+
+``RUN/run.json`` records the drive a run folder was made from: its resolved path and a digest of
+its small top-level files (camera.yaml, frames.csv, gps.*, obd.csv). A run of another drive into
+that folder is refused unless ``--overwrite``; the same drive (same path, or a moved copy with
+the same files) resumes, each stage deciding from its own fingerprints what to recompute.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+from collections import Counter
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from roadsurf.core.atomic import read_json, write_json_atomic
+from roadsurf.core.errors import ConfigError, RoadsurfError
+from roadsurf.io import runfolder as rf
+
+if TYPE_CHECKING:
+    from roadsurf.io.drive import Drive
+    from roadsurf.reconstruction.config import ReconstructionConfig
+    from roadsurf.reconstruction.types import PairResult
+
+log = logging.getLogger(__name__)
+
+RUN_JSON = "run.json"  # the drive a run folder belongs to (to move into roadsurf.io.runfolder)
+_HASH_MAX_BYTES = 16 * 1024 * 1024  # larger top-level files are identified by size and mtime
+
+
+class NoReconstructionError(RoadsurfError):
+    """Pairs were attempted and none reconstructed: the run has no 3D result to measure."""
+
+
+# =========================================================================== drive identity
+
+
+def drive_identity(drive_dir: str | Path) -> dict[str, Any]:
+    """``{"drive": resolved path, "content": digest, "files": {name: digest}}`` over the drive's
+    top-level files (camera.yaml, frames.csv, GPS and OBD logs: their bytes) and folders (the
+    images: names and sizes; the reconstruction keys each pair by its image files itself)."""
+    d = Path(drive_dir).resolve()
+    files: dict[str, str] = {}
+    for p in sorted(d.iterdir()) if d.is_dir() else []:
+        if p.is_dir():  # image folders: names and sizes (a copied drive keeps them)
+            sizes = sorted((f.name, f.stat().st_size) for f in p.iterdir() if f.is_file())
+            files[p.name + "/"] = hashlib.sha256(repr(sizes).encode()).hexdigest()[:16]
+            continue
+        if not p.is_file():
+            continue
+        st = p.stat()
+        if st.st_size <= _HASH_MAX_BYTES:
+            files[p.name] = hashlib.sha256(p.read_bytes()).hexdigest()[:16]
+        else:
+            files[p.name] = f"size={st.st_size},mtime_ns={st.st_mtime_ns}"
+    content = hashlib.sha256(repr(sorted(files.items())).encode()).hexdigest()[:16]
+    return {"drive": str(d), "content": content, "files": files}
+
+
+def claim_run_folder(drive_dir: str | Path, out: Path, overwrite: bool) -> dict[str, Any]:
+    """Refuse ``out`` when it holds the run of another drive (unless ``overwrite``), then record
+    this drive in ``out/run.json``. Returns the recorded identity."""
+    ident = drive_identity(drive_dir)
+    recorded = _recorded_drive(out)
+    if recorded is not None and not overwrite:
+        same_path = recorded.get("drive") == ident["drive"]
+        same_content = recorded.get("content") == ident["content"]
+        if not same_path and not same_content:
+            raise ConfigError(
+                f"--out {out} holds the run of another drive ({recorded.get('drive')}); this "
+                f"drive is {ident['drive']}. Its cached pairs, poses and map would be mixed "
+                "with this drive's: use --overwrite to replace that run, or choose another --out."
+            )
+        if not same_path:
+            log.info("run folder %s: drive moved from %s (same files)", out, recorded.get("drive"))
+        elif not same_content:
+            changed = sorted(
+                k
+                for k in set(ident["files"]) | set(recorded.get("files") or {})
+                if ident["files"].get(k) != (recorded.get("files") or {}).get(k)
+            )
+            log.info("run folder %s: drive files changed since the last run: %s", out, changed)
+    write_json_atomic(out / RUN_JSON, ident)
+    return ident
+
+
+def _recorded_drive(out: Path) -> dict[str, Any] | None:
+    """The drive recorded in ``out`` (run.json; for an older run, report.json's drive path)."""
+    for name, key in ((RUN_JSON, None), (rf.REPORT_JSON, "drive")):
+        path = out / name
+        if not path.is_file():
+            continue
+        try:
+            data = read_json(path)
+        except (OSError, ValueError):
+            continue  # unreadable: the run rewrites it
+        if not isinstance(data, dict):
+            continue
+        if key is None and isinstance(data.get("drive"), str):
+            return data
+        if key is not None and isinstance(data.get(key), str):
+            return {"drive": data[key], "content": None}
+    return None
+
+
+# =========================================================================== no 3D result
+
+# what to check for each failure status of a pair
+_HINTS = {
+    "unreadable_frame": "the image files (unreadable or truncated)",
+    "too_few_features": "the images (exposure, blur) and reconstruction.features in --config",
+    "too_few_matches": "reconstruction.min_matches in --config ({min_matches}) and the overlap "
+    "between consecutive frames (frame rate, speed)",
+    "no_overlap": "reconstruction.min_matches ({min_matches}) and min_overlap in --config, and "
+    "the frame rate (consecutive frames must overlap)",
+    "not_near_planar": "that the camera looks at the road, and the intrinsics in camera.yaml",
+    "geometry_failed": "the intrinsics (fx, fy, cx, cy, dist) in camera.yaml",
+    "scale_failed": "height_m in camera.yaml ({height_m} m; metres above the road, e.g. 1.1)",
+}
+
+
+def check_reconstruction(
+    pairs: list[PairResult], drive: Drive, rec_cfg: ReconstructionConfig, out: Path
+) -> None:
+    """Raise NoReconstructionError when pairs were attempted and none is ok, with the failure
+    counts per reason and what to check. A camera height implausible for a vehicle (above
+    10 m, e.g. cm typed for m) is named whatever the reasons."""
+    if not pairs or any(p.ok for p in pairs):
+        return
+    counts = Counter(p.status for p in pairs)
+    fmt = {
+        "min_matches": getattr(rec_cfg, "min_matches", "?"),
+        "height_m": drive.camera.height_m,
+    }
+    reasons = ", ".join(f"{s}: {n}" for s, n in counts.most_common())
+    checks = [_HINTS.get(s, f"the cause of '{s}'").format(**fmt) for s, _ in counts.most_common()]
+    h = float(drive.camera.height_m)
+    if not 0.1 <= h <= 10.0:
+        checks.insert(
+            0,
+            f"height_m in camera.yaml ({h:g} m is no vehicle camera height: metres expected, "
+            "e.g. 1.1)",
+        )
+    checks = list(dict.fromkeys(checks))
+    first = next((p for p in pairs if p.status == counts.most_common(1)[0][0]), pairs[0])
+    example = f"{first.frame_a} -> {first.frame_b}: {first.reason}" if first.reason else ""
+    raise NoReconstructionError(
+        f"no pair reconstructed: 0 of {len(pairs)} pairs ok ({reasons}); the run has no 3D "
+        f"result. Check {'; '.join(checks)}."
+        + (f" E.g. {example}." if example else "")
+        + f" Details per pair: {out / rf.PAIRS_DIR}"
+    )

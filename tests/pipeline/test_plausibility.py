@@ -1,0 +1,156 @@
+"""Issue 31: implausible inputs are named with figures (camera height vs the GPS baseline,
+swapped lat/lon, a static receiver, GPS σ inflation), a run in which no pair reconstructs stops
+with one line, a run folder of another drive is refused, and heights name their datum."""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from roadsurf.core.errors import ConfigError, RoadsurfError
+from roadsurf.mapping import poses
+from roadsurf.mapping.config import MappingConfig
+from roadsurf.mapping.datum import GPS_DATUM_DEFAULT, LOCAL_DATUM, vertical_datum
+from roadsurf.pipeline.run_checks import (
+    RUN_JSON,
+    NoReconstructionError,
+    check_reconstruction,
+    claim_run_folder,
+)
+from roadsurf.reconstruction.config import ReconstructionConfig
+from tests.mapping.synth import failed_pair, make_synthetic, write_drive
+
+
+def _rtk(n: int = 80, height_m: float = 1.0, scale: float = 1.0):
+    """RTK-like GPS (HDOP 0.04: σ 2 cm) and pairs whose metric scale is ``scale`` × the truth,
+    as a camera.yaml ``height_m`` of ``height_m`` × ``scale`` gives (α = h / d_c)."""
+    syn = make_synthetic(n=n, seed=4, gps_hz=5.0, hdop=0.04)
+    syn.drive.camera = dataclasses.replace(syn.drive.camera, height_m=height_m * scale)
+    pairs = []
+    for p in syn.pairs:
+        q = copy.copy(p)
+        q.t_b_from_a_m, q.points_cam_a_m = p.t_b_from_a_m * scale, p.points_cam_a_m * scale
+        pairs.append(q)
+    return syn, pairs
+
+
+def test_clean_drive_raises_no_plausibility_warning() -> None:
+    syn, pairs = _rtk()
+    _, rep = poses.estimate_trajectory(MappingConfig(), syn.drive, pairs)
+    assert rep.warnings == []
+    assert abs(rep.checks["gps_over_visual"]["ratio"] - 1) < 0.02
+
+
+def test_camera_height_20_percent_wrong_warns_with_the_true_value() -> None:
+    syn, pairs = _rtk(scale=1.2)  # height_m 1.20 typed for a 1.00 m camera
+    _, rep = poses.estimate_trajectory(MappingConfig(), syn.drive, pairs)
+    msg = [w for w in rep.warnings if w.startswith("camera.yaml height_m 1.20 m")]
+    assert len(msg) == 1, rep.warnings
+    assert abs(rep.checks["height_implied_m"] - 1.0) < 0.02
+    assert "the data imply 1.00 m" in msg[0]
+    # the pose graph's σ inflation is reported too, with its factor
+    assert any("inflated the GPS sigma" in w for w in rep.warnings)
+
+
+def test_swapped_lat_lon_are_named() -> None:
+    syn, pairs = _rtk()
+    g = syn.drive.gps
+    syn.drive.gps = dataclasses.replace(g, lat_deg=g.lon_deg, lon_deg=g.lat_deg)
+    _, rep = poses.estimate_trajectory(MappingConfig(), syn.drive, pairs)
+    assert any(w.startswith("lat/lon look swapped in gps.csv") for w in rep.warnings)
+    assert rep.checks["gps_hypothesis"] == "lat/lon look swapped"
+    assert not any(w.startswith("camera.yaml") for w in rep.warnings)
+
+
+def test_static_receiver_and_sigma_inflation_are_named() -> None:
+    syn, pairs = _rtk()
+    g = syn.drive.gps
+    syn.drive.gps = dataclasses.replace(
+        g, lat_deg=np.full(len(g), g.lat_deg[0]), lon_deg=np.full(len(g), g.lon_deg[0])
+    )
+    _, rep = poses.estimate_trajectory(MappingConfig(), syn.drive, pairs)
+    static = [w for w in rep.warnings if w.startswith("GPS looks static over frames")]
+    assert static and "while vision travels" in static[0]
+    inflated = [w for w in rep.warnings if "inflated the GPS sigma" in w]
+    assert inflated and f"{rep.gps_sigma_scale:.1f}x" in inflated[0]
+
+
+def test_no_pair_reconstructed_is_an_error_naming_the_reasons(tmp_path: Path) -> None:
+    from roadsurf.pipeline.run import run_drive
+
+    syn = make_synthetic(n=4, seed=1)
+    drive = write_drive(syn, tmp_path / "drive")
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text("reconstruction:\n  min_matches: 100000\n  workers: 1\n")
+    with pytest.raises(NoReconstructionError, match=r"0 of 3 pairs ok \(\w+: 3\)") as e:
+        run_drive(drive, tmp_path / "run", config_path=cfg)
+    assert isinstance(e.value, RoadsurfError)  # the CLI exits 2 with this one line
+    assert "reconstruction.min_matches (100000)" in str(e.value)
+    assert not (tmp_path / "run" / "frames.csv").exists()  # no "no defect" labels
+
+
+def test_camera_height_in_cm_is_named_when_nothing_reconstructs() -> None:
+    syn = make_synthetic(n=4, seed=1)
+    syn.drive.camera = dataclasses.replace(syn.drive.camera, height_m=110.0)
+    pairs = [failed_pair(i, "scale_failed") for i in range(3)]
+    with pytest.raises(NoReconstructionError, match=r"height_m in camera.yaml \(110 m"):
+        check_reconstruction(pairs, syn.drive, ReconstructionConfig(), Path("RUN"))
+    check_reconstruction([], syn.drive, ReconstructionConfig(), Path("RUN"))  # nothing tried
+
+
+def test_run_folder_of_another_drive_is_refused(tmp_path: Path) -> None:
+    from roadsurf.pipeline.run import run_drive
+
+    a = write_drive(make_synthetic(n=3, seed=1), tmp_path / "A")
+    b = write_drive(make_synthetic(n=3, seed=2), tmp_path / "B")
+    out = tmp_path / "run"
+    out.mkdir()
+    claim_run_folder(a, out, overwrite=False)
+    assert (out / RUN_JSON).is_file()
+    claim_run_folder(a, out, overwrite=False)  # the same drive resumes
+    with pytest.raises(ConfigError, match="another drive") as e:
+        run_drive(b, out)
+    assert str(a.resolve()) in str(e.value) and str(b.resolve()) in str(e.value)
+    assert "--overwrite" in str(e.value)
+    claim_run_folder(b, out, overwrite=True)  # --overwrite takes the folder
+    with pytest.raises(ConfigError, match="another drive"):
+        claim_run_folder(a, out, overwrite=False)
+
+
+def test_run_folder_of_an_older_run_is_checked_by_its_report(tmp_path: Path) -> None:
+    a = write_drive(make_synthetic(n=3, seed=1), tmp_path / "A")
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "report.json").write_text('{"drive": "/somewhere/else"}')
+    with pytest.raises(ConfigError, match="/somewhere/else"):
+        claim_run_folder(a, out, overwrite=False)
+
+
+def test_heights_name_their_vertical_datum(tmp_path: Path) -> None:
+    from plyfile import PlyData
+
+    from roadsurf.io.formats import read_geojson
+    from roadsurf.mapping.export import write_cloud_ply, write_trajectory_geojson
+
+    syn = make_synthetic(n=20, seed=3)
+    cfg = MappingConfig()
+    assert vertical_datum(cfg, syn.drive) == GPS_DATUM_DEFAULT
+    assert vertical_datum(cfg, make_synthetic(n=5, with_gps=False).drive) == LOCAL_DATUM
+    traj, rep = poses.estimate_trajectory(cfg, syn.drive, syn.pairs)
+    assert rep.vertical_datum == GPS_DATUM_DEFAULT
+    ef = traj.export_frame
+    xyz = traj.positions_enu_m
+    ply = write_cloud_ply(
+        tmp_path / "c.ply", xyz, np.zeros((len(xyz), 3)), np.zeros(len(xyz)), ef,
+        vertical_datum=rep.vertical_datum,
+    )  # fmt: skip
+    comments = PlyData.read(str(ply)).comments
+    assert f"vertical_datum: {GPS_DATUM_DEFAULT}" in comments and f"crs: {ef.crs}" in comments
+    gj = write_trajectory_geojson(
+        tmp_path / "t.geojson", traj, syn.drive, vertical_datum=rep.vertical_datum
+    )
+    assert read_geojson(gj)["properties"]["vertical_datum"] == GPS_DATUM_DEFAULT
