@@ -15,13 +15,14 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import IO, Literal
 from urllib.parse import quote
 
 import rerun as rr
 import rerun.blueprint as rrb
 
-from roadsurf.core.errors import RoadsurfError
+from roadsurf.core.atomic import output_error
+from roadsurf.core.errors import OutputError, RoadsurfError
 from roadsurf.io.runfolder import RECORDING_RRD
 from roadsurf.viewer.blueprint import layout_for
 from roadsurf.viewer.config import ViewerConfig
@@ -81,17 +82,30 @@ def save_rrd(
 ) -> ViewResult:
     """Write the run's recording (with its default blueprint) to ``out`` (default RUN/run.rrd).
 
-    The file is written beside its final name and renamed, so a viewer never opens half a file."""
+    The file is written beside its final name and renamed, so a viewer never opens half a file;
+    an interrupted or failed recording leaves no temporary file."""
     cfg = cfg or ViewerConfig()
     data = load_run(run_dir, drive_dir, max_raster_side_px=cfg.max_mosaic_side_px)
     out = Path(out) if out is not None else Path(run_dir) / RECORDING_RRD
-    out.parent.mkdir(parents=True, exist_ok=True)
+    if out.is_dir():
+        raise OutputError(f"{out}: is a folder; give a file name such as {out / RECORDING_RRD}")
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise output_error(e, out) from e
     tmp = out.with_name(f".{out.stem}.tmp.rrd")
-    rec = rr.RecordingStream(APP_ID)
-    rec.save(tmp, default_blueprint=layout_for(data))
-    counts = record(rec, data, cfg)
-    rec.disconnect()  # closes and finishes the file sink
-    tmp.replace(out)
+    try:
+        rec = rr.RecordingStream(APP_ID)
+        rec.save(tmp, default_blueprint=layout_for(data))
+        counts = record(rec, data, cfg)
+        rec.disconnect()  # closes and finishes the file sink
+        if not tmp.is_file():  # the file sink reports failures only in its log
+            raise OSError(f"the recording was not written to {tmp}")
+        tmp.replace(out)
+    except OSError as e:
+        raise output_error(e, out) from e
+    finally:
+        tmp.unlink(missing_ok=True)
     log.info("wrote %s (%s)", out, ", ".join(f"{k} {v}" for k, v in counts.items()))
     return ViewResult("save", out, counts, missing=data.missing)
 
@@ -170,12 +184,20 @@ def serve(
     cfg: ViewerConfig | None = None,
     wait_ready_s: float = 30.0,
     record: bool = True,
+    overwrite: bool = False,
 ) -> ViewResult:
     """Record the run to ``rrd`` (default RUN/run.rrd) and serve it with the Rerun web viewer
     bound to 127.0.0.1 only. Returns with the server running (``result.server``); the caller
-    stops it (``terminate()``). ``record=False`` serves an existing ``rrd`` unchanged."""
-    if record or rrd is None or not Path(rrd).exists():
-        res = save_rrd(run_dir, rrd, drive_dir=drive_dir, cfg=cfg)
+    stops it (``terminate()``). ``record=False`` serves an existing ``rrd`` unchanged. An
+    existing recording is never replaced unless ``overwrite`` (OutputError)."""
+    target = Path(rrd) if rrd is not None else Path(run_dir) / RECORDING_RRD
+    if record and target.exists() and not overwrite:
+        raise OutputError(
+            f"{target}: a recording already exists; add --overwrite to record the run again "
+            "into it, or --save OTHER.rrd to record elsewhere"
+        )
+    if record or not target.exists():
+        res = save_rrd(run_dir, target, drive_dir=drive_dir, cfg=cfg)
     else:  # serve an existing recording as it is
         res = ViewResult("serve", Path(rrd), {})
     web_port = web_port or free_port()
@@ -197,24 +219,36 @@ def serve(
     # own process group: `python -m rerun` runs the viewer binary as a child, and stopping
     # must reach that child too
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=errlog, start_new_session=True)
+    try:
+        _wait_ready(proc, errlog, web_port, grpc_port, wait_ready_s)
+    except BaseException:  # also Ctrl-C / SIGTERM while it starts: never leave it running
+        stop_server(proc)
+        raise
+    url = viewer_url(web_port, grpc_port)
+    log.info("web viewer at %s", url)
+    return ViewResult("serve", res.rrd, res.counts, url=url, missing=res.missing, server=proc)
+
+
+def _wait_ready(
+    proc: subprocess.Popen[bytes],
+    errlog: IO[bytes],
+    web_port: int,
+    grpc_port: int,
+    wait_ready_s: float,
+) -> None:
     deadline = time.monotonic() + wait_ready_s
     while time.monotonic() < deadline:
         if proc.poll() is not None:
             errlog.seek(0)
-            err = errlog.read().decode(errors="replace")
+            err = " ".join(errlog.read().decode(errors="replace").split())  # one line
             raise RoadsurfError(
                 f"the Rerun web viewer server exited (code {proc.returncode}); ports "
                 f"{web_port}/{grpc_port} may be taken (use --web-port/--grpc-port). {err[-500:]}"
             )
         if _port_open(web_port) and _port_open(grpc_port):
-            break
+            return
         time.sleep(0.2)
-    else:
-        stop_server(proc)
-        raise RoadsurfError(f"the Rerun web viewer did not start within {wait_ready_s:.0f} s")
-    url = viewer_url(web_port, grpc_port)
-    log.info("web viewer at %s", url)
-    return ViewResult("serve", res.rrd, res.counts, url=url, missing=res.missing, server=proc)
+    raise RoadsurfError(f"the Rerun web viewer did not start within {wait_ready_s:.0f} s")
 
 
 def _port_open(port: int) -> bool:
@@ -244,10 +278,14 @@ def view(
     screenshot_png: str | Path | None = None,
     screenshot_wait_s: float = 45.0,  # after the app started, for data to stream in
     on_ready: Callable[[str], None] | None = None,
+    overwrite: bool = False,
 ) -> ViewResult:
     """`roadsurf view`: ``save`` writes an .rrd (headless); ``serve_web`` serves the web viewer on
     127.0.0.1 until interrupted (or, with ``screenshot_png``, takes a headless-Chromium
-    screenshot of it and stops); neither spawns the native viewer."""
+    screenshot of it and stops); neither spawns the native viewer. ``serve_web`` refuses to
+    replace an existing recording unless ``overwrite``. The server (and its viewer process
+    group) is stopped however this returns or raises (Ctrl-C, SIGTERM turned into an
+    exception by the CLI)."""
     cfg = load_viewer_config(config_path)
     if not serve_web:
         if screenshot_png is not None:
@@ -256,7 +294,13 @@ def view(
             return save_rrd(run_dir, save, drive_dir=drive_dir, cfg=cfg)
         return spawn_viewer(run_dir, drive_dir=drive_dir, cfg=cfg)
     res = serve(
-        run_dir, rrd=save, drive_dir=drive_dir, web_port=web_port, grpc_port=grpc_port, cfg=cfg
+        run_dir,
+        rrd=save,
+        drive_dir=drive_dir,
+        web_port=web_port,
+        grpc_port=grpc_port,
+        cfg=cfg,
+        overwrite=overwrite,
     )
     if res.server is None or res.url is None:  # serve() always sets both
         raise RoadsurfError("internal: the web viewer server did not report its URL")

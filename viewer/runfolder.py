@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from roadsurf.core.atomic import read_json
-from roadsurf.core.errors import RoadsurfError
+from roadsurf.core.errors import InputError, RoadsurfError
 from roadsurf.core.geometry import EnuReference, enu_from_lla, lla_from_utm
 from roadsurf.detection.types import Defect
 from roadsurf.io.formats import GridSpec, read_csv, read_ply, validate_geojson
@@ -99,7 +99,26 @@ def _read_optional_json(path: Path, missing: list[str]) -> Any | None:
     if not path.exists():
         missing.append(path.name)
         return None
-    return read_json(path)
+    return _read_run_json(path)
+
+
+def _read_run_json(path: Path) -> dict[str, Any]:
+    """A JSON object the run wrote; a truncated or edited file is an ``InputError`` (one line)
+    that says how to rewrite it."""
+    try:
+        obj = read_json(path)
+    except (ValueError, UnicodeDecodeError) as e:  # JSONDecodeError is a ValueError
+        why = f"not valid JSON ({e})"
+    except OSError as e:
+        why = f"unreadable ({e.strerror or e})"
+    else:
+        if isinstance(obj, dict):
+            return obj
+        why = f"holds a JSON {type(obj).__name__}, not an object"
+    raise InputError(
+        f"{path}: {why}; it was cut short or edited. Run `roadsurf run DRIVE --out "
+        f"{path.parent}` again (it resumes and rewrites it)."
+    )
 
 
 def _load_trajectory(run: RunFolder, missing: list[str]) -> Trajectory | None:
@@ -125,7 +144,7 @@ def _reference_crs(run: RunFolder) -> str | None:
     p = run.path(REFERENCE_JSON)
     if not p.exists():
         return None
-    ref = read_json(p).get("reference") or {}
+    ref = _read_run_json(p).get("reference") or {}
     return ref.get("crs")
 
 
@@ -191,7 +210,7 @@ def _load_defects(
     if not path.exists():
         missing.append(DEFECTS_GEOJSON)
         return []
-    fc = read_json(path)
+    fc = _read_run_json(path)
     georef = bool((fc.get("properties") or {}).get("georeferenced", True))
     if georef:
         validate_geojson(fc)  # lon/lat; without GPS detection writes local ENU metres instead

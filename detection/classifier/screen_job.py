@@ -14,6 +14,11 @@ logs and shows its progress bar on the shared stderr, and writes
 names. ``ScreeningJob.result`` raises an error as the same exception class (a corrupt model
 file stays a ``ModelFileError``). The probabilities are those of ``screen_frames`` in-process
 (same code; test).
+
+No worker outlives its run: the parent kills it when the run stops (``close``, reached on
+SIGTERM too, which the CLI turns into an exception), and the worker watches its parent and exits,
+removing the job's temporary folder, when the parent is gone (``kill -9``). The folder is named
+``roadsurf-screen-<parent pid>-*``, so the next job removes folders whose parent died.
 """
 
 from __future__ import annotations
@@ -21,9 +26,12 @@ from __future__ import annotations
 import json
 import logging
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
+import threading
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -44,6 +52,36 @@ _ERRORS: dict[str, type[RoadsurfError]] = {
     if isinstance(c, type) and issubclass(c, RoadsurfError)
 }
 _LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
+TMP_PREFIX = "roadsurf-screen-"  # + "<parent pid>-<random>", in the system temporary folder
+_WATCH_PARENT_S = 0.2  # how often the worker checks that its parent still runs
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    except OSError:  # no such signal support (not POSIX): assume alive, keep the folder
+        return True
+    return True
+
+
+def remove_stale_folders(tmp_root: str | Path | None = None) -> list[Path]:
+    """Remove the temporary folders of screening jobs whose parent process is gone (a run
+    killed with ``kill -9`` while its worker was starting); returns them."""
+    root = Path(tmp_root if tmp_root is not None else tempfile.gettempdir())
+    gone = []
+    for d in root.glob(f"{TMP_PREFIX}*"):
+        pid = d.name[len(TMP_PREFIX) :].split("-", 1)[0]
+        if d.is_dir() and pid.isdigit() and not _pid_alive(int(pid)):
+            shutil.rmtree(d, ignore_errors=True)
+            if not d.exists():
+                gone.append(d)
+    for d in gone:
+        log.info("removed %s, left by a stopped run", d)
+    return gone
 
 
 class ScreeningJob:
@@ -59,13 +97,15 @@ class ScreeningJob:
     ) -> None:
         cfg = cfg or ClassifierConfig()
         self.model_path = Path(model_path)
-        self._tmp = tempfile.TemporaryDirectory(prefix="roadsurf-screen-")
+        remove_stale_folders()
+        self._tmp = tempfile.TemporaryDirectory(prefix=f"{TMP_PREFIX}{os.getpid()}-")
         self._out = Path(self._tmp.name) / "result.json"
         header = {
             "model": str(self.model_path),
             "config": to_dict(cfg),
             "progress": bool(progress),
             "log_level": logging.getLogger().getEffectiveLevel(),
+            "parent_pid": os.getpid(),
         }
         # the worker imports this very checkout, whatever the current directory or sys.path
         root = str(Path(__file__).resolve().parents[2])
@@ -120,12 +160,17 @@ class ScreeningJob:
             "in the run config to screen in the pipeline's own process."
         )
 
+    @property
+    def pid(self) -> int | None:
+        """The worker's process id while it is not waited for (None after result/close)."""
+        return None if self._proc is None else self._proc.pid
+
     def close(self) -> None:
         """Kill the worker if it still runs, and remove its files."""
-        if self._proc is not None and self._proc.poll() is None:
-            self._proc.kill()
-            self._proc.wait()
-        self._proc = None
+        proc, self._proc = self._proc, None
+        if proc is not None and proc.poll() is None:
+            proc.kill()
+            proc.wait()
         self._tmp.cleanup()
 
     def __enter__(self) -> ScreeningJob:
@@ -157,6 +202,19 @@ def _work(out: Path, header: dict[str, Any]) -> int:
     return 0
 
 
+def _parent_gone(parent_pid: int | None) -> bool:
+    return parent_pid is not None and os.getppid() != parent_pid
+
+
+def _watch_parent(parent_pid: int, folder: Path) -> None:
+    """Exit, removing the job's folder, as soon as the parent process is gone (killed with
+    ``kill -9``, or ended without closing the job): the worker is reparented then."""
+    while not _parent_gone(parent_pid):
+        time.sleep(_WATCH_PARENT_S)
+    shutil.rmtree(folder, ignore_errors=True)
+    os._exit(143)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Worker entry point: ``python -m roadsurf.detection.classifier.screen_job RESULT_JSON
     HEADER_JSON``, then the frames on stdin."""
@@ -170,10 +228,20 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(
         level=int(header.get("log_level", logging.INFO)), format=_LOG_FORMAT, datefmt="%H:%M:%S"
     )
+    out = Path(args[0])
+    parent = header.get("parent_pid")
+    parent_pid = int(parent) if parent is not None else None
+    if parent_pid is not None:
+        threading.Thread(
+            target=_watch_parent, args=(parent_pid, out.parent), name="watch-parent", daemon=True
+        ).start()
     try:
-        return _work(Path(args[0]), header)
+        return _work(out, header)
     except KeyboardInterrupt:  # Ctrl-C reaches the whole process group; the parent reports it
         return 130
+    finally:
+        if _parent_gone(parent_pid):  # nobody will read the result: leave nothing behind
+            shutil.rmtree(out.parent, ignore_errors=True)
 
 
 if __name__ == "__main__":

@@ -24,9 +24,9 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
-from roadsurf.core.atomic import atomic_path, write_json_atomic
+from roadsurf.core.atomic import atomic_path, output_error, write_json_atomic
 from roadsurf.core.config import to_dict
-from roadsurf.core.errors import RoadsurfError
+from roadsurf.core.errors import ModelFileError, RoadsurfError
 from roadsurf.core.fingerprint import Fingerprint
 from roadsurf.detection.classifier import augment
 from roadsurf.detection.classifier.calibration import calibrate_model, training_priors
@@ -227,7 +227,10 @@ def train(
     """Train on ``dataset_dir`` into the model folder ``out``; returns the metadata written."""
     cfg = cfg or ClassifierConfig()
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:  # a file in the way, a read-only folder
+        raise output_error(e, out) from e
     if cfg.num_threads > 0:
         torch.set_num_threads(cfg.num_threads)
     device = pick_device(cfg.device)
@@ -260,14 +263,17 @@ def train(
     start_epoch = 0
     ckpt_path = out / CHECKPOINT_NAME
     if resume and ckpt_path.is_file():
-        ck = torch.load(ckpt_path, map_location=device, weights_only=True)
+        ck = _read_checkpoint(ckpt_path, device)
         if ck.get("fingerprint") == fp:
-            net.load_state_dict(ck["model"])
-            optim.load_state_dict(ck["optim"])
-            sched.load_state_dict(ck["sched"])
-            history = list(ck["history"])
-            best = dict(ck["best"])
-            start_epoch = int(ck["epoch"])
+            try:
+                net.load_state_dict(ck["model"])
+                optim.load_state_dict(ck["optim"])
+                sched.load_state_dict(ck["sched"])
+                history = list(ck["history"])
+                best = dict(ck["best"])
+                start_epoch = int(ck["epoch"])
+            except (KeyError, TypeError, ValueError, RuntimeError) as e:
+                raise _bad_checkpoint(ckpt_path, e) from e
             log.info("resuming %s at epoch %d of %d", ckpt_path, start_epoch, cfg.epochs)
         else:
             log.warning("%s belongs to other data or settings; training from scratch", ckpt_path)
@@ -340,6 +346,26 @@ def train(
     meta["train_time_s"] = round(time.perf_counter() - t0, 2)  # this invocation only
     write_json_atomic(out / "model.json", meta)
     return meta
+
+
+def _read_checkpoint(path: Path, device: torch.device) -> dict[str, Any]:
+    """The training state saved after an epoch; ``ModelFileError`` when it is unreadable."""
+    try:
+        ck = torch.load(path, map_location=device, weights_only=True)
+    except Exception as e:  # noqa: BLE001 - whatever fails to unpickle, the file is bad
+        raise _bad_checkpoint(path, e) from e
+    if not isinstance(ck, dict):
+        raise _bad_checkpoint(path, TypeError(f"it holds a {type(ck).__name__}"))
+    return ck
+
+
+def _bad_checkpoint(path: Path, e: BaseException) -> ModelFileError:
+    why = (str(e).strip().splitlines() or [type(e).__name__])[0][:200]
+    return ModelFileError(
+        f"{path}: not a readable training checkpoint ({why}); the file is corrupt or from "
+        "another version. Delete it to train from scratch, or run `roadsurf train` with "
+        "--overwrite."
+    )
 
 
 def _save(

@@ -266,6 +266,10 @@ def view(
         Path | None,
         typer.Option(help="With --serve: headless-Chromium PNG of the web viewer, then stop."),
     ] = None,
+    overwrite: Annotated[
+        bool,
+        typer.Option("--overwrite", help="With --serve: replace an existing recording."),
+    ] = False,
 ) -> None:
     """Inspect a run in Rerun: native viewer (default), --save RUN.rrd, or --serve (web)."""
     from roadsurf.viewer.api import view as view_run
@@ -280,6 +284,7 @@ def view(
         grpc_port=grpc_port,
         screenshot_png=screenshot,
         on_ready=lambda url: typer.echo(f"Web viewer: {url}  (Ctrl-C to stop)"),
+        overwrite=overwrite,
     )
     typer.echo(", ".join(f"{k}: {v}" for k, v in res.counts.items()))
     if res.rrd is not None:

@@ -16,6 +16,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from roadsurf.core.atomic import output_error
 from roadsurf.core.errors import RoadsurfError
 from roadsurf.detection.classifier.config import ClassifierConfig
 from roadsurf.detection.classifier.dataset import drive_key, label_run, write_dataset
@@ -62,7 +63,10 @@ def label_drives(
     """
     cfg = cfg or ClassifierConfig()
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:  # a file in the way, a read-only folder
+        raise output_error(e, out) from e
     drive_dirs = [Path(d) for d in drives]
     if runs is not None and len(runs) != len(drive_dirs):
         raise RoadsurfError(
