@@ -41,6 +41,7 @@ FRAME_LABELS_CSV = "frames.csv"  # per-frame labels (not the drive's frames.csv)
 DETECTION_JSON = "detection.json"
 SCREENING_JSON = "screening.json"  # fused run: CNN screening per frame
 # run level
+RUN_JSON = "run.json"  # which drive the run folder belongs to (refused for another drive)
 REPORT_JSON = "report.json"
 REPORT_HTML = "report.html"
 RECORDING_RRD = "run.rrd"

@@ -333,6 +333,8 @@ def _previous_stage_timings(out: Path) -> dict[str, Any]:
         rep = read_json(out / rf.REPORT_JSON)
     except (OSError, ValueError):
         return {}
+    if not isinstance(rep, dict):
+        return {}  # not a report (damaged): this run writes a new one
     stages = rep.get("stages")
     if isinstance(stages, dict):
         return stages

@@ -26,7 +26,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-RUN_JSON = "run.json"  # the drive a run folder belongs to (to move into roadsurf.io.runfolder)
+RUN_JSON = rf.RUN_JSON
 _HASH_MAX_BYTES = 16 * 1024 * 1024  # larger top-level files are identified by size and mtime
 
 

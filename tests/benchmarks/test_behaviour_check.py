@@ -13,10 +13,14 @@ from benchmarks.behaviour_check import compare
 def _tree(root: Path, depth: float, digest: str, extra: bool = False) -> None:
     run = root / "runs" / "a"
     (run / "features").mkdir(parents=True)
-    rep = {"counts": {"pairs": 3}, "depth_m": depth, "timings_s": {"total": np.random.rand()}}
+    rep = {
+        "counts": {"pairs": 3},
+        "depth_m": depth,
+        "timings_s": {"total": np.random.default_rng().random()},
+    }
     (run / "report.json").write_text(json.dumps(rep))
     np.savez(run / "features" / f"000001_sift4000_{digest}.npz", kp=np.arange(4.0))
-    np.savez(run / "p.npz", x=np.ones(3), timings_vals=np.random.rand(2))
+    np.savez(run / "p.npz", x=np.ones(3), timings_vals=np.random.default_rng().random(2))
     if extra:
         (run / "pairs.fingerprint").write_text("abc\n")
 

@@ -85,3 +85,10 @@ def test_mount_angle_out_of_range_names_key(tmp_path: Path) -> None:
     (root / "camera.yaml").write_text(camera_yaml(mount_pitch_deg=125.0))
     with pytest.raises(DriveFormatError, match=r"mount_pitch_deg.*outside \[-90, 90\] degrees"):
         load_drive(root)
+
+
+def test_camera_height_in_cm_is_refused_with_the_metre_value(tmp_path: Path) -> None:
+    root = make_drive(tmp_path / "d")
+    (root / "camera.yaml").write_text(camera_yaml(height_m=110))
+    with pytest.raises(DriveFormatError, match=r"height_m' = 110.*1.1 m"):
+        load_drive(root)

@@ -31,6 +31,7 @@ _CAMERA_KEYS: dict[str, tuple[type, bool]] = {
     "mount_roll_deg": (float, False),
     "mount_yaw_deg": (float, False),
 }
+MAX_CAMERA_HEIGHT_M = 10.0  # above this, height_m is a unit mistake, not a vehicle mount
 _MOUNT_KEYS = ("mount_pitch_deg", "mount_roll_deg", "mount_yaw_deg")
 _MOUNT_LIMIT_DEG = {"mount_pitch_deg": 90.0, "mount_roll_deg": 45.0, "mount_yaw_deg": 45.0}
 
@@ -123,6 +124,12 @@ def load_camera(path: Path) -> Camera:
             v = float(v)
             if key in ("fx", "fy", "height_m", "fps") and v <= 0:
                 raise DriveFormatError(f"{where(key)}: camera.yaml '{key}' must be > 0, got {v!r}.")
+            if key == "height_m" and v > MAX_CAMERA_HEIGHT_M:
+                raise DriveFormatError(
+                    f"{where(key)}: camera.yaml 'height_m' = {v!r} m: a vehicle camera sits "
+                    f"at most {MAX_CAMERA_HEIGHT_M:g} m above the road. It is in metres "
+                    f"(cm typed for m? {v!r} cm = {v / 100:g} m)."
+                )
             if key in _MOUNT_LIMIT_DEG and abs(v) > _MOUNT_LIMIT_DEG[key]:
                 lim = _MOUNT_LIMIT_DEG[key]
                 raise DriveFormatError(

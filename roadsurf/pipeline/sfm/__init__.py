@@ -32,6 +32,8 @@ from roadsurf.core.atomic import write_json_atomic
 from roadsurf.core.errors import RoadsurfError
 from roadsurf.io.drive import load_drive
 from roadsurf.io.runfolder import RunFolder
+from roadsurf.mapping.config import MappingConfig
+from roadsurf.mapping.datum import vertical_datum
 from roadsurf.pipeline.sfm.colmap_run import (
     COLMAP_DATABASE,
     COLMAP_DIR,
@@ -95,7 +97,10 @@ def run(
     timings["scale_align_s"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    crs, raster, grid = write_products(out, cfg, reg, R_wc, c_w, ref, p_w, rgb, residual)
+    datum = vertical_datum(MappingConfig(), drive, georeferenced=ref is not None)
+    crs, raster, grid = write_products(
+        out, cfg, reg, R_wc, c_w, ref, p_w, rgb, residual, datum=datum
+    )
     timings["export_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_start
 

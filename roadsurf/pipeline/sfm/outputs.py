@@ -16,6 +16,7 @@ from roadsurf.core.geometry import EnuReference
 from roadsurf.io.drive import Drive, Frame
 from roadsurf.io.formats import GridSpec, write_geotiff
 from roadsurf.io.runfolder import TRAJECTORY_GEOJSON, RunFolder
+from roadsurf.mapping.datum import RESIDUAL_DATUM
 from roadsurf.mapping.export import export_xyz, write_cloud_ply, write_trajectory_geojson
 from roadsurf.mapping.rasterise import NODATA_SURFACE
 from roadsurf.mapping.types import Trajectory, save_trajectory
@@ -38,6 +39,8 @@ def write_products(
     p_w: np.ndarray,
     rgb: np.ndarray,
     residual: np.ndarray,
+    *,
+    datum: str | None = None,
 ) -> tuple[str | None, np.ndarray, GridSpec]:
     """Write poses.npz/reference.json, cloud.ply, surface.tif and trajectory.geojson.
 
@@ -60,7 +63,7 @@ def write_products(
     ef = traj.export_frame
     crs = ef.crs if ef is not None else None
     run = RunFolder(out)
-    write_cloud_ply(run.cloud_ply, p_w, rgb, residual, ef)
+    write_cloud_ply(run.cloud_ply, p_w, rgb, residual, ef, vertical_datum=datum)
     xy_out = export_xyz(p_w, ef)[:, :2]
     raster, grid = surface_raster(xy_out, residual, cfg, crs)
     write_geotiff(
@@ -69,8 +72,14 @@ def write_products(
         grid,
         nodata=NODATA_SURFACE,
         tags={"source": "roadsurf sfm-baseline", "units": "m, negative below the road"},
+        vertical_datum=RESIDUAL_DATUM,
     )
-    write_trajectory_geojson(run.path(TRAJECTORY_GEOJSON), traj, extra={"producer": "sfm-baseline"})
+    write_trajectory_geojson(
+        run.path(TRAJECTORY_GEOJSON),
+        traj,
+        extra={"producer": "sfm-baseline"},
+        vertical_datum=datum,
+    )
     return crs, raster, grid
 
 
