@@ -179,6 +179,41 @@ def sfm_baseline(
 
 # --- CNN classifier (detection/classifier) -------------------------------------------------
 @app.command()
+def calibrate(
+    images: Annotated[list[Path], typer.Argument(help="Board photographs (files or folders).")],
+    board: Annotated[
+        str,
+        typer.Option(help="checkerboard:9x6:0.025 or charuco:7x5:0.04:0.03:DICT_5X5_100 (m)."),
+    ],
+    out: Out,
+    ground: Annotated[
+        Path | None, typer.Option(help="Photograph of a board flat on the road: height, mount.")
+    ] = None,
+    ground_board: Annotated[
+        str | None, typer.Option(help="Board of --ground when it differs from --board.")
+    ] = None,
+    board_thickness: Annotated[float, typer.Option(help="Ground board thickness (m).")] = 0.0,
+    fps: Annotated[float | None, typer.Option(help="Frame rate for camera.yaml (Hz).")] = None,
+    height_m: Annotated[
+        float | None, typer.Option(help="Camera height (m) when there is no --ground.")
+    ] = None,
+    max_rms: Annotated[float, typer.Option(help="Refuse above this RMS error (px).")] = 1.0,
+    min_images: Annotated[int, typer.Option(help="Refuse with fewer usable images.")] = 5,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace camera.yaml.")] = False,
+) -> None:
+    """Calibrate a camera from board photographs and write camera.yaml (docs/reconstruction.md)."""
+    from roadsurf.reconstruction.calibration.command import calibrate_command
+
+    res = calibrate_command(
+        images, board, out, ground=ground, ground_board=ground_board,
+        board_thickness_m=board_thickness, fps=fps, height_m=height_m,
+        max_rms_px=max_rms, min_images=min_images, overwrite=overwrite,
+    )  # fmt: skip
+    for line in res.lines:
+        typer.echo(line)
+
+
+@app.command()
 def label(
     drives: Annotated[list[Path], typer.Argument(help="Drive folders to label.")],
     out: Out,

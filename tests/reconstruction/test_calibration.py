@@ -211,3 +211,31 @@ def test_board_spec_parses() -> None:
     spec = parse_board("charuco:7x5:0.04:0.03:dict_5x5_100")
     assert spec.text == "charuco:7x5:0.04:0.03:DICT_5X5_100" and spec.n_corners == 24
     assert parse_board(" checkerboard:9x6:0.025 ").object_points().shape == (54, 3)
+
+
+def test_cli_camera_yaml_with_mount_loads_as_a_drive_camera(calibrated) -> None:
+    """`roadsurf calibrate` end to end through the CLI: the camera.yaml it writes, mount
+    angles included, is accepted by the drive loader."""
+    import subprocess
+    import sys
+
+    root = calibrated[2]
+    gspec = parse_board(GROUND_BOARD)
+    ground = root / "ground.png"
+    assert ground.is_file() and gspec is not None
+    out = root / "cli_out"
+    r = subprocess.run(
+        [sys.executable, "-m", "roadsurf", "calibrate", str(root / "boards"), "--board", BOARD,
+         "--out", str(out), "--ground", str(ground), "--ground-board", GROUND_BOARD, "--fps", "15"],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    cam = load_camera(out / "camera.yaml")
+    assert cam.mount_deg is not None and cam.mount_deg[0] == pytest.approx(PITCH, abs=0.2)
+    assert cam.height_m == pytest.approx(HEIGHT, abs=0.002)
+    bad = subprocess.run(
+        [sys.executable, "-m", "roadsurf", "calibrate", str(root / "boards"), "--board", "chess",
+         "--out", str(root / "x")],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert bad.returncode == 2 and "Traceback" not in bad.stderr
