@@ -328,10 +328,10 @@ def read_yaml_mapping(path: str | Path) -> Any:
         return yaml.safe_load(text)
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None) or getattr(e, "context_mark", None)
-        line = f" line {mark.line + 1}" if mark is not None else ""
+        at = f" line {mark.line + 1}" if mark is not None else ""
         problem = getattr(e, "problem", None) or getattr(e, "context", None) or type(e).__name__
         raise ConfigError(
-            f"{path}{line}: not valid YAML ({' '.join(str(problem).split())}). Fix the syntax."
+            f"{path}{at}: not valid YAML ({' '.join(str(problem).split())}). Fix the syntax."
         ) from None
     except (ValueError, OverflowError, RecursionError) as e:  # e.g. a date like 2024-13-45
         raise ConfigError(

@@ -103,7 +103,7 @@ def reject_jumps(
         else:
             ref[i] = first
     names: list[str] = []
-    for i in np.flatnonzero(~keep):
+    for i in (int(k) for k in np.flatnonzero(~keep)):
         j = int(ref[i])
         d = float(_dist_m(lat[j : j + 1], lon[j : j + 1], lat[i : i + 1], lon[i : i + 1])[0])
         dt = abs(float(t[i] - t[j]))

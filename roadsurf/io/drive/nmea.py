@@ -179,10 +179,10 @@ def load_gps_nmea(path: Path, skipped: list[Skipped], warnings: list[str]) -> Gp
             n_bad += 1
             skipped.append(Skipped(path.name, line_no, f"NMEA {kind} dropped: {e}"))
             continue
-        why = valid_latlon(rec["lat"], rec["lon"])
-        if why is not None:
+        bad_ll = valid_latlon(rec["lat"], rec["lon"])
+        if bad_ll is not None:
             n_bad += 1
-            skipped.append(Skipped(path.name, line_no, f"NMEA {kind} dropped: {why}"))
+            skipped.append(Skipped(path.name, line_no, f"NMEA {kind} dropped: {bad_ll}"))
             continue
         if date is not None:
             day0 = float(calendar.timegm(date.timetuple()))
