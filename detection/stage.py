@@ -52,6 +52,7 @@ from roadsurf.detection.types import Defect, DetectionResult
 from roadsurf.detection.windows import PointsSource, segment_windows
 from roadsurf.io.drive import Drive
 from roadsurf.io.runfolder import RunFolder
+from roadsurf.mapping.raster import bounded_block_cache
 from roadsurf.mapping.types import Trajectory
 from roadsurf.reconstruction.types import PairResult
 
@@ -87,6 +88,21 @@ def run(
         if cached is not None:
             log.info("detection: outputs in %s are up to date, skipping", run_dir)
             return cached
+    with bounded_block_cache():  # surface.tif is read window by window: memory stays flat
+        return _detect(cfg, drive, pairs, traj, run_dir, sig, frame_probs, fusion)
+
+
+def _detect(
+    cfg: DetectionConfig,
+    drive: Drive,
+    pairs: list[PairResult],
+    traj: Trajectory,
+    run_dir: Path,
+    sig: str,
+    frame_probs: dict[str, float] | None,
+    fusion: FusionRule | None,
+) -> DetectionResult:
+    """``run`` after the resume check: steps 1-3 and the output files."""
 
     # ---- 1. per pair
     steps_s: dict[str, float] = {}  # wall time of the main steps, logged (docs/benchmarks.md)

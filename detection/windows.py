@@ -247,7 +247,9 @@ def merge_regions(regions: list[Region], width: int, ev_pair: np.ndarray) -> lis
     order = np.argsort(keys, kind="stable")
     uk, first = np.unique(keys[order], return_index=True)
     first_owner = owner[order][first]
-    src, dst = [owner], [first_owner[np.searchsorted(uk, keys)]]
+    # Links as unique region pairs (a * n_reg + b), not one per touching cell: the components
+    # are the same, and memory stays with the regions, not 9x their cells (issue 31 #10).
+    links = [_region_links(owner, first_owner[np.searchsorted(uk, keys)], n_reg)]
     for dr in (-1, 0, 1):
         for dc in (-1, 0, 1):
             if dr == 0 and dc == 0:
@@ -255,9 +257,9 @@ def merge_regions(regions: list[Region], width: int, ev_pair: np.ndarray) -> lis
             nk = keys + dr * width + dc
             pos = np.minimum(np.searchsorted(uk, nk), len(uk) - 1)
             hit = uk[pos] == nk
-            src.append(owner[hit])
-            dst.append(first_owner[pos[hit]])
-    a, b = np.concatenate(src), np.concatenate(dst)
+            links.append(_region_links(owner[hit], first_owner[pos[hit]], n_reg))
+    link = np.unique(np.concatenate(links))
+    a, b = link // n_reg, link % n_reg
     g = coo_matrix((np.ones(len(a)), (a, b)), shape=(n_reg, n_reg))
     comp = connected_components(g, directed=False)[1]
     groups: dict[int, list[int]] = {}
@@ -290,3 +292,9 @@ def merge_regions(regions: list[Region], width: int, ev_pair: np.ndarray) -> lis
         reg.seed_m = float(np.median([p.seed_m for p in parts]))
         out.append(reg)
     return out
+
+
+def _region_links(src: np.ndarray, dst: np.ndarray, n_reg: int) -> np.ndarray:
+    """Unique links between different regions, encoded ``src * n_reg + dst`` (int64)."""
+    other = src != dst
+    return np.unique(src[other].astype(np.int64) * n_reg + dst[other])

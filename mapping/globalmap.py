@@ -41,6 +41,7 @@ from roadsurf.mapping.cloud import align_patches, collect_points, voxel_fuse
 from roadsurf.mapping.config import NOT_IN_FINGERPRINT, MappingConfig
 from roadsurf.mapping.datum import vertical_datum
 from roadsurf.mapping.export import write_cloud_ply
+from roadsurf.mapping.raster import bounded_block_cache
 from roadsurf.mapping.rasterise import rasterise
 from roadsurf.mapping.surface import LocalSurface
 from roadsurf.mapping.types import MapProducts, Trajectory
@@ -179,7 +180,8 @@ def build_map(
         for p in pairs
         if p.ok and p.n_points > 0 and p.frame_a in pose_of and p.frame_b in pose_of
     ]
-    rasterise(cfg, drive, traj, surf, xyz, resid, prod, frames_by_index, pair_frames)
+    with bounded_block_cache():  # memory flat in the drive's length
+        rasterise(cfg, drive, traj, surf, xyz, resid, prod, frames_by_index, pair_frames)
     prod.timings_s["rasters"] = round(time.perf_counter() - t3, 3)
     prod.timings_s["total"] = round(time.perf_counter() - t0, 3)
     return prod

@@ -392,3 +392,18 @@ def iter_tiles(
             with rasterio.open(full) as src:
                 arr = src.read(window=Window(t["col"] * tp, t["row"] * tp, tp, tp))
         yield grid, (arr[0] if arr.shape[0] == 1 else np.moveaxis(arr, 0, 2))
+
+
+# GDAL's block cache defaults to 5 % of the machine's RAM and keeps every block written to an
+# open raster (dirty until close) or read from it: with surface.tif/mosaic.tif open for the
+# whole drive it grew with the drive's length (issue 31 #10). A fixed cap keeps memory flat;
+# blocks are flushed earlier, the files are the same bytes.
+GDAL_CACHE_BYTES = 64 * 2**20
+
+
+def bounded_block_cache() -> contextlib.AbstractContextManager[object]:
+    """``with bounded_block_cache(): ...``: GDAL's block cache capped at ``GDAL_CACHE_BYTES``
+    inside (the previous setting comes back after)."""
+    import rasterio
+
+    return rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_BYTES)

@@ -133,3 +133,44 @@ def test_refined_masks_are_written_per_frame(tmp_path):
     # The pothole is seen in frames 2 and 3 (as in test_stage); the lane marking never counts.
     assert area["000002"] > 0 and area["000003"] > 0
     assert area["000000"] == 0 and area["000001"] == 0
+
+
+def _striped_regions(n_reg: int, side: int) -> list[Region]:
+    """``n_reg`` square regions of side x side cells in a row, each touching the next."""
+    out = []
+    rr, cc = np.mgrid[0:side, 0:side]
+    for i in range(n_reg):
+        r = Region(
+            rows=rr.ravel().astype(np.int64),
+            cols=(cc.ravel() + i * side).astype(np.int64),
+            depth_m=np.ones(side * side),
+            depth_smooth_m=np.ones(side * side),
+        )
+        r.support_idx = np.array([i])
+        r.noise_m, r.seed_m = 0.001, 0.008
+        out.append(r)
+    return out
+
+
+def test_merge_regions_memory_stays_with_the_regions_not_9x_their_cells():
+    """Issue 31 #10: merging linked the regions with one graph edge per touching cell and
+    neighbour (9 x the cells, about 100 MB traced for 250k cells). Links are now unique
+    region pairs: the traced peak is a small multiple of the cells' own keys."""
+    import tracemalloc
+
+    regions = _striped_regions(200, 32)  # 204,800 cells, one chain
+    n_cells = sum(len(r.rows) for r in regions)
+    ev_pair = np.arange(200)
+    tracemalloc.start()
+    try:
+        tracemalloc.reset_peak()
+        base = tracemalloc.get_traced_memory()[0]
+        out = merge_regions(regions, 200 * 32, ev_pair)
+        peak = tracemalloc.get_traced_memory()[1] - base
+    finally:
+        tracemalloc.stop()
+    assert len(out) == 1 and len(out[0].rows) == n_cells
+    assert out[0].support_pairs == set(range(200))
+    # the merged region's own arrays (rows, cols, depths: 32 B/cell) and the int64 keys with
+    # their sort are needed (about 110 B/cell); the old edge lists took about 590 B/cell
+    assert peak < 160 * n_cells, f"merge_regions traced peak {peak / 2**20:.0f} MB"

@@ -259,3 +259,40 @@ def test_consecutive_overlap_and_its_warning() -> None:
     check_frame_overlap(MappingConfig(), fast, prod)
     assert prod.frame_overlap["median"] == pytest.approx(0.3)
     assert len(prod.warnings) == 1 and "overlap by only 30%" in prod.warnings[0]
+
+
+def test_rasters_and_detection_run_under_a_bounded_gdal_block_cache(
+    mapped, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Issue 31 #10: GDAL's block cache (5 % of RAM by default) kept every block written to the
+    open surface.tif/mosaic.tif, and read from surface.tif by detection, so memory grew with the
+    drive's length. Both stages now run with the cache capped."""
+    import dataclasses
+
+    from rasterio.env import getenv
+
+    from roadsurf.detection import stage as detection_stage
+    from roadsurf.detection.config import DetectionConfig
+    from roadsurf.mapping.raster import GDAL_CACHE_BYTES
+
+    run, syn, _ = mapped
+    seen: dict[str, object] = {}
+
+    def spy(name: str, fn):
+        def wrapped(*a, **k):
+            try:
+                seen[name] = getenv().get("GDAL_CACHEMAX")
+            except Exception:  # noqa: BLE001 - no rasterio environment at all
+                seen[name] = None
+            return fn(*a, **k)
+
+        return wrapped
+
+    monkeypatch.setattr(globalmap, "rasterise", spy("globalmap", globalmap.rasterise))
+    monkeypatch.setattr(
+        detection_stage, "segment_windows", spy("detection", detection_stage.segment_windows)
+    )
+    traj = poses.run(CFG, syn.drive, syn.pairs, run)
+    globalmap.run(dataclasses.replace(CFG, overwrite=True), syn.drive, syn.pairs, traj, run)
+    detection_stage.run(DetectionConfig(overwrite=True), syn.drive, syn.pairs, traj, run)
+    assert seen == {"globalmap": GDAL_CACHE_BYTES, "detection": GDAL_CACHE_BYTES}
