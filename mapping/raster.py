@@ -18,7 +18,7 @@ from xml.sax.saxutils import escape
 
 import numpy as np
 
-from roadsurf.core.atomic import atomic_path, write_text_atomic
+from roadsurf.core.atomic import atomic_path, library_write_error, write_text_atomic
 from roadsurf.core.geometry import EnuReference, ExportFrame, enu_from_lla, lla_from_utm
 from roadsurf.io import runfolder as rf
 from roadsurf.io.formats import LOCAL_CRS, GridSpec, geotiff_profile
@@ -280,7 +280,16 @@ class TiledWriter:
                 self._full.update_tags(**self.tags)
 
     def write(self, r: int, c: int, data: np.ndarray) -> None:
-        """data: (H, W) or (H, W, C) for tile (r, c)."""
+        """data: (H, W) or (H, W, C) for tile (r, c). A failed write (disk full) is a one-line
+        OutputError."""
+        from rasterio.errors import RasterioError
+
+        try:
+            self._write(r, c, data)
+        except RasterioError as e:
+            raise library_write_error(e, self.run_dir / f"{self.name}.tif") from e
+
+    def _write(self, r: int, c: int, data: np.ndarray) -> None:
         import rasterio
         from rasterio.windows import Window
 
@@ -301,7 +310,12 @@ class TiledWriter:
             self.tile_files.append((r, c, rel))
 
     def close(self) -> None:
-        self._stack.close()
+        from rasterio.errors import RasterioError
+
+        try:
+            self._stack.close()
+        except RasterioError as e:
+            raise library_write_error(e, self.run_dir / f"{self.name}.tif") from e
         if self.write_tiles:
             write_vrt(
                 self.run_dir / f"{self.name}.vrt",

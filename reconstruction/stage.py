@@ -24,7 +24,7 @@ from tqdm import tqdm
 
 from roadsurf.core.atomic import write_text_atomic
 from roadsurf.core.camera import Camera
-from roadsurf.core.errors import FrameReadError
+from roadsurf.core.errors import FrameReadError, OutputError
 from roadsurf.core.fingerprint import Fingerprint
 from roadsurf.io.drive import Drive, Frame, read_gray
 from roadsurf.io.runfolder import RunFolder, feature_filename, fingerprint_path, read_fingerprint
@@ -215,6 +215,8 @@ def _one_pair(
     except FrameReadError as e:
         res = PairResult(a.filename, b.filename, a.index, b.index, cfg.method, "unreadable_frame")
         res.reason = str(e)
+    except OutputError:
+        raise  # disk full / unwritable output: the run stops with its one-line error
     except Exception as e:  # noqa: BLE001 - a pair must never stop the drive run
         log.exception("pair %s -> %s failed unexpectedly", a.filename, b.filename)
         res = PairResult(a.filename, b.filename, a.index, b.index, cfg.method, "geometry_failed")

@@ -55,6 +55,18 @@ def output_error(
     return OutputError(f"{path}: cannot write ({e.strerror or e}). Check the output folder.")
 
 
+def library_write_error(e: Exception, path: str | os.PathLike[str]) -> OutputError:
+    """A one-line error for a write that failed inside a library (GDAL says only "Write
+    failed"): disk full when the folder has almost no space left, else the library's words."""
+    path = Path(path)
+    folder = next((p for p in [path.parent, *path.parents] if p.exists()), Path("."))
+    if shutil.disk_usage(folder).free < 64 * 2**20:
+        return output_error(OSError(errno.ENOSPC, "No space left on device"), path)
+    return OutputError(
+        f"{path}: cannot write ({' '.join(str(e).split())}). Check the output folder."
+    )
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike[str], *, allow_empty: bool = False) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; rename it onto ``path`` if the block succeeds.
