@@ -359,6 +359,19 @@ def _on_sigterm(signum: int, _frame: object) -> None:
     raise _Terminated(signum)
 
 
+def _caused_by_interrupt(e: BaseException) -> bool:
+    """An error raised while a signal unwound the stack (e.g. a half-written zip file that
+    refuses to close) is part of the interruption, not a bug: its context chain holds it."""
+    seen: set[int] = set()
+    cur: BaseException | None = e
+    while cur is not None and id(cur) not in seen:
+        if isinstance(cur, (KeyboardInterrupt, _Terminated)):
+            return True
+        seen.add(id(cur))
+        cur = cur.__context__
+    return False
+
+
 def main() -> None:
     signal.signal(signal.SIGTERM, _on_sigterm)
     try:
@@ -368,8 +381,8 @@ def main() -> None:
             raise
         typer.echo(f"error: {e}", err=True)
         sys.exit(2)
-    except (KeyboardInterrupt, _Terminated):
-        if _DEBUG["on"]:
+    except BaseException as e:
+        if _DEBUG["on"] or not _caused_by_interrupt(e):
             raise
         typer.echo(
             "stopped: interrupted. Finished work is kept; run the same command again to resume.",

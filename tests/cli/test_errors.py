@@ -42,3 +42,19 @@ def test_out_that_is_a_file_is_one_line(tmp_path: Path) -> None:
     f.write_text("x")
     r = _cli("run", str(SAMPLE), "--out", str(f))
     assert r.returncode == 2 and "existing file" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_an_error_raised_while_a_signal_unwinds_counts_as_the_interruption() -> None:
+    """SIGTERM inside np.savez: the zip file then refuses to close (ValueError) while the
+    signal's exception unwinds; that is the stop, not a bug to show as a traceback."""
+    from roadsurf.cli.main import _caused_by_interrupt, _Terminated
+
+    try:
+        try:
+            raise _Terminated(15)
+        except BaseException:
+            raise ValueError("Can't close the ZIP file") from None
+    except ValueError as e:
+        assert _caused_by_interrupt(e)  # `from None` hides the cause, not the context
+    assert not _caused_by_interrupt(ValueError("a real bug"))
+    assert not _caused_by_interrupt(SystemExit(1))
