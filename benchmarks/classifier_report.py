@@ -3,10 +3,7 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 from typing import Any
-
-from roadsurf.core.atomic import read_json, write_text_atomic
 
 
 def _pct(v: Any) -> str:
@@ -87,10 +84,3 @@ def to_markdown(res: dict[str, Any]) -> str:
         f"{json.dumps({k: v for k, v in (mm['val_metrics'] or {}).items() if k.startswith('val_') and k[4:] in ('accuracy', 'precision', 'recall')})}"
     )
     return "\n".join(lines) + "\n"
-
-
-def rewrite_markdown(work: str | Path) -> str:
-    """Re-render work/results.md from work/results.json (after a format change)."""
-    md = to_markdown(read_json(Path(work) / "results.json"))
-    write_text_atomic(Path(work) / "results.md", md)
-    return md
