@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from roadsurf.core.geometry import rotation_from_euler_xyz
+from roadsurf.core.geometry import mount_angles_deg, vehicle_from_cam_rotation
 from roadsurf.reconstruction.calibration.board import BoardSpec
 from roadsurf.reconstruction.calibration.detect import detect_board
 from roadsurf.reconstruction.calibration.errors import CalibrationError
@@ -40,21 +40,8 @@ class Mount:
     n_corners: int
 
 
-def rotation_vehicle_from_cam(pitch_deg: float, roll_deg: float, yaw_deg: float) -> np.ndarray:
-    """(3, 3) R_vehicle_from_cam = Rz(yaw) Ry(roll) Rx(pitch) from mount angles (degrees)."""
-    return rotation_from_euler_xyz(
-        math.radians(pitch_deg), math.radians(roll_deg), math.radians(yaw_deg)
-    )
-
-
-def mount_angles_deg(R_vehicle_from_cam: np.ndarray) -> tuple[float, float, float]:
-    """(pitch, roll, yaw) degrees of a (3, 3) R_vehicle_from_cam (inverse of
-    ``rotation_vehicle_from_cam``; roll within ±90°)."""
-    R = np.asarray(R_vehicle_from_cam, float)
-    pitch = math.atan2(R[2, 1], R[2, 2])
-    roll = math.asin(max(-1.0, min(1.0, -R[2, 0])))
-    yaw = math.atan2(R[1, 0], R[0, 0])
-    return math.degrees(pitch), math.degrees(roll), math.degrees(yaw)
+# one convention, one place: the mount rotation lives in core.geometry
+rotation_vehicle_from_cam = vehicle_from_cam_rotation
 
 
 def _quarter_turn(k: int) -> np.ndarray:

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from roadsurf.core.geometry import check_shape
+from roadsurf.core.geometry import check_shape, vehicle_from_cam_rotation
 
 # cv2.undistortPoints stopping rule of the simulator (renders): 30 iterations or 1e-9. The
 # pipeline uses OpenCV's default (5 iterations), which is finer than the features' noise.
@@ -38,9 +38,17 @@ class Camera:
     fps: float  # frame rate (Hz)
     dist: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)  # k1,k2,p1,p2,k3
     model: str = "pinhole"
-    # mount angles from `roadsurf calibrate --ground` (deg): pitch forward from nadir, roll,
-    # yaw (convention in roadsurf.reconstruction.calibration.mount); None when not measured
+    # mount angles (deg): pitch forward from nadir, roll, yaw (core.geometry
+    # .vehicle_from_cam_rotation); from camera.yaml / `roadsurf calibrate --ground`, or
+    # estimated from the drive's road normals; None = not known (nadir assumed)
     mount_deg: tuple[float, float, float] | None = None
+
+    @property
+    def vehicle_from_cam(self) -> np.ndarray:
+        """(3, 3) R_vehicle_from_cam of the mount; identity (the nadir camera) when unknown."""
+        if self.mount_deg is None:
+            return np.eye(3)
+        return vehicle_from_cam_rotation(*self.mount_deg)
 
     @property
     def K(self) -> np.ndarray:
@@ -57,8 +65,23 @@ class Camera:
         return np.asarray(self.dist, float)
 
     def ground_px_m(self) -> float:
-        """Nominal ground sample distance at the image centre of a nadir camera, h / fx (m/px)."""
-        return self.height_m / self.fx
+        """Nominal ground sample distance at the image centre (m/px): h / fx for a nadir camera,
+        larger for a tilted mount (``ground_px_m_at``)."""
+        if self.mount_deg is None or not any(self.mount_deg):
+            return self.height_m / self.fx
+        return float(self.ground_px_m_at(np.array([[self.cx, self.cy]]))[0])
+
+    def ground_px_m_at(self, px_ideal: np.ndarray) -> np.ndarray:
+        """(N,) ground sample distance (m/px, square root of a pixel's area on the road) at
+        ideal pixels (N, 2), for a level vehicle over a flat road at ``height_m``; NaN where
+        the ray misses the road. Area = t² / (fx fy d_z), with t the ray's z-depth and d_z the
+        vehicle-down component of the ray (x/z, y/z, 1)."""
+        px = check_shape("px_ideal", np.asarray(px_ideal, float), (None, 2))
+        d = np.column_stack([self.normalised_from_px(px), np.ones(len(px))])
+        dz = d @ self.vehicle_from_cam[2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = np.where(dz > 1e-9, self.height_m / dz, np.nan)
+            return t / np.sqrt(self.fx * self.fy * dz)
 
     # ------------------------------------------------------------------ (un)projection
     def normalised_from_px(self, px_ideal: np.ndarray) -> np.ndarray:

@@ -170,6 +170,52 @@ def rotation_from_euler_xyz(rx_rad: float, ry_rad: float, rz_rad: float) -> np.n
     return rz @ ry @ rx
 
 
+def vehicle_from_cam_rotation(pitch_deg: float, roll_deg: float, yaw_deg: float) -> np.ndarray:
+    """(3, 3) R_vehicle_from_cam = Rz(yaw) Ry(roll) Rx(pitch) from mount angles (degrees).
+
+    Vehicle frame = that of a nadir camera: x to the vehicle's right, y backward, z down into
+    the road. pitch > 0 tilts the optical axis forward from nadir, roll > 0 tilts it to the
+    right, yaw > 0 turns it clockwise seen from above; all zero is the nadir camera."""
+    return rotation_from_euler_xyz(
+        math.radians(pitch_deg), math.radians(roll_deg), math.radians(yaw_deg)
+    )
+
+
+def mount_angles_deg(R_vehicle_from_cam: np.ndarray) -> tuple[float, float, float]:
+    """(pitch, roll, yaw) degrees of a (3, 3) R_vehicle_from_cam (inverse of
+    ``vehicle_from_cam_rotation``; roll within ±90°)."""
+    R = check_shape("R_vehicle_from_cam", np.asarray(R_vehicle_from_cam, float), (3, 3))
+    pitch = math.atan2(R[2, 1], R[2, 2])
+    roll = math.asin(max(-1.0, min(1.0, -R[2, 0])))
+    yaw = math.atan2(R[1, 0], R[0, 0])
+    return math.degrees(pitch), math.degrees(roll), math.degrees(yaw)
+
+
+def up_in_cam(R_vehicle_from_cam: np.ndarray) -> np.ndarray:
+    """(3,) unit 'up' (away from the road, vehicle −z) in camera coordinates of a level vehicle."""
+    return np.asarray(R_vehicle_from_cam, float).T @ np.array([0.0, 0.0, -1.0])
+
+
+def forward_in_cam(R_vehicle_from_cam: np.ndarray) -> np.ndarray:
+    """(3,) unit driving direction (vehicle −y) in camera coordinates."""
+    return np.asarray(R_vehicle_from_cam, float).T @ np.array([0.0, -1.0, 0.0])
+
+
+def vehicle_from_up_forward(up_cam: np.ndarray, forward_cam: np.ndarray) -> np.ndarray:
+    """(3, 3) R_vehicle_from_cam from 'up' and an approximate driving direction, both (3,) in
+    camera coordinates: forward is made orthogonal to up (Gram-Schmidt)."""
+    u = np.asarray(up_cam, float)
+    u = u / np.linalg.norm(u)
+    f = np.asarray(forward_cam, float) - u * float(np.dot(forward_cam, u))
+    n = float(np.linalg.norm(f))
+    if n < 1e-9:
+        raise ValueError("forward direction is parallel to up")
+    f = f / n
+    right = np.cross(f, u)  # vehicle x (right) = forward x up for z-up, y-forward
+    # rows: the vehicle axes (x right, y backward, z down) in camera coordinates
+    return np.vstack([right, -f, -u])
+
+
 def world_from_vehicle_rotation(heading_deg: float) -> np.ndarray:
     """Rotation whose columns are the camera axes (right, backward, down) in ENU for a level
     vehicle with compass ``heading_deg``. Returns (3, 3) world_from_cam for zero roll/pitch."""
@@ -200,10 +246,13 @@ def world_from_cam(
     return T
 
 
-def heading_deg_from_world_rotation(R_world_from_cam: np.ndarray) -> float:
-    """Compass heading of the vehicle's forward direction (= -camera y axis), degrees in [0, 360)."""
+def heading_deg_from_world_rotation(
+    R_world_from_cam: np.ndarray, R_vehicle_from_cam: np.ndarray | None = None
+) -> float:
+    """Compass heading of the vehicle's forward direction, degrees in [0, 360). Without a mount
+    rotation the camera is nadir and forward is the -camera y axis."""
     R = check_shape("R_world_from_cam", R_world_from_cam, (3, 3))
-    fwd = -R[:, 1]
+    fwd = -R[:, 1] if R_vehicle_from_cam is None else R @ forward_in_cam(R_vehicle_from_cam)
     return float(math.degrees(math.atan2(fwd[0], fwd[1])) % 360.0)
 
 
