@@ -28,12 +28,20 @@ class MappingConfig:
     heading_sigma_deg: float = 5.0  # σ of the eq. 6.1 heading between successive fixes (degrees)
     heading_min_baseline_m: float = 0.5  # fixes closer than this give no heading (m)
     tilt_sigma_deg: float = 3.0  # σ of the road normal vs world up (road grade/cross-fall) (deg)
-    # which axis the tilt prior holds vertical: the camera's optical axis (the downward-facing
-    # mount; equal to the road normal when the camera sits square to the road) or the road
-    # normal of each pair's plane fit (assumes no cross-fall). Camera roll is not observable
-    # from GPS on a straight drive; an error of θ shifts the map by camera height × tan θ
-    # (2 % cross-fall, 1.1 m: 22 mm)
-    tilt_prior_axis: Literal["optical_axis", "road_normal"] = "optical_axis"
+    # which axis the tilt prior holds vertical: the mount's up axis (camera.yaml's mount, or
+    # the one estimated from the drive; the optical axis of a nadir camera) or the road normal
+    # of each pair's plane fit (assumes no cross-fall). Camera roll is not observable from GPS
+    # on a straight drive; an error of θ shifts the map by camera height × tan θ (2 %
+    # cross-fall, 1.1 m: 22 mm)
+    tilt_prior_axis: Literal["mount", "road_normal"] = "mount"
+    # estimate the camera's mount (pitch, roll, yaw) from the pairs' road normals and
+    # directions of travel when camera.yaml does not give it (mapping.mount); off: nadir
+    estimate_mount: bool = True
+    # apply an estimated mount pitch only beyond this (deg): below it a forward mount and the
+    # drive's mean grade look the same (8.7 % grade = 5°), and the camera is taken as nadir
+    mount_min_pitch_deg: float = 5.0
+    # warn when camera.yaml's mount and the drive's estimate differ by more than this (deg)
+    mount_disagree_deg: float = 3.0
     gps_bridge_s: float = 2.0  # fixes this close before and after a failed pair bridge it (s)
     # fixes up to this long before the first frame or after the last are used too, through the
     # end frames extrapolated at constant velocity; their σ grows by ½·a·Δt² (a =
@@ -117,6 +125,8 @@ class MappingConfig:
         "heading_sigma_deg": "(0, 180]",
         "heading_min_baseline_m": "[0, inf)",
         "tilt_sigma_deg": "(0, 90]",
+        "mount_disagree_deg": "(0, 90]",
+        "mount_min_pitch_deg": "[0, 90]",
         "gps_bridge_s": "[0, inf)",
         "gps_extrapolate_s": "[0, inf)",
         "gap_sigma_m": "(0, inf)",

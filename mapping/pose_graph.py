@@ -13,7 +13,12 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.spatial.transform import Rotation
 
-from roadsurf.core.geometry import heading_deg_from_displacement, invert_pose
+from roadsurf.core.geometry import (
+    forward_in_cam,
+    heading_deg_from_displacement,
+    invert_pose,
+    up_in_cam,
+)
 from roadsurf.io.drive import Drive
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.pose_gps import GpsFixes, interp_weights
@@ -82,8 +87,11 @@ class PoseGraph:
         gps: GpsFixes | None,
         drive: Drive,
         comp: np.ndarray,
+        R_vehicle_from_cam: np.ndarray | None = None,
     ) -> None:
         self.cfg, self.t, self.n = cfg, t, len(t)
+        R_vc = np.eye(3) if R_vehicle_from_cam is None else np.asarray(R_vehicle_from_cam, float)
+        self.fwd_cam = forward_in_cam(R_vc)  # the vehicle's forward axis in camera coordinates
         self.R0 = Rotation.from_matrix(init[:, :3, :3])
         self.p0 = init[:, :3, 3].copy()
         self.gps = gps
@@ -127,8 +135,9 @@ class PoseGraph:
         # velocity change over the triple vs σ_a × the time between the two velocity samples
         self.cv_s = max(cfg.gap_accel_sigma_mps2, 1e-9) * 0.5 * (dt1 + dt2)
 
-        # road-normal (tilt) prior per frame, in camera coordinates (pointing up, at the camera)
-        n_up = np.tile([0.0, 0.0, -1.0], (self.n, 1))
+        # road-normal (tilt) prior per frame, in camera coordinates (pointing up, at the camera):
+        # the mount's up axis, or each pair's own road normal
+        n_up = np.tile(up_in_cam(R_vc), (self.n, 1))
         for p in ok_pairs if cfg.tilt_prior_axis == "road_normal" else []:
             pl = np.asarray(p.plane, float)
             if np.all(np.isfinite(pl)):
@@ -213,7 +222,7 @@ class PoseGraph:
                 (pred[alt, 2] - g.enu_m[u][alt, 2]) / (s[alt] * self.cfg.gps_vertical_sigma_factor)
             )
             if len(self.hk):
-                fwd = -R[self.hk].as_matrix()[:, :, 1]
+                fwd = R[self.hk].apply(self.fwd_cam)
                 comp = np.arctan2(fwd[:, 0], fwd[:, 1])
                 dh = np.angle(np.exp(1j * (comp - self.hth)))
                 out.append(dh / self.hs)

@@ -15,7 +15,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from roadsurf.core.fits import fit_rigid_2d
-from roadsurf.core.geometry import invert_pose, world_from_cam
+from roadsurf.core.geometry import forward_in_cam, invert_pose, world_from_cam
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.pose_gps import GpsFixes, gps_at, gps_margin_s, gps_track_yaw, interp_weights
 from roadsurf.mapping.types import PoseReport
@@ -24,10 +24,18 @@ if TYPE_CHECKING:
     from roadsurf.reconstruction.types import PairResult
 
 
-def chain(comp_frames: np.ndarray, consecutive: dict[tuple[int, int], PairResult]) -> np.ndarray:
-    """Chain the pair transforms over one component: (M, 4, 4) poses, first = level, heading 0."""
+def chain(
+    comp_frames: np.ndarray,
+    consecutive: dict[tuple[int, int], PairResult],
+    R_vehicle_from_cam: np.ndarray | None = None,
+) -> np.ndarray:
+    """Chain the pair transforms over one component: (M, 4, 4) poses, the first one that of a
+    level vehicle at heading 0 carrying the camera on its mount (R_vehicle_from_cam (3, 3);
+    None = nadir)."""
     W = np.empty((len(comp_frames), 4, 4))
     W[0] = world_from_cam(0.0)
+    if R_vehicle_from_cam is not None:
+        W[0, :3, :3] = W[0, :3, :3] @ R_vehicle_from_cam
     for j in range(1, len(comp_frames)):
         a, b = comp_frames[j - 1], comp_frames[j]
         W[j] = W[j - 1] @ invert_pose(consecutive[(a, b)].cam_b_from_cam_a)
@@ -76,13 +84,17 @@ def initial_poses(
     consecutive: dict[tuple[int, int], PairResult],
     gps: GpsFixes | None,
     rep: PoseReport,
+    R_vehicle_from_cam: np.ndarray | None = None,
 ) -> np.ndarray:
     """Chain each visual component, then place it on GPS (robust 2D rigid fit) or, without
-    enough GPS, by a constant-velocity guess from its placed neighbour."""
+    enough GPS, by a constant-velocity guess from its placed neighbour. R_vehicle_from_cam
+    (3, 3) is the camera's mount (None = nadir)."""
     n = len(t)
     W = np.zeros((n, 4, 4))
     n_comp = int(comp.max()) + 1
-    chains = [chain(np.flatnonzero(comp == c), consecutive) for c in range(n_comp)]
+    R_vc = np.eye(3) if R_vehicle_from_cam is None else np.asarray(R_vehicle_from_cam, float)
+    fwd_cam = forward_in_cam(R_vc)
+    chains = [chain(np.flatnonzero(comp == c), consecutive, R_vc) for c in range(n_comp)]
     placed = np.zeros(n_comp, bool)
 
     for c in range(n_comp):
@@ -114,7 +126,7 @@ def initial_poses(
             yaw = gps_track_yaw(gps, tc, cfg.heading_min_baseline_m)
             if yaw is None:
                 continue
-            chain_heading = _heading_rad(C[len(C) // 2])
+            chain_heading = _heading_rad(C[len(C) // 2], fwd_cam)
             T = _yaw_matrix(yaw - chain_heading)
             if len(fr) == 1:
                 # a lone frame: the GPS track at its own time (the fix is up to half a frame
@@ -140,7 +152,7 @@ def initial_poses(
             if yaw is None:
                 continue
             C = chains[c]
-            T = _yaw_matrix(yaw - _heading_rad(C[len(C) // 2]))
+            T = _yaw_matrix(yaw - _heading_rad(C[len(C) // 2], fwd_cam))
             pos = gps_at(gps, tc)
             mid = np.mean(C[:, :3, 3], axis=0)
             T[:3, 3] = pos - T[:3, :3] @ mid
@@ -164,9 +176,10 @@ def initial_poses(
     return W
 
 
-def _heading_rad(T: np.ndarray) -> float:
-    """Yaw (counter-clockwise from east, radians) of the vehicle's forward direction."""
-    fwd = -T[:3, 1]
+def _heading_rad(T: np.ndarray, fwd_cam: np.ndarray) -> float:
+    """Yaw (counter-clockwise from east, radians) of the vehicle's forward direction, given
+    forward (3,) in camera coordinates (core.geometry.forward_in_cam)."""
+    fwd = T[:3, :3] @ fwd_cam
     return math.atan2(fwd[1], fwd[0])
 
 

@@ -41,6 +41,7 @@ from roadsurf.io.runfolder import RunFolder
 from roadsurf.mapping.config import NOT_IN_FINGERPRINT, MappingConfig
 from roadsurf.mapping.datum import vertical_datum
 from roadsurf.mapping.export import write_trajectory_csv, write_trajectory_geojson
+from roadsurf.mapping.mount import resolve
 from roadsurf.mapping.plausibility import CHECKS_VERSION, check, make_chains
 from roadsurf.mapping.pose_gps import gps_enu, interp_weights
 from roadsurf.mapping.pose_graph import PoseGraph
@@ -95,6 +96,7 @@ def _fingerprint(cfg: MappingConfig, drive: Drive, pairs: list[PairResult]) -> s
     fp = Fingerprint()
     fp.add_json({k: v for k, v in to_dict(cfg).items() if k not in NOT_IN_FINGERPRINT})
     fp.add_json([(f.filename, f.timestamp_s) for f in drive.frames], default_str=False)
+    fp.add_text(f"mount:{drive.camera.mount_deg}")
     if drive.gps is not None:
         g = drive.gps
         for a in (g.timestamp_s, g.lat_deg, g.lon_deg, g.hdop):
@@ -133,7 +135,17 @@ def estimate_trajectory(
     comp = np.zeros(n, int)
     for i in range(1, n):
         comp[i] = comp[i - 1] + (0 if (i - 1, i) in consecutive else 1)
-    init = initial_poses(cfg, t, comp, consecutive, gps, rep)
+    mount = resolve(
+        drive.camera,
+        ok_pairs,
+        estimate=cfg.estimate_mount,
+        disagree_deg=cfg.mount_disagree_deg,
+        min_pitch_deg=cfg.mount_min_pitch_deg,
+    )
+    rep.mount = mount.to_dict()
+    rep.warnings += mount.warnings
+    R_vc = mount.R_vehicle_from_cam
+    init = initial_poses(cfg, t, comp, consecutive, gps, rep, R_vc)
 
     # ---------------------------------------------------------------- segments
     segment, bridged_gaps = segments(t, comp, gps, cfg.gps_bridge_s)
@@ -147,7 +159,7 @@ def estimate_trajectory(
         rep.warnings.append(msg)
 
     # ---------------------------------------------------------------- robust fusion
-    problem = PoseGraph(cfg, t, init, ok_pairs, pos_of, gps, drive, comp)
+    problem = PoseGraph(cfg, t, init, ok_pairs, pos_of, gps, drive, comp, R_vc)
     world = problem.solve(rep)
 
     # ---------------------------------------------------------------- plausibility
@@ -156,7 +168,7 @@ def estimate_trajectory(
             cfg,
             comp,
             {k: p.cam_b_from_cam_a[:3, 3] for k, p in consecutive.items()},
-            lambda fr: chain(fr, consecutive),
+            lambda fr: chain(fr, consecutive, R_vc),
         )
 
         def errors_m() -> np.ndarray:
@@ -199,6 +211,7 @@ def estimate_trajectory(
         source=source,
         reference=ref,
         segment=segment,
+        vehicle_from_cam=R_vc,
     )
     del bridged_gaps
     return traj, rep

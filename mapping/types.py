@@ -15,7 +15,12 @@ from typing import Any
 import numpy as np
 
 from roadsurf.core.atomic import read_json, write_json_atomic, write_npz_atomic
-from roadsurf.core.geometry import EnuReference, ExportFrame, heading_deg_from_world_rotation
+from roadsurf.core.geometry import (
+    EnuReference,
+    ExportFrame,
+    heading_deg_from_world_rotation,
+    mount_angles_deg,
+)
 from roadsurf.io import runfolder as rf
 
 POSE_SOURCES = ("gps", "visual", "fused")
@@ -34,6 +39,8 @@ class Trajectory:
     # (N,) int: frames in different segments are not tied by vision nor GPS (relative placement of
     # segments is a guess). None = one segment.
     segment: np.ndarray | None = None
+    # (3, 3) R_vehicle_from_cam of the camera's mount (mapping.mount); None = nadir
+    vehicle_from_cam: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.filenames)
@@ -46,7 +53,15 @@ class Trajectory:
     @property
     def heading_deg(self) -> np.ndarray:
         """(N,) compass heading of each frame."""
-        return np.array([heading_deg_from_world_rotation(T[:3, :3]) for T in self.world_from_cam])
+        R_vc = self.vehicle_from_cam
+        return np.array(
+            [heading_deg_from_world_rotation(T[:3, :3], R_vc) for T in self.world_from_cam]
+        )
+
+    @property
+    def mount_deg(self) -> tuple[float, float, float] | None:
+        """(pitch, roll, yaw) degrees of the mount the poses used; None = nadir."""
+        return None if self.vehicle_from_cam is None else mount_angles_deg(self.vehicle_from_cam)
 
     @property
     def export_frame(self) -> ExportFrame | None:
@@ -65,6 +80,11 @@ def save_trajectory(run_dir: str | Path, traj: Trajectory) -> None:
         segment=np.zeros(len(traj), np.int64)
         if traj.segment is None
         else np.asarray(traj.segment, np.int64),
+        **(
+            {}
+            if traj.vehicle_from_cam is None
+            else {"vehicle_from_cam": np.asarray(traj.vehicle_from_cam, float)}
+        ),
     )
     ref = None
     if traj.reference is not None:
@@ -89,6 +109,7 @@ def load_trajectory(run_dir: str | Path) -> Trajectory:
             source=z["source"].tolist(),
             reference=ref,
             segment=z["segment"] if "segment" in z.files else None,
+            vehicle_from_cam=z["vehicle_from_cam"] if "vehicle_from_cam" in z.files else None,
         )
 
 
@@ -112,6 +133,7 @@ class PoseReport:
     # figures of the plausibility checks (mapping.plausibility) and the heights' datum
     checks: dict[str, Any] = field(default_factory=dict)
     vertical_datum: str = ""
+    mount: dict[str, Any] = field(default_factory=dict)  # mapping.mount.Mount.to_dict()
 
     def to_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)

@@ -263,6 +263,10 @@ def _run_drive(
         pairs = timed("reconstruction", reconstruct_guided)
     check_reconstruction(pairs, drive, rec_cfg, out)
     traj = timed("poses", lambda: poses.run(cfg.mapping, drive, pairs, out))
+    if traj.mount_deg is not None and traj.mount_deg != drive.camera.mount_deg:
+        # the later stages see the camera on the mount the poses used (given or estimated)
+        camera = dataclasses.replace(drive.camera, mount_deg=traj.mount_deg)
+        drive = dataclasses.replace(drive, camera=camera)
     products = timed("globalmap", lambda: globalmap.run(cfg.mapping, drive, pairs, traj, out))
     detections = timed(
         "detection",
@@ -463,6 +467,7 @@ def _build_report(
         report["poses"] = read_json(pose_rep)
         report["warnings"] += report["poses"].get("warnings", [])
         report["counts"]["segments"] = report["poses"].get("n_segments", 1)
+        report["camera_mount"] = report["poses"].get("mount")
         report["counts"]["gps_outliers"] = len(report["poses"].get("gps_outliers", []))
     if products is not None and hasattr(products, "to_report"):
         report["map"] = products.to_report()

@@ -7,13 +7,19 @@ rides ``height_m`` above it looking down, on a gently curving path.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from roadsurf.core.camera import Camera
-from roadsurf.core.geometry import EnuReference, invert_pose, lla_from_enu, world_from_cam
+from roadsurf.core.geometry import (
+    EnuReference,
+    invert_pose,
+    lla_from_enu,
+    vehicle_from_cam_rotation,
+    world_from_cam,
+)
 from roadsurf.io.drive import Drive, Frame, GpsTrack, ObdLog
 from roadsurf.reconstruction.types import PairResult
 
@@ -37,7 +43,11 @@ def true_poses(
     rng: np.random.Generator,
     curvature_per_m: float = 0.01,
     tilt_deg: float = 0.3,
+    mount_deg: tuple[float, float, float] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
+    M = np.eye(4)
+    if mount_deg is not None:  # the camera on a tilted mount: world_from_vehicle @ mount
+        M[:3, :3] = vehicle_from_cam_rotation(*mount_deg)
     t = np.arange(n) / fps
     s = speed_mps * t
     heading = 30.0 + np.degrees(curvature_per_m * s) * np.sin(s / 15.0)  # gentle S-curve
@@ -49,7 +59,7 @@ def true_poses(
             b = np.radians(0.5 * (heading[i] + heading[i - 1]))
             pos = pos + ds * np.array([np.sin(b), np.cos(b), 0.0])
         roll, pitch = np.radians(rng.normal(0, tilt_deg, 2))
-        W[i] = world_from_cam(heading[i], roll, pitch, pos + [0, 0, height_m])
+        W[i] = world_from_cam(heading[i], roll, pitch, pos + [0, 0, height_m]) @ M
     return t, W
 
 
@@ -164,10 +174,16 @@ def make_synthetic(
     with_obd: bool = False,
     root: Path | None = None,
     road_z: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+    mount_deg: tuple[float, float, float] | None = None,
+    mount_in_camera: bool = False,
 ) -> Synthetic:
+    """mount_deg: the camera's true mount (pitch, roll, yaw) degrees (None = nadir);
+    mount_in_camera: also give it in the Camera (as camera.yaml would)."""
     rng = np.random.default_rng(seed)
     cam = camera(fps=fps)
-    t, W = true_poses(n, fps, speed_mps, cam.height_m, rng)
+    if mount_deg is not None and mount_in_camera:
+        cam = replace(cam, mount_deg=mount_deg)
+    t, W = true_poses(n, fps, speed_mps, cam.height_m, rng, mount_deg=mount_deg)
     root = root or Path("/nonexistent-synthetic-drive")
     frames = [
         Frame(i, f"{i:06d}.png", root / "frames" / f"{i:06d}.png", float(t[i])) for i in range(n)

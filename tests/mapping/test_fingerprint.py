@@ -3,7 +3,8 @@ refactors (a resumed old run must still resume): fixed inputs give fixed values.
 
 The expected values were recomputed when issue 31 added the GPS altitude, OBD speeds and the
 plausibility checks' version to the poses key and the pairs' content, camera and vertical datum to
-the map key. A change of MappingConfig's fields changes them legitimately. The keys must also
+the map key, and issue 28 the mount (MappingConfig.estimate_mount, camera.yaml mount) to
+the poses key. A change of MappingConfig's fields changes them legitimately. The keys must also
 change with what the outputs depend on (below)."""
 
 from __future__ import annotations
@@ -18,9 +19,9 @@ from tests.mapping.synth import make_synthetic
 
 def test_poses_fingerprint_is_unchanged() -> None:
     syn = make_synthetic(n=6, seed=3, failed=(2,))
-    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "25556b074837abbf"
+    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "4ea7d19b5fccd57d"
     syn = make_synthetic(n=6, seed=3, with_gps=False)
-    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "c260a5b1a6b4334a"
+    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "4e89758dcdd807f9"
 
 
 def test_globalmap_fingerprint_is_unchanged() -> None:
@@ -34,7 +35,7 @@ def test_globalmap_fingerprint_is_unchanged() -> None:
         reference=None,
         segment=np.zeros(6, int),
     )
-    assert globalmap._fingerprint(MappingConfig(), syn.pairs, traj) == "d85141eb8cc5461f"
+    assert globalmap._fingerprint(MappingConfig(), syn.pairs, traj) == "868605ca91ec9176"
 
 
 def test_poses_key_follows_the_gps_altitude() -> None:

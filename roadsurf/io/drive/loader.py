@@ -49,12 +49,6 @@ def load_drive(root: str | Path, check_images: bool = True) -> Drive:
     skipped: list[Skipped] = []
     warnings: list[str] = []
     camera = load_camera(root / "camera.yaml")
-    if camera.mount_deg is not None and any(abs(a) > 0 for a in camera.mount_deg):
-        warnings.append(
-            f"{root / 'camera.yaml'}: mount angles (pitch, roll, yaw) = "
-            f"{tuple(round(a, 2) for a in camera.mount_deg)} deg are recorded but not used yet: "
-            "every pair estimates its own road plane (tilt) from the images."
-        )
     frames = load_frames(root, camera, check_images, skipped, warnings)
 
     present = [name for name in GPS_FILES if (root / name).is_file()]

@@ -1,0 +1,78 @@
+"""The camera's mount: estimated from the drive's pairs, used by the pose graph, checked against
+camera.yaml (issue 28)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from roadsurf.core.geometry import mount_angles_deg
+from roadsurf.mapping import poses
+from roadsurf.mapping.config import MappingConfig
+from roadsurf.mapping.mount import estimate_from_pairs
+from tests.mapping.synth import make_synthetic
+from tests.mapping.test_poses import _true_frame_positions
+
+CFG = MappingConfig(gps_sigma_m=0.05)
+
+
+def _errors(traj, syn) -> tuple[float, float]:
+    """(position RMSE m, median rotation error deg) against the truth."""
+    e, t = _true_frame_positions(traj, syn)
+    d = e - t
+    rmse = float(np.sqrt(np.mean(np.sum(d**2, axis=1))))
+    Rs = np.einsum("nji,njk->nik", traj.world_from_cam[:, :3, :3], syn.world_from_cam[:, :3, :3])
+    ang = np.degrees(np.arccos(np.clip((np.trace(Rs, axis1=1, axis2=2) - 1) / 2, -1, 1)))
+    return rmse, float(np.median(ang))
+
+
+@pytest.mark.parametrize("mount", [(25.0, 0.0, 2.0), (45.0, 0.0, -3.0)])
+def test_mount_is_estimated_and_the_poses_are_right(mount) -> None:
+    syn = make_synthetic(n=40, seed=4, gps_hz=5.0, gps_sigma_m=0.05, mount_deg=mount)
+    est = estimate_from_pairs(syn.pairs)
+    assert est is not None
+    pitch, _, yaw = mount_angles_deg(est[0])
+    assert pitch == pytest.approx(mount[0], abs=0.5)
+    assert yaw == pytest.approx(mount[2], abs=1.0)
+    traj, rep = poses.estimate_trajectory(CFG, syn.drive, syn.pairs)
+    assert rep.mount["source"] == "estimated"
+    assert traj.mount_deg is not None and traj.mount_deg[0] == pytest.approx(mount[0], abs=0.5)
+    rmse, rot = _errors(traj, syn)
+    assert rmse < 0.06 and rot < 1.0
+    # the headings exported are the vehicle's, not the tilted camera's
+    true_heading = 30.0
+    assert abs(((traj.heading_deg[0] - true_heading) + 180) % 360 - 180) < 3.0
+
+
+def test_a_nadir_assumption_on_a_tilted_camera_fails_and_warns() -> None:
+    """Without the mount the poses are wrong: the test above can fail."""
+    syn = make_synthetic(n=40, seed=4, gps_hz=5.0, gps_sigma_m=0.05, mount_deg=(25.0, 0.0, 0.0))
+    cfg = MappingConfig(gps_sigma_m=0.05, estimate_mount=False)
+    traj, rep = poses.estimate_trajectory(cfg, syn.drive, syn.pairs)
+    _, rot = _errors(traj, syn)
+    assert rot > 5.0
+    assert rep.mount["source"] == "assumed nadir"
+    assert any("assumed nadir" in w for w in rep.warnings)
+
+
+def test_camera_yaml_mount_is_used_and_checked() -> None:
+    syn = make_synthetic(n=30, seed=5, gps_hz=5.0, mount_deg=(25.0, 1.0, 0.0), mount_in_camera=True)
+    traj, rep = poses.estimate_trajectory(CFG, syn.drive, syn.pairs)
+    assert rep.mount["source"] == "camera.yaml" and not rep.warnings
+    assert rep.mount["roll_deg"] == pytest.approx(1.0, abs=1e-6)
+    assert _errors(traj, syn)[1] < 1.0
+    # camera.yaml says 15 deg, the drive says 25 deg: a warning with both values
+    wrong = make_synthetic(n=30, seed=5, gps_hz=5.0, mount_deg=(25.0, 1.0, 0.0))
+    from dataclasses import replace
+
+    wrong.drive.camera = replace(wrong.drive.camera, mount_deg=(15.0, 1.0, 0.0))
+    _, rep = poses.estimate_trajectory(CFG, wrong.drive, wrong.pairs)
+    msg = " ".join(rep.warnings)
+    assert "disagrees" in msg and "(15.0, 1.0, 0.0)" in msg and "(24.9, 0.9" in msg
+
+
+def test_nadir_drive_keeps_a_nadir_mount() -> None:
+    syn = make_synthetic(n=30, seed=6, gps_hz=5.0)
+    traj, rep = poses.estimate_trajectory(CFG, syn.drive, syn.pairs)
+    assert abs(rep.mount["pitch_deg"]) < 0.5 and abs(rep.mount["yaw_deg"]) < 1.0
+    assert not rep.warnings
