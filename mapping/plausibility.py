@@ -29,7 +29,7 @@ from roadsurf.mapping.pose_gps import GpsFixes, interp_weights
 if TYPE_CHECKING:
     from roadsurf.io.drive import Drive
 
-CHECKS_VERSION = 1  # in the poses fingerprint: new checks re-run on resumed runs
+CHECKS_VERSION = 2  # in the poses fingerprint: new checks re-run on resumed runs
 WINDOW_REL = 0.05  # a window's GPS chord is known to this share (at least) of its length
 SIGMAS = 5.0  # a disagreement beyond this many σ of its own error is reported
 HEIGHT_TOL = 0.05  # camera height (visual scale) vs GPS: tolerance stated by the issue
@@ -200,12 +200,10 @@ def check(
             f"near {_frames(names, int(k.min()), int(k.max()))}; rejected as outliers"
         )
     rot = math.radians(cfg.visual_sigma_rot_deg)
-    ws = windows(t, chains, gps.enu_m, gps, used, stated)
+    ws = windows(t, chains, gps.enu_m, gps, used, receiver_sigma(gps.t_s, gps.enu_m, stated))
     est = scale_estimate(ws)
     fig["windows"] = len(ws)
-    static = _static(t, chains, gps, stated, names)
-    if static:
-        warn.append(static)
+    static = _static(t, chains, gps, receiver_sigma(gps.t_s, gps.enu_m, stated), names)
     ratio, ratio_s = est if est is not None else (float("nan"), float("nan"))
     bad = _inconsistent(ws, ratio, rot) if est is not None else []
     off = abs(ratio - 1.0) > HEIGHT_TOL and abs(ratio - 1.0) > 3 * ratio_s
@@ -223,6 +221,8 @@ def check(
             )
             fig["gps_hypothesis"] = what
             return warn, fig
+    if static:  # (a swapped or flipped file also looks static: that hypothesis came first)
+        warn.append(static)
     if est is None:
         fig["height"] = "not checked: GPS not precise enough over the distances driven"
         return warn, fig
@@ -268,7 +268,7 @@ def _hypotheses(drive: Drive, gps: GpsFixes, t: np.ndarray, chains: Chains, sigm
             continue
         r = EnuReference(float(la[0]), float(lo[0]), 0.0)
         enu = enu_from_lla(la, lo, alt, r)
-        ws = windows(t, chains, enu, gps, used, sigma)
+        ws = windows(t, chains, enu, gps, used, receiver_sigma(gps.t_s, enu, sigma))
         est = scale_estimate(ws)
         if est is None:
             continue
@@ -278,11 +278,42 @@ def _hypotheses(drive: Drive, gps: GpsFixes, t: np.ndarray, chains: Chains, sigm
     return None
 
 
+def _subset(gps: GpsFixes, idx: np.ndarray) -> GpsFixes:
+    return GpsFixes(
+        gps.t_s[idx], gps.enu_m[idx], gps.sigma_m[idx], gps.has_alt[idx], gps.orig_index[idx]
+    )
+
+
+def receiver_sigma(t_s: np.ndarray, enu_m: np.ndarray, stated: np.ndarray) -> np.ndarray:
+    """(G,) horizontal σ of the fixes for the plausibility windows: the stated σ, lowered to
+    the track's own fix-to-fix scatter when that is smaller (an RTK receiver logging a
+    consumer-grade HDOP). The scatter is the robust σ of each fix's distance from the line
+    through its two neighbours (white noise: var = σ² (1 + w₁² + w₂²)); vehicle acceleration
+    only raises it, so the lowered σ stays conservative. Slowly varying GPS errors cancel in
+    the short chords compared, and more than 2 windows are rescaled by their own scatter."""
+    if len(t_s) < 5:
+        return stated
+    t0, t1, t2 = t_s[:-2], t_s[1:-1], t_s[2:]
+    span = np.maximum(t2 - t0, 1e-9)
+    w1, w2 = (t2 - t1) / span, (t1 - t0) / span
+    pred = w1[:, None] * enu_m[:-2, :2] + w2[:, None] * enu_m[2:, :2]
+    r = (enu_m[1:-1, :2] - pred) / np.sqrt(1 + w1**2 + w2**2)[:, None]
+    emp = 1.4826 * float(np.median(np.abs(r)))
+    return np.minimum(stated, max(emp, 1e-3))
+
+
 def _static(t: np.ndarray, chains: Chains, gps: GpsFixes, stated: np.ndarray,
             names: list[str]) -> str | None:  # fmt: skip
     """Runs of ≥ 3 fixes within 3 stated σ of their first while vision travels beyond that
     radius by more than ``SIGMAS`` σ (a frozen or static receiver)."""
     worst = None
+    # only the fixes over the frames: those outside carry the extrapolation's σ, not the
+    # receiver's, and vision says nothing there
+    inside = np.flatnonzero((gps.t_s >= t[0]) & (gps.t_s <= t[-1]))
+    if len(inside) < 3:
+        return None
+    gps = _subset(gps, inside)
+    stated = stated[inside]
     n = len(gps.t_s)
     j = 0
     step = np.zeros(len(t))

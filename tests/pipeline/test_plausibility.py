@@ -25,10 +25,10 @@ from roadsurf.reconstruction.config import ReconstructionConfig
 from tests.mapping.synth import failed_pair, make_synthetic, write_drive
 
 
-def _rtk(n: int = 80, height_m: float = 1.0, scale: float = 1.0):
-    """RTK-like GPS (HDOP 0.04: σ 2 cm) and pairs whose metric scale is ``scale`` × the truth,
-    as a camera.yaml ``height_m`` of ``height_m`` × ``scale`` gives (α = h / d_c)."""
-    syn = make_synthetic(n=n, seed=4, gps_hz=5.0, hdop=0.04)
+def _rtk(n: int = 80, height_m: float = 1.0, scale: float = 1.0, hdop: float = 0.04, **kw):
+    """RTK-like GPS (σ 2 cm; HDOP 0.04 states it) and pairs whose metric scale is ``scale`` ×
+    the truth, as a camera.yaml ``height_m`` of ``height_m`` × ``scale`` gives (α = h / d_c)."""
+    syn = make_synthetic(n=n, seed=4, gps_hz=5.0, hdop=hdop, **kw)
     syn.drive.camera = dataclasses.replace(syn.drive.camera, height_m=height_m * scale)
     pairs = []
     for p in syn.pairs:
@@ -154,3 +154,34 @@ def test_heights_name_their_vertical_datum(tmp_path: Path) -> None:
         tmp_path / "t.geojson", traj, syn.drive, vertical_datum=rep.vertical_datum
     )
     assert read_geojson(gj)["properties"]["vertical_datum"] == GPS_DATUM_DEFAULT
+
+
+# 0.75 s of frames, fixes 1.5 s either side (like the fault battery's 12-frame drive); RTK fixes
+# logged with a consumer HDOP (stated σ 0.4 m)
+SHORT = {"n": 16, "hdop": 0.8, "gps_margin_s": 1.5}
+
+
+def test_short_drive_with_understated_gps_still_checks_the_height() -> None:
+    """The fault battery's 12-frame drive: the stated σ (0.4 m) makes every chord too short to
+    judge; the fixes' own scatter (2 cm) does not."""
+    syn, pairs = _rtk(scale=1.2, **SHORT)
+    _, rep = poses.estimate_trajectory(MappingConfig(), syn.drive, pairs)
+    assert any(w.startswith("camera.yaml height_m 1.20 m") for w in rep.warnings), rep.warnings
+    syn, pairs = _rtk(**SHORT)
+    _, rep = poses.estimate_trajectory(MappingConfig(), syn.drive, pairs)
+    assert rep.warnings == []
+
+
+def test_short_drive_swapped_and_static_are_named() -> None:
+    syn, pairs = _rtk(**SHORT)
+    g = syn.drive.gps
+    syn.drive.gps = dataclasses.replace(g, lat_deg=g.lon_deg, lon_deg=g.lat_deg)
+    _, rep = poses.estimate_trajectory(MappingConfig(), syn.drive, pairs)
+    assert any(w.startswith("lat/lon look swapped") for w in rep.warnings), rep.warnings
+    assert not any(w.startswith("GPS looks static") for w in rep.warnings)
+    syn, pairs = _rtk(**SHORT)
+    syn.drive.gps = dataclasses.replace(
+        g, lat_deg=np.full(len(g), g.lat_deg[0]), lon_deg=np.full(len(g), g.lon_deg[0])
+    )
+    _, rep = poses.estimate_trajectory(MappingConfig(), syn.drive, pairs)
+    assert any(w.startswith("GPS looks static over frames") for w in rep.warnings), rep.warnings
