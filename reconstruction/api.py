@@ -17,6 +17,7 @@ import numpy as np
 
 from roadsurf.core.camera import Camera
 from roadsurf.core.errors import FrameReadError
+from roadsurf.core.geometry import up_in_cam
 from roadsurf.io.drive import Frame, read_gray
 from roadsurf.reconstruction import features as feat
 from roadsurf.reconstruction.config import ReconstructionConfig
@@ -27,12 +28,28 @@ from roadsurf.reconstruction.types import Features, PairResult
 def reconstruct_matches(
     px_a: np.ndarray, px_b: np.ndarray, camera: Camera, cfg: ReconstructionConfig
 ) -> PairResult:
-    """Matched raw pixels (N, 2) in a and b -> metric PairResult (undistorted when needed)."""
+    """Matched raw pixels (N, 2) in a and b -> metric PairResult (undistorted when needed).
+
+    A known mount (``camera.mount_deg``) tells the estimators where the road's normal is."""
     pa = camera.undistort_px(px_a)
     pb = camera.undistort_px(px_b)
     return estimate_matches(
-        pa, pb, camera.K, camera.height_m, cfg, image_size=(camera.width, camera.height)
+        pa,
+        pb,
+        camera.K,
+        camera.height_m,
+        cfg,
+        image_size=(camera.width, camera.height),
+        road_normal_cam=road_normal_in_cam(camera),
     )
+
+
+def road_normal_in_cam(camera: Camera) -> np.ndarray | None:
+    """(3,) the road's downward normal in camera coordinates from the camera's mount (a level
+    vehicle on the road), or None when the mount is unknown."""
+    if camera.mount_deg is None:
+        return None
+    return -up_in_cam(camera.vehicle_from_cam)
 
 
 def reconstruct_features(

@@ -12,6 +12,7 @@ from typing import ClassVar, Literal
 FeatureKind = Literal["sift", "orb", "akaze"]
 Method = Literal["proposed", "rotation_aware", "classic", "colmap", "stereo"]
 METHODS: tuple[str, ...] = ("proposed", "rotation_aware", "classic", "colmap", "stereo")
+PriorModel = Literal["mean", "affine", "homography"]
 
 
 @dataclass(frozen=True)
@@ -106,6 +107,12 @@ class ReconstructionConfig:
         6.0  # floor of the λ window half-width (px): keeps real parallax
     )
     prior_min_halfwidth_frac: float = 0.12  # floor as a share of the median displacement |d̄| (0-1)
+    prior_model: Literal["auto", "mean", "affine", "homography"] = "auto"  # centre d̄ of the
+    # window (reconstruction.motion_prior): mean = constant (eq. 4.7 as published, R ≈ I, nadir),
+    # affine = affine displacement field, homography = the road homography's field (any tilt:
+    # a camera pitched 45° sees the road move 3x more at the image bottom than at the top);
+    # auto = proposed: mean (the dissertation's method), rotation_aware: homography (on nadir
+    # pairs it keeps and rejects at least what affine does, which beats mean under vibration)
     h_ransac_px: float = 3.0  # homography RANSAC reprojection threshold (px)
     h_ransac_frac: float = 0.03  # ... or this share of |d̄| if larger: depth relief up to ~3% of
     # the camera height still counts as planar (parallax scales with the displacement) (0-1)
@@ -143,6 +150,7 @@ class ReconstructionConfig:
         "lambda_prior": "(0, inf)",
         "prior_min_halfwidth_px": "[0, inf)",
         "prior_min_halfwidth_frac": "[0, 1]",
+        "prior_model": "{auto, mean, affine, homography}",
         "h_ransac_px": "(0, inf)",
         "h_ransac_frac": "[0, 1]",
         "planar_parallax_ratio": "(0, inf)",

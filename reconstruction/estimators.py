@@ -24,7 +24,7 @@ from roadsurf.core.fits import (
 )
 from roadsurf.core.geometry import check_shape
 from roadsurf.reconstruction import geometry as g
-from roadsurf.reconstruction.config import ReconstructionConfig
+from roadsurf.reconstruction.config import PriorModel, ReconstructionConfig
 from roadsurf.reconstruction.motion_prior import motion_prior_mask
 from roadsurf.reconstruction.pose_baselines import pose_classic, pose_colmap
 from roadsurf.reconstruction.pose_parallax import (
@@ -49,23 +49,40 @@ def estimate_matches(
     cfg: ReconstructionConfig,
     *,
     image_size: tuple[int, int] = (1024, 768),
+    road_normal_cam: np.ndarray | None = None,
 ) -> PairResult:
     """Reconstruct one pair from matched undistorted pixels (N, 2) in a and b.
 
-    height_m is h (camera height above the road, m); image_size = (width, height) px.
+    height_m is h (camera height above the road, m, perpendicular); image_size = (width,
+    height) px; road_normal_cam = (3,) the road's downward normal in camera a's coordinates
+    when the mount is known (-``core.geometry.up_in_cam``), None = unknown (the homography
+    decomposition then assumes a camera looking down or ahead: ``pose_planar.plane_solutions``).
     Never raises for bad data: the returned PairResult carries status and reason.
     """
     px_a = check_shape("px_a", np.asarray(px_a, dtype=float), (None, 2))
     px_b = check_shape("px_b", np.asarray(px_b, dtype=float), (px_a.shape[0], 2))
+    if road_normal_cam is not None:
+        road_normal_cam = check_shape("road_normal_cam", np.asarray(road_normal_cam, float), (3,))
+        if not np.all(np.isfinite(road_normal_cam)) or np.linalg.norm(road_normal_cam) < 1e-9:
+            raise ValueError(
+                f"road_normal_cam must be a finite non-zero 3-vector, got {road_normal_cam}"
+            )
     res = PairResult(frame_a="", frame_b="", index_a=-1, index_b=-1, method=cfg.method, status="ok")
     res.n_matches = int(px_a.shape[0])
     try:
-        _estimate(px_a, px_b, K, height_m, cfg, image_size, res)
+        _estimate(px_a, px_b, K, height_m, cfg, image_size, res, road_normal_cam)
     except PairFailure as e:
         res.status, res.reason = e.status, e.reason
     except (np.linalg.LinAlgError, cv2.error, ValueError) as e:
         res.status, res.reason = "geometry_failed", f"{type(e).__name__}: {e}"
     return res
+
+
+def prior_model(cfg: ReconstructionConfig) -> PriorModel:
+    """The motion prior's window model for ``cfg.method`` (``prior_model="auto"`` resolved)."""
+    if cfg.prior_model != "auto":
+        return cfg.prior_model
+    return "mean" if cfg.method == "proposed" else "homography"
 
 
 def _estimate(
@@ -76,6 +93,7 @@ def _estimate(
     cfg: ReconstructionConfig,
     image_size: tuple[int, int],
     res: PairResult,
+    road_normal_cam: np.ndarray | None,
 ) -> None:
     t0 = time.perf_counter()
     n = px_a.shape[0]
@@ -85,7 +103,7 @@ def _estimate(
     method = cfg.method
     keep = np.ones(n, dtype=bool)
     if cfg.motion_prior and method in ("proposed", "rotation_aware"):
-        keep = motion_prior_mask(px_a, px_b, cfg, affine=method == "rotation_aware")
+        keep = motion_prior_mask(px_a, px_b, cfg, model=prior_model(cfg))
     res.rejected_px_a, res.rejected_px_b = px_a[~keep], px_b[~keep]
     res.n_prior_inliers = int(keep.sum())
     t1 = time.perf_counter()
@@ -121,11 +139,15 @@ def _estimate(
             if h_inl.sum() < cfg.min_matches:
                 raise PairFailure("too_few_matches", f"{int(h_inl.sum())} homography inliers")
             if method == "proposed":
-                R, t, _ = pose_proposed(pa[h_inl], pb[h_inl], H, K, cfg)
+                R, t, _ = pose_proposed(
+                    pa[h_inl], pb[h_inl], H, K, cfg, road_normal_cam=road_normal_cam
+                )
             else:
                 H = refine_homography_sampson(pa[h_inl], pb[h_inl], H, K, cfg.ba_iterations)
                 res.H = H
-                R, t, m = pose_plane_from_homography(pa[h_inl], H, K)
+                R, t, m = pose_plane_from_homography(
+                    pa[h_inl], H, K, road_normal_cam=road_normal_cam
+                )
                 # Refine on every match consistent with the seed pose (plane + parallax points).
                 s = np.abs(g.sampson_px(g.fundamental_from_pose(R, t, K), pa, pb))
                 sel = s < max(cfg.epi_inlier_px, cfg.h_ransac_px)

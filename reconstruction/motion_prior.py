@@ -2,28 +2,48 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
+import cv2
 import numpy as np
 
 from roadsurf.core.fits import MAD_TO_SIGMA
-from roadsurf.reconstruction.config import ReconstructionConfig
+from roadsurf.reconstruction.config import PriorModel, ReconstructionConfig
+
+MIN_H_MATCHES = 12  # fewer matches: no homography window, the affine one is used instead
 
 
 def motion_prior_mask(
-    px_a: np.ndarray, px_b: np.ndarray, cfg: ReconstructionConfig, *, affine: bool = False
+    px_a: np.ndarray,
+    px_b: np.ndarray,
+    cfg: ReconstructionConfig,
+    *,
+    affine: bool = False,
+    model: PriorModel | None = None,
 ) -> np.ndarray:
     """Motion-prior mismatch rejection (eq. 4.2-4.7): keep d inside d̄ ± λ·σ_d per axis.
 
     d̄ and σ_d are the median and 1.4826·MAD of the displacements, so mismatches cannot inflate
     the window; the half-width has a floor so genuine parallax (potholes, rotation) survives.
+    ``model`` says what d̄ is (None: "affine" if ``affine`` else "mean"):
 
-    affine=True (the rotation-aware estimator) centres the window on an affine displacement
-    field d̄(x) = A·[x, 1] instead of a constant d̄. A constant d̄ is the R ≈ I assumption
-    again: under vibration the plane's displacement field is a homography, whose spread over
-    the image (e.g. ±45 px across 1024 px for θz = 5°) pushes genuine matches at the image
-    edges out of the window. The affine field is its first-order model; it is fitted by
-    least squares on the constant window's inliers (mismatches are already bounded there),
-    then on its own inliers, and the window keeps the same λ·MAD half-width and floor.
+    - "mean": a constant d̄, eq. 4.7 as published (the R ≈ I, nadir assumption).
+    - "affine": an affine displacement field d̄(x) = A·[x, 1]. Under vibration the plane's
+      displacement field is a homography, whose spread over the image (e.g. ±45 px across
+      1024 px for θz = 5°) pushes genuine matches at the image edges out of a constant window.
+      The affine field is its first-order model; it is fitted by least squares on the constant
+      window's inliers (mismatches are already bounded there), then on its own inliers.
+    - "homography": d̄(x) = π(H x) − x with H the road-plane homography, fitted by seeded RANSAC
+      at the window's floor and refitted on its window. A tilted camera moving forward sees
+      the road's displacement grow several-fold from the top of the image to the bottom (a
+      perspective field no affine map follows). Falls back to "affine" with fewer than
+      ``MIN_H_MATCHES`` matches or no homography.
+
+    Every model keeps the same λ·MAD half-width and floor around its d̄.
     """
+    model = model or ("affine" if affine else "mean")
+    if model not in ("mean", "affine", "homography"):
+        raise ValueError(f"motion prior model {model!r}: expected mean, affine or homography")
     d = px_b - px_a
     med = np.median(d, axis=0)
     floor = max(cfg.prior_min_halfwidth_px, cfg.prior_min_halfwidth_frac * float(np.hypot(*med)))
@@ -34,8 +54,12 @@ def motion_prior_mask(
         return np.all(np.abs(r - c) <= np.maximum(cfg.lambda_prior * mad, floor), axis=1)
 
     keep = window(d)
-    if not affine:
+    if model == "mean":
         return keep
+    if model == "homography":
+        keep_h = _homography_window(px_a, px_b, floor, window, cfg.h_ransac_iters)
+        if keep_h is not None:
+            return keep_h
     # Centred, scaled coordinates keep the 3-column least squares well conditioned.
     s = float(np.std(px_a)) + 1e-12
     A = np.column_stack([(px_a - px_a.mean(axis=0)) / s, np.ones(len(px_a))])
@@ -44,4 +68,37 @@ def motion_prior_mask(
             break
         coef = np.linalg.lstsq(A[keep], d[keep], rcond=None)[0]
         keep = window(d - A @ coef)
+    return keep
+
+
+def _homography_window(
+    px_a: np.ndarray,
+    px_b: np.ndarray,
+    floor: float,
+    window: Callable[[np.ndarray], np.ndarray],
+    iters: int,
+) -> np.ndarray | None:
+    """Window around the homography-predicted displacement, or None (too few / no model)."""
+    if len(px_a) < MIN_H_MATCHES:
+        return None
+    a, b = px_a.astype(np.float64), px_b.astype(np.float64)
+    cv2.setRNGSeed(0)  # deterministic RANSAC
+    H, mask = cv2.findHomography(a, b, cv2.RANSAC, floor, maxIters=iters, confidence=0.999)
+    if H is None or mask is None or int(mask.sum()) < MIN_H_MATCHES:
+        return None
+    keep = mask.ravel().astype(bool)
+    # Refit by least squares on the window (RANSAC's model comes from a minimal sample), twice:
+    # the first window still holds mismatches up to the loose RANSAC threshold.
+    for _ in range(2):
+        H2, _ = cv2.findHomography(a[keep], b[keep], 0)
+        if H2 is None:
+            break
+        H = H2
+        pred = cv2.perspectiveTransform(a.reshape(-1, 1, 2), H).reshape(-1, 2)
+        if not np.all(np.isfinite(pred)):
+            return None
+        new = window(b - pred)
+        if new.sum() < MIN_H_MATCHES:
+            return None
+        keep = new
     return keep

@@ -14,7 +14,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from roadsurf.core.camera import normalised_from_px
-from roadsurf.core.geometry import skew
+from roadsurf.core.geometry import check_shape, skew
 from roadsurf.reconstruction import geometry as g
 from roadsurf.reconstruction.config import ReconstructionConfig
 from roadsurf.reconstruction.types import PairFailure
@@ -58,19 +58,52 @@ def _t_from_rotation(
 
 
 def pose_proposed(
-    px_a: np.ndarray, px_b: np.ndarray, H: np.ndarray, K: np.ndarray, cfg: ReconstructionConfig
+    px_a: np.ndarray,
+    px_b: np.ndarray,
+    H: np.ndarray,
+    K: np.ndarray,
+    cfg: ReconstructionConfig,
+    *,
+    road_normal_cam: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, int]:
     """Dissertation method (eq. 3.18-3.26, Fig. 3.4): F = [x̄_b − x̄_a]x H, E = KᵀFK, SVD -> R, t.
 
     The epipole starts as the mean displacement (R ≈ I, t_z ≈ 0); each iteration rebuilds F from
     the current R and t (t re-solved from the epipolar constraint with R fixed) until t settles.
+    Both plane decompositions of H satisfy F = [e']x H, so the loop settles on the one nearest
+    its seed: for a tilted camera (finite epipole, t_z ≠ 0) that can be the wrong one. When the
+    result is nearer the other decomposition than the one the road priors choose
+    (``plane_solutions``; ``road_normal_cam`` as there), the loop is run again from
+    the chosen one's epipole K t. A nadir camera keeps the dissertation's seed and result.
     Returns (R, unit t, iterations used).
     """
     xa, xb = normalised_from_px(px_a, K), normalised_from_px(px_b, K)
     e_px = np.append(px_b.mean(axis=0) - px_a.mean(axis=0), 0.0)  # homogeneous difference
-    F = skew(e_px) @ H
-    E = K.T @ F @ K
-    R, t, n_front = g.decompose_essential(E, xa, xb)
+    R, t, n_it = _f_loop(xa, xb, skew(e_px) @ H, H, K, cfg)
+    sols = plane_solutions(px_a, H, K, road_normal_cam)
+    if len(sols) > 1:
+        dist = [_rotation_angle(R.T @ Rs) for Rs, _, _, _ in sols]
+        if int(np.argmin(dist)) != 0:
+            R, t, n_it2 = _f_loop(xa, xb, skew(K @ sols[0][1]) @ H, H, K, cfg)
+            n_it += n_it2
+    return R, t, n_it
+
+
+def _rotation_angle(R: np.ndarray) -> float:
+    """Angle (rad) of a rotation matrix."""
+    return float(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
+
+
+def _f_loop(
+    xa: np.ndarray,
+    xb: np.ndarray,
+    F: np.ndarray,
+    H: np.ndarray,
+    K: np.ndarray,
+    cfg: ReconstructionConfig,
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """The F = [e']x H rebuild loop (Fig. 3.4) from a first F -> (R, unit t, iterations)."""
+    R, t, n_front = g.decompose_essential(K.T @ F @ K, xa, xb)
     if n_front <= 0:
         raise PairFailure("geometry_failed", "no cheirality-valid pose from E = K^T F K")
     n_it = 0
@@ -128,33 +161,81 @@ def refine_homography_sampson(
 
 
 def pose_from_homography(
-    px_a: np.ndarray, px_b: np.ndarray, H: np.ndarray, K: np.ndarray
+    px_a: np.ndarray,
+    px_b: np.ndarray,
+    H: np.ndarray,
+    K: np.ndarray,
+    *,
+    road_normal_cam: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Homography decomposition with the plane-normal prior (road normal ≈ optical axis)."""
-    R, t, _ = pose_plane_from_homography(px_a, H, K)
+    """Homography decomposition with the road priors (``pose_plane_from_homography``)."""
+    R, t, _ = pose_plane_from_homography(px_a, H, K, road_normal_cam=road_normal_cam)
     return R, t
 
 
 def pose_plane_from_homography(
-    px_a: np.ndarray, H: np.ndarray, K: np.ndarray
+    px_a: np.ndarray, H: np.ndarray, K: np.ndarray, *, road_normal_cam: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(R, unit t, m) with K⁻¹HK ∝ R + t mᵀ (m = plane normal / distance, in units of |t|),
-    choosing the decomposition whose plane faces camera a along +z (the road prior)."""
-    n_sol, Rs, ts, ns = cv2.decomposeHomographyMat(H, K)
-    xa = normalised_from_px(px_a, K)
-    best, best_score = None, -np.inf
-    for R, t, n in zip(Rs, ts, ns, strict=True):
-        n = n.ravel()
-        t = t.ravel()
-        if n[2] < 0:  # same plane, flipped sign convention
-            n, t = -n, -t
-        # Plane in front of camera a: n·x̂ > 0 for the observed points.
-        front = np.mean(np.column_stack([xa, np.ones(len(xa))]) @ n > 0)
-        score = front + n[2]  # prior: normal along +z (camera looks down at the road)
-        if score > best_score and np.linalg.norm(t) > 1e-9:
-            best, best_score = (R, t, n), score
-    if best is None:
+    """(R, unit t, m) with K⁻¹HK ∝ R + t mᵀ (m = plane normal / distance, in units of |t|): the
+    decomposition of H that the road priors prefer (``plane_solutions``)."""
+    sols = plane_solutions(px_a, H, K, road_normal_cam)
+    if not sols:
         raise PairFailure("geometry_failed", "homography decomposition gave no valid solution")
-    R, t, n = best
-    s = float(np.linalg.norm(t))  # cv2 returns t / d, so R + (t/d) nᵀ = R + t̂ (s n)ᵀ
-    return R, t / s, s * n
+    R, t, m, _ = sols[0]
+    return R, t, m
+
+
+def plane_solutions(
+    px_a: np.ndarray, H: np.ndarray, K: np.ndarray, road_normal_cam: np.ndarray | None = None
+) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, float]]:
+    """The physically distinct decompositions of H as (R, unit t, m, score), best score first.
+
+    H alone has two: the road (normal n, motion t) and a mirror solution whose plane is nearly
+    perpendicular to the road (its normal close to the true motion) and whose motion runs
+    nearly along the road's normal. The score adds up priors on n̂ (unit normal, towards the
+    plane) and t̂:
+    - the plane is in front of camera a: the share of the points with n̂·x̂ > 0 (each
+      solution's sign is chosen so that most are);
+    - the road's normal: with a known mount n̂·``road_normal_cam`` ((3,), "down" in camera
+      coordinates, -``core.geometry.up_in_cam``), ≈ 1 against ≈ 0 for the mirror. Without it,
+      n̂·(ĝ, 1) with ĝ the image direction in which the road moves (unit 2-vector): the camera
+      looks down (n̂_z, the nadir prior) or ahead (pitched forward by φ on a vehicle driving
+      forward, it sees the road's normal lean along the flow, n̂_xy·ĝ = sin φ; the mirror
+      leans against it). n̂_z alone cannot tell them apart from ~45° of pitch on (both ~45° off
+      the optical axis). Reversing with a steep unknown mount would fool this term;
+    - the vehicle moves parallel to the road: −|n̂·t̂|, ≈ 0 for the road and ≈ |t|/d (baseline
+      over camera-to-plane distance) for the mirror.
+    """
+    xh = np.column_stack([normalised_from_px(px_a, K), np.ones(len(px_a))])
+    if road_normal_cam is None:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            flow = _transfer(px_a, H) - px_a
+        flow = flow[np.all(np.isfinite(flow), axis=1)]
+        g_img = np.median(flow, axis=0) if len(flow) else np.zeros(2)
+        g_img = g_img / max(float(np.linalg.norm(g_img)), 1e-12)
+        n_exp = np.array([g_img[0], g_img[1], 1.0])
+    else:
+        n_exp = check_shape("road_normal_cam", np.asarray(road_normal_cam, float), (3,))
+        n_exp = n_exp / np.linalg.norm(n_exp)
+    _, Rs, ts, ns = cv2.decomposeHomographyMat(H, K)
+    out: list[tuple[np.ndarray, np.ndarray, np.ndarray, float]] = []
+    for R, t, n in zip(Rs, ts, ns, strict=True):
+        n, t = n.ravel(), t.ravel()
+        s = float(np.linalg.norm(t))  # cv2 returns t / d, so R + (t/d) nᵀ = R + t̂ (s n)ᵀ
+        if s <= 1e-9:
+            continue
+        front = float(np.mean(xh @ n > 0))
+        if front < 0.5:  # same plane, opposite sign convention
+            n, t, front = -n, -t, 1.0 - front
+        if any(np.allclose(R, o[0]) and np.allclose(t / s, o[1]) for o in out):
+            continue  # the sign-flipped twin of a solution already kept
+        score = front + float(n @ n_exp) - abs(float(n @ t)) / s
+        out.append((R, t / s, s * n, score))
+    out.sort(key=lambda o: -o[3])
+    return out
+
+
+def _transfer(px: np.ndarray, H: np.ndarray) -> np.ndarray:
+    """(N, 2) pixels mapped by the homography H."""
+    q = np.column_stack([px, np.ones(len(px))]) @ H.T
+    return q[:, :2] / q[:, 2:3]
