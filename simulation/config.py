@@ -4,10 +4,17 @@ of overrides of these fields; ``simulate(..., **overrides)`` accepts any field b
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import ClassVar, Literal
 
-from roadsurf.core.camera import Camera
+import numpy as np
+
+from roadsurf.core.camera import RENDER_UNDISTORT_CRITERIA, Camera
+from roadsurf.core.errors import ConfigError
+from roadsurf.core.geometry import vehicle_from_cam_rotation
+
+MIN_DEPRESSION_DEG = 10.0  # every image-border ray must look this far below the horizon (deg)
 
 GpsProfile = Literal["rtk", "consumer"]
 Texture = Literal["gravel", "asphalt", "brick", "grass"]
@@ -35,6 +42,13 @@ class SimConfig:
     fps: float = 15.0  # frame rate (Hz)
     distortion: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)  # OpenCV
     # k1, k2, p1, p2, k3 of the rendered lens (written to camera.yaml `dist`)
+
+    # --- camera mount (core.geometry.vehicle_from_cam_rotation; all 0 = nadir) -------------
+    mount_pitch_deg: float = 0.0  # optical axis tilted forward from nadir (deg)
+    mount_roll_deg: float = 0.0  # optical axis tilted to the vehicle's right (deg)
+    mount_yaw_deg: float = 0.0  # camera turned clockwise seen from above (deg)
+    write_mount: bool = False  # write the mount angles to camera.yaml; off by default: users
+    # rarely know them and the pipeline estimates them
 
     # --- motion ------------------------------------------------------------------------------
     speed_mps: float = 6.0  # mean vehicle speed (m/s); overlap = 1 - speed/(fps * footprint)
@@ -119,6 +133,9 @@ class SimConfig:
         "fx": "(0, inf)",
         "camera_height_m": "(0, 10]; a camera more than 10 m above the road is a unit mistake",
         "fps": "(0, 1000]",
+        "mount_pitch_deg": "[0, 60]; beyond 60 deg the image holds the horizon",
+        "mount_roll_deg": "[-15, 15]; a small mounting offset",
+        "mount_yaw_deg": "[-15, 15]; a small mounting offset",
         "distortion": "(-inf, inf)",
         "speed_mps": "(0, 100]; 100 m/s is 360 km/h",
         "speed_var": "[0, 1]",
@@ -167,10 +184,60 @@ class SimConfig:
         "obd_quant_kmh": "[0, inf); 0 = no quantisation",
     }
 
+    @property
+    def mounted(self) -> bool:
+        """True for a tilted or turned camera (any mount angle), False for the nadir camera."""
+        return any((self.mount_pitch_deg, self.mount_roll_deg, self.mount_yaw_deg))
+
+    def vehicle_from_cam(self) -> np.ndarray:
+        """(3, 3) R_vehicle_from_cam of the mount (identity for the nadir camera)."""
+        return vehicle_from_cam_rotation(
+            self.mount_pitch_deg, self.mount_roll_deg, self.mount_yaw_deg
+        )
+
+    def check_view(self) -> None:
+        """Raise ConfigError unless every image-border ray of the level camera looks at least
+        MIN_DEPRESSION_DEG below the horizon: rays near or above it never meet the road."""
+        worst = self._min_depression_deg(self.mount_pitch_deg)
+        if worst >= MIN_DEPRESSION_DEG:
+            return
+        ok = [
+            p
+            for p in np.arange(60.0, -0.01, -0.5)
+            if self._min_depression_deg(p) >= MIN_DEPRESSION_DEG
+        ]
+        hint = (
+            f"mount_pitch_deg <= {ok[0]:g} works with this fx and height"
+            if ok
+            else "no mount_pitch_deg does with this fx and height"
+        )
+        raise ConfigError(
+            f"simulator: the image's upper border looks only {worst:.1f} deg below the horizon "
+            f"(mount_pitch_deg={self.mount_pitch_deg:g}, mount_roll_deg={self.mount_roll_deg:g}, "
+            f"mount_yaw_deg={self.mount_yaw_deg:g}, fx={self.fx:g} px, height={self.height} px); "
+            f"the renderer needs >= {MIN_DEPRESSION_DEG:g} deg so every ray meets the road. Lower "
+            f"mount_pitch_deg, raise fx or lower height ({hint})."
+        )
+
+    def _min_depression_deg(self, pitch_deg: float) -> float:
+        """Smallest angle below the horizon (deg) of rays through the image border (pixel
+        edges, lens distortion undone) for a level vehicle with mount pitch ``pitch_deg``."""
+        us = np.linspace(-0.5, self.width - 0.5, 33)
+        vs = np.linspace(-0.5, self.height - 0.5, 33)
+        u = np.concatenate([us, us, np.full(33, us[0]), np.full(33, us[-1])])
+        v = np.concatenate([np.full(33, vs[0]), np.full(33, vs[-1]), vs, vs])
+        n = self.camera().normalised_from_raw_px(
+            np.column_stack([u, v]), criteria=RENDER_UNDISTORT_CRITERIA
+        )
+        R = vehicle_from_cam_rotation(pitch_deg, self.mount_roll_deg, self.mount_yaw_deg)
+        d = np.column_stack([n, np.ones(len(n))]) @ R.T  # vehicle frame, z down
+        return math.degrees(float(np.min(np.arctan2(d[:, 2], np.hypot(d[:, 0], d[:, 1])))))
+
     def camera(self) -> Camera:
         """The rendered camera, as written to camera.yaml: square pixels (fy = fx), principal
         point at the image centre in the pixel-centre convention (cx = (width - 1) / 2), lens
-        distortion ``distortion``."""
+        distortion ``distortion``; the mount angles only with ``write_mount``."""
+        mount = (self.mount_pitch_deg, self.mount_roll_deg, self.mount_yaw_deg)
         return Camera(
             width=self.width,
             height=self.height,
@@ -181,4 +248,5 @@ class SimConfig:
             height_m=self.camera_height_m,
             fps=self.fps,
             dist=tuple(float(k) for k in self.distortion),
+            mount_deg=tuple(float(a) for a in mount) if self.write_mount else None,  # type: ignore[arg-type]
         )

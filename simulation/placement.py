@@ -10,6 +10,7 @@ import math
 
 import numpy as np
 
+from roadsurf.core.geometry import world_from_cam
 from roadsurf.simulation.config import SimConfig
 from roadsurf.simulation.defects import Distractor, Pothole, Trough
 from roadsurf.simulation.shapes import Blob, Polyline, Rect
@@ -19,8 +20,38 @@ log = logging.getLogger(__name__)
 
 
 def footprint_m(cfg: SimConfig) -> tuple[float, float]:
-    """Nominal ground footprint (across, along) of one frame (m)."""
-    return (cfg.width / cfg.fx * cfg.camera_height_m, cfg.height / cfg.fx * cfg.camera_height_m)
+    """Nominal ground footprint (across, along) of one frame (m); for a tilted mount the band
+    every part of the footprint covers (its narrow near edge across, its shortest side along)."""
+    if not cfg.mounted:
+        return (
+            cfg.width / cfg.fx * cfg.camera_height_m,
+            cfg.height / cfg.fx * cfg.camera_height_m,
+        )
+    x, y = _level_corners(cfg)
+    return min(x[1], x[2]) - max(x[0], x[3]), min(y[0], y[1]) - max(y[2], y[3])
+
+
+def footprint_offset_m(cfg: SimConfig) -> tuple[float, float, float]:
+    """(right, ahead, widest across) of the nominal footprint (m): the centre of the band of
+    ``footprint_m`` to the right of and ahead of the camera, and the footprint's full width
+    (all 0, 0, across for the nadir camera)."""
+    if not cfg.mounted:
+        return 0.0, 0.0, footprint_m(cfg)[0]
+    x, y = _level_corners(cfg)
+    right = 0.5 * (min(x[1], x[2]) + max(x[0], x[3]))
+    ahead = 0.5 * (min(y[0], y[1]) + max(y[2], y[3]))
+    return right, ahead, max(x) - min(x)
+
+
+def _level_corners(cfg: SimConfig) -> tuple[list[float], list[float]]:
+    """Image corners (top-left, top-right, bottom-right, bottom-left) on a flat road for a
+    level vehicle heading north: x to its right, y ahead of the camera (m)."""
+    T = world_from_cam(0.0)
+    T[:3, :3] = T[:3, :3] @ cfg.vehicle_from_cam()
+    xy = cfg.camera().footprint_corners_enu(T)
+    if xy is None:  # check_view refuses such a mount before anything is placed
+        raise ValueError("a corner ray of the mounted camera misses the road")
+    return [float(v) for v in xy[:, 0]], [float(v) for v in xy[:, 1]]
 
 
 def _blob(rng: np.random.Generator, cx: float, cy: float, r: float, irregular: float) -> Blob:
@@ -33,10 +64,12 @@ def place_features(world: World, rng: np.random.Generator) -> None:
     """Append ``world``'s defects and distractors, drawn from ``rng`` (in place)."""
     cfg = world.cfg
     fw, fl = footprint_m(cfg)
+    # A tilted or turned camera sees the road ahead of / beside itself: place there.
+    right, ahead, fw_outer = footprint_offset_m(cfg)
     s_frames = np.interp(world.frame_times, world.traj.t, world.traj.s)
     s_lo, s_hi = float(s_frames[0]), float(s_frames[-1])
     margin = min(cfg.defect_margin_m, 0.15 * (s_hi - s_lo))
-    lo, hi = s_lo + margin, s_hi - margin
+    lo, hi = s_lo + margin + ahead, s_hi - margin + ahead
     occupied: list[tuple[float, float, float]] = []
     heading = world.route.heading_at
 
@@ -59,7 +92,7 @@ def place_features(world: World, rng: np.random.Generator) -> None:
         lm = max(0.03, 0.5 * fw - r - 0.08) if lat_max is None else lat_max
         for _ in range(tries):
             s = rng.uniform(lo, hi)
-            lat = float(world.camera_path_lateral(np.array([s]))[0]) + rng.uniform(-lm, lm)
+            lat = float(world.camera_path_lateral(np.array([s]))[0]) + right + rng.uniform(-lm, lm)
             x, y = world.route.point(np.array([s]), np.array([lat]))[0]
             if free(x, y, r):
                 return s, lat, float(x), float(y)
@@ -71,7 +104,7 @@ def place_features(world: World, rng: np.random.Generator) -> None:
         dashed = cfg.marking_style == "dashed" or (cfg.marking_style == "mixed" and u < 0.7)
         if dashed:  # dashed longitudinal line near the image edge
             side = rng.choice([-1.0, 1.0])
-            off = side * rng.uniform(0.25, 0.42)
+            off = side * rng.uniform(0.25, 0.42) + right
             width = rng.uniform(0.10, 0.15)
             dash, gap = rng.uniform(1.0, 3.0), rng.uniform(1.0, 2.5)
             sec = min(rng.uniform(4.0, 9.0), hi - lo)
@@ -101,7 +134,7 @@ def place_features(world: World, rng: np.random.Generator) -> None:
                 continue
             s, _, x, y = sp
             ang = -float(heading(np.array([s]))[0])  # perpendicular to travel
-            rect = Rect(x, y, ang, fw + 0.6, width)
+            rect = Rect(x, y, ang, fw_outer + 0.6, width)
             occupy_rect(rect)
             world.distractors.append(
                 Distractor("lane_marking", rect, float(rng.uniform(0.85, 1.0)), 0.003)
@@ -115,7 +148,7 @@ def place_features(world: World, rng: np.random.Generator) -> None:
             width = rng.uniform(0.35, 0.6)
             off = rng.uniform(-0.25, 0.25)
             ss = np.arange(s0, s0 + length + 1e-9, 0.25)
-            pts = world.route.point(ss, world.camera_path_lateral(ss) + off)
+            pts = world.route.point(ss, world.camera_path_lateral(ss) + right + off)
             if all(free(px, py, width / 2) for px, py in pts):
                 placed = True
                 break
@@ -190,7 +223,7 @@ def place_features(world: World, rng: np.random.Generator) -> None:
                 continue
             s, _, x, y = sp
             ang = -float(heading(np.array([s]))[0]) + rng.uniform(-0.6, 0.6)
-            shape: Blob | Rect = Rect(x, y, ang, fw + 1.0, width)
+            shape: Blob | Rect = Rect(x, y, ang, fw_outer + 1.0, width)
             occupy_rect(shape)
         else:  # tree / sign shadow blob
             r = rng.uniform(0.2, 0.4)

@@ -7,7 +7,10 @@ with the footprint, not with the route.
 
 Ray/height-field intersection: start on the plane under the camera, then iterate
 t <- (h(x(t), y(t)) - C_z) / d_z a few times (fixed point; converges while the surface slope
-times the ray's tangent stays below 1, which holds for the bowls and grooves rendered here).
+times the ray's tangent stays below 1, which holds for the bowls and grooves a nadir camera
+sees). A tilted mount's far rays are flat (tangent 2-3): there the rays that have not settled
+after those steps go on in a safeguarded search that keeps a bracket [above, below the
+surface] per ray and bisects when a step would leave it.
 """
 
 from __future__ import annotations
@@ -19,6 +22,8 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from shapely.geometry import MultiPoint, Polygon, box
+from shapely.prepared import prep
 
 from roadsurf.core.camera import RENDER_UNDISTORT_CRITERIA
 from roadsurf.simulation.route import Pose
@@ -26,6 +31,8 @@ from roadsurf.simulation.world import World
 
 TILE = 384  # largest tile size (px at the render GSD)
 TILE_M = 0.47  # target tile size on the ground (m): coarse GSDs get smaller tiles
+SETTLED = 0.1  # a tilted view's ray whose last fixed-point step moved more than this share of
+# its ground size has not settled: a bracketed search finishes it
 
 
 @dataclass
@@ -49,6 +56,10 @@ class Renderer:
         self.cache_tiles = cache_tiles
         self.tile_seconds = 0.0  # time spent evaluating world tiles (for benchmarks)
         self.tiles_made = 0
+        self.mounted = c.mounted
+        # Deepest a ray can reach below the smooth road (defects, unevenness): pads a tilted
+        # view's mosaic by this times the flattest ray's tangent (m).
+        self.relief_m = max(c.pothole_depth_m[1], 0.02) + 4.0 * c.unevenness_m + 0.005
         W, H = c.width * self.ss, c.height * self.ss
         u = (np.arange(W, dtype=np.float64) + 0.5) / self.ss - 0.5
         v = (np.arange(H, dtype=np.float64) + 0.5) / self.ss - 0.5
@@ -97,7 +108,11 @@ class Renderer:
             self.cache.popitem(last=False)
         return tile
 
-    def _mosaic(self, xmin: float, ymin: float, xmax: float, ymax: float):
+    def _mosaic(
+        self, xmin: float, ymin: float, xmax: float, ymax: float, area: Polygon | None = None
+    ):
+        """Tiles over the box, assembled. With ``area`` (a tilted view's padded footprint)
+        tiles outside it are not evaluated: no ray reaches them (flat filler instead)."""
         g, n = self.g, self.tile
         a0, a1 = math.floor(xmin / (n * g)), math.floor(xmax / (n * g))
         b0, b1 = math.floor(-ymax / (n * g)), math.floor(-ymin / (n * g))
@@ -105,10 +120,25 @@ class Renderer:
         H = np.empty((rows, cols), np.float32)
         R = np.empty((rows, cols, 3), np.float32)
         D = np.empty((rows, cols), np.float32)
+        tiles = [(a, b) for b in range(b0, b1 + 1) for a in range(a0, a1 + 1)]
+        if area is not None:
+            inside = prep(area)
+            tiles = [
+                (a, b)
+                for a, b in tiles
+                if inside.intersects(box(a * n * g, -(b + 1) * n * g, (a + 1) * n * g, -b * n * g))
+            ]
+        # Keep two frames' tiles: consecutive frames share most of them (no LRU thrashing).
+        self.cache_tiles = max(self.cache_tiles, 2 * len(tiles))
+        wanted = set(tiles)
         for b in range(b0, b1 + 1):
             for a in range(a0, a1 + 1):
-                h, r, d = self._tile(a, b)
                 rs, cs = (b - b0) * n, (a - a0) * n
+                if (a, b) in wanted:
+                    h, r, d = self._tile(a, b)
+                else:  # flat filler at the road's height there
+                    zb = self.world.base(np.array((a + 0.5) * n * g), np.array(-(b + 0.5) * n * g))
+                    h, r, d = np.float32(zb), 0.0, 0.0
                 H[rs : rs + n, cs : cs + n] = h
                 R[rs : rs + n, cs : cs + n] = r
                 D[rs : rs + n, cs : cs + n] = d
@@ -116,12 +146,24 @@ class Renderer:
 
     # ---- frames
     def footprint(self, pose: Pose, z_ground: float) -> np.ndarray:
-        """(16, 2) points around the image border on the plane z = z_ground (local metres);
-        the first, fifth, ninth and thirteenth are the image corners.
+        """(16, 2) points around the image border on the road (local metres); the first,
+        fifth, ninth and thirteenth are the image corners. The road is the plane z = z_ground
+        for the nadir camera; a tilted view reaches metres ahead, so there it is the smooth
+        road surface (``World.base``: grade, cross slope, undulation).
 
         Not ``Camera.footprint_corners_enu``/``footprint_grid_enu``: 16 pixel-edge points, lens
         distortion undone with the renderer's stopping rule, so the rendered mosaic covers the
         distorted image."""
+        d = self._border_rays(pose)
+        t = (z_ground - pose.C[2]) / d[:, 2]
+        if self.mounted:
+            for _ in range(3):  # fixed point on the smooth surface (slopes of a few %)
+                xy = pose.C[:2] + t[:, None] * d[:, :2]
+                t = (self.world.base(xy[:, 0], xy[:, 1]) - pose.C[2]) / d[:, 2]
+        return pose.C[:2] + t[:, None] * d[:, :2]
+
+    def _border_rays(self, pose: Pose) -> np.ndarray:
+        """(16, 3) world directions (camera z = 1) through the image border's pixel edges."""
         c = self.world.cfg
         f = np.linspace(0.0, 1.0, 4, endpoint=False)
         w, h = c.width - 0.5, c.height - 0.5
@@ -130,9 +172,7 @@ class Renderer:
         n = self.camera.normalised_from_raw_px(
             np.column_stack([u, v]), criteria=RENDER_UNDISTORT_CRITERIA
         )
-        d = np.column_stack([n, np.ones(len(n))]) @ pose.R.T
-        t = (z_ground - pose.C[2]) / d[:, 2]
-        return pose.C[:2] + t[:, None] * d[:, :2]
+        return np.column_stack([n, np.ones(len(n))]) @ pose.R.T
 
     def render(self, pose: Pose) -> FrameRender:
         c = self.world.cfg
@@ -140,9 +180,18 @@ class Renderer:
         z_ground = float(self.world.base(np.array(C[0]), np.array(C[1])))
         fp = self.footprint(pose, z_ground)
         pad = 0.12 + 0.05 * (C[2] - z_ground)
-        H, Rm, D, mx0, my0 = self._mosaic(
-            fp[:, 0].min() - pad, fp[:, 1].min() - pad, fp[:, 0].max() + pad, fp[:, 1].max() + pad
-        )
+        if not self.mounted:
+            area = None
+            box_m = (fp[:, 0].min() - pad, fp[:, 1].min() - pad)
+            box_m += (fp[:, 0].max() + pad, fp[:, 1].max() + pad)
+        else:
+            # A border ray meets the surface up to relief_m below the smooth road: that far
+            # on along its direction (its tangent times relief_m, metres for flat far rays).
+            dw = self._border_rays(pose)
+            beyond = fp + self.relief_m * dw[:, :2] / -dw[:, 2:3]
+            area = MultiPoint(np.vstack([fp, beyond])).convex_hull.buffer(pad)
+            box_m = area.bounds
+        H, Rm, D, mx0, my0 = self._mosaic(*box_m, area)
         g = self.g
         d = (self.rays_cam @ pose.R.T.astype(np.float32)).astype(np.float32)  # world directions
         inv_dz = np.float32(1.0) / d[..., 2]
@@ -152,25 +201,91 @@ class Renderer:
         dcol = d[..., 0] / np.float32(g)
         drow = -d[..., 1] / np.float32(g)
         Hrel = H - np.float32(C[2])  # heights relative to the camera (small numbers, float32)
-        # Start on the plane under the camera; fixed-point iterations on the height field.
-        t = np.float32(z_ground - C[2]) * inv_dz
-        for _ in range(max(1, c.raycast_iters)):
-            zh = cv2.remap(
-                Hrel,
-                col0 + t * dcol,
-                row0 + t * drow,
-                cv2.INTER_LINEAR,
-                borderMode=cv2.BORDER_REPLICATE,
+
+        if not self.mounted:
+            # Start on the plane under the camera; fixed-point iterations on the height field.
+            t = np.float32(z_ground - C[2]) * inv_dz
+            for _ in range(max(1, c.raycast_iters)):
+                t = _height_at(Hrel, col0, row0, dcol, drow, t) * inv_dz
+        else:
+            # Start on the plane through the footprint on the smooth road (metres ahead, the
+            # road's grade and cross slope matter), then iterate.
+            xy = fp - C[:2]
+            zb = self.world.base(fp[:, 0], fp[:, 1]) - C[2]
+            a, bx, by = np.linalg.lstsq(np.column_stack([np.ones(len(xy)), xy]), zb, rcond=None)[0]
+            den = d[..., 2] - np.float32(bx) * d[..., 0] - np.float32(by) * d[..., 1]
+            t = np.float32(a) / den
+            t = _intersect_tilted(
+                Hrel, col0, row0, dcol, drow, inv_dz, t, c.raycast_iters, g, c.fx * self.ss
             )
-            t = zh * inv_dz
         col = col0 + t * dcol
         row = row0 + t * drow
         rad = cv2.remap(Rm, col, row, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         dep = cv2.remap(D, col, row, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         if self.ss > 1:
             rad = cv2.resize(rad, (c.width, c.height), interpolation=cv2.INTER_AREA)
-        # Ground area seen by each ray (z-depth t, focal fx, 1/ss^2 of a pixel).
-        cell = (t / c.fx) ** 2 / (self.ss * self.ss)
+        # Ground area seen by each ray: t² / (fx fy |d_z|) of a pixel, 1/ss² of it per ray
+        # (z-depth t, world ray d with camera z = 1); |d_z| = 1 for the level nadir camera.
+        if not self.mounted:
+            cell = (t / c.fx) ** 2 / (self.ss * self.ss)
+        else:
+            cell = t * t * np.abs(inv_dz) / np.float32(c.fx * c.fx * self.ss * self.ss)
         deep = dep > 0.010
-        area = float(np.sum(cell[deep]))
-        return FrameRender(rad, area, float(dep.max()) if dep.size else 0.0, fp)
+        area_m2 = float(np.sum(cell[deep]))
+        return FrameRender(rad, area_m2, float(dep.max()) if dep.size else 0.0, fp)
+
+
+def _height_at(Hrel, col0, row0, dcol, drow, t: np.ndarray) -> np.ndarray:
+    """Mosaic height (relative to the camera) where the rays reach parameter t (bilinear)."""
+    return cv2.remap(
+        Hrel, col0 + t * dcol, row0 + t * drow, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+    )
+
+
+def _intersect_tilted(
+    Hrel, col0, row0, dcol, drow, inv_dz, t: np.ndarray, iters: int, g: float, fx_ss: float
+):
+    """Ray parameter t where the rays of a tilted view meet the height field. Fixed-point
+    steps for all rays; those still moving after ``iters`` steps (flat rays over steep walls,
+    where the fixed point oscillates) go on in a bracketed search (``_safeguarded``)."""
+    for _ in range(max(1, iters)):
+        t_prev = t
+        t = _height_at(Hrel, col0, row0, dcol, drow, t) * inv_dz
+    # Last step on the ground against the ray's own ground size (sqrt of its ``cell``): far
+    # rays see centimetres, so they settle at a coarser tolerance than near ones.
+    moved = np.abs(t - t_prev) * np.hypot(dcol, drow) * np.float32(g)
+    size = t * np.sqrt(np.abs(inv_dz)) / np.float32(fx_ss)
+    idx = np.flatnonzero(moved > np.float32(SETTLED) * size)
+    if idx.size == 0:
+        return t
+    # The unsettled rays as (k, 1024) maps: cv2.remap's maps stay below 32767 px a side.
+    width = 1024
+    pad = (-idx.size) % width
+
+    def take(a):
+        return np.pad(a.ravel()[idx], (0, pad), mode="edge").reshape(-1, width)
+
+    dc, dr, inv = take(dcol), take(drow), take(inv_dz)
+    h_max = float(Hrel.max())
+    ts = _safeguarded(
+        lambda tt: _height_at(Hrel, col0, row0, dc, dr, tt), take(t), inv, h_max, 2 * iters
+    )
+    out = t.ravel().copy()
+    out[idx] = ts.ravel()[: idx.size]
+    return out.reshape(t.shape)
+
+
+def _safeguarded(height_at, t: np.ndarray, inv_dz: np.ndarray, h_max: float, iters: int):
+    """Fixed-point steps t <- h(x(t)) / d_z inside a per-ray bracket [lo above the surface,
+    hi below it]; a bisection where a step would leave it. ``h_max``: the highest surface
+    point relative to the camera (every ray is above the surface before it gets that low)."""
+    lo = np.maximum(np.float32(h_max) * inv_dz, np.float32(0.0))
+    hi = np.full_like(t, np.inf)
+    for _ in range(max(1, iters)):
+        t_fp = height_at(t) * inv_dz  # >= t where the ray is still above the surface
+        above = t <= t_fp
+        lo = np.where(above, np.maximum(lo, t), lo)
+        hi = np.where(above, hi, np.minimum(hi, t))
+        mid = np.where(np.isfinite(hi), np.float32(0.5) * (lo + hi), lo)
+        t = np.where((t_fp < lo) | (t_fp > hi), mid, t_fp)
+    return t

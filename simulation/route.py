@@ -67,7 +67,7 @@ class Trajectory:
 class Pose:
     t: float
     C: np.ndarray  # (3,) camera centre, local x, y, z (m)
-    R: np.ndarray  # (3, 3) world (grid E, N, U) from camera
-    heading_deg: float  # grid heading (deg)
-    roll_rad: float
-    pitch_rad: float
+    R: np.ndarray  # (3, 3) world (grid E, N, U) from camera, the mount included
+    heading_deg: float  # grid heading of the vehicle (deg)
+    roll_rad: float  # vehicle roll (vibration), about the nadir camera's y (rad)
+    pitch_rad: float  # vehicle pitch (vibration), about the nadir camera's x (rad)

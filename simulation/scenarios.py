@@ -149,6 +149,21 @@ SCENARIOS: dict[str, Scenario] = {
             "vibration_deg": 0.8,
         },
     ),
+    "tilted": Scenario(
+        "the potholes street seen by a camera tilted 25° forward (mount not in camera.yaml), "
+        "GPS σ 5 cm",
+        202,
+        60,
+        {
+            "n_potholes": 5,
+            "n_cracks": 2,
+            "n_ruts": 1,
+            "n_shadows": 2,
+            "n_oil_stains": 1,
+            "mount_pitch_deg": 25.0,
+            "gps_sigma_m": 0.05,
+        },
+    ),
     "sample": Scenario(
         "the committed data_samples/drive: 3+ potholes, crack, marking, shadow, oil stain",
         7,
@@ -186,7 +201,9 @@ def make_config(name: str, config: str | Path | None = None, **overrides: Any) -
         raw = yaml.safe_load(Path(config).read_text(encoding="utf-8")) or {}
         data.update({k: getattr(from_file, k) for k in raw})
     data.update(overrides)
-    return from_dict(SimConfig, data, f"scenario {name!r}")
+    cfg = from_dict(SimConfig, data, f"scenario {name!r}")
+    cfg.check_view()
+    return cfg
 
 
 def _prepare_out(out: Path) -> None:
@@ -289,16 +306,19 @@ def simulate(
 def _write_drive_files(world, out: Path, names: list[str]) -> None:
     cfg = world.cfg
     cam = cfg.camera()
-    write_text_atomic(
-        out / "camera.yaml",
+    text = (
         "# written by roadsurf simulate\n"
         f"model: {cam.model}\n"
         f"width: {cam.width}\nheight: {cam.height}\n"
         f"fx: {cam.fx!r}\nfy: {cam.fy!r}\ncx: {cam.cx!r}\ncy: {cam.cy!r}\n"
         f"dist: [{', '.join(repr(k) for k in cam.dist)}]\n"
         f"height_m: {cam.height_m!r}\n"
-        f"fps: {cam.fps!r}\n",
+        f"fps: {cam.fps!r}\n"
     )
+    if cam.mount_deg is not None:  # only with write_mount: otherwise the pipeline estimates it
+        keys = ("mount_pitch_deg", "mount_roll_deg", "mount_yaw_deg")
+        text += "".join(f"{k}: {v!r}\n" for k, v in zip(keys, cam.mount_deg, strict=True))
+    write_text_atomic(out / "camera.yaml", text)
     off = time_offset_s(cfg)
     write_csv(
         out / "frames.csv",

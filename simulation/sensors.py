@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -40,8 +41,11 @@ def form_image(
         yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
         r2 = ((xx - (w - 1) / 2) ** 2 + (yy - (h - 1) / 2) ** 2) / ((w / 2) ** 2 + (h / 2) ** 2)
         img *= (1.0 - cfg.vignetting * r2)[..., None]
-    # Motion blur along the image vertical (the direction of travel).
-    blur_px = speed_mps * cfg.exposure_time_s * cfg.fx / cfg.camera_height_m
+    if cfg.mounted:
+        img = _motion_blur_tilted(img, cfg, speed_mps)
+        blur_px = 0.0
+    else:  # motion blur along the image vertical (the direction of travel)
+        blur_px = speed_mps * cfg.exposure_time_s * cfg.fx / cfg.camera_height_m
     if cfg.motion_blur and blur_px > 0.3:
         n = int(math.ceil(blur_px)) | 1
         k = np.zeros((n, 1), np.float32)
@@ -56,6 +60,47 @@ def form_image(
     if cfg.greyscale:
         out = cv2.cvtColor(out, cv2.COLOR_RGB2GRAY)
     return out
+
+
+@lru_cache(maxsize=4)
+def _flow_px_per_m(cfg: SimConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(H, W) image motion u, v (px) per metre the vehicle drives, for a level vehicle over a
+    flat road at ``camera_height_m``: a tilted view's near rows move fast, its far rows slowly
+    (ideal pinhole flow; the lens distortion's share is left out)."""
+    cam = cfg.camera()
+    vv, uu = np.mgrid[0 : cfg.height, 0 : cfg.width].astype(np.float64)
+    n = cam.normalised_from_raw_px(np.column_stack([uu.ravel(), vv.ravel()]))
+    x, y = n[:, 0], n[:, 1]
+    R = cfg.vehicle_from_cam()
+    t = cfg.camera_height_m / (R[2, 0] * x + R[2, 1] * y + R[2, 2])  # z-depth on the road
+    V = R[1]  # the road moves backward (vehicle +y) past the camera, in camera axes
+    du = cam.fx * (V[0] - x * V[2]) / t
+    dv = cam.fy * (V[1] - y * V[2]) / t
+    shape = (cfg.height, cfg.width)
+    return du.reshape(shape).astype(np.float32), dv.reshape(shape).astype(np.float32)
+
+
+def _motion_blur_tilted(img: np.ndarray, cfg: SimConfig, speed_mps: float) -> np.ndarray:
+    """Motion blur of a tilted view: each pixel averaged along its own image motion during
+    the exposure (the flow varies over the image), sampled at most 1 px apart."""
+    du, dv = _flow_px_per_m(cfg)
+    travel = np.float32(speed_mps * cfg.exposure_time_s)
+    longest = float(travel * np.sqrt(du * du + dv * dv).max())
+    if not cfg.motion_blur or longest <= 0.3:
+        return img
+    h, w = img.shape[:2]
+    vv, uu = np.mgrid[0:h, 0:w].astype(np.float32)
+    out = np.zeros_like(img)
+    offsets = np.linspace(-0.5, 0.5, int(math.ceil(longest)) | 1, dtype=np.float32)
+    for s in offsets:
+        out += cv2.remap(
+            img,
+            uu + s * travel * du,
+            vv + s * travel * dv,
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_REFLECT,
+        )
+    return out / np.float32(len(offsets))
 
 
 def encode_image(img: np.ndarray, cfg: SimConfig) -> bytes:

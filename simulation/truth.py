@@ -18,7 +18,7 @@ import shapely
 from shapely.geometry import MultiPolygon, Polygon, box
 from shapely.prepared import prep
 
-from roadsurf.core.geometry import lla_from_utm
+from roadsurf.core.geometry import forward_in_cam, lla_from_utm
 from roadsurf.io.formats import (
     GridSpec,
     feature,
@@ -51,8 +51,10 @@ def quat_wxyz(R: np.ndarray) -> np.ndarray:
 
 
 def true_heading_deg(world: World, C: np.ndarray, R: np.ndarray) -> float:
-    """Compass heading relative to TRUE north (grid heading + meridian convergence)."""
-    fwd = -R[:, 1]
+    """Compass heading of the vehicle's forward direction relative to TRUE north (grid heading
+    + meridian convergence); R is world_from_cam, the mount included."""
+    cfg = world.cfg
+    fwd = R @ forward_in_cam(cfg.vehicle_from_cam()) if cfg.mounted else -R[:, 1]
     fwd = fwd[:2] / max(1e-12, float(np.hypot(fwd[0], fwd[1])))
     pts = np.array([C[:2], C[:2] + fwd])
     ll = lla_from_utm(pts[:, 0] + world.origin_e_m, pts[:, 1] + world.origin_n_m, world.epsg)

@@ -92,8 +92,10 @@ class World:
         hd += math.degrees(float(np.interp(t, tr.t, tr.yaw)))
         roll = float(np.interp(t, tr.t, tr.roll))
         pitch = float(np.interp(t, tr.t, tr.pitch))
+        # The vehicle's pose (a nadir camera's) times the mount; the centre stays at C.
         T = world_from_cam(hd % 360.0, roll, pitch, np.array([xy[0], xy[1], z]))
-        return Pose(t, T[:3, 3].copy(), T[:3, :3].copy(), hd % 360.0, roll, pitch)
+        R = T[:3, :3] @ c.vehicle_from_cam() if c.mounted else T[:3, :3].copy()
+        return Pose(t, T[:3, 3].copy(), R, hd % 360.0, roll, pitch)
 
     def camera_path_lateral(self, s: np.ndarray) -> np.ndarray:
         """Lateral offset of the camera where it passes arc length s (m)."""

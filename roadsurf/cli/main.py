@@ -56,6 +56,26 @@ def simulate(
         Path | None,
         typer.Option(help="YAML file of simulator parameters (docs/simulator.md); --set wins."),
     ] = None,
+    mount_pitch: Annotated[
+        float | None,
+        typer.Option(
+            "--mount-pitch", metavar="DEG", help="Camera tilted forward from nadir (deg, 0-60)."
+        ),
+    ] = None,
+    mount_roll: Annotated[
+        float | None,
+        typer.Option("--mount-roll", metavar="DEG", help="Camera tilted to the right (deg, ±15)."),
+    ] = None,
+    mount_yaw: Annotated[
+        float | None,
+        typer.Option("--mount-yaw", metavar="DEG", help="Camera turned clockwise (deg, ±15)."),
+    ] = None,
+    write_mount: Annotated[
+        bool,
+        typer.Option(
+            "--write-mount", help="Write the mount angles to camera.yaml (default: estimated)."
+        ),
+    ] = False,
     list_scenarios: Annotated[
         bool, typer.Option("--list", help="List scenarios and exit.")
     ] = False,
@@ -77,6 +97,13 @@ def simulate(
         if not sep:
             raise typer.BadParameter(f"--set expects key=value, got {item!r}")
         overrides[key.strip()] = yaml.safe_load(value)
+    mount = {
+        "mount_pitch_deg": mount_pitch,
+        "mount_roll_deg": mount_roll,
+        "mount_yaw_deg": mount_yaw,
+        "write_mount": True if write_mount else None,
+    }
+    overrides |= {k: v for k, v in mount.items() if v is not None}  # given ones only
     res = scenarios.simulate(scenario, out, seed=seed, n_frames=frames, config=config, **overrides)
     typer.echo(f"Wrote drive '{scenario}' to {res}")
 
