@@ -42,6 +42,10 @@ class Camera:
     # .vehicle_from_cam_rotation); from camera.yaml / `roadsurf calibrate --ground`, or
     # estimated from the drive's road normals; None = not known (nadir assumed)
     mount_deg: tuple[float, float, float] | None = None
+    # rolling-shutter readout time (s): the time the sensor takes to read its `height` rows,
+    # row v (raw pixel, 0 = top) exposed readout_s * v / height after the frame's timestamp
+    # (docs/reconstruction.md, "Rolling shutter"); 0 = global shutter
+    readout_s: float = 0.0
 
     @property
     def vehicle_from_cam(self) -> np.ndarray:

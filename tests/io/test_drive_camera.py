@@ -92,3 +92,32 @@ def test_camera_height_in_cm_is_refused_with_the_metre_value(tmp_path: Path) -> 
     (root / "camera.yaml").write_text(camera_yaml(height_m=110))
     with pytest.raises(DriveFormatError, match=r"height_m' = 110.*1.1 m"):
         load_drive(root)
+
+
+def test_readout_time_loads(tmp_path: Path) -> None:
+    """Optional readout_s: the rolling shutter's readout time (s); absent = global shutter."""
+    root = make_drive(tmp_path / "d")
+    assert load_drive(root).camera.readout_s == 0.0
+    (root / "camera.yaml").write_text(camera_yaml(readout_s=0.03))
+    assert load_drive(root).camera.readout_s == 0.03
+    (root / "camera.yaml").write_text(camera_yaml(readout_s=0))
+    assert load_drive(root).camera.readout_s == 0.0
+
+
+@pytest.mark.parametrize(
+    ("value", "message"),
+    [
+        (-0.01, r"camera.yaml:11: camera.yaml 'readout_s' = -0.01 is outside \[0, 0.2\) s"),
+        (20, r"camera.yaml:11: camera.yaml 'readout_s' = 20.0 is outside \[0, 0.2\) s.*ms typed"),
+        (0.2, r":11: .*'readout_s' = 0.2 is outside"),
+        ("fast", r":11: camera.yaml 'readout_s' must be a number, got 'fast'"),
+        (0.15, r":11: .*'readout_s' = 0.15 s is longer than one frame period \(1 / fps = 0.1 s"),
+    ],
+)
+def test_readout_time_out_of_range_names_file_line_and_value(
+    tmp_path: Path, value: object, message: str
+) -> None:
+    root = make_drive(tmp_path / "d")  # fps 10: a frame period of 0.1 s
+    (root / "camera.yaml").write_text(camera_yaml(readout_s=value))
+    with pytest.raises(DriveFormatError, match=message):
+        load_drive(root)

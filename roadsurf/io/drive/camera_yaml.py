@@ -30,10 +30,12 @@ _CAMERA_KEYS: dict[str, tuple[type, bool]] = {
     "mount_pitch_deg": (float, False),
     "mount_roll_deg": (float, False),
     "mount_yaw_deg": (float, False),
+    "readout_s": (float, False),
 }
 MAX_CAMERA_HEIGHT_M = 10.0  # above this, height_m is a unit mistake, not a vehicle mount
 _MOUNT_KEYS = ("mount_pitch_deg", "mount_roll_deg", "mount_yaw_deg")
 _MOUNT_LIMIT_DEG = {"mount_pitch_deg": 90.0, "mount_roll_deg": 45.0, "mount_yaw_deg": 45.0}
+MAX_READOUT_S = 0.2  # readout_s is in [0, this): rolling shutters read a frame in 5-50 ms
 
 
 def _yaml_key_lines(text: str) -> dict[str, int]:
@@ -136,6 +138,13 @@ def load_camera(path: Path) -> Camera:
                     f"{where(key)}: camera.yaml '{key}' = {v!r} is outside [-{lim:g}, {lim:g}] "
                     "degrees. Mount angles are in degrees (run `roadsurf calibrate --ground`)."
                 )
+            if key == "readout_s" and not 0.0 <= v < MAX_READOUT_S:
+                raise DriveFormatError(
+                    f"{where(key)}: camera.yaml 'readout_s' = {v!r} is outside "
+                    f"[0, {MAX_READOUT_S:g}) s. It is the rolling shutter's readout time (first "
+                    "to last row) in seconds, typically 0.005-0.05 (ms typed for s?); 0 or no "
+                    "key = global shutter."
+                )
         elif tp is str:
             if not isinstance(v, str) or v.strip().lower() != "pinhole":
                 raise DriveFormatError(
@@ -173,7 +182,14 @@ def load_camera(path: Path) -> Camera:
             if any(k in vals for k in _MOUNT_KEYS)
             else None
         ),
+        readout_s=float(vals.get("readout_s", 0.0)),
     )
+    if cam.readout_s * cam.fps > 1.0 + 1e-9:
+        raise DriveFormatError(
+            f"{where('readout_s')}: camera.yaml 'readout_s' = {cam.readout_s!r} s is longer than "
+            f"one frame period (1 / fps = {1.0 / cam.fps:.4g} s): a rolling-shutter sensor reads "
+            "a frame before it starts the next. Check readout_s and fps."
+        )
     if not (0 <= cam.cx <= cam.width and 0 <= cam.cy <= cam.height):
         raise DriveFormatError(
             f"{path}: principal point (cx, cy) = ({cam.cx}, {cam.cy}) lies outside the "
