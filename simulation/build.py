@@ -27,6 +27,7 @@ def _noise1d(t: np.ndarray, spacings: tuple[float, ...], weights: tuple[float, .
 def build_world(cfg: SimConfig, seed: int, n_frames: int) -> World:
     """Draw a route, a trajectory and the defects/distractors for ``seed``."""
     cfg.check_view()  # refuse a view that reaches the horizon before drawing anything
+    cfg.check_readout()
     rng = np.random.default_rng(seed)
     epsg = utm_epsg_for(cfg.origin_lat_deg, cfg.origin_lon_deg)
     en = utm_from_lla(cfg.origin_lat_deg, cfg.origin_lon_deg, epsg)[0]

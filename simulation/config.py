@@ -50,6 +50,11 @@ class SimConfig:
     write_mount: bool = False  # write the mount angles to camera.yaml; off by default: users
     # rarely know them and the pipeline estimates them
 
+    # --- shutter ----------------------------------------------------------------------------
+    readout_s: float = 0.0  # rolling shutter: the sensor reads its rows top to bottom in this
+    # time (s), row v from the pose at the frame's timestamp + readout_s * v / height (written
+    # to camera.yaml); 0 = global shutter, every row from the timestamp's pose
+
     # --- motion ------------------------------------------------------------------------------
     speed_mps: float = 6.0  # mean vehicle speed (m/s); overlap = 1 - speed/(fps * footprint)
     speed_var: float = 0.04  # relative slow speed variation (std, fraction of speed)
@@ -137,6 +142,7 @@ class SimConfig:
         "mount_roll_deg": "[-15, 15]; a small mounting offset",
         "mount_yaw_deg": "[-15, 15]; a small mounting offset",
         "distortion": "(-inf, inf)",
+        "readout_s": "[0, 0.2); and at most one frame period, 1 / fps (check_readout)",
         "speed_mps": "(0, 100]; 100 m/s is 360 km/h",
         "speed_var": "[0, 1]",
         "vibration_deg": "[0, 90]",
@@ -195,6 +201,22 @@ class SimConfig:
             self.mount_pitch_deg, self.mount_roll_deg, self.mount_yaw_deg
         )
 
+    def check_readout(self) -> None:
+        """Raise ConfigError when the readout takes longer than a frame period: a rolling
+        shutter reads one frame before it starts the next."""
+        if not 0.0 <= self.readout_s < 0.2:
+            raise ConfigError(
+                f"simulator: readout_s = {self.readout_s!r} s is outside [0, 0.2) (the rolling "
+                "shutter's readout time in seconds; 0 = global shutter)."
+            )
+        if self.readout_s * self.fps > 1.0 + 1e-9:
+            raise ConfigError(
+                f"simulator: readout_s = {self.readout_s:g} s is longer than one frame period "
+                f"(1 / fps = {1.0 / self.fps:.4g} s): a rolling-shutter sensor reads a frame "
+                f"before it starts the next. Lower readout_s to <= {1.0 / self.fps:.4g} s or "
+                f"fps to <= {1.0 / self.readout_s:.4g} Hz."
+            )
+
     def check_view(self) -> None:
         """Raise ConfigError unless every image-border ray of the level camera looks at least
         MIN_DEPRESSION_DEG below the horizon: rays near or above it never meet the road."""
@@ -236,7 +258,7 @@ class SimConfig:
     def camera(self) -> Camera:
         """The rendered camera, as written to camera.yaml: square pixels (fy = fx), principal
         point at the image centre in the pixel-centre convention (cx = (width - 1) / 2), lens
-        distortion ``distortion``; the mount angles only with ``write_mount``."""
+        distortion ``distortion``; the mount angles only with ``write_mount``; ``readout_s``."""
         mount = (self.mount_pitch_deg, self.mount_roll_deg, self.mount_yaw_deg)
         return Camera(
             width=self.width,
@@ -249,4 +271,5 @@ class SimConfig:
             fps=self.fps,
             dist=tuple(float(k) for k in self.distortion),
             mount_deg=tuple(float(a) for a in mount) if self.write_mount else None,  # type: ignore[arg-type]
+            readout_s=float(self.readout_s),
         )

@@ -141,6 +141,9 @@ def place_features(world: World, rng: np.random.Generator) -> None:
             )
 
     for i in range(cfg.n_ruts):
+        if 0.8 * (hi - lo) < 0.25:  # a rut needs two points 0.25 m apart along the path
+            log.warning("could not place rut %d: the drive is too short; skipped", i)
+            continue
         placed = False
         for _ in range(60):
             length = min(rng.uniform(3.0, 7.0), 0.8 * (hi - lo))

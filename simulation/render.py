@@ -31,6 +31,7 @@ from roadsurf.simulation.world import World
 
 TILE = 384  # largest tile size (px at the render GSD)
 TILE_M = 0.47  # target tile size on the ground (m): coarse GSDs get smaller tiles
+ROW_KNOT = 8  # rolling shutter: an exact pose every this many supersampled rows (count)
 SETTLED = 0.1  # a tilted view's ray whose last fixed-point step moved more than this share of
 # its ground size has not settled: a bracketed search finishes it
 
@@ -174,11 +175,59 @@ class Renderer:
         )
         return np.column_stack([n, np.ones(len(n))]) @ pose.R.T
 
+    def row_poses(self, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
+        """Rolling shutter: (Hs, 3) centres and (Hs, 3, 3) world_from_cam rotations of the
+        supersampled rows, raw row v (pixel centres, 0 = top) from the pose at
+        ``pose.t + readout_s * v / height`` (the frame's timestamp is its first row's)."""
+        c = self.world.cfg
+        v = (np.arange(c.height * self.ss, dtype=np.float64) + 0.5) / self.ss - 0.5
+        # Exact poses every ROW_KNOT rows (and the last), linear in between: the trajectory is
+        # itself piecewise linear in 5 ms steps, a knot interval is < 0.1 ms of a 20 ms readout.
+        knots = np.unique(np.append(np.arange(0, len(v), ROW_KNOT), len(v) - 1))
+        poses = [self.world.pose(pose.t + c.readout_s * v[k] / c.height) for k in knots]
+        C = np.array([p.C for p in poses])
+        R = np.array([p.R for p in poses]).reshape(len(knots), 9)
+        rows = np.arange(len(v))
+        Cr = np.column_stack([np.interp(rows, knots, C[:, j]) for j in range(3)])
+        Rr = np.column_stack([np.interp(rows, knots, R[:, j]) for j in range(9)])
+        return Cr, Rr.reshape(-1, 3, 3)
+
+    def _border_rolling(self, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
+        """Rolling shutter: (16, 3) centres and (16, 3) world directions of the border rays
+        of ``_border_rays``, each from its own row's pose."""
+        c = self.world.cfg
+        f = np.linspace(0.0, 1.0, 4, endpoint=False)
+        w, h = c.width - 0.5, c.height - 0.5
+        u = np.concatenate([-0.5 + f * c.width, np.full(4, w), w - f * c.width, np.full(4, -0.5)])
+        v = np.concatenate([np.full(4, -0.5), -0.5 + f * c.height, np.full(4, h), h - f * c.height])
+        n = self.camera.normalised_from_raw_px(
+            np.column_stack([u, v]), criteria=RENDER_UNDISTORT_CRITERIA
+        )
+        poses = [self.world.pose(pose.t + c.readout_s * vi / c.height) for vi in v]
+        d = np.array([p.R @ np.append(ni, 1.0) for p, ni in zip(poses, n, strict=True)])
+        return np.array([p.C for p in poses]), d
+
+    def _footprint_rolling(self, pose: Pose, z_ground: float) -> np.ndarray:
+        """``footprint`` of a rolling-shutter frame: each border point from its row's pose."""
+        Cb, d = self._border_rolling(pose)
+        t = (z_ground - Cb[:, 2]) / d[:, 2]
+        if self.mounted:
+            for _ in range(3):
+                xy = Cb[:, :2] + t[:, None] * d[:, :2]
+                t = (self.world.base(xy[:, 0], xy[:, 1]) - Cb[:, 2]) / d[:, 2]
+        return Cb[:, :2] + t[:, None] * d[:, :2]
+
     def render(self, pose: Pose) -> FrameRender:
+        """The frame whose timestamp is ``pose.t``; with a rolling shutter (``readout_s``)
+        each supersampled row from its own pose (``row_poses``)."""
         c = self.world.cfg
         C = pose.C
         z_ground = float(self.world.base(np.array(C[0]), np.array(C[1])))
-        fp = self.footprint(pose, z_ground)
+        rows = self.row_poses(pose) if c.readout_s > 0 else None
+        if rows is None:
+            fp = self.footprint(pose, z_ground)
+        else:
+            fp = self._footprint_rolling(pose, z_ground)
         pad = 0.12 + 0.05 * (C[2] - z_ground)
         if not self.mounted:
             area = None
@@ -187,17 +236,25 @@ class Renderer:
         else:
             # A border ray meets the surface up to relief_m below the smooth road: that far
             # on along its direction (its tangent times relief_m, metres for flat far rays).
-            dw = self._border_rays(pose)
+            dw = self._border_rays(pose) if rows is None else self._border_rolling(pose)[1]
             beyond = fp + self.relief_m * dw[:, :2] / -dw[:, 2:3]
             area = MultiPoint(np.vstack([fp, beyond])).convex_hull.buffer(pad)
             box_m = area.bounds
         H, Rm, D, mx0, my0 = self._mosaic(*box_m, area)
         g = self.g
-        d = (self.rays_cam @ pose.R.T.astype(np.float32)).astype(np.float32)  # world directions
+        zoff = None  # per-row camera height relative to C (rolling shutter), else none
+        if rows is None:
+            d = (self.rays_cam @ pose.R.T.astype(np.float32)).astype(np.float32)  # world dirs
+            # Mosaic pixel coordinates are affine in the ray parameter t (z-depth: ray z = 1).
+            col0 = np.float32((C[0] - mx0) / g - 0.5)
+            row0 = np.float32((my0 - C[1]) / g - 0.5)
+        else:
+            Cr, Rr = rows
+            d = np.matmul(self.rays_cam, Rr.transpose(0, 2, 1).astype(np.float32))
+            col0 = ((Cr[:, :1] - mx0) / g - 0.5).astype(np.float32)
+            row0 = ((my0 - Cr[:, 1:2]) / g - 0.5).astype(np.float32)
+            zoff = (Cr[:, 2:3] - C[2]).astype(np.float32)
         inv_dz = np.float32(1.0) / d[..., 2]
-        # Mosaic pixel coordinates are affine in the ray parameter t (z-depth, since ray z = 1).
-        col0 = np.float32((C[0] - mx0) / g - 0.5)
-        row0 = np.float32((my0 - C[1]) / g - 0.5)
         dcol = d[..., 0] / np.float32(g)
         drow = -d[..., 1] / np.float32(g)
         Hrel = H - np.float32(C[2])  # heights relative to the camera (small numbers, float32)
@@ -205,8 +262,10 @@ class Renderer:
         if not self.mounted:
             # Start on the plane under the camera; fixed-point iterations on the height field.
             t = np.float32(z_ground - C[2]) * inv_dz
+            if zoff is not None:
+                t = (np.float32(z_ground - C[2]) - zoff) * inv_dz
             for _ in range(max(1, c.raycast_iters)):
-                t = _height_at(Hrel, col0, row0, dcol, drow, t) * inv_dz
+                t = _height_at(Hrel, col0, row0, dcol, drow, t, zoff) * inv_dz
         else:
             # Start on the plane through the footprint on the smooth road (metres ahead, the
             # road's grade and cross slope matter), then iterate.
@@ -214,9 +273,14 @@ class Renderer:
             zb = self.world.base(fp[:, 0], fp[:, 1]) - C[2]
             a, bx, by = np.linalg.lstsq(np.column_stack([np.ones(len(xy)), xy]), zb, rcond=None)[0]
             den = d[..., 2] - np.float32(bx) * d[..., 0] - np.float32(by) * d[..., 1]
-            t = np.float32(a) / den
+            if rows is None:
+                t = np.float32(a) / den
+            else:  # the plane z - C_z = a + bx (x - C_x) + by (y - C_y) from each row's centre
+                dC = rows[0] - C
+                num = a + bx * dC[:, :1] + by * dC[:, 1:2] - dC[:, 2:3]
+                t = num.astype(np.float32) / den
             t = _intersect_tilted(
-                Hrel, col0, row0, dcol, drow, inv_dz, t, c.raycast_iters, g, c.fx * self.ss
+                Hrel, col0, row0, dcol, drow, inv_dz, t, c.raycast_iters, g, c.fx * self.ss, zoff
             )
         col = col0 + t * dcol
         row = row0 + t * drow
@@ -235,22 +299,26 @@ class Renderer:
         return FrameRender(rad, area_m2, float(dep.max()) if dep.size else 0.0, fp)
 
 
-def _height_at(Hrel, col0, row0, dcol, drow, t: np.ndarray) -> np.ndarray:
-    """Mosaic height (relative to the camera) where the rays reach parameter t (bilinear)."""
-    return cv2.remap(
+def _height_at(Hrel, col0, row0, dcol, drow, t: np.ndarray, zoff=None) -> np.ndarray:
+    """Mosaic height (relative to the camera) where the rays reach parameter t (bilinear);
+    ``zoff``: each row's camera height above the mosaic's reference (rolling shutter)."""
+    h = cv2.remap(
         Hrel, col0 + t * dcol, row0 + t * drow, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
     )
+    return h if zoff is None else h - zoff
 
 
 def _intersect_tilted(
-    Hrel, col0, row0, dcol, drow, inv_dz, t: np.ndarray, iters: int, g: float, fx_ss: float
-):
+    Hrel, col0, row0, dcol, drow, inv_dz, t: np.ndarray, iters: int, g: float, fx_ss: float,
+    zoff=None,
+):  # fmt: skip
     """Ray parameter t where the rays of a tilted view meet the height field. Fixed-point
     steps for all rays; those still moving after ``iters`` steps (flat rays over steep walls,
-    where the fixed point oscillates) go on in a bracketed search (``_safeguarded``)."""
+    where the fixed point oscillates) go on in a bracketed search (``_safeguarded``).
+    col0, row0, zoff: scalars, or (rows, 1) per row with a rolling shutter (``_height_at``)."""
     for _ in range(max(1, iters)):
         t_prev = t
-        t = _height_at(Hrel, col0, row0, dcol, drow, t) * inv_dz
+        t = _height_at(Hrel, col0, row0, dcol, drow, t, zoff) * inv_dz
     # Last step on the ground against the ray's own ground size (sqrt of its ``cell``): far
     # rays see centimetres, so they settle at a coarser tolerance than near ones.
     moved = np.abs(t - t_prev) * np.hypot(dcol, drow) * np.float32(g)
@@ -267,8 +335,13 @@ def _intersect_tilted(
 
     dc, dr, inv = take(dcol), take(drow), take(inv_dz)
     h_max = float(Hrel.max())
+    if zoff is None:
+        c0, r0, zo = col0, row0, None
+    else:  # per-row values, per unsettled ray
+        c0, r0, zo = (take(np.broadcast_to(a, t.shape)) for a in (col0, row0, zoff))
+        h_max -= float(zoff.min())
     ts = _safeguarded(
-        lambda tt: _height_at(Hrel, col0, row0, dc, dr, tt), take(t), inv, h_max, 2 * iters
+        lambda tt: _height_at(Hrel, c0, r0, dc, dr, tt, zo), take(t), inv, h_max, 2 * iters
     )
     out = t.ravel().copy()
     out[idx] = ts.ravel()[: idx.size]

@@ -203,6 +203,7 @@ def make_config(name: str, config: str | Path | None = None, **overrides: Any) -
     data.update(overrides)
     cfg = from_dict(SimConfig, data, f"scenario {name!r}")
     cfg.check_view()
+    cfg.check_readout()
     return cfg
 
 
@@ -318,6 +319,8 @@ def _write_drive_files(world, out: Path, names: list[str]) -> None:
     if cam.mount_deg is not None:  # only with write_mount: otherwise the pipeline estimates it
         keys = ("mount_pitch_deg", "mount_roll_deg", "mount_yaw_deg")
         text += "".join(f"{k}: {v!r}\n" for k, v in zip(keys, cam.mount_deg, strict=True))
+    if cam.readout_s > 0:  # a rolling shutter (docs/formats.md)
+        text += f"readout_s: {cam.readout_s!r}\n"
     write_text_atomic(out / "camera.yaml", text)
     off = time_offset_s(cfg)
     write_csv(

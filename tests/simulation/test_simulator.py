@@ -339,3 +339,12 @@ def test_pothole_look_and_wall_ranges_are_drawn_from_the_config() -> None:
 
     assert big.potholes and min(map(extent, big.potholes)) > 0.8
     assert max(map(extent, base.potholes)) < 0.9
+
+
+def test_a_drive_too_short_for_a_rut_skips_it(tmp_path: Path) -> None:
+    """Two small frames leave less than 0.3 m of path: a rut there was a one-point line that
+    crashed the truth writer (shapely: 'point array must contain 0 or >1 elements')."""
+    out = simulate("varied", tmp_path / "v", n_frames=2, **TINY)
+    feats = read_geojson(out / "truth/defects.geojson")["features"]
+    types = {f["properties"]["type"] for f in feats}
+    assert "rut" not in types
