@@ -22,25 +22,46 @@ from roadsurf.io.drive import Frame, read_gray
 from roadsurf.reconstruction import features as feat
 from roadsurf.reconstruction.config import ReconstructionConfig
 from roadsurf.reconstruction.estimators import estimate_matches
+from roadsurf.reconstruction.rolling_shutter import estimate_rolling_shutter, row_times_s
 from roadsurf.reconstruction.types import Features, PairResult
 
 
 def reconstruct_matches(
-    px_a: np.ndarray, px_b: np.ndarray, camera: Camera, cfg: ReconstructionConfig
+    px_a: np.ndarray,
+    px_b: np.ndarray,
+    camera: Camera,
+    cfg: ReconstructionConfig,
+    *,
+    frame_dt_s: float | None = None,
 ) -> PairResult:
     """Matched raw pixels (N, 2) in a and b -> metric PairResult (undistorted when needed).
 
-    A known mount (``camera.mount_deg``) tells the estimators where the road's normal is."""
+    A known mount (``camera.mount_deg``) tells the estimators where the road's normal is. With
+    a rolling shutter (``camera.readout_s`` > 0, ``cfg.rolling_shutter``) each observation is
+    moved to its frame's timestamp (``reconstruction.rolling_shutter``); frame_dt_s = the
+    timestamp of b minus that of a (s), None = 1 / ``camera.fps``."""
     pa = camera.undistort_px(px_a)
     pb = camera.undistort_px(px_b)
+    size = (camera.width, camera.height)
+    normal = road_normal_in_cam(camera)
+    if camera.readout_s > 0 and cfg.rolling_shutter:
+        dt = 1.0 / camera.fps if frame_dt_s is None else float(frame_dt_s)
+        rows_a = np.asarray(px_a, float).reshape(-1, 2)[:, 1]  # raw rows: the sensor's order
+        rows_b = np.asarray(px_b, float).reshape(-1, 2)[:, 1]
+        return estimate_rolling_shutter(
+            pa,
+            pb,
+            camera.K,
+            camera.height_m,
+            cfg,
+            tau_a_s=row_times_s(rows_a, camera.height, camera.readout_s),
+            tau_b_s=row_times_s(rows_b, camera.height, camera.readout_s),
+            frame_dt_s=dt,
+            image_size=size,
+            road_normal_cam=normal,
+        )
     return estimate_matches(
-        pa,
-        pb,
-        camera.K,
-        camera.height_m,
-        cfg,
-        image_size=(camera.width, camera.height),
-        road_normal_cam=road_normal_in_cam(camera),
+        pa, pb, camera.K, camera.height_m, cfg, image_size=size, road_normal_cam=normal
     )
 
 
@@ -53,9 +74,15 @@ def road_normal_in_cam(camera: Camera) -> np.ndarray | None:
 
 
 def reconstruct_features(
-    fa: Features, fb: Features, camera: Camera, cfg: ReconstructionConfig
+    fa: Features,
+    fb: Features,
+    camera: Camera,
+    cfg: ReconstructionConfig,
+    *,
+    frame_dt_s: float | None = None,
 ) -> PairResult:
-    """Match two frames' features and reconstruct. Fills counts and the matching time."""
+    """Match two frames' features and reconstruct. Fills counts and the matching time.
+    frame_dt_s: as ``reconstruct_matches`` (used with a rolling shutter only)."""
     na, nb = len(fa.keypoints_px), len(fb.keypoints_px)
     if min(na, nb) < cfg.min_features:
         res = PairResult("", "", -1, -1, cfg.method, "too_few_features")
@@ -75,7 +102,9 @@ def reconstruct_features(
             f"(< min_matches={cfg.min_matches}): the views probably do not overlap"
         )
     else:
-        res = reconstruct_matches(fa.keypoints_px[ia], fb.keypoints_px[ib], camera, cfg)
+        res = reconstruct_matches(
+            fa.keypoints_px[ia], fb.keypoints_px[ib], camera, cfg, frame_dt_s=frame_dt_s
+        )
         if res.ok and res.n_points >= 3:
             _check_overlap(res, camera, cfg)
     res.n_features_a, res.n_features_b = na, nb
@@ -85,10 +114,21 @@ def reconstruct_features(
 
 
 def _check_overlap(res: PairResult, camera: Camera, cfg: ReconstructionConfig) -> None:
-    """Mark pairs whose points cover too small a share of image a as no_overlap."""
+    """Mark pairs whose points cover too small a share of image a as no_overlap. The share is
+    that of the convex hull without the outermost 2% (at least one point) of the points in
+    each image direction: one stray point must not turn a strip of overlap into an area (a
+    25-row strip and one point 170 rows away read 20%: a pose 37% off in scale)."""
     import cv2
 
-    hull = cv2.convexHull(res.px_a.astype(np.float32))
+    px = res.px_a
+    k = max(1, int(round(0.02 * len(px))))
+    if len(px) > 2 * k + 2:
+        inside = np.ones(len(px), bool)
+        for axis in (0, 1):
+            lo, hi = np.sort(px[:, axis])[[k, len(px) - 1 - k]]
+            inside &= (px[:, axis] >= lo) & (px[:, axis] <= hi)
+        px = px[inside]
+    hull = cv2.convexHull(px.astype(np.float32))
     share = float(cv2.contourArea(hull)) / float(camera.width * camera.height)
     if share < cfg.min_overlap:
         res.status = "no_overlap"
@@ -108,8 +148,12 @@ def reconstruct_pair(
     frame_b: np.ndarray | Frame,
     camera: Camera,
     cfg: ReconstructionConfig,
+    *,
+    frame_dt_s: float | None = None,
 ) -> PairResult:
-    """Two images (arrays, RGB or grey) or Frames -> PairResult. Unreadable frames -> status."""
+    """Two images (arrays, RGB or grey) or Frames -> PairResult. Unreadable frames -> status.
+
+    frame_dt_s: as ``reconstruct_matches``; None with two Frames = their timestamps' difference."""
     names = [x.filename if isinstance(x, Frame) else "" for x in (frame_a, frame_b)]
     idx = [x.index if isinstance(x, Frame) else -1 for x in (frame_a, frame_b)]
     try:
@@ -122,7 +166,9 @@ def reconstruct_pair(
     fa = feat.detect(ga, cfg.features)
     fb = feat.detect(gb, cfg.features)
     t_feat = time.perf_counter() - t0
-    res = reconstruct_features(fa, fb, camera, cfg)
+    if frame_dt_s is None and isinstance(frame_a, Frame) and isinstance(frame_b, Frame):
+        frame_dt_s = frame_b.timestamp_s - frame_a.timestamp_s
+    res = reconstruct_features(fa, fb, camera, cfg, frame_dt_s=frame_dt_s)
     res.frame_a, res.frame_b, res.index_a, res.index_b = names[0], names[1], idx[0], idx[1]
     res.timings_s["features"] = t_feat
     return res

@@ -142,6 +142,11 @@ class ReconstructionConfig:
     min_parallax_deg: float = 0.0  # drop points with less triangulation angle (deg); 0 = keep
     stereo_baseline_m: float = 0.2  # stereo baseline B (m), dissertation Fig. 3.12
     min_overlap: float = 0.1  # matched area share of image a below this -> no_overlap (0-1)
+    rolling_shutter: bool = True  # move each observation to its frame's timestamp when the
+    # camera has a rolling shutter (Camera.readout_s > 0; reconstruction.rolling_shutter);
+    # False treats every camera as a global shutter
+    rs_iterations: int = 6  # max re-estimates of the rolling-shutter correction (count)
+    rs_tol_px: float = 0.02  # ... stopped once the correction changes by less than this (px)
     workers: int = 2  # threads extracting features ahead of the pair being solved (count)
     overwrite: bool = False  # recompute cached RUN/pairs and RUN/features files
     save_features: bool = True  # cache per-frame features in RUN/features/
@@ -171,5 +176,7 @@ class ReconstructionConfig:
         "min_parallax_deg": "[0, 180); 0 = keep every point",
         "stereo_baseline_m": "(0, 10]; a stereo baseline above 10 m is a unit mistake (cm typed as m?)",
         "min_overlap": "[0, 1]",
+        "rs_iterations": "[1, inf)",
+        "rs_tol_px": "(0, inf)",
         "workers": "[1, inf)",
     }

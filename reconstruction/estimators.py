@@ -85,6 +85,25 @@ def prior_model(cfg: ReconstructionConfig) -> PriorModel:
     return "mean" if cfg.method == "proposed" else "homography"
 
 
+def _check_translation_parallax(
+    pa: np.ndarray, pb: np.ndarray, R: np.ndarray, K: np.ndarray, min_px: float
+) -> None:
+    """Raise PairFailure when the camera turned but barely moved: the displacement left after
+    removing the rotation (x_b against K R K⁻¹ x_a) is the only depth information, and the
+    displacement test before the pose cannot see it (a 10° turn moves every pixel ~100 px)."""
+    q = np.column_stack([pa, np.ones(len(pa))]) @ (K @ R @ np.linalg.inv(K)).T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        par = np.linalg.norm(pb - q[:, :2] / q[:, 2:3], axis=1)
+    med = float(np.median(par[np.isfinite(par)])) if np.isfinite(par).any() else 0.0
+    if med < min_px:
+        raise PairFailure(
+            "geometry_failed",
+            f"median displacement {med:.2f} px after removing the rotation of "
+            f"{np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))):.1f}° "
+            f"< {min_px} px: the camera turned but barely moved, depth is unobservable",
+        )
+
+
 def _estimate(
     px_a: np.ndarray,
     px_b: np.ndarray,
@@ -172,6 +191,7 @@ def _estimate(
         F = g.fundamental_from_pose(R, t, K)
         res.F = F
         cand = np.abs(g.sampson_px(F, pa, pb)) < cfg.epi_inlier_px
+        _check_translation_parallax(pa, pb, R, K, cfg.min_displacement_px)
     t2 = time.perf_counter()
     res.timings_s["geometry"] = t2 - t1
 

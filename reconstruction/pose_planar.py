@@ -180,7 +180,11 @@ def pose_plane_from_homography(
     decomposition of H that the road priors prefer (``plane_solutions``)."""
     sols = plane_solutions(px_a, H, K, road_normal_cam)
     if not sols:
-        raise PairFailure("geometry_failed", "homography decomposition gave no valid solution")
+        raise PairFailure(
+            "geometry_failed",
+            "homography decomposition gave no valid solution: H is a pure rotation (the camera "
+            "turned but did not move), depth is unobservable",
+        )
     R, t, m, _ = sols[0]
     return R, t, m
 

@@ -73,9 +73,15 @@ def _coarse_homography(
 
 
 def probe_pair(
-    image_a: np.ndarray, image_b: np.ndarray, camera: Camera, cfg: ReconstructionConfig
+    image_a: np.ndarray,
+    image_b: np.ndarray,
+    camera: Camera,
+    cfg: ReconstructionConfig,
+    *,
+    frame_dt_s: float | None = None,
 ) -> PairResult:
     """Two frames ((H, W) grey or (H, W, 3) RGB) -> PairResult from tracked corners.
+    frame_dt_s: as ``api.reconstruct_matches`` (a rolling shutter's frame interval).
 
     A frame the probe cannot use is a PairResult with status and reason, like a full pair's;
     frames of different sizes raise ValueError (``run`` turns any exception into a failed
@@ -126,7 +132,7 @@ def probe_pair(
         res = _failed(cfg, "too_few_matches", f"{int(keep.sum())} consistent tracks", t0)
         res.n_features_a = len(pa)
         return res
-    res = reconstruct_matches(pa[keep], pb[keep], camera, cfg)
+    res = reconstruct_matches(pa[keep], pb[keep], camera, cfg, frame_dt_s=frame_dt_s)
     res.n_features_a = res.n_features_b = int(len(pa))
     res.timings_s["tracking"] = t_track
     res.config_name = "probe"
@@ -178,7 +184,13 @@ def run(
             except (OSError, ValueError, KeyError) as e:
                 log.warning("%s: unreadable cached probe (%s); recomputing", path, e)
         try:
-            res = probe_pair(read_gray(fa), read_gray(fb), drive.camera, cfg)
+            res = probe_pair(
+                read_gray(fa),
+                read_gray(fb),
+                drive.camera,
+                cfg,
+                frame_dt_s=fb.timestamp_s - fa.timestamp_s,
+            )
         except FrameReadError as e:
             res = PairResult("", "", -1, -1, cfg.method, "unreadable_frame", str(e))
             res.config_name = "probe"

@@ -58,12 +58,15 @@ def _feature_path(run_dir: Path, frame: Frame, cfg: ReconstructionConfig) -> Pat
 
 def pair_fingerprint(cfg: ReconstructionConfig, camera: Camera, a: Frame, b: Frame) -> str:
     """16 hex digits (sha256) over what decides the pair (a, b): the reconstruction settings
-    (all but ``NOT_IN_PAIR_FINGERPRINT``), the camera (intrinsics, distortion, height) and both
-    frames' index, name, file size and mtime."""
+    (all but ``NOT_IN_PAIR_FINGERPRINT``), the camera (intrinsics, distortion, height, mount,
+    readout) and both frames' index, name, file size and mtime; with a rolling shutter also
+    their timestamps (the frame interval enters the geometry)."""
     settings = {k: v for k, v in asdict(cfg).items() if k not in NOT_IN_PAIR_FINGERPRINT}
     fp = Fingerprint().add_json(settings).add_json(asdict(camera))
     for f in (a, b):
         fp.add_text(f"|{f.index}|{f.filename}|").add_file_stat(f.path, "file")
+        if camera.readout_s > 0:
+            fp.add_text(f"{f.timestamp_s!r}|")
     return fp.hexdigest(16)
 
 
@@ -210,7 +213,8 @@ def _one_pair(
         fa, sa = cache.get(a)
         fb, sb = cache.get(b)
         t_feat = sa + sb
-        res = reconstruct_features(fa, fb, drive.camera, cfg)
+        dt = b.timestamp_s - a.timestamp_s  # the rolling shutter's frame interval
+        res = reconstruct_features(fa, fb, drive.camera, cfg, frame_dt_s=dt)
         res.timings_s["features"] = t_feat
     except FrameReadError as e:
         res = PairResult(a.filename, b.filename, a.index, b.index, cfg.method, "unreadable_frame")
