@@ -1,0 +1,64 @@
+"""Configuration of the dense two-view height (``reconstruction.dense``). Frozen dataclass, every
+field with its unit; ranges in ``RANGES`` (see ``roadsurf.core.config``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar, Literal
+
+
+@dataclass(frozen=True)
+class DenseHeightConfig:
+    """Plane + parallax matching of one pair (``reconstruction.dense.parallax``)."""
+
+    # work on images resized by this (−, <= 1; 0.5 = a quarter of the pixels); the output
+    # height map has the work grid's size
+    scale: float = 1.0
+    # where the search starts: "sweep" = ZNCC plane sweep over heights (torch, global within
+    # the height range, robust on weak texture), "dis" = OpenCV DIS optical flow projected on
+    # the epipolar direction (CPU only; fast, coarse-to-fine, can lose small low-texture spots)
+    init: Literal["sweep", "dis"] = "sweep"
+    sweep_scale: float = 0.25  # the sweep runs on the work grid resized by this (−, <= 1),
+    sweep_min_px: int = 120  # ... but on at least this many pixels along the shorter side (px)
+    sweep_step_px: float = 0.5  # largest parallax step between swept heights (px, sweep grid)
+    max_depth_m: float = 0.12  # deepest point below the road plane searched (m)
+    max_height_m: float = 0.06  # highest point above the road plane searched (m)
+    window_px: int = 5  # side of the matching window (px at the work grid, odd)
+    # σ of a Gaussian applied to both images before matching (px); on the simulated drives a
+    # blur only lost precision (640 x 480: 0.7 px -> flat MAE 0.85 mm, 0 -> 0.81 mm)
+    blur_px: float = 0.0
+    refine_iters: int = 5  # 1D Lucas-Kanade steps along the epipolar line after the init (count)
+    lr_check: bool = True  # match b -> a as well and keep pixels where both agree
+    lr_max_px: float = 0.5  # largest left-right disagreement kept (px at the work grid)
+    min_ncc: float = 0.6  # smallest zero-mean normalised cross-correlation kept (−)
+    min_grad_dn: float = 1.5  # smallest RMS image gradient along the epipolar line in the
+    # window (DN/px at the work grid): below, textureless
+    dark_dn: int = 2  # a window holding a pixel at or below this is under-exposed (DN)
+    saturated_dn: int = 253  # a window holding a pixel at or above this is saturated (DN)
+    noise_dn: float = 1.0  # floor on the image noise σ in the parallax variance (DN)
+    scale_rel_sigma: float = 0.003  # relative σ of the pair's metric scale (−): adds (η σ)²
+    min_epipole_px: float = 8.0  # pixels closer than this to the epipole are invalid (px)
+    device: str = "auto"  # torch device: "auto" (CUDA when present), "cpu", "cuda", "cuda:1"
+    cpu_threads: int = 1  # torch threads while matching on the CPU (count; 0 = torch's own)
+
+    RANGES: ClassVar[dict[str, str]] = {
+        "scale": "(0, 1]",
+        "init": "{sweep, dis}",
+        "sweep_scale": "(0, 1]",
+        "sweep_min_px": "[16, inf)",
+        "sweep_step_px": "(0, 4]; a coarser sweep steps over the ZNCC peak",
+        "max_depth_m": "[0, 1]; a search deeper than 1 m is a unit mistake",
+        "max_height_m": "[0, 1]",
+        "window_px": "[3, 31]",
+        "blur_px": "[0, 5]",
+        "refine_iters": "[0, 50]",
+        "lr_max_px": "(0, inf)",
+        "min_ncc": "[-1, 1]",
+        "min_grad_dn": "[0, inf)",
+        "dark_dn": "[0, 255]",
+        "saturated_dn": "[0, 255]",
+        "noise_dn": "(0, inf)",
+        "scale_rel_sigma": "[0, 1]",
+        "min_epipole_px": "[0, inf)",
+        "cpu_threads": "[0, 1024]; 0 = leave torch's setting",
+    }

@@ -1,0 +1,372 @@
+"""Dense height of one pair above its road plane: plane + parallax matching.
+
+1. Both images are resampled onto image a's ideal (undistorted) pixel grid, image b through the
+   pair's road homography (I_w(x) = I_b(H x)): the road is in place, and a point at height η
+   above it is displaced along the line through the epipole by the parallax s(η)
+   (``geometry.PlaneParallax``).
+2. Init: a ZNCC sweep over heights on a coarser grid (``matching.sweep``) or OpenCV's DIS
+   optical flow projected on the epipolar direction (``DenseHeightConfig.init``).
+3. 1D Lucas-Kanade refinement of s with a local gain and offset, and its variance from the
+   window's residual and texture (``matching.refine``).
+4. The same from b to a; pixels whose two parallaxes disagree (occlusions, mismatches) are
+   invalid, as are textureless, saturated or dark windows, low ZNCC, samples outside image b and
+   pixels next to the epipole.
+5. s -> η by the exact plane + parallax relation; var(η) = (dη/ds)² var(s) + (η σ_scale)².
+
+Pure function of the images, the camera and the pair's R, t and plane (``dense_height``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from roadsurf.core.camera import Camera
+from roadsurf.core.errors import RoadsurfError
+from roadsurf.reconstruction.dense.config import DenseHeightConfig
+from roadsurf.reconstruction.dense.geometry import PlaneParallax
+from roadsurf.reconstruction.dense.matching import (
+    RefineResult,
+    box,
+    gaussian,
+    refine,
+    sample,
+    sweep,
+    window_max,
+)
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class DenseHeight:
+    """Per-pixel height of image a's work grid (``scale`` x the image) above the pair's road."""
+
+    height_m: np.ndarray  # (h, w) float32 height above the road plane (m), NaN where invalid
+    var_m2: np.ndarray  # (h, w) float32 its variance (m²), NaN where invalid
+    valid: np.ndarray  # (h, w) bool
+    shift_px: np.ndarray  # (h, w) float32 parallax along the epipolar direction (px, work grid)
+    ncc: np.ndarray  # (h, w) float32 ZNCC of the matched windows (−)
+    model: PlaneParallax  # the plane + parallax model of the work grid (its K)
+    scale: float  # work grid = image x scale
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.height_m.shape  # type: ignore[return-value]
+
+    def work_px(self) -> tuple[np.ndarray, np.ndarray]:
+        """(h, w) u, v pixel coordinates of the work grid (ideal px of ``model.K``)."""
+        h, w = self.shape
+        v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+        return u, v
+
+    def ideal_px(self) -> tuple[np.ndarray, np.ndarray]:
+        """(h, w) u, v ideal pixel coordinates of the work grid in the full-size image a."""
+        u, v = self.work_px()
+        return (u + 0.5) / self.scale - 0.5, (v + 0.5) / self.scale - 0.5
+
+    def points_cam_a(self) -> tuple[np.ndarray, np.ndarray]:
+        """(N, 3) camera-a points (m) of the valid pixels, and their (N,) height variance."""
+        u, v = self.work_px()
+        m = self.valid
+        X = self.model.points_cam_a(self.height_m[m].astype(float), u[m], v[m])
+        return X, self.var_m2[m].astype(float)
+
+
+def torch_device(name: str) -> torch.device:
+    """``auto`` -> CUDA when present, else CPU; any other name as torch reads it."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    dev = torch.device(name)
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise RoadsurfError(f"dense matching on {name!r}: no CUDA device here; use 'cpu'")
+    return dev
+
+
+_THREADS_LOCK = threading.Lock()
+_threads_users = 0
+_threads_saved = 0
+
+
+@contextlib.contextmanager
+def cpu_threads(dev: torch.device, n: int) -> Iterator[None]:
+    """torch's CPU threads set to ``n`` inside (restored when the last concurrent user
+    leaves). Several pairs matched in parallel with one thread each beat one pair on all cores
+    (the images are small), and on a busy machine torch's spinning threads cost 10x."""
+    global _threads_users, _threads_saved
+    if dev.type != "cpu" or n <= 0:
+        yield
+        return
+    with _THREADS_LOCK:
+        if _threads_users == 0:
+            _threads_saved = torch.get_num_threads()
+            torch.set_num_threads(n)
+        _threads_users += 1
+    try:
+        yield
+    finally:
+        with _THREADS_LOCK:
+            _threads_users -= 1
+            if _threads_users == 0:
+                torch.set_num_threads(_threads_saved)
+
+
+def dense_height(
+    img_a: np.ndarray,
+    img_b: np.ndarray,
+    camera: Camera,
+    R_b_from_a: np.ndarray,
+    t_b_from_a_m: np.ndarray,
+    plane: np.ndarray,
+    H: np.ndarray | None = None,
+    cfg: DenseHeightConfig | None = None,
+    device: str | torch.device | None = None,
+) -> DenseHeight:
+    """Dense height of image a's pixels above the pair's road plane (module docstring).
+
+    img_a, img_b: (height, width) uint8 grey images (raw, as recorded); R, t: X_b = R X_a + t
+    (m); plane: (p0, p1, p2) with z = p0 x + p1 y + p2 in camera a (m). ``H`` (the pair's
+    estimated road homography, ideal px) is only compared with the one R, t and the plane give,
+    which is the one used (the parallax relation holds for it exactly)."""
+    cfg = cfg or DenseHeightConfig()
+    t0 = time.perf_counter()
+    for name, img in (("img_a", img_a), ("img_b", img_b)):
+        if img.ndim != 2 or img.shape != (camera.height, camera.width) or img.dtype != np.uint8:
+            raise RoadsurfError(
+                f"{name}: expected a ({camera.height}, {camera.width}) uint8 grey image "
+                f"(the camera's size), got {img.shape} {img.dtype}"
+            )
+    pp = PlaneParallax.from_pair(R_b_from_a, t_b_from_a_m, plane, camera.K)
+    if H is not None and np.all(np.isfinite(H)):
+        _compare_homography(pp.H, np.asarray(H, float), camera)
+    dev = device if isinstance(device, torch.device) else torch_device(device or cfg.device)
+    s = float(cfg.scale)
+    ppw = pp.scaled(s) if s != 1.0 else pp
+    A, B, mA, mB = _resample(img_a, img_b, camera, pp.H, s)
+    timings = {"resample": time.perf_counter() - t0}
+    h, w = A.shape
+    v_np, u_np = np.mgrid[0:h, 0:w].astype(np.float64)
+    wx_np, wy_np, nw_np = ppw.direction(u_np, v_np)
+    nr_np = ppw.n_dot_ray(u_np, v_np)
+
+    def t_(x: np.ndarray) -> torch.Tensor:
+        return torch.as_tensor(np.ascontiguousarray(x), dtype=torch.float32, device=dev)[None, None]
+
+    with torch.no_grad(), cpu_threads(dev, cfg.cpu_threads):
+        At, Bt = gaussian(t_(A), cfg.blur_px), gaussian(t_(B), cfg.blur_px)
+        mAt, mBt = t_(mA.astype(np.float32)), t_(mB.astype(np.float32))
+        wx, wy, nw, nr = t_(wx_np), t_(wy_np), t_(nw_np), t_(nr_np)
+        t1 = time.perf_counter()
+        s_fwd = _init(cfg, At, Bt, mBt, ppw, wx, wy, nw, nr, A, B, reverse=False)
+        s_rev = (
+            _init(cfg, Bt, At, mAt, ppw, wx, wy, nw, nr, B, A, reverse=True)
+            if cfg.lr_check
+            else None
+        )
+        t2 = time.perf_counter()
+        win = int(cfg.window_px) | 1
+        fwd = refine(At, Bt, mBt, wx, wy, s_fwd, win, cfg.refine_iters, cfg.noise_dn)
+        ok = _checks(cfg, fwd, At, mAt, t_(A), t_(B), mBt, wx, wy, win)
+        if s_rev is not None:
+            rev = refine(Bt, At, mAt, wx, wy, s_rev, win, cfg.refine_iters, cfg.noise_dn)
+            ys, xs = torch.meshgrid(
+                torch.arange(h, device=dev, dtype=torch.float32),
+                torch.arange(w, device=dev, dtype=torch.float32),
+                indexing="ij",
+            )
+            x2 = xs[None, None] + fwd.shift * wx
+            y2 = ys[None, None] + fwd.shift * wy
+            back = sample(rev.shift, x2, y2)
+            ok &= (fwd.shift + back).abs() <= cfg.lr_max_px
+        t3 = time.perf_counter()
+        shift = fwd.shift[0, 0].double().cpu().numpy()
+        var_s = fwd.var[0, 0].double().cpu().numpy()
+        ncc = fwd.ncc[0, 0].cpu().numpy()
+        valid = ok[0, 0].cpu().numpy()
+    eta = ppw.height_from_shift(shift, u_np, v_np, nw_np)
+    deta = ppw.dheight_dshift(shift, u_np, v_np, nw_np)
+    var = deta * deta * var_s + (cfg.scale_rel_sigma * eta) ** 2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        near = nw_np / max(abs(float(ppw.E[2])), 1e-12) < cfg.min_epipole_px * s
+    valid &= np.isfinite(eta) & np.isfinite(var) & ~near
+    valid &= (eta >= -cfg.max_depth_m - 0.01) & (eta <= cfg.max_height_m + 0.01)
+    timings.update(init=t2 - t1, refine=t3 - t2, total=time.perf_counter() - t0)
+    return DenseHeight(
+        np.where(valid, eta, np.nan).astype(np.float32),
+        np.where(valid, var, np.nan).astype(np.float32),
+        valid,
+        shift.astype(np.float32),
+        ncc.astype(np.float32),
+        ppw,
+        s,
+        {k: round(v, 4) for k, v in timings.items()},
+    )
+
+
+# --------------------------------------------------------------------------- steps
+
+
+def _compare_homography(Hp: np.ndarray, He: np.ndarray, camera: Camera) -> None:
+    """Log how far the pair's estimated homography is from the one its R, t and plane give."""
+    w, h = camera.width, camera.height
+    c = np.array([[0, 0, 1], [w - 1, 0, 1], [w - 1, h - 1, 1], [0, h - 1, 1.0]])
+    p, q = c @ Hp.T, c @ He.T
+    d = np.linalg.norm(p[:, :2] / p[:, 2:] - q[:, :2] / q[:, 2:], axis=1).max()
+    log.debug("dense: estimated vs plane homography differ by %.2f px at the corners", d)
+
+
+def _resample(
+    img_a: np.ndarray, img_b: np.ndarray, camera: Camera, H: np.ndarray, s: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Image a on its ideal pixel grid resized by ``s``, image b through H onto the same grid
+    (float32 DN), and where each sample lies inside its image (bool)."""
+    W, Hh = camera.width, camera.height
+    w, h = int(round(W * s)), int(round(Hh * s))
+    if s < 1.0:  # anti-aliasing before the resampling
+        sig = 0.5 * np.sqrt(1.0 / (s * s) - 1.0)
+        img_a = cv2.GaussianBlur(img_a, (0, 0), sig)
+        img_b = cv2.GaussianBlur(img_b, (0, 0), sig)
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    u, v = (u + 0.5) / s - 0.5, (v + 0.5) / s - 0.5
+    q = np.stack([u, v, np.ones_like(u)], -1) @ H.T
+    ub, vb = q[..., 0] / q[..., 2], q[..., 1] / q[..., 2]
+    if camera.has_distortion:
+        ra = camera.distort_px(np.column_stack([u.ravel(), v.ravel()])).reshape(h, w, 2)
+        rb = camera.distort_px(np.column_stack([ub.ravel(), vb.ravel()])).reshape(h, w, 2)
+        ua, va, ub, vb = ra[..., 0], ra[..., 1], rb[..., 0], rb[..., 1]
+    else:
+        ua, va = u, v
+
+    def remap(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        out = cv2.remap(
+            img.astype(np.float32),
+            x.astype(np.float32),
+            y.astype(np.float32),
+            cv2.INTER_CUBIC,
+            borderMode=cv2.BORDER_REPLICATE,
+        )
+        inside = (x >= 0) & (x <= W - 1) & (y >= 0) & (y <= Hh - 1)
+        return out, inside
+
+    A, mA = remap(img_a, ua, va)
+    B, mB = remap(img_b, ub, vb)
+    return A, B, mA, mB
+
+
+def _init(
+    cfg: DenseHeightConfig,
+    ref: torch.Tensor,
+    tgt: torch.Tensor,
+    tgt_mask: torch.Tensor,
+    pp: PlaneParallax,
+    wx: torch.Tensor,
+    wy: torch.Tensor,
+    nw: torch.Tensor,
+    nr: torch.Tensor,
+    ref_np: np.ndarray,
+    tgt_np: np.ndarray,
+    reverse: bool,
+) -> torch.Tensor:
+    """Starting parallax (1, 1, h, w) px of ref's pixels in tgt along ŵ (its negative for the
+    reverse direction b -> a)."""
+    sign = -1.0 if reverse else 1.0
+    if cfg.init == "dis":
+        if ref.device.type != "cpu":
+            log.debug("dense: DIS runs on the CPU")
+        dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+        a8 = np.clip(ref[0, 0].cpu().numpy() + 0.5, 0, 255).astype(np.uint8)
+        b8 = np.clip(tgt[0, 0].cpu().numpy() + 0.5, 0, 255).astype(np.uint8)
+        flow = dis.calc(a8, b8, None)
+        ft = torch.as_tensor(flow, device=ref.device).permute(2, 0, 1)[None]
+        return ft[:, :1] * wx + ft[:, 1:2] * wy
+    h, w = ref.shape[-2:]
+    ss = min(1.0, max(float(cfg.sweep_scale), cfg.sweep_min_px / min(h, w)))
+
+    def down(x: torch.Tensor) -> torch.Tensor:
+        if ss == 1.0:
+            return x
+        return F.interpolate(
+            x, scale_factor=ss, mode="bilinear", antialias=True, recompute_scale_factor=False
+        )
+
+    r_s, t_s = down(ref), down(tgt)
+    hs, ws = r_s.shape[-2:]
+    # the sweep grid's pixel u'' = ss (u' + 0.5) - 0.5 of the work grid's u'
+    pps = pp.scaled(ss)
+    v_np, u_np = np.mgrid[0:hs, 0:ws].astype(np.float64)
+    wxs_np, wys_np, nws_np = pps.direction(u_np, v_np)
+    nrs_np = pps.n_dot_ray(u_np, v_np)
+
+    def t_(x: np.ndarray) -> torch.Tensor:
+        return torch.as_tensor(x, dtype=torch.float32, device=ref.device)[None, None]
+
+    wxs, wys, nws, nrs = t_(wxs_np), t_(wys_np), t_(nws_np), t_(nrs_np)
+    lo, hi = -float(cfg.max_depth_m), float(cfg.max_height_m)
+    span = np.abs(pps.shift_from_height(hi, u_np, v_np) - pps.shift_from_height(lo, u_np, v_np))
+    n = int(np.ceil(np.nanmax(span) / cfg.sweep_step_px)) + 1 if np.isfinite(span).any() else 2
+    values = torch.linspace(lo, hi, max(n, 3), device=ref.device, dtype=torch.float32)
+    hb, ha, e2 = pp.h_b, pp.h_a, float(pps.E[2])
+
+    def shift_of(eta: torch.Tensor) -> torch.Tensor:
+        k = eta * nrs / (hb * (ha - eta))
+        return sign * k * nws / (1.0 - k * e2)
+
+    res = sweep(r_s, t_s, wxs, wys, values, shift_of, int(cfg.window_px) | 1)
+    eta_s = res.value
+    if ss != 1.0:  # back on the work grid (sweep coordinates of work pixels, clamped)
+        ys, xs = torch.meshgrid(
+            torch.arange(h, device=ref.device, dtype=torch.float32),
+            torch.arange(w, device=ref.device, dtype=torch.float32),
+            indexing="ij",
+        )
+        xs = (ss * (xs + 0.5) - 0.5).clamp(0, ws - 1)[None, None]
+        ys = (ss * (ys + 0.5) - 0.5).clamp(0, hs - 1)[None, None]
+        eta_s = sample(eta_s, xs, ys)
+    k = eta_s * nr / (hb * (ha - eta_s))
+    return sign * k * nw / (1.0 - k * float(pp.E[2]))
+
+
+def _checks(
+    cfg: DenseHeightConfig,
+    fwd: RefineResult,
+    At: torch.Tensor,
+    mAt: torch.Tensor,
+    A_raw: torch.Tensor,
+    B_raw: torch.Tensor,
+    mBt: torch.Tensor,
+    wx: torch.Tensor,
+    wy: torch.Tensor,
+    win: int,
+) -> torch.Tensor:
+    """(1, 1, h, w) bool: the forward match is textured, unsaturated, correlated, converged and
+    its window lies inside both images."""
+    ok = fwd.inside >= 0.999
+    ok &= box(mAt, win) >= 0.999
+    ok &= fwd.grad >= cfg.min_grad_dn
+    ok &= fwd.ncc >= cfg.min_ncc
+    if cfg.refine_iters > 0:
+        ok &= fwd.last_step <= 0.05
+    # saturated or black windows in either image (b sampled at the match)
+    hw, ww = At.shape[-2:]
+    ys, xs = torch.meshgrid(
+        torch.arange(hw, device=At.device, dtype=torch.float32),
+        torch.arange(ww, device=At.device, dtype=torch.float32),
+        indexing="ij",
+    )
+    Bm = sample(B_raw, xs[None, None] + fwd.shift * wx, ys[None, None] + fwd.shift * wy)
+    for img in (A_raw, Bm):
+        hi = window_max(img, win)
+        lo = -window_max(-img, win)
+        ok &= (hi < cfg.saturated_dn) & (lo > cfg.dark_dn)
+    ok &= torch.isfinite(fwd.shift) & torch.isfinite(fwd.var)
+    return ok
