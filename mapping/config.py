@@ -6,11 +6,26 @@ Every field gives its unit and, where the dissertation names it, its symbol. Loa
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import ClassVar, Literal
 
+from roadsurf.reconstruction.dense.config import DenseHeightConfig
+
+# settings only the dense surface reads (issue 29): with the sparse surface they change nothing,
+# so they stay out of the stage keys (runs made before they existed resume); globalmap adds
+# them to its key when surface_source is "dense"
+DENSE_SURFACE_FIELDS = (
+    "surface_source",
+    "dense_gsd_m",
+    "dense_min_gsd_m",
+    "dense_outlier_sigmas",
+    "dense_reference",
+    "dense_fill_max_m",
+    "dense",
+)
 # settings that change how a result is computed, never the result: a run resumes across them
-NOT_IN_FINGERPRINT = ("overwrite", "raster_workers")
+# (and the dense surface's, see above)
+NOT_IN_FINGERPRINT = ("overwrite", "raster_workers", *DENSE_SURFACE_FIELDS)
 
 
 @dataclass(frozen=True)
@@ -111,6 +126,26 @@ class MappingConfig:
     # the fill when the points are nearly noise-free
     surface_fill_relief_min_m: float = 0.002
     colour_from_images: bool = True  # sample point colours from image a at px_a
+    # ---------------------------------------------------------------- dense surface (issue 29)
+    # where surface.tif comes from: "sparse" = the fused feature points, interpolated; "dense" =
+    # every pixel of each ok pair's overlap matched (reconstruction.dense) and fused per cell
+    # (mapping.dense_fuse); surface and mosaic then share the dense GSD
+    surface_source: Literal["sparse", "dense"] = "sparse"
+    dense_gsd_m: float = 0.0  # raster GSD with the dense surface (m); 0 = the images' ground
+    # sampling at the matching scale (1.8 mm for 640 x 480, f = 600 px, 1.1 m)
+    dense_min_gsd_m: float = 0.001  # ... never finer than this (m): bounds the raster's size
+    # a pair's sample further than this x its σ (+ 0.2 mm) from the cell's weighted median is
+    # left out of the cell's mean (−)
+    dense_outlier_sigmas: float = 3.0
+    # what the dense heights are relative to: each pair's own robust plane (its road, ~1 m), or
+    # the local road surface fitted to the sparse points with each pair's offset and tilt to it
+    # removed
+    dense_reference: Literal["pair_plane", "local_surface"] = "pair_plane"
+    # extend the dense surface by at most this (m) inside the part both frames of an ok pair saw,
+    # where the relief is road (surface_fill_relief_min_m): the matching windows stop a few
+    # pixels short of the images' borders; 0 = off
+    dense_fill_max_m: float = 0.01
+    dense: DenseHeightConfig = field(default_factory=DenseHeightConfig)  # the matching
 
     # valid values (interval notation; see roadsurf.core.config). Upper bounds only where a
     # larger value is a unit mistake
@@ -159,4 +194,10 @@ class MappingConfig:
         "surface_edge_factor": "(0, inf)",
         "surface_fill_max_m": "[0, inf); 0 = off",
         "surface_fill_relief_min_m": "[0, inf)",
+        "surface_source": "{sparse, dense}",
+        "dense_gsd_m": "[0, 1]; 0 = from the images; a cell above 1 m is a unit mistake",
+        "dense_min_gsd_m": "(0, 1]",
+        "dense_outlier_sigmas": "(0, inf)",
+        "dense_reference": "{pair_plane, local_surface}",
+        "dense_fill_max_m": "[0, inf); 0 = off",
     }

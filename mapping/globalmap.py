@@ -14,6 +14,9 @@
    show. Tiles are processed one at a time (memory grows with the tile size, not with the
    drive), written to ``tiles/`` + ``surface.vrt``/``mosaic.vrt``, and window by window into sparse
    ``surface.tif``/``mosaic.tif`` while the bounding grid stays below ``max_raster_px``.
+   With ``surface_source = "dense"`` the residual surface is instead every pixel of each ok
+   pair's overlap, matched densely and fused per cell (``mapping.dense_fuse``), on the images'
+   ground sampling, with ``surface_nobs``/``surface_sigma`` rasters beside it.
 5. ``cloud.ply`` (export CRS), ``map_points.npz`` (ENU, for detection), PNG previews.
 
 This module is the stage (``run``, ``build_map``); steps 1-2 are in ``mapping.cloud``, step 4 in
@@ -38,7 +41,7 @@ from roadsurf.io import runfolder as rf
 from roadsurf.io.drive import Drive
 from roadsurf.io.runfolder import RunFolder, read_fingerprint
 from roadsurf.mapping.cloud import align_patches, collect_points, voxel_fuse
-from roadsurf.mapping.config import NOT_IN_FINGERPRINT, MappingConfig
+from roadsurf.mapping.config import DENSE_SURFACE_FIELDS, NOT_IN_FINGERPRINT, MappingConfig
 from roadsurf.mapping.datum import vertical_datum
 from roadsurf.mapping.export import write_cloud_ply
 from roadsurf.mapping.raster import bounded_block_cache
@@ -89,7 +92,12 @@ def _fingerprint(
     settings, camera and image files when ``run_dir`` holds one), the camera and the vertical
     datum of the exported heights."""
     fp = Fingerprint()
-    fp.add_json({k: v for k, v in to_dict(cfg).items() if k not in NOT_IN_FINGERPRINT})
+    d = to_dict(cfg)
+    fp.add_json({k: v for k, v in d.items() if k not in NOT_IN_FINGERPRINT})
+    if cfg.surface_source != "sparse":  # the matching's device and threads change no result
+        dense = {k: d[k] for k in DENSE_SURFACE_FIELDS}
+        dense["dense"] = {k: v for k, v in d["dense"].items() if k not in ("device", "cpu_threads")}
+        fp.add_json(dense)
     fp.add_array(traj.world_from_cam)
     run = RunFolder(run_dir) if run_dir is not None else None
     for p in pairs:
@@ -181,7 +189,9 @@ def build_map(
         if p.ok and p.n_points > 0 and p.frame_a in pose_of and p.frame_b in pose_of
     ]
     with bounded_block_cache():  # memory flat in the drive's length
-        rasterise(cfg, drive, traj, surf, xyz, resid, prod, frames_by_index, pair_frames)
+        rasterise(cfg, drive, traj, surf, xyz, resid, prod, frames_by_index, pair_frames, pairs)
+    if prod.grid:  # the dense surface has its own GSD
+        prod.gsd_m = float(prod.grid["gsd_m"])
     prod.timings_s["rasters"] = round(time.perf_counter() - t3, 3)
     prod.timings_s["total"] = round(time.perf_counter() - t0, 3)
     return prod

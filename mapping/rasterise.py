@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import logging
 import math
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from tqdm import tqdm
@@ -18,11 +18,18 @@ from roadsurf.io.drive import Drive, Frame
 from roadsurf.io.formats import GridSpec
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.datum import RESIDUAL_DATUM, vertical_datum
+from roadsurf.mapping.dense_fuse import NOBS, SIGMA, DenseSurface, dense_gsd_m
 from roadsurf.mapping.export import export_xyz
 from roadsurf.mapping.mosaic import ImageCache, mosaic_tile
 from roadsurf.mapping.overlap import check_frame_overlap
 from roadsurf.mapping.previews import Previews
-from roadsurf.mapping.raster import LOCAL_CRS, GridToEnu, TiledWriter, corridor_tiles
+from roadsurf.mapping.raster import (
+    LOCAL_CRS,
+    GridToEnu,
+    TiledWriter,
+    corridor_tiles,
+    fill_nodata_capped,
+)
 from roadsurf.mapping.surface import LocalSurface
 from roadsurf.mapping.surface_raster import (
     points_in,
@@ -31,6 +38,9 @@ from roadsurf.mapping.surface_raster import (
     two_view_mask,
 )
 from roadsurf.mapping.types import MapProducts, Trajectory
+
+if TYPE_CHECKING:
+    from roadsurf.reconstruction.types import PairResult
 
 log = logging.getLogger(__name__)
 
@@ -47,10 +57,13 @@ def rasterise(
     prod: MapProducts,
     frames_by_index: dict[int, Frame],
     pair_frames: list[tuple[int, int]] | None = None,
+    pairs: list[PairResult] | None = None,
 ) -> None:
     """Write the surface and mosaic rasters (and previews) of the corridor into
     ``prod.run_dir``, recording files, tiles, pixel counts and warnings in ``prod``.
-    ``pair_frames``: pose indices of the ok pairs (the capped fill acts where both saw the road)."""
+    ``pair_frames``: pose indices of the ok pairs (the capped fill acts where both saw the road).
+    With ``cfg.surface_source == "dense"`` the surface is the dense one fused from ``pairs``
+    (``mapping.dense_fuse``), on the dense GSD, with its count and σ rasters."""
     cam = drive.camera
     ef = traj.export_frame
     crs = ef.crs if ef is not None else LOCAL_CRS
@@ -72,7 +85,9 @@ def rasterise(
         prod.warnings.append("nothing to rasterise (no footprint, no point)")
         return
     allxy = np.concatenate([*samples, pts_grid]) if samples else pts_grid
-    lat, tiles = corridor_tiles(allxy, crs, cfg.gsd_m, cfg.tile_px)
+    dense = cfg.surface_source == "dense" and pairs is not None
+    gsd = dense_gsd_m(cfg, cam, traj, road_z) if dense else cfg.gsd_m
+    lat, tiles = corridor_tiles(allxy, crs, gsd, cfg.tile_px)
     # footprint bounding boxes in pixel coordinates of the full grid, and frames per tile
     fg = lat.full_grid
     fbox: list[tuple[int, int, int, int] | None] = []
@@ -112,10 +127,8 @@ def rasterise(
         "tile_px": lat.tile_px,
     }
     # pyramid level so that source pixels are about one GSD on the road (anti-aliasing)
-    native = (
-        float(np.median(traj.world_from_cam[:, 2, 3] - road_z)) / cam.fx if len(traj) else cfg.gsd_m
-    )
-    level = max(0, int(math.floor(math.log2(max(cfg.gsd_m / max(native, 1e-9), 1.0)))))
+    native = float(np.median(traj.world_from_cam[:, 2, 3] - road_z)) / cam.fx if len(traj) else gsd
+    level = max(0, int(math.floor(math.log2(max(gsd / max(native, 1e-9), 1.0)))))
     # points per tile (with a margin so interpolation is continuous across tile borders)
     margin = cfg.surface_max_edge_m + surface_pad_m(cfg)
     # robust per-point height noise (MAD of all residuals; defects are a small minority)
@@ -144,6 +157,17 @@ def rasterise(
         writers.append(mw)
         prev = Previews(fg, cfg.preview_max_px)
         workers = max(1, int(cfg.raster_workers))
+        ds = None
+        if dense:
+            ds = DenseSurface(
+                cfg, drive, pairs or [], traj, surf, g2e, lat, tiles, fp_grid, workers
+            )
+            nw = TiledWriter(prod.run_dir, NOBS, lat, 1, "uint8", 0, write_tiles, write_full)
+            writers.append(nw)
+            gw = TiledWriter(
+                prod.run_dir, SIGMA, lat, 1, "float32", NODATA_SURFACE, write_tiles, write_full
+            )
+            writers.append(gw)
         # each thread works on its own tile, a few frames apart in drive order
         cache = ImageCache(12 * workers)
         frame_list = [frames_by_index.get(int(k)) for k in traj.frame_indices]
@@ -152,12 +176,26 @@ def rasterise(
         def two_view(g: GridSpec, resid_g: np.ndarray | None = None) -> np.ndarray:
             return two_view_mask(cam, traj, surf, g2e, g, pf, fp_grid, road_z, resid_g)
 
-        def compute(t: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        def compute(t: tuple[int, int]) -> tuple[np.ndarray, ...]:
             grid = lat.tile_grid(*t)
-            sel = points_in(pts_grid, grid, margin)
-            res_t, filled = surface_tile_filled(
-                cfg, pts_grid[sel], resid[sel], grid, noise_m, two_view
-            )
+            nobs_t = sig_t = None
+            if ds is not None:
+                dt = ds.tile(t)
+                res_t, nobs_t, sig_t = dt.residual_m, dt.n_obs, dt.sigma_m
+                filled = np.zeros(res_t.shape, bool)
+                if cfg.dense_fill_max_m > 0 and np.isfinite(res_t).any():
+                    # the matching windows stop a few px short of the two-view part's border
+                    lim = max(cfg.surface_detail_sigmas * noise_m, cfg.surface_fill_relief_min_m)
+                    out = fill_nodata_capped(
+                        res_t, two_view(grid, res_t), cfg.dense_fill_max_m / grid.gsd_m, lim
+                    )
+                    filled = np.isfinite(out) & ~np.isfinite(res_t)
+                    res_t = out
+            else:
+                sel = points_in(pts_grid, grid, margin)
+                res_t, filled = surface_tile_filled(
+                    cfg, pts_grid[sel], resid[sel], grid, noise_m, two_view
+                )
             mos_t, wsum = mosaic_tile(
                 cfg,
                 cam,
@@ -182,11 +220,15 @@ def rasterise(
             # strip seen by one frame between two pairs (a short Delaunay edge bridges it)
             if filled.any():
                 res_t[filled & ~two_view(grid, res_t)] = np.nan
-            return res_t, mos_t, wsum
+            if nobs_t is not None and sig_t is not None:
+                gone = ~np.isfinite(res_t)
+                nobs_t = np.where(gone, 0, np.minimum(nobs_t, 255)).astype(np.uint8)
+                sig_t = np.where(gone, np.nan, sig_t).astype(np.float32)
+            return res_t, mos_t, wsum, nobs_t, sig_t
 
         # tiles are computed by worker threads (OpenCV and numpy release the GIL) and written
         # here, in order, a bounded number ahead (GDAL datasets are not shared across threads)
-        for t, (res_t, mos_t, wsum) in tqdm(
+        for t, (res_t, mos_t, wsum, nobs_t, sig_t) in tqdm(
             zip(tiles, ordered_map(compute, tiles, workers), strict=True),
             total=len(tiles),
             desc="rasters",
@@ -202,6 +244,9 @@ def rasterise(
             prod.mosaic_px += int((wsum > 0).sum())
             sw.write(*t, res_t)
             mw.write(*t, mos_t)
+            if ds is not None:
+                nw.write(*t, nobs_t)
+                gw.write(*t, sig_t)
             tg = lat.tile_grid(*t)
             info: dict[str, Any] = {
                 "row": t[0],
@@ -230,6 +275,20 @@ def rasterise(
     if write_tiles:
         prod.files["surface_vrt"] = rf.SURFACE_VRT
         prod.files["mosaic_vrt"] = rf.MOSAIC_VRT
+    if ds is not None:
+        for name in (NOBS, SIGMA):
+            if write_full:
+                prod.files[name] = f"{name}.tif"
+            if write_tiles:
+                prod.files[f"{name}_vrt"] = f"{name}.vrt"
+        st = ds.stats
+        prod.timings_s["dense_match"] = round(st["match_s"], 3)
+        prod.residual_stats_m["dense_pairs"] = st["pairs"]
+        prod.residual_stats_m["dense_valid_px"] = st["valid_px"]
+        if st["pairs_failed"]:
+            msg = f"dense surface: {st['pairs_failed']} of {st['pairs']} pairs not matched"
+            log.warning("globalmap: %s", msg)
+            prod.warnings.append(msg)
     prev.write(prod.run_dir)
     prod.files["mosaic_preview"] = rf.MOSAIC_PREVIEW
     prod.files["surface_preview"] = rf.SURFACE_PREVIEW

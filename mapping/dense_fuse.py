@@ -1,0 +1,407 @@
+"""Dense surface: every ok pair's dense height (``reconstruction.dense``) fused per ground cell
+into the residual raster (``MappingConfig.surface_source = "dense"``).
+
+1. Each ok pair is matched densely (plane + parallax) on its two images: a height above the
+   pair's road plane and its variance for every pixel of the overlap in image a.
+2. Levelling: the pair's pixels are posed in ENU with the fused pose of frame a, and a robust
+   plane (offset and tilt) of their height above the local road surface (``mapping.surface``,
+   fitted to the sparse points) is removed, so pairs agree where they overlap (what
+   ``align_patches`` does for the sparse points).
+3. Per cell of a raster tile, each pair that saw it gives one sample: the cell's centre is
+   projected into image a at the height of the surface there, the pair's height map sampled,
+   and the projection repeated at the new height (a fixed point, like a ray cast).
+4. Fusion (``fuse_cells``): per cell the variance-weighted median of the pairs' samples, then
+   the weighted mean of those within ``dense_outlier_sigmas`` σ of it; its count and σ.
+   A pixel seen at a coarser ground footprint than the cell (far pixels of a tilted camera)
+   weighs less: its variance grows by (footprint / cell)².
+
+Tiles are fused on demand in drive order (``DenseSurface.tile``); a pair is matched when the
+first tile it touches is asked for and dropped when the last one is done: memory holds the pairs
+over a few tiles, never the drive.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from roadsurf.core.camera import Camera
+from roadsurf.core.parallel import ordered_map
+from roadsurf.io.drive import Drive, GrayFrames
+from roadsurf.io.formats import GridSpec
+from roadsurf.mapping.config import MappingConfig
+from roadsurf.mapping.raster import GridToEnu, TileLattice
+from roadsurf.mapping.surface import LocalSurface
+from roadsurf.mapping.types import Trajectory
+from roadsurf.reconstruction.dense.parallax import DenseHeight, dense_height
+from roadsurf.reconstruction.types import PairResult
+
+log = logging.getLogger(__name__)
+
+NOBS = "surface_nobs"  # raster of the samples kept per cell (count, uint8, 0 = none)
+SIGMA = "surface_sigma"  # raster of the σ of each cell's height (m)
+FIXED_POINT_STEPS = 3  # cell -> pixel projections at the sampled height (nadir: 2 suffice)
+
+
+def dense_gsd_m(cfg: MappingConfig, cam: Camera, traj: Trajectory, road_z: np.ndarray) -> float:
+    """GSD of the dense rasters (m): ``dense_gsd_m`` when set, else the images' ground sampling
+    at the matching scale (median camera height over the road / fx / scale, rounded to 0.1 mm),
+    never finer than ``dense_min_gsd_m``."""
+    if cfg.dense_gsd_m > 0:
+        return float(cfg.dense_gsd_m)
+    h = float(np.median(traj.world_from_cam[:, 2, 3] - road_z)) if len(traj) else cam.height_m
+    if not (math.isfinite(h) and h > 0):
+        h = cam.height_m
+    g = h / (cam.fx * cfg.dense.scale)
+    return max(round(g * 1e4) / 1e4, cfg.dense_min_gsd_m)
+
+
+# --------------------------------------------------------------------------- fusion of samples
+
+
+def fuse_cells(
+    cell: np.ndarray, value: np.ndarray, var: np.ndarray, n_cells: int, outlier_sigmas: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Robust variance-weighted estimate per cell from samples (N,) of ``value`` with variance
+    ``var`` in cells ``cell`` (0..n_cells-1): the weighted median m, then the weighted mean of
+    the samples within ``outlier_sigmas`` x their σ (+ 0.2 mm) of m. Returns (n_cells,) float32
+    estimate (NaN where empty), int32 count of the samples kept and float32 σ of the estimate:
+    sqrt(1 / Σw), or the weighted scatter / sqrt(count) when the samples disagree more."""
+    est = np.full(n_cells, np.nan, np.float32)
+    cnt = np.zeros(n_cells, np.int32)
+    sig = np.full(n_cells, np.nan, np.float32)
+    ok = np.isfinite(value) & np.isfinite(var) & (var > 0)
+    if not ok.any():
+        return est, cnt, sig
+    c, v, s2 = cell[ok].astype(np.int64), value[ok].astype(float), var[ok].astype(float)
+    w = 1.0 / s2
+    order = np.lexsort((v, c))
+    c, v, w, s2 = c[order], v[order], w[order], s2[order]
+    starts = np.flatnonzero(np.r_[True, c[1:] != c[:-1]])
+    ids = c[starts]
+    cw = np.cumsum(w)
+    before = np.r_[0.0, cw[:-1]][starts]  # cumulative weight before each group
+    tot = np.add.reduceat(w, starts)
+    grp = np.repeat(np.arange(len(starts)), np.diff(np.r_[starts, len(c)]))
+    # the first sample of each group whose cumulative weight reaches half the group's weight
+    half = (cw - before[grp]) >= 0.5 * tot[grp]
+    first = np.flatnonzero(half & np.r_[True, ~half[:-1] | (grp[1:] != grp[:-1])])
+    med = np.empty(len(starts))
+    med[grp[first]] = v[first]
+    keep = np.abs(v - med[grp]) <= outlier_sigmas * np.sqrt(s2) + 2e-4
+    kw = np.where(keep, w, 0.0)
+    sw = np.bincount(grp, kw, len(starts))
+    mean = np.bincount(grp, kw * v, len(starts)) / np.maximum(sw, 1e-300)
+    scatter = np.bincount(grp, kw * (v - mean[grp]) ** 2, len(starts)) / np.maximum(sw, 1e-300)
+    n = np.bincount(grp, keep, len(starts))
+    has = sw > 0
+    est[ids[has]] = mean[has]
+    cnt[ids[has]] = n[has]
+    sd = np.sqrt(np.maximum(1.0 / np.maximum(sw, 1e-300), scatter / np.maximum(n, 1)))
+    sig[ids[has]] = sd[has]
+    return est, cnt, sig
+
+
+# --------------------------------------------------------------------------- one pair
+
+
+@dataclass
+class _PairDense:
+    """A matched pair: its height map and what places it on the map."""
+
+    index: int  # order among the ok pairs
+    dh: DenseHeight
+    R_wc: np.ndarray  # (3, 3) ENU from camera a (fused pose)
+    C: np.ndarray  # (3,) camera a's centre (ENU)
+    level: np.ndarray  # (3,) plane removed from its residuals: a + b (e - e0) + c (n - n0)
+    level_at: np.ndarray  # (2,) e0, n0
+    height_filled: np.ndarray  # (h, w) float32 heights, 0 where invalid (for sampling)
+    valid_f: np.ndarray  # (h, w) float32 1 where valid
+    var: np.ndarray  # (h, w) float32 variance, 0 where invalid
+
+
+@dataclass
+class DenseTile:
+    residual_m: np.ndarray  # (H, W) float32 height above the local road (m), NaN: unobserved
+    n_obs: np.ndarray  # (H, W) int32 samples kept per cell
+    sigma_m: np.ndarray  # (H, W) float32 σ of the estimate (m)
+
+
+class DenseSurface:
+    """Dense residual tiles on demand (module docstring). Thread-safe: tiles may be asked for
+    from several threads; pairs are matched in drive order, ``workers`` at a time."""
+
+    def __init__(
+        self,
+        cfg: MappingConfig,
+        drive: Drive,
+        pairs: list[PairResult],
+        traj: Trajectory,
+        surf: LocalSurface,
+        g2e: GridToEnu,
+        lat: TileLattice,
+        tiles: list[tuple[int, int]],
+        fp_grid: list[np.ndarray],
+        workers: int,
+    ) -> None:
+        self.cfg, self.cam, self.traj, self.surf, self.g2e, self.lat = (
+            cfg, drive.camera, traj, surf, g2e, lat,
+        )  # fmt: skip
+        self.workers = max(1, int(workers))
+        pose_of = {fn: i for i, fn in enumerate(traj.filenames)}
+        ok = [
+            p
+            for p in pairs
+            if p.ok and p.frame_a in pose_of and p.frame_b in pose_of and np.isfinite(p.plane).all()
+        ]
+        self.pairs = ok
+        self.pose_a = [pose_of[p.frame_a] for p in ok]
+        self.images = GrayFrames(drive.frames, 4, "dense surface")
+        # tiles each pair may touch: frame a's footprint, widened by the relief's reach
+        wanted = set(tiles)
+        fg = lat.full_grid
+        tp = lat.tile_px
+        pad = 0.1 / lat.gsd_m
+        self.pair_tiles: list[set[tuple[int, int]]] = []
+        self.pair_box: list[tuple[int, int, int, int] | None] = []
+        for i in self.pose_a:
+            fp = fp_grid[i]
+            if len(fp) < 3:
+                self.pair_tiles.append(set())
+                self.pair_box.append(None)
+                continue
+            rc = fg.rowcol_from_xy(fp)
+            r0, c0 = (np.floor(rc.min(0) - pad)).astype(int)
+            r1, c1 = (np.ceil(rc.max(0) + pad)).astype(int)
+            self.pair_box.append((r0, r1, c0, c1))
+            ts = {
+                (tr, tc)
+                for tr in range(max(r0 // tp, 0), min(r1 // tp, lat.n_rows - 1) + 1)
+                for tc in range(max(c0 // tp, 0), min(c1 // tp, lat.n_cols - 1) + 1)
+            }
+            self.pair_tiles.append(ts & wanted)
+        self.tile_pairs: dict[tuple[int, int], list[int]] = {t: [] for t in tiles}
+        for k, ts in enumerate(self.pair_tiles):
+            for t in ts:
+                self.tile_pairs[t].append(k)
+        self._lock = threading.Lock()
+        self._next = 0  # next pair to match
+        self._done: dict[int, _PairDense | None] = {}
+        self._tiles_left = [set(ts) for ts in self.pair_tiles]
+        self.stats = {"pairs": 0, "pairs_failed": 0, "match_s": 0.0, "valid_px": 0}
+
+    # ------------------------------------------------------------------ pairs
+    def _match(self, k: int) -> _PairDense | None:
+        p = self.pairs[k]
+        a, b = self.images.get(p.frame_a), self.images.get(p.frame_b)
+        if a is None or b is None:
+            return None
+        try:
+            dh = dense_height(
+                a, b, self.cam, p.R_b_from_a, p.t_b_from_a_m, p.plane, p.H, self.cfg.dense
+            )
+        except Exception as e:  # a pair that cannot be matched leaves its cells to the others
+            log.warning("dense surface: pair %s -> %s not matched (%s)", p.frame_a, p.frame_b, e)
+            return None
+        W = self.traj.world_from_cam[self.pose_a[k]]
+        R, C = W[:3, :3], W[:3, 3]
+        X, _ = dh.points_cam_a()
+        Xw = X[:: max(1, len(X) // 20000)] @ R.T + C
+        if self.cfg.dense_reference == "pair_plane":
+            r = Xw[:, 2]
+        else:
+            r = Xw[:, 2] - self.surf.height(Xw[:, :2])
+        coef, at = _robust_plane(
+            Xw[:, :2], r, self.cfg.local_fit_inlier_m, self.cfg.dense_reference != "pair_plane"
+        )
+        v = dh.valid
+        return _PairDense(
+            k,
+            dh,
+            R,
+            C,
+            coef,
+            at,
+            np.where(v, dh.height_m, 0).astype(np.float32),
+            v.astype(np.float32),
+            np.where(v, dh.var_m2, 0).astype(np.float32),
+        )
+
+    def _advance(self, upto: int) -> None:
+        """Match pairs up to ``upto`` (inclusive), ``workers`` at a time (caller holds the lock)."""
+        todo = list(range(self._next, upto + 1))
+        if not todo:
+            return
+        t0 = time.perf_counter()
+        for k, pdn in zip(todo, ordered_map(self._match, todo, self.workers), strict=True):
+            self._done[k] = pdn
+            self.stats["pairs"] += 1
+            if pdn is None:
+                self.stats["pairs_failed"] += 1
+            else:
+                self.stats["valid_px"] += int(pdn.dh.valid.sum())
+        self._next = upto + 1
+        self.stats["match_s"] += time.perf_counter() - t0
+
+    # ------------------------------------------------------------------ tiles
+    def tile(self, t: tuple[int, int]) -> DenseTile:
+        ks = self.tile_pairs.get(t, [])
+        with self._lock:
+            if ks:
+                self._advance(max(ks))
+            got = [self._done[k] for k in ks]
+        grid = self.lat.tile_grid(*t)
+        n = grid.width * grid.height
+        cells, vals, vars_ = [], [], []
+        for pdn in got:
+            if pdn is None:
+                continue
+            out = self._sample(pdn, grid, t)
+            if out is not None:
+                cells.append(out[0])
+                vals.append(out[1])
+                vars_.append(out[2])
+        with self._lock:  # drop pairs whose every tile is done
+            for k in ks:
+                self._tiles_left[k].discard(t)
+                if not self._tiles_left[k]:
+                    self._done.pop(k, None)
+        if cells:
+            est, cnt, sig = fuse_cells(
+                np.concatenate(cells),
+                np.concatenate(vals),
+                np.concatenate(vars_),
+                n,
+                self.cfg.dense_outlier_sigmas,
+            )
+        else:
+            est = np.full(n, np.nan, np.float32)
+            cnt, sig = np.zeros(n, np.int32), np.full(n, np.nan, np.float32)
+        shape = (grid.height, grid.width)
+        return DenseTile(est.reshape(shape), cnt.reshape(shape), sig.reshape(shape))
+
+    def _sample(
+        self, pdn: _PairDense, grid: GridSpec, t: tuple[int, int]
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """One sample per cell of the tile that the pair saw: (cell index, residual, variance)."""
+        box = self.pair_box[pdn.index]
+        if box is None:
+            return None
+        tp = self.lat.tile_px
+        R0, C0 = t[0] * tp, t[1] * tp
+        r0, r1 = max(box[0] - R0, 0), min(box[1] - R0, grid.height - 1)
+        c0, c1 = max(box[2] - C0, 0), min(box[3] - C0, grid.width - 1)
+        if r1 < r0 or c1 < c0:
+            return None
+        e, n = self.g2e.pixel_enu(grid, slice(r0, r1 + 1), slice(c0, c1 + 1))
+        lev = (
+            pdn.level[0]
+            + pdn.level[1] * (e - pdn.level_at[0])
+            + pdn.level[2] * (n - pdn.level_at[1])
+        )
+        if self.cfg.dense_reference == "pair_plane":
+            zs, lev = lev, np.zeros_like(lev)
+        else:
+            zs = _surface_height(self.surf, e, n, grid.gsd_m)
+        dh, R, C = pdn.dh, pdn.R_wc, pdn.C
+        K = dh.model.K
+        z = np.where(np.isfinite(zs), zs, C[2] - self.cam.height_m)
+        r = np.zeros_like(z)
+        for _ in range(FIXED_POINT_STEPS):
+            X = np.stack([e - C[0], n - C[1], z + r - C[2]], -1) @ R  # camera a
+            with np.errstate(invalid="ignore", divide="ignore"):
+                Z = np.where(X[..., 2] > 1e-6, X[..., 2], np.nan)
+                u = K[0, 0] * X[..., 0] / Z + K[0, 2]
+                v = K[1, 1] * X[..., 1] / Z + K[1, 2]
+            uf = np.nan_to_num(u, nan=-10).astype(np.float32)
+            vf = np.nan_to_num(v, nan=-10).astype(np.float32)
+            eta = cv2.remap(pdn.height_filled, uf, vf, cv2.INTER_LINEAR, borderValue=0)
+            P = dh.model.points_cam_a(eta.astype(float), u, v) @ R.T + C
+            r = P[..., 2] - z
+        ok = cv2.remap(pdn.valid_f, uf, vf, cv2.INTER_LINEAR, borderValue=0) >= 0.999
+        ok &= np.isfinite(zs) & np.isfinite(r)
+        if not ok.any():
+            return None
+        var = cv2.remap(pdn.var, uf, vf, cv2.INTER_LINEAR, borderValue=0).astype(float)
+        # ground footprint of the pixel vs the cell: a coarser view weighs less
+        ray = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            cos = np.abs(ray @ dh.model.n) / np.linalg.norm(ray, axis=-1)
+            foot = Z / K[0, 0] / np.sqrt(np.maximum(cos, 0.1))
+        var = var * np.maximum(1.0, (foot / grid.gsd_m) ** 2)
+        rows, cols = np.nonzero(ok)
+        cell = (rows + r0) * grid.width + (cols + c0)
+        return cell, (r - lev)[ok], var[ok]
+
+
+def _surface_height(surf: LocalSurface, e: np.ndarray, n: np.ndarray, gsd: float) -> np.ndarray:
+    """The local road height at ENU e, n (H, W): evaluated every ~4 cm and upsampled (the fit is
+    smooth on its node scale), NaN where it has no node."""
+    st = max(1, int(round(0.04 / gsd)))
+    es, ns = e[::st, ::st], n[::st, ::st]
+    zs = surf.height(np.column_stack([es.ravel(), ns.ravel()])).reshape(es.shape)
+    if st == 1:
+        return zs
+    # bilinear on the node samples: exact at every st-th cell, NaN spreads to its neighbours
+    H, W = e.shape
+    ri = np.arange(H) / st
+    ci = np.arange(W) / st
+    return cv2.remap(
+        zs.astype(np.float32),
+        np.tile(ci.astype(np.float32), (H, 1)),
+        np.tile(ri.astype(np.float32)[:, None], (1, W)),
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_REPLICATE,
+    ).astype(float)
+
+
+def _robust_plane(
+    xy: np.ndarray, r: np.ndarray, inlier_m: float, near_zero: bool
+) -> tuple[np.ndarray, np.ndarray]:
+    """(a, b, c) and the centre (e0, n0) of the road plane r ≈ a + b (e - e0) + c (n - n0) in
+    the finite residuals, then refitted to the points within max(3 MAD, 3 mm) of it. The start
+    is the plane 0 (``near_zero``: residuals to a surface already fitted across pairs; points
+    within ``inlier_m`` of it) or, when that holds too few points or without one, the plane with
+    most points within 3 mm among 3-point samples (RANSAC): a least-squares start is pulled
+    off the road by a pothole that fills half the view, and trimming never recovers. Zeros when
+    too few points."""
+    m = np.isfinite(r)
+    if m.sum() < 50:
+        return np.zeros(3), np.zeros(2)
+    at = np.median(xy[m], axis=0)
+    A = np.column_stack([np.ones(m.sum()), xy[m] - at])
+    y = r[m]
+    band = 0.003
+    keep = np.abs(y) < inlier_m if near_zero else np.zeros(len(y), bool)
+    if keep.sum() < 0.2 * len(y):
+        rng = np.random.default_rng(0)
+        sub = rng.choice(len(y), min(len(y), 3000), replace=False)
+        best, best_n = np.zeros(3), -1
+        for _ in range(200):
+            idx = rng.choice(sub, 3, replace=False)
+            try:
+                c = np.linalg.solve(A[idx], y[idx])
+            except np.linalg.LinAlgError:
+                continue
+            n = int((np.abs(y[sub] - A[sub] @ c) < band).sum())
+            if n > best_n:
+                best, best_n = c, n
+        keep = np.abs(y - A @ best) < band
+    coef = np.zeros(3)
+    for _ in range(8):
+        if keep.sum() < 20:
+            break
+        coef = np.linalg.lstsq(A[keep], y[keep], rcond=None)[0]
+        res = y - A @ coef
+        mad = 1.4826 * float(np.median(np.abs(res[keep])))
+        new = np.abs(res) < max(3 * mad, band)
+        if np.array_equal(new, keep):
+            break
+        keep = new
+    return coef, at

@@ -1,0 +1,198 @@
+"""Dense surface fusion (mapping.dense_fuse): the robust per-cell estimate, and the whole map
+of a short rendered drive (simulator, 320 x 240, a 50 mm pothole) built with
+``surface_source = "dense"`` against the truth and against the sparse surface."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rasterio
+from rasterio.warp import Resampling, reproject
+
+from roadsurf.io.drive import load_drive
+from roadsurf.mapping import globalmap, poses
+from roadsurf.mapping.config import MappingConfig
+from roadsurf.mapping.dense_fuse import DenseSurface, fuse_cells
+from roadsurf.reconstruction import stage as recon_stage
+from roadsurf.reconstruction.config import ReconstructionConfig
+
+
+def test_fuse_cells_weighted_median_then_trimmed_mean() -> None:
+    cell = np.array([0, 0, 0, 1, 1, 3])
+    val = np.array([0.001, 0.0012, 0.02, -0.01, -0.012, 0.005])
+    var = np.array([1e-6, 1e-6, 1e-6, 1e-6, 4e-6, 2.5e-7])
+    est, n, sig = fuse_cells(cell, val, var, 5, 3.0)
+    # cell 0: the 20 mm outlier is left out, the two others averaged
+    assert est[0] == pytest.approx(0.0011, abs=1e-9) and n[0] == 2
+    # cell 1: variance-weighted mean (weights 4:1), σ = sqrt(1 / Σw)
+    assert est[1] == pytest.approx((4 * -0.01 + -0.012) / 5, abs=1e-9) and n[1] == 2
+    assert sig[1] == pytest.approx(np.sqrt(1 / (1e6 + 2.5e5)), rel=1e-5)
+    # cell 3: one sample, its own σ; cells 2 and 4: nothing
+    assert est[3] == pytest.approx(0.005) and n[3] == 1 and sig[3] == pytest.approx(5e-4)
+    assert np.isnan(est[[2, 4]]).all() and (n[[2, 4]] == 0).all()
+    # two samples that disagree: σ grows with their scatter, not only with 1 / Σw
+    est2, _, sig2 = fuse_cells(np.array([0, 0]), np.array([0.0, 0.002]), np.full(2, 1e-6), 1, 3)
+    assert est2[0] == pytest.approx(0.001) and sig2[0] > 1e-3 / np.sqrt(2) * 0.99
+
+
+def test_fuse_cells_weights_decide_the_median() -> None:
+    # three samples, the precise one far from the two loose ones: it wins the median
+    est, n, _ = fuse_cells(
+        np.zeros(3, int), np.array([0.0, 0.0001, 0.01]), np.array([1e-6, 1e-6, 1e-8]), 1, 3.0
+    )
+    assert est[0] == pytest.approx(0.01, abs=1e-5) and n[0] == 1
+
+
+@pytest.fixture(scope="module")
+def drive_maps(tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]:
+    from roadsurf.simulation.scenarios import simulate
+
+    root = tmp_path_factory.mktemp("dense_drive")
+    simulate(
+        "potholes",
+        root / "D",
+        n_frames=10,
+        progress=False,
+        width=320,
+        height=240,
+        fx=300.0,
+        n_potholes=1,
+        n_cracks=0,
+        n_ruts=0,
+        n_shadows=0,
+        n_oil_stains=0,
+    )
+    drive = load_drive(root / "D")
+    run = root / "run"
+    pairs = recon_stage.run(ReconstructionConfig(), drive, run)
+    traj = poses.run(MappingConfig(), drive, pairs, run)
+    out: dict[str, object] = {"root": root, "drive": drive, "pairs": pairs, "traj": traj}
+    for src in ("sparse", "dense"):
+        cfg = MappingConfig(surface_source=src)  # type: ignore[arg-type]
+        out[src] = globalmap.run(cfg, drive, pairs, traj, root / src)
+    return out
+
+
+def _errors(run: Path, truth: Path, traj_dir: Path) -> tuple[np.ndarray, ...]:
+    """Surface minus truth residual on the truth grid, and the truth's flat / pothole masks. The
+    surface is moved by the mean offset of the fused camera centres from the true ones (the
+    drive's few RTK fixes place it ~2 cm off; both surfaces share it)."""
+    import csv
+
+    from roadsurf.mapping.export import export_xyz
+    from roadsurf.mapping.types import load_trajectory
+
+    traj = load_trajectory(traj_dir)
+    with open(truth / "poses.csv", newline="") as f:
+        rows = {r["filename"]: r for r in csv.DictReader(f)}
+    g = export_xyz(traj.positions_enu_m, traj.export_frame)[:, :2]
+    t = np.array(
+        [[float(rows[fn]["easting_m"]), float(rows[fn]["northing_m"])] for fn in traj.filenames]
+    )
+    off = np.mean(g - t, axis=0)
+    with rasterio.open(truth / "residual.tif") as tr_:
+        tr, tT, crs = tr_.read(1), tr_.transform, tr_.crs
+    with rasterio.open(run / "surface.tif") as s:
+        sT = s.transform
+        sT = rasterio.Affine(sT.a, sT.b, sT.c - off[0], sT.d, sT.e, sT.f - off[1])
+        dst = np.full(tr.shape, np.nan, np.float32)
+        reproject(
+            s.read(1), dst, src_transform=sT, src_crs=s.crs, dst_transform=tT,
+            dst_crs=crs, resampling=Resampling.nearest, src_nodata=np.nan, dst_nodata=np.nan,
+        )  # fmt: skip
+    err = dst - tr
+    return err, np.abs(tr) < 0.003, tr < -0.01
+
+
+def test_dense_surface_against_truth_and_sparse(drive_maps: dict[str, object]) -> None:
+    root = drive_maps["root"]
+    assert isinstance(root, Path)
+    figs = {}
+    for src in ("sparse", "dense"):
+        err, flat, pot = _errors(root / src, root / "D" / "truth", root / "run")
+        m = np.isfinite(err)
+        figs[src] = (
+            float(np.mean(np.abs(err[m & flat]))),
+            float(np.mean(np.abs(err[m & pot]))),
+            int((m & pot).sum()),
+        )
+    # measured (320 x 240): dense flat 1.18 mm / pothole 2.93 mm; sparse 1.60 / 4.17 mm
+    assert figs["dense"][0] < 1.5 and figs["dense"][1] < 4.0
+    assert figs["dense"][0] < figs["sparse"][0]
+    assert figs["dense"][1] < figs["sparse"][1]
+    assert figs["dense"][2] >= 0.9 * figs["sparse"][2]  # the pothole is covered
+
+
+def test_dense_products_and_grid(drive_maps: dict[str, object]) -> None:
+    root = drive_maps["root"]
+    prod = drive_maps["dense"]
+    assert isinstance(root, Path)
+    d = root / "dense"
+    with rasterio.open(d / "surface.tif") as s, rasterio.open(d / "mosaic.tif") as m:
+        assert s.transform == m.transform and s.shape == m.shape
+        assert s.transform.a == pytest.approx(0.0037)  # the images' ground sampling, 1.1 / 300
+        res = s.read(1)
+    with rasterio.open(d / "surface_nobs.tif") as n, rasterio.open(d / "surface_sigma.tif") as g:
+        nobs, sig = n.read(1), g.read(1)
+    fin = np.isfinite(res)
+    assert fin.sum() == prod.surface_px > 0  # type: ignore[attr-defined]
+    # measured cells (the rest: the capped fill along the two-view border, dense_fill_max_m)
+    meas = fin & (nobs >= 1)
+    assert meas.sum() > 0.93 * fin.sum() and (nobs[~fin] == 0).all()  # measured 95.4%
+    assert np.isfinite(sig[meas]).all() and np.median(sig[meas]) < 0.003
+    # consecutive pairs' parts overlap where three frames saw the road (55% frame overlap: a
+    # strip of ~20%; measured 19%)
+    assert (nobs >= 2).sum() > 0.1 * fin.sum()
+    assert prod.files["surface_nobs"] == "surface_nobs.tif"  # type: ignore[attr-defined]
+
+
+def test_pairs_are_matched_once_and_dropped(drive_maps: dict[str, object]) -> None:
+    from roadsurf.mapping.raster import GridToEnu, corridor_tiles
+    from roadsurf.mapping.surface import LocalSurface
+
+    drive, pairs, traj = drive_maps["drive"], drive_maps["pairs"], drive_maps["traj"]
+    cfg = dataclasses.replace(MappingConfig(surface_source="dense"), tile_px=64)
+    cam = drive.camera  # type: ignore[attr-defined]
+    W = traj.world_from_cam  # type: ignore[attr-defined]
+    fp = [cam.footprint_grid_enu(T, T[2, 3] - cam.height_m)[:, :2] for T in W]
+    lat, tiles = corridor_tiles(np.concatenate(fp), "LOCAL", 0.0037, 64)
+    surf = LocalSurface(cfg, np.column_stack([W[:, :2, 3], W[:, 2, 3] - cam.height_m]))
+    ds = DenseSurface(cfg, drive, pairs, traj, surf, GridToEnu(None, None), lat, tiles, fp, 1)  # type: ignore[arg-type]
+    peak = 0
+    # in drive order, as rasterise visits them
+    for t in sorted(tiles, key=lambda t: (min(ds.tile_pairs[t], default=1 << 30), t)):
+        ds.tile(t)
+        peak = max(peak, len(ds._done))
+    assert ds.stats["pairs"] == len(ds.pairs) == sum(p.ok for p in pairs)  # type: ignore[attr-defined]
+    assert not ds._done  # every pair dropped once its last tile was fused
+    assert peak <= 4  # a few pairs held at a time (9 pairs, tiles of 24 cm)
+
+
+def test_map_key_holds_the_dense_settings_only_when_dense() -> None:
+    from roadsurf.mapping.types import Trajectory
+    from roadsurf.reconstruction.dense.config import DenseHeightConfig
+    from tests.mapping.synth import make_synthetic
+
+    syn = make_synthetic(n=4, seed=3)
+    traj = Trajectory(
+        filenames=[f.filename for f in syn.drive.frames],
+        frame_indices=np.arange(4),
+        timestamp_s=np.arange(4) * 0.05,
+        world_from_cam=syn.world_from_cam,
+        source=["fused"] * 4,
+        reference=None,
+    )
+
+    def key(**kw: object) -> str:
+        return globalmap._fingerprint(MappingConfig(**kw), syn.pairs, traj)  # type: ignore[arg-type]
+
+    sparse = key()
+    assert key(dense_gsd_m=0.003) == sparse  # ignored with the sparse surface
+    dense = key(surface_source="dense")
+    assert dense != sparse
+    assert key(surface_source="dense", dense_gsd_m=0.003) != dense
+    assert key(surface_source="dense", dense=DenseHeightConfig(window_px=7)) != dense
+    assert key(surface_source="dense", dense=DenseHeightConfig(device="cpu")) == dense
