@@ -154,6 +154,12 @@ class DenseSurface:
             cfg, drive.camera, traj, surf, g2e, lat,
         )  # fmt: skip
         self.workers = max(1, int(workers))
+        if self.cam.readout_s > 0:  # each row has its own pose there: heights drift with the row
+            log.warning(
+                "dense surface: the camera has a rolling shutter (readout_s %.4f s); the dense "
+                "matching models a global shutter, its heights drift across the rows",
+                self.cam.readout_s,
+            )
         pose_of = {fn: i for i, fn in enumerate(traj.filenames)}
         ok = [
             p
