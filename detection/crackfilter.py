@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Callable
 
 import cv2
 import numpy as np
@@ -89,9 +90,18 @@ def line_response(
 
 
 def thin_dark_components(
-    gray: np.ndarray, m_per_px: float, cfg: CrackConfig
-) -> tuple[np.ndarray, list[int], np.ndarray]:
-    """Label image (H, W) int32, the ids of long thin dark components, and their width (px).
+    gray: np.ndarray,
+    m_per_px: float,
+    cfg: CrackConfig,
+    gsd_at: Callable[[np.ndarray], np.ndarray] | None = None,
+) -> tuple[np.ndarray, list[int], np.ndarray, np.ndarray]:
+    """Label image (H, W) int32, the ids of long thin dark components, their width (px) and the
+    ground size of a pixel where each lies (m/px).
+
+    ``m_per_px`` sets the filters' scales (top-hat disc, line length); each component's length
+    and width limits and its measured width use the ground size of a pixel at the component
+    (``gsd_at``: (N, 2) raw pixels -> (N,) m/px; None: ``m_per_px`` everywhere), so a tilted
+    camera, whose pixels cover more road towards the horizon, measures every crack in metres.
 
     Pixels whose oriented line response (``line_response``) exceeds the image's own median +
     ``contrast_k`` · 1.4826 MAD form components; those long (≥ ``min_length_m``), thin
@@ -102,7 +112,7 @@ def thin_dark_components(
     """
     z, contrast = line_response(gray, m_per_px, cfg)
     mask = _above(z, cfg.contrast_k) & (contrast >= cfg.min_contrast)
-    lab, keep, mask_w = _thin_pieces(mask, m_per_px, cfg)
+    lab, keep, mask_w, gsd = _thin_pieces(mask, m_per_px, cfg, gsd_at)
     if cfg.line_long_m > cfg.line_m:
         # Busy textures: the long segment finds the crack where the short one drowns in
         # texture. Only its lines at least twice its length join (it smears each texture
@@ -118,14 +128,14 @@ def thin_dark_components(
             extra = cv2.dilate(skeletonize(extra).astype(np.uint8), np.ones((3, 3), np.uint8))
             extra = extra.astype(bool) & (contrast >= cfg.min_contrast)
         if extra.any():
-            lab, keep, mask_w = _thin_pieces(mask | extra, m_per_px, cfg)
+            lab, keep, mask_w, gsd = _thin_pieces(mask | extra, m_per_px, cfg, gsd_at)
     if not keep:
-        return lab, keep, np.zeros(0)
+        return lab, keep, np.zeros(0), np.zeros(0)
     g = cv2.GaussianBlur(np.asarray(gray, np.uint8), (3, 3), 0)
-    widths = [equivalent_width_px(g, lab == i, m_per_px, cfg) for i in keep]
+    widths = [equivalent_width_px(g, lab == i, m, cfg) for i, m in zip(keep, gsd, strict=True)]
     # No measurable profile (e.g. at the image border): the component's own width.
     widths = [w if np.isfinite(w) else mw for w, mw in zip(widths, mask_w, strict=True)]
-    return lab, keep, np.asarray(widths, float)
+    return lab, keep, np.asarray(widths, float), np.asarray(gsd, float)
 
 
 def _above(z: np.ndarray, k: float) -> np.ndarray:
@@ -136,15 +146,21 @@ def _above(z: np.ndarray, k: float) -> np.ndarray:
 
 
 def _thin_pieces(
-    mask: np.ndarray, m_per_px: float, cfg: CrackConfig
-) -> tuple[np.ndarray, list[int], list[float]]:
-    """Label image of ``mask`` and the ids and mask widths (px) of its long thin components."""
-    n, lab, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    mask: np.ndarray,
+    m_per_px: float,
+    cfg: CrackConfig,
+    gsd_at: Callable[[np.ndarray], np.ndarray] | None = None,
+) -> tuple[np.ndarray, list[int], list[float], list[float]]:
+    """Label image of ``mask`` and the ids, mask widths (px) and ground pixel sizes (m/px, at
+    each component's centroid; ``m_per_px`` without ``gsd_at``) of its long thin components."""
+    n, lab, stats, cent = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
     keep: list[int] = []
     mask_w: list[float] = []
-    min_len_px = cfg.min_length_m / m_per_px
-    max_w_px = max(2.5, cfg.max_width_m / m_per_px)
+    gsd_kept: list[float] = []
+    gsd = np.full(n, float(m_per_px)) if gsd_at is None or n < 2 else gsd_at(cent)
     for i in range(1, n):
+        min_len_px = cfg.min_length_m / gsd[i]
+        max_w_px = max(2.5, cfg.max_width_m / gsd[i])
         area = int(stats[i, cv2.CC_STAT_AREA])
         bw, bh = int(stats[i, cv2.CC_STAT_WIDTH]), int(stats[i, cv2.CC_STAT_HEIGHT])
         if max(bw, bh) < min_len_px or area < min_len_px:
@@ -160,7 +176,8 @@ def _thin_pieces(
         if length >= min_len_px and width <= max_w_px and length >= cfg.min_elongation * width:
             keep.append(i)
             mask_w.append(width)
-    return lab, keep, mask_w
+            gsd_kept.append(float(gsd[i]))
+    return lab, keep, mask_w, gsd_kept
 
 
 def _long_components(mask: np.ndarray, min_len_px: float) -> np.ndarray:

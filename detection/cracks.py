@@ -29,6 +29,7 @@ defect).
 
 from __future__ import annotations
 
+import functools
 import logging
 from dataclasses import dataclass
 
@@ -39,6 +40,7 @@ from roadsurf.core.camera import Camera
 from roadsurf.detection.config import CrackConfig
 from roadsurf.detection.crackdepth import DenseCrack, PairView, dense_crack_depth
 from roadsurf.detection.crackfilter import centre_line, thin_dark_components
+from roadsurf.detection.gsd import ground_px_m_raw
 
 log = logging.getLogger(__name__)
 
@@ -101,13 +103,16 @@ def detect_pair_cracks(
     P = np.asarray(points_cam_m, float)
     if len(px) < 20 or road.sum() < 10 or not np.isfinite(noise_m) or noise_m <= 0:
         return empty()
-    lab, keep, widths = thin_dark_components(gray, m_per_px, cfg)
+    cam = camera if camera is not None else (view.camera if view is not None else None)
+    # Lengths and widths in metres at each crack's own pixels (a tilted camera's pixels cover
+    # more road towards the horizon); ``m_per_px`` sets the filters' scales.
+    gsd_at = None if cam is None else functools.partial(ground_px_m_raw, cam, fallback_m=m_per_px)
+    lab, keep, widths, gsds = thin_dark_components(gray, m_per_px, cfg, gsd_at)
     if not keep:
         return empty()
     h, w = lab.shape
     u = np.clip(np.round(px[:, 0]).astype(int), 0, w - 1)
     v = np.clip(np.round(px[:, 1]).astype(int), 0, h - 1)
-    cam = camera if camera is not None else (view.camera if view is not None else None)
     if px_ideal is None:
         px_ideal = px if cam is None else cam.undistort_px(px)
     px_ideal = np.asarray(px_ideal, float)
@@ -118,7 +123,7 @@ def detect_pair_cracks(
     zcoef = np.linalg.lstsq(A, P[road, 2], rcond=None)[0]
     xyz, labels, wd, sd, nn, nb, vv, mx = [], [], [], [], [], [], [], []
     dense: list[DenseCrack | None] = []
-    for i, wpx in zip(keep, widths, strict=True):
+    for i, wpx, gsd in zip(keep, widths, gsds, strict=True):
         line = centre_line(lab == i)
         if not line.any():
             continue
@@ -147,7 +152,7 @@ def detect_pair_cracks(
         zc = np.c_[xy, np.ones(len(xy))] @ zcoef
         xyz.append(np.c_[xy, zc])
         labels.append(np.full(len(xy), len(wd)))
-        wd.append(wpx * m_per_px)
+        wd.append(wpx * gsd)
         sd.append(float(d.sum()))
         nn.append(n)
         nb.append(int((d > 0).sum()))

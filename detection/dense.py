@@ -55,6 +55,12 @@ class DenseMeasure:
     cell_m: float  # dense grid cell size (m)
     depth_grid_m: np.ndarray  # (ny, nx) combined depth per cell, NaN where no pair tracked it
 
+    def area_deeper(self, t_m: float) -> float:
+        """Area (m²) of the cells deeper than ``t_m``, untracked cells counted at the share of
+        the tracked ones (as ``area_m2``)."""
+        deep = np.nan_to_num(self.depth_grid_m, nan=-np.inf) >= t_m
+        return float(deep.sum()) * self.cell_m**2 / max(self.coverage, 1e-6)
+
     def depth_at(self, xy_m: np.ndarray) -> np.ndarray:
         """(N,) dense depth (m) of the cells holding grid-frame points (N, 2); NaN outside."""
         xy = np.asarray(xy_m, float).reshape(-1, 2)

@@ -1,7 +1,8 @@
 """Frame labels: is there a defect in this frame?
 
-With a map, a frame's score is the deep defect area inside its footprint (the simulator's rule:
-cells deeper than ``frame_depth_m``), p = A / (A + ``frame_min_area_m2``); without one, the
+With a map, a frame's score is the deep defect area its image sees (the simulator's rule: cells
+deeper than ``frame_depth_m``, projected through the frame's pose by ``framemasks``),
+p = A / (A + ``frame_min_area_m2``); without one, the
 dissertation's per-pair decision from the refined points alone. CNN probabilities, when given,
 are fused with these 3D labels (Fig. 5.6, ``classifier.fusion``).
 """
@@ -9,46 +10,33 @@ are fused with these 3D labels (Fig. 5.6, ``classifier.fusion``).
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from roadsurf.detection.classifier.fusion import FusionRule, fuse_frames
 from roadsurf.detection.config import DetectionConfig
+from roadsurf.detection.framemasks import FrameView
+from roadsurf.detection.gsd import NadirView
 from roadsurf.detection.pairs import PairDefects
 from roadsurf.detection.types import FrameLabel
 from roadsurf.io.drive import Drive
 from roadsurf.reconstruction.types import PairResult
 
-if TYPE_CHECKING:
-    from shapely.geometry import Polygon
-
 
 def frame_labels(
     cfg: DetectionConfig,
     drive: Drive,
-    footprints: dict[str, Polygon],
-    deep_xy: list[np.ndarray],
-    cell_m2: float,
+    views: dict[str, FrameView],
     pair_score: dict[str, float],
-    have_map: bool,
 ) -> list[FrameLabel]:
-    """Deep defect area in each frame's footprint (map), or the pairs' estimate without a map."""
-    from matplotlib.path import Path as MplPath
-
+    """Deep defect area the frame's image sees of the map's defects (``views``, see
+    ``framemasks``), or the pairs' estimate for a frame without a view."""
     a_min = cfg.map.frame_min_area_m2
-    pts = np.vstack(deep_xy) if deep_xy else np.zeros((0, 2))
     out: list[FrameLabel] = []
     for f in drive.frames:
-        fp = footprints.get(f.filename)
-        if have_map and fp is not None:
-            area = 0.0
-            if len(pts):
-                x0, y0, x1, y1 = fp.bounds
-                sel = (pts[:, 0] >= x0) & (pts[:, 0] <= x1) & (pts[:, 1] >= y0) & (pts[:, 1] <= y1)
-                if sel.any():
-                    inside = MplPath(np.asarray(fp.exterior.coords)).contains_points(pts[sel])
-                    area = float(inside.sum()) * cell_m2
+        view = views.get(f.filename)
+        if view is not None:
+            area = view.deep_area_m2
             p = area / (area + a_min) if area > 0 else 0.0
         else:
             p = pair_score.get(f.filename, 0.0)
@@ -65,10 +53,12 @@ def pair_frame_scores(
     """The dissertation's per-frame decision from refined points alone.
 
     Frame k is seen by pair (k-1, k) (its pixels px_b) and pair (k, k+1) (px_a), which together
-    cover its whole image. The deep refined points of both are binned on an image grid whose
-    cells are one point spacing wide, and the occupied cells give the deep area.
+    cover its whole image. The deep refined points of both are binned on a grid of the frame's
+    nadir view (``gsd.NadirView``: the image itself for a nadir camera, where the road has one
+    scale) whose cells are one point spacing wide, and the occupied cells give the deep area.
     """
-    m_per_px = drive.camera.ground_px_m()
+    view = NadirView(drive.camera)
+    m_per_px = view.m_per_px
     items: dict[str, list[tuple[np.ndarray, float]]] = {}
     for k, pd in per_pair.items():
         p = pairs[k]
@@ -76,7 +66,8 @@ def pair_frame_scores(
         for fn, px in ((p.frame_a, p.px_a), (p.frame_b, p.px_b)):
             lst = items.setdefault(fn, [])
             if deep.any():
-                lst.append((np.asarray(px, float)[deep], pd.area_per_point_m2))
+                q = view.px(np.asarray(px, float)[deep])
+                lst.append((q[np.all(np.isfinite(q), axis=1)], pd.area_per_point_m2))
     a_min = cfg.map.frame_min_area_m2
     scores: dict[str, float] = {}
     for fn, lst in items.items():

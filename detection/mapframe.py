@@ -14,7 +14,13 @@ from functools import cached_property
 import numpy as np
 from pyproj import Transformer
 
-from roadsurf.core.geometry import EnuReference, ExportFrame, check_shape, lla_from_enu
+from roadsurf.core.geometry import (
+    EnuReference,
+    ExportFrame,
+    check_shape,
+    enu_from_lla,
+    lla_from_enu,
+)
 
 
 @dataclass(frozen=True)
@@ -54,6 +60,15 @@ class MapFrame:
         lla = lla_from_enu(enu, self.reference)
         x, y = self._to_grid.transform(lla[:, 1], lla[:, 0])
         return np.column_stack([np.asarray(x, float), np.asarray(y, float)])
+
+    def enu_from_grid(self, xy_m: np.ndarray) -> np.ndarray:
+        """(N, 2) grid-frame x, y (metres) -> (N, 2) local ENU east, north (metres) at the
+        reference's height (the caller sets z: the road's ENU height where the point lies)."""
+        xy = check_shape("xy_m", np.atleast_2d(np.asarray(xy_m, float)), (None, 2))
+        if self.reference is None or len(xy) == 0:
+            return xy.copy()
+        ll = self.lonlat_from_grid(xy)
+        return enu_from_lla(ll[:, 1], ll[:, 0], self.reference.alt_m, self.reference)[:, :2]
 
     def lonlat_from_grid(self, xy_m: np.ndarray) -> np.ndarray:
         """(N, 2) grid-frame metres -> (N, 2) lon, lat degrees. Raises without GPS."""

@@ -4,7 +4,8 @@ reading, map points, pair frames or the rut's profiles), and number them along t
 The raster interpolates between the 3D points and smooths, which shaves pothole bottoms; so a
 defect's max depth comes from the dense tracks when they cover it, else from the deepest 3D
 points inside its outline (the map's and each pair's own, ``point_max_depth`` and
-``pair_max_depth``), the raster's depths scaled to match. Every one of these maxima is a
+``pair_max_depth``; the map's only as far as the pairs support it), the raster's depths scaled
+to match. Every one of these maxima is a
 supported maximum (``roadsurf.detection.robust``): one outlier point or cell cannot set it.
 """
 
@@ -19,8 +20,9 @@ import numpy as np
 from roadsurf.core.fits import plane_signed_distance, robust_plane_z
 from roadsurf.detection.config import DetectionConfig, MapSegmentConfig
 from roadsurf.detection.dense import DenseContext, measure_defect_dense
-from roadsurf.detection.mapseg import Segmentation, classify, measure, severity
-from roadsurf.detection.robust import POINT_SUPPORT, supported_max
+from roadsurf.detection.framemasks import DefectCells
+from roadsurf.detection.mapseg import Region, Segmentation, classify, measure, severity
+from roadsurf.detection.robust import POINT_SUPPORT, supported_by, supported_max
 from roadsurf.detection.types import Defect
 
 if TYPE_CHECKING:
@@ -37,8 +39,12 @@ def measure_regions(
     points: tuple[np.ndarray, np.ndarray] | None = None,
     pair_pts: list[tuple[np.ndarray, np.ndarray]] | None = None,
     dense: DenseContext | None = None,
-) -> tuple[list[Defect], list[np.ndarray]]:
+) -> tuple[list[Defect], list[DefectCells]]:
     """Veto regions without 3D evidence, measure the rest; ids ordered along the drive.
+
+    Returns the defects and, for each, its map cells (``DefectCells``: the cells deeper than
+    the map's T_d that its 2D masks show, a rut's whole trace, and the cells deeper than
+    ``frame_depth_m`` that frame labels count).
 
     ``points`` (grid xy (N, 2), residual (N,)): the 3D points, whose deepest value inside the
     outline gives the max depth (the raster interpolation and smoothing shave pothole bottoms).
@@ -51,7 +57,7 @@ def measure_regions(
 
     mc = cfg.map
     gsd2 = seg.grid.gsd_m**2
-    kept: list[tuple[Defect, np.ndarray]] = []
+    kept: list[tuple[Defect, DefectCells]] = []
     for reg in seg.regions:
         seed_m = reg.seed_m if math.isfinite(reg.seed_m) else seg.seed_m
         noise_m = reg.noise_m if math.isfinite(reg.noise_m) else seg.noise_m
@@ -60,18 +66,21 @@ def measure_regions(
         rut = reg.rut
         if rut is not None:  # traced on straightedge profiles: its own depth and floor
             max_depth, deep_area = rut.max_depth_m, float(len(reg.rows) * gsd2)
+        # The raster interpolates between sparse points and smooths: a narrow defect reads
+        # small on it, so a small region with a dense reading is judged on that (below).
+        small = deep_area < mc.min_area_m2
         why = None
         if max_depth < (mc.min_depth_m if rut is None else cfg.rut.min_depth_m):
             why = f"shallow ({1000 * max_depth:.1f} mm)"
-        elif deep_area < mc.min_area_m2:
-            why = f"small ({1e4 * deep_area:.1f} cm²)"
         elif have_pairs and (
             len(reg.support_pairs) < mc.min_support_pairs
             or reg.n_support_points < mc.min_support_points
         ):
             why = f"{reg.n_support_points} defect point(s) from {len(reg.support_pairs)} pair(s)"
+        elif small and (rut is not None or dense is None):
+            why = f"small ({1e4 * deep_area:.1f} cm²)"
         if why:
-            log.debug("detection: region at %s vetoed: %s", (reg.rows[0], reg.cols[0]), why)
+            _vetoed(seg, reg, why)
             continue
         m = measure(reg, seg.grid, mc.frame_depth_m)
         poly = Polygon(m.outline_xy_m)
@@ -91,6 +100,10 @@ def measure_regions(
             )
             if dm is not None and dm.coverage < cfg.dense.min_coverage:
                 dm, part = None, dm  # too partial to measure the defect by; see below
+            if small and (dm is None or dm.area_deeper(seed_m) < mc.min_area_m2):
+                a = None if dm is None else 1e4 * dm.area_deeper(seed_m)
+                _vetoed(seg, reg, f"small ({1e4 * deep_area:.1f} cm², dense {a} cm²)")
+                continue
         if dm is not None:
             log.debug(
                 "detection: dense %s: max %.1f mm (raster %.1f), area %.4f (raster %.4f) m²",
@@ -114,7 +127,16 @@ def measure_regions(
                 pr_max = pair_max_depth(poly, pair_pts, mc)
                 if pr_max is not None:
                     # Both read low: the pairs sample the bottom sparsely, a pose error smears
-                    # the map's copy (shallower). Neither can invent depth, so the larger wins.
+                    # the map's copy (shallower), so the larger wins - unless the map reads
+                    # deeper than the pairs support: its points are the pairs' points placed
+                    # by the trajectory, and a depth the pairs do not see in their own frames
+                    # comes from the placement (two stretches of road fused into one place).
+                    if pt_max is not None and not supported_by(pt_max, pr_max):
+                        log.debug(
+                            "detection: %s map points read %.1f mm, unsupported by the pairs' "
+                            "%.1f mm", m.centroid_xy_m, 1000 * pt_max, 1000 * pr_max,
+                        )  # fmt: skip
+                        pt_max = pr_max
                     pt_max = max(pr_max, pt_max or 0.0)
             if part is not None:
                 # A partial dense reading still measured the part it saw: the same rule.
@@ -133,6 +155,16 @@ def measure_regions(
                 m.max_depth_m = pt_max
                 m.mean_depth_m *= k
                 m.volume_m3 *= k
+        if rut is None and m.max_depth_m < mc.min_depth_m:
+            # the same rule as above, on the measurement (the raster's noise can reach the
+            # threshold where the dense tracks or the points measure a flat road)
+            _vetoed(seg, reg, f"shallow as measured ({1000 * m.max_depth_m:.1f} mm)")
+            continue
+        if m.max_depth_m > cfg.plane.max_depth_m:
+            # Deeper than any defect the plane fit accepts (its mismatch bound): made of a
+            # failed reconstruction's points, as for cracks (``crackmap``)
+            _vetoed(seg, reg, f"deeper than a defect can be ({1000 * m.max_depth_m:.0f} mm)")
+            continue
         kind = "rut" if rut is not None else classify(m, mc)
         seen = sorted(fn for fn, fp in footprints.items() if fp.intersects(poly))
         snr = max_depth / max(noise_m, 1e-6)
@@ -153,7 +185,13 @@ def measure_regions(
             confidence=float(np.clip(conf, 0.0, 1.0)),
             frames=seen,
         )
-        kept.append((d, m.deep_xy_m))
+        # The mask shows where the map is measurably below the road (T_d, the seed threshold the
+        # defect was found at); a rut, shallower than T_d, is its traced trough.
+        show = np.ones(len(reg.rows), bool) if rut is not None else reg.depth_smooth_m >= seed_m
+        cells = DefectCells(
+            seg.grid.xy_from_rowcol(reg.rows[show], reg.cols[show]), m.deep_xy_m, seg.grid.gsd_m
+        )
+        kept.append((d, cells))
     order = {fn: i for i, fn in enumerate(footprints)}
     kept.sort(
         key=lambda t: (min((order[f] for f in t[0].frames), default=1 << 30), t[0].centroid_xy_m[0])
@@ -161,6 +199,11 @@ def measure_regions(
     for i, (d, _) in enumerate(kept, start=1):
         d.id = i
     return [d for d, _ in kept], [x for _, x in kept]
+
+
+def _vetoed(seg: Segmentation, reg: Region, why: str) -> None:
+    c = seg.grid.xy_from_rowcol(reg.rows, reg.cols).mean(axis=0)
+    log.debug("detection: region at %s m vetoed: %s", np.round(c, 3), why)
 
 
 def renumber(defects: list[Defect], footprints: dict[str, Polygon]) -> list[Defect]:

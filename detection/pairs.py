@@ -168,13 +168,13 @@ def analyse_pairs(
             if res is None:
                 continue
             if masks_dir is not None and res.mask is not None:
-                _write_mask(Path(masks_dir) / f"{Path(res.frame_a).stem}.png", res.mask)
+                write_mask(Path(masks_dir) / f"{Path(res.frame_a).stem}.png", res.mask)
             res.mask = None  # bounded memory: a few image masks at a time
             out[k] = res
     return out
 
 
-def _write_mask(path: Path, mask: np.ndarray) -> None:
+def write_mask(path: Path, mask: np.ndarray) -> None:
     """Write a refined 2D defect mask as an 8-bit PNG (255 = defect), atomically and checked:
     ``atomic_path`` fsyncs and refuses an empty file (cv2.imwrite reports success on a full
     disk after writing nothing), and a False from cv2.imwrite is an ``OutputError`` too."""

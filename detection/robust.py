@@ -28,6 +28,12 @@ Minimum supports, by observation (module constants, not settings: they define th
   a pair's cell reading the other pairs that saw the cell do not support is dropped
   (``dense._drop_unsupported``: a band of failed tracks in one of two pairs).
 
+When the fused map's points read a defect deeper than every pair that measured it in its own
+frame, the map's reading must be supported by the pairs' (``supported_by``, the same
+tolerance): the map's points ARE the pairs' points, placed by the trajectory, so a depth the
+pairs themselves do not see comes from the placement (a pose error, two stretches of road fused
+into one place), not from the road.
+
 Cracks keep the median over their pieces of each piece's second-deepest point (at least two
 points per piece); ruts the largest running median of the stations' depths.
 """
@@ -66,3 +72,9 @@ def supported_max(
     hi = v[: len(lo)]
     ok = hi - lo <= np.maximum(tol_m, tol_frac * np.abs(lo))
     return float(hi[np.argmax(ok)]) if ok.any() else float(v[k - 1])
+
+
+def supported_by(value: float, reference: float) -> bool:
+    """Whether a depth ``value`` (m) is supported by an independent ``reference`` reading: no
+    deeper than it by more than max(``SUPPORT_TOL_M``, ``SUPPORT_TOL_FRAC`` x reference)."""
+    return value - reference <= max(SUPPORT_TOL_M, SUPPORT_TOL_FRAC * abs(reference))

@@ -11,13 +11,17 @@ Steps:
    by hysteresis thresholds relative to its measured noise, seeds and refined points are clustered
    with flat-kernel mean shift (eq. 5.11-5.12), and each defect is vetted by its 3D evidence and
    measured;
-3. frame labels: the deep defect area inside each frame's footprint (the simulator's rule);
-   fused with CNN probabilities when ``frame_probs`` is given.
+3. frame labels and 2D masks: each defect's map cells projected into every frame of an ok pair
+   (every posed frame with GPS) through its pose; the deep defect area inside the image labels
+   the frame (the simulator's rule), fused with CNN probabilities when ``frame_probs`` is
+   given; a frame's mask shows the defects it sees, and each defect lists those frames
+   (``framemasks``: frames.csv, RUN/masks/ and the defects agree).
 
 This module only sequences the steps. Step 1: ``pairs`` (and ``planefit``, ``refine``,
 ``cracks``); the map's inputs: ``mapinputs``; step 2: ``windows`` + ``mapseg`` (segmentation),
 ``ruts`` (traced ruts), ``measurement`` (vetting, depths; ``dense`` for the dense reading),
-``crackmap`` (cracks pooled over pairs); step 3: ``framelabels``; files: ``output``.
+``crackmap`` (cracks pooled over pairs); step 3: ``framemasks``, ``framelabels``; files:
+``output``.
 """
 
 from __future__ import annotations
@@ -34,6 +38,14 @@ from roadsurf.detection.config import DetectionConfig
 from roadsurf.detection.crackmap import crack_defects
 from roadsurf.detection.dense import DenseContext
 from roadsurf.detection.framelabels import frame_labels, fuse_labels, pair_frame_scores
+from roadsurf.detection.framemasks import (
+    DefectCells,
+    FrameView,
+    frame_views,
+    outline_cells,
+    road_planes,
+    write_frame_masks,
+)
 from roadsurf.detection.mapinputs import (
     depth_points,
     evidence_points,
@@ -107,7 +119,13 @@ def _detect(
     # ---- 1. per pair
     steps_s: dict[str, float] = {}  # wall time of the main steps, logged (docs/benchmarks.md)
     t0 = time.perf_counter()
-    per_pair = analyse_pairs(cfg, drive, pairs, masks_dir=RunFolder(run_dir).masks_dir)
+    masks_dir = RunFolder(run_dir).masks_dir
+    _clear_masks(masks_dir, drive)
+    # With the map, the masks are the map's defects seen by each frame (step 3); without it
+    # (frame_label "pair") each pair's refined 2D mask of image a.
+    per_pair = analyse_pairs(
+        cfg, drive, pairs, masks_dir=masks_dir if cfg.frame_label == "pair" else None
+    )
     steps_s["pairs"] = time.perf_counter() - t0
     pose_of = {fn: i for i, fn in enumerate(traj.filenames)}
     ev_enu, ev_pair = evidence_points(pairs, per_pair, traj, pose_of)
@@ -117,7 +135,7 @@ def _detect(
     defects: list[Defect] = []
     noise = seed = float("nan")
     footprints = frame_footprints(drive, traj, mframe)
-    deep_xy: list[np.ndarray] = []
+    cells: list[DefectCells] = []
     if surface is not None:
         ev_xy = mframe.grid_from_enu(ev_enu) if len(ev_enu) else np.zeros((0, 2))
         if isinstance(surface, PointsSource):  # already read by load_surface
@@ -162,7 +180,7 @@ def _detect(
             sparse_noise = float(np.median([pd.noise_m for pd in per_pair.values()]))
             dense = DenseContext(drive, pairs, grid, sparse_noise, cfg.pair_workers)
         t0 = time.perf_counter()
-        defects, deep_xy = measure_regions(
+        defects, cells = measure_regions(
             cfg,
             seg,
             footprints,
@@ -174,7 +192,13 @@ def _detect(
         steps_s["measurement"] = time.perf_counter() - t0
         cracks = crack_defects(cfg, per_pair, traj, pose_of, mframe, footprints, defects)
         if cracks:
+            # a crack's cells: its outline on a lattice fine enough for its width
+            of = {id(d): c for d, c in zip(defects, cells, strict=True)}
+            for d in cracks:
+                step = float(np.clip(0.5 * d.width_m, 0.001, seg.grid.gsd_m))
+                of[id(d)] = DefectCells(outline_cells(d.outline_xy_m, step), np.zeros((0, 2)), step)
             defects = renumber(defects + cracks, footprints)
+            cells = [of[id(d)] for d in defects]
         log.info(
             "detection: %d defect(s) from %d region(s); map noise σ %.2f mm, T_d %.1f mm (%s)",
             len(defects),
@@ -187,12 +211,22 @@ def _detect(
         log.warning("detection: no surface raster and no points to rasterise; frame labels only")
     log.info("detection: steps (s) %s", ", ".join(f"{k} {v:.2f}" for k, v in steps_s.items()))
 
-    # ---- 3. frame labels
-    cell_m2 = surface.grid.gsd_m**2 if surface is not None else 0.0
-    use_map = surface is not None and cfg.frame_label == "map"
+    # ---- 3. frame labels and masks
+    views: dict[str, FrameView] = {}
+    planes: dict[str, np.ndarray] = {}
+    if surface is not None and cfg.frame_label == "map":
+        # frames whose pose ties them to the map: those of an ok pair, and with GPS every frame
+        in_pair = {fn for p in pairs if p.ok for fn in (p.frame_a, p.frame_b)}
+        viewed = [f.filename for f in drive.frames if mframe.georeferenced or f.filename in in_pair]
+        planes = road_planes(pairs, per_pair, traj, pose_of)
+        views = frame_views(drive.camera, traj, mframe, viewed, footprints, cells, planes)
     pair_scores = pair_frame_scores(cfg, drive, pairs, per_pair)
-    frames = frame_labels(cfg, drive, footprints, deep_xy, cell_m2, pair_scores, use_map)
+    frames = frame_labels(cfg, drive, views, pair_scores)
     frames = fuse_labels(cfg, frames, frame_probs, pairs, fusion)
+    if views:
+        shown = write_frame_masks(masks_dir, drive.camera, traj, mframe, views, cells, planes)
+        for j, d in enumerate(defects):
+            d.frames = sorted(shown.get(j, []))
 
     result = DetectionResult(
         defects=defects,
@@ -206,3 +240,10 @@ def _detect(
     )
     write_outputs(result, mframe, sig, to_dict(cfg))
     return result
+
+
+def _clear_masks(masks_dir: Path, drive: Drive) -> None:
+    """Remove the masks an earlier run wrote for this drive's frames (this stage writes them
+    again; a frame it no longer views must not keep an old mask)."""
+    for f in drive.frames:
+        (masks_dir / f"{Path(f.filename).stem}.png").unlink(missing_ok=True)

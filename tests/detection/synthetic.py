@@ -369,10 +369,12 @@ def build_two_view(
     seed: int = 0,
     camera: Camera | None = None,
     max_feature_depth_m: float = 0.012,
+    turn_b_deg: float = 0.0,
 ) -> tuple[Drive, list[PairResult], Trajectory]:
     """Two frames rendered with true relief and ONE pair whose sparse matches (with exact
     R, t, H) avoid the pothole floor: features only where the surface is shallower than
-    ``max_feature_depth_m`` (a dark, smooth pothole bottom holds no features)."""
+    ``max_feature_depth_m`` (a dark, smooth pothole bottom holds no features). Camera b is
+    turned by ``turn_b_deg`` about the vertical (a photographer turning between shots)."""
     from roadsurf.core.fits import fit_plane_z, plane_signed_distance
 
     cam = camera or Camera(
@@ -380,6 +382,7 @@ def build_two_view(
     )
     rng = np.random.default_rng(seed)
     Ts = poses(2, step_m=step_m, h=cam.height_m)
+    Ts[1] = world_from_cam(turn_b_deg, position_enu_m=Ts[1][:3, 3])
     tex = _random_texture(seed)
     (root / "frames").mkdir(parents=True, exist_ok=True)
     frames = []

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from roadsurf.core.errors import OutputError
-from roadsurf.detection.pairs import _write_mask
+from roadsurf.detection.pairs import write_mask
 
 MASK = np.zeros((8, 8), bool)
 MASK[2:5, 3:6] = True
@@ -16,7 +16,7 @@ MASK[2:5, 3:6] = True
 
 def test_mask_written_whole_under_its_final_name(tmp_path):
     path = tmp_path / "masks" / "f0001.png"
-    _write_mask(path, MASK)
+    write_mask(path, MASK)
     assert (cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) > 0).tolist() == MASK.tolist()
     assert sorted(p.name for p in path.parent.iterdir()) == ["f0001.png"]
 
@@ -30,7 +30,7 @@ def test_imwrite_that_writes_nothing_leaves_no_empty_mask(tmp_path, monkeypatch,
     monkeypatch.setattr(cv2, "imwrite", full_disk_imwrite)
     path = tmp_path / "masks" / "f0001.png"
     with pytest.raises(OutputError) as e:
-        _write_mask(path, MASK)
+        write_mask(path, MASK)
     msg = str(e.value)
     assert "\n" not in msg and "f0001.png" in msg
     assert not path.exists()

@@ -39,7 +39,7 @@ def _u8(g: np.ndarray) -> np.ndarray:
 
 def _found(g: np.ndarray, line: np.ndarray) -> tuple[int, float, float]:
     """(kept components, share of their pixels on the crack, share of the crack covered)."""
-    lab, keep, _ = thin_dark_components(g, M_PER_PX, CrackConfig())
+    lab, keep, *_ = thin_dark_components(g, M_PER_PX, CrackConfig())
     det = np.isin(lab, keep)
     near = cv2.dilate(line, np.ones((7, 7), np.uint8)) > 0
     on = float(near[det].mean()) if det.any() else 0.0
@@ -66,7 +66,7 @@ def test_crack_on_low_contrast_image_is_found(contrast):
 @pytest.mark.parametrize("m_per_px", [0.001, 0.0015, 0.002])
 def test_pure_gravel_texture_yields_nothing(m_per_px):
     for g in (skimage.data.gravel(), _u8(_gravel())):
-        lab, keep, _ = thin_dark_components(g, m_per_px, CrackConfig())
+        lab, keep, *_ = thin_dark_components(g, m_per_px, CrackConfig())
         assert keep == []
 
 
@@ -77,7 +77,7 @@ def test_straight_edges_of_wide_regions_yield_no_line():
     g = 110 + rng.normal(0, 8, (480, 640))
     g[:, 200:260] += 100  # lane marking, 9 cm at 1.5 mm/px
     g[:, 420:] *= 0.5  # shadow border
-    lab, keep, _ = thin_dark_components(_u8(g), M_PER_PX, CrackConfig())
+    lab, keep, *_ = thin_dark_components(_u8(g), M_PER_PX, CrackConfig())
     assert keep == []
 
 
@@ -95,7 +95,7 @@ def test_long_segment_finds_a_thin_straight_crack_the_short_one_misses():
     d = cv2.distanceTransform(1 - line, cv2.DIST_L2, 5)
     g = _u8(_gravel() * (1 - 0.6 * np.clip(1 - d / 2.0, 0, 1)))
     short_only = dataclasses.replace(CrackConfig(), line_long_m=0.0)
-    lab, keep, _ = thin_dark_components(g, M_PER_PX, short_only)
+    lab, keep, *_ = thin_dark_components(g, M_PER_PX, short_only)
     assert keep == []
     n, on, cover = _found(g, line)
     assert n >= 1 and on > 0.95 and cover > 0.3, (n, on, cover)

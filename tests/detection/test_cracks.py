@@ -51,7 +51,7 @@ def test_thin_dark_components_keeps_lines_not_blobs():
     g = (120 + rng.normal(0, 6, (200, 300))).clip(0, 255).astype(np.uint8)
     g[100:102, 40:260] = 50  # a 2 px dark line, 220 px long
     g[20:45, 20:45] = 50  # a dark blob (pothole-like): too wide for the top-hat / not thin
-    lab, keep, widths = thin_dark_components(g, 0.002, CrackConfig())
+    lab, keep, widths, _ = thin_dark_components(g, 0.002, CrackConfig())
     assert len(keep) == 1
     ys, xs = np.nonzero(lab == keep[0])
     assert ys.min() >= 97 and ys.max() <= 104 and xs.max() - xs.min() > 180

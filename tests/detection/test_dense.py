@@ -38,6 +38,24 @@ def test_pothole_floor_without_sparse_features_is_measured_densely(tmp_path):
     assert d.mean_depth_m == pytest.approx(DEPTH_M / 2, rel=0.2)
 
 
+@pytest.mark.parametrize("turn_deg", [60.0, -35.0])
+def test_camera_turned_between_the_shots_is_measured_densely(tmp_path, turn_deg):
+    """Real photographs: the camera turns by tens of degrees between two shots. Image b is
+    warped onto a by the road homography before tracking, so LK's windows compare the same
+    ground; tracked in b's own pixels they did not, and the dense road σ read 10-60 mm."""
+    scene = Scene(potholes=[Pothole(0.05, 0.12, RADIUS_M, DEPTH_M)])
+    drive, pairs, traj = build_two_view(scene, tmp_path / "drive", turn_b_deg=turn_deg)
+    shaved = dataclasses.replace(
+        scene, potholes=[dataclasses.replace(scene.potholes[0], depth_m=0.026)]
+    )
+    write_surface(shaved, tmp_path / "run", traj)
+    res = stage.run(DetectionConfig(), drive, pairs, traj, tmp_path / "run")
+    assert len(res.defects) == 1
+    d = res.defects[0]
+    assert d.max_depth_m == pytest.approx(DEPTH_M, abs=0.003)
+    assert d.area_m2 == pytest.approx(np.pi * RADIUS_M**2, rel=0.15)
+
+
 def test_without_dense_measurement_the_sparse_floor_reads_shallow(tmp_path):
     """The old behaviour (sparse points and the raster only) on the same scene: far too shallow,
     which is what the dense measurement fixes."""
@@ -195,3 +213,38 @@ def test_dense_reading_on_threads_matches_one_thread(tmp_path):
             assert np.array_equal(va, vb, equal_nan=va.dtype.kind == "f"), f.name
         else:
             assert va == vb, f.name
+
+
+def _two_view_with_raster(tmp_path, true: Pothole, raster: Pothole, **kw):
+    scene = Scene(potholes=[true])
+    drive, pairs, traj = build_two_view(scene, tmp_path / "drive", **kw)
+    write_surface(Scene(potholes=[raster]), tmp_path / "run", traj)
+    return drive, pairs, traj
+
+
+def test_narrow_pothole_small_on_the_raster_is_judged_on_its_dense_reading(tmp_path):
+    """The raster interpolates the sparse points and smooths: a narrow pothole 40 mm deep
+    reads 11 mm there, its part deeper than T_d 17 cm² (< min_area_m2, 20 cm²). Judged on its
+    dense reading it is a pothole, measured whole."""
+    drive, pairs, traj = _two_view_with_raster(
+        tmp_path, Pothole(0.05, 0.12, 0.045, 0.040), Pothole(0.05, 0.12, 0.045, 0.011),
+        max_feature_depth_m=0.05,
+    )  # fmt: skip
+    res = stage.run(DetectionConfig(), drive, pairs, traj, tmp_path / "run")
+    assert len(res.defects) == 1
+    assert res.defects[0].max_depth_m == pytest.approx(0.040, abs=0.004)
+    # without a dense reading the raster's judgement stands
+    off = DetectionConfig(dense=DenseConfig(enabled=False), overwrite=True)
+    assert stage.run(off, drive, pairs, traj, tmp_path / "run").defects == []
+
+
+def test_region_measured_shallower_than_the_minimum_depth_is_not_reported(tmp_path):
+    """The raster's noise lifts a 9 mm dip to 14 mm (above min_depth_m, 10 mm); measured, it
+    is 9 mm deep: not a defect, by the same rule."""
+    drive, pairs, traj = _two_view_with_raster(
+        tmp_path, Pothole(0.05, 0.12, RADIUS_M, 0.009), Pothole(0.05, 0.12, RADIUS_M, 0.014)
+    )
+    # the sparse points see the whole dip (and flag its middle, deeper than T_d, 8 mm)
+    assert (-pairs[0].plane_dist_m).max() > 0.008
+    res = stage.run(DetectionConfig(), drive, pairs, traj, tmp_path / "run")
+    assert res.defects == []

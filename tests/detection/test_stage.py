@@ -247,6 +247,38 @@ def test_max_depth_from_pairs_not_the_pose_smeared_map(tmp_path):
     assert res.defects[0].max_depth_m == pytest.approx(0.035, abs=0.003)
 
 
+def test_map_depth_the_pairs_do_not_support_is_not_reported(tmp_path):
+    """Two stretches of road fused into one place (a segment placed by a guess over another,
+    15 cm lower): the map's points read the pothole 150 mm deep, every pair that saw it reads
+    35 mm in its own frame. The map's points are the pairs' points placed by the trajectory,
+    so the depth the pairs do not see is the placement's, and the pairs' reading stands."""
+    scene = Scene(potholes=[Pothole(0.0, 1.2, 0.12, 0.035)])
+    drive, pairs, traj = build(scene, tmp_path / "drive")
+    rng = np.random.default_rng(7)
+    xy = np.column_stack([rng.uniform(-0.5, 0.5, 40000), rng.uniform(-0.4, 2.4, 40000)])
+    res_m = -scene.depth(xy[:, 0], xy[:, 1]) + rng.normal(0, 0.0007, len(xy))
+    other = np.column_stack([rng.uniform(-0.04, 0.04, 300), rng.uniform(1.16, 1.24, 300)])
+    xy = np.vstack([xy, other])
+    res_m = np.concatenate([res_m, np.full(len(other), -0.15) + rng.normal(0, 0.0007, 300)])
+    run_dir = tmp_path / "run"
+    _write_map_points(run_dir, xy, res_m)
+    res = stage.run(CFG, drive, pairs, traj, run_dir)
+    assert len(res.defects) == 1
+    assert res.defects[0].max_depth_m == pytest.approx(0.035, abs=0.004)
+
+
+def test_defect_deeper_than_the_plane_fit_accepts_is_not_reported(tmp_path):
+    """A failed reconstruction (a pair with the wrong plane) maps metres-deep "defects"; what
+    the plane fit itself calls a mismatch (deeper than plane.max_depth_m) is not a defect. Here
+    the bound is lowered to 20 mm below a 35 mm pothole to show the rule on a clean scene."""
+    scene = Scene(potholes=[Pothole(0.0, 1.2, 0.12, 0.035)])
+    res, _, _ = _run(tmp_path / "a", scene)
+    assert len(res.defects) == 1
+    low = dataclasses.replace(CFG, plane=dataclasses.replace(CFG.plane, max_depth_m=0.02))
+    res, _, _ = _run(tmp_path / "b", scene, cfg=low)
+    assert res.defects == []
+
+
 def _write_map_points(run_dir, xy, res_m):
     """RUN/map_points.npz as mapping writes it (grid-frame xy == ENU here, z = residual)."""
     from roadsurf.core.atomic import write_npz_atomic

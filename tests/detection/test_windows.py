@@ -118,11 +118,13 @@ def test_merge_regions_unions_touching_and_overlapping_cells():
     assert m.support_pairs == {0, 1, 2}
 
 
-def test_refined_masks_are_written_per_frame(tmp_path):
+def test_refined_masks_are_written_per_frame_without_the_map(tmp_path):
+    """frame_label "pair" (the dissertation's decision, no map): each pair's refined 2D mask
+    of image a (with the map, the masks are the map's defects: test_framemasks)."""
     scene = Scene(potholes=[Pothole(0.1, 1.0, 0.15, 0.030)], lane_x_m=-0.3)
     drive, pairs, traj = build(scene, tmp_path / "drive")
     run_dir = tmp_path / "run"
-    stage.run(CFG, drive, pairs, traj, run_dir)
+    stage.run(dataclasses.replace(CFG, frame_label="pair"), drive, pairs, traj, run_dir)
     masks = {p.stem: p for p in (run_dir / "masks").glob("*.png")}
     assert set(masks) == {pairs[k].frame_a.rsplit(".", 1)[0] for k in range(len(pairs))}
     area = {}
