@@ -32,6 +32,7 @@ from roadsurf.core.atomic import (
 )
 from roadsurf.core.config import from_dict, load_yaml_config, to_dict
 from roadsurf.core.errors import ConfigError
+from roadsurf.core.memory import limit_malloc_arenas, release_free_memory
 from roadsurf.detection.classifier.config import ClassifierConfig
 from roadsurf.detection.config import DetectionConfig
 from roadsurf.io import runfolder as rf
@@ -162,6 +163,7 @@ def run_drive(
     """
     t_start = time.perf_counter()
     _check_out_folder(Path(drive_dir), Path(out_dir))
+    limit_malloc_arenas()  # before the stages' threads allocate (roadsurf.core.memory)
     cfg = load_pipeline_config(config_path)
     job = None
     if classifier is not None and cfg.classifier.screen_in_subprocess:
@@ -222,6 +224,7 @@ def _run_drive(
         timings[name] = round(time.perf_counter() - t0, 3)
         log.info("stage %s done in %.1f s", name, timings[name])
         notify(name, res)
+        release_free_memory()  # what the stage freed, so the next one starts low
         return res
 
     drive = timed("drive", lambda: load_drive(drive_dir))

@@ -1,0 +1,71 @@
+"""Keep the C heap from holding freed memory, so a run's peak RSS stays flat in the drive's length.
+
+glibc's malloc gives each thread that allocates its own arena (up to 8 per core) and returns
+freed memory to the system only from the top of a heap. The stages allocate and free many
+image-sized NumPy arrays on worker threads (reconstruction's feature threads, mapping's raster
+tiles, detection's pairs), so freed pages stayed resident, arena by arena, and the peak RSS of
+`roadsurf run` depended on how the threads happened to interleave as much as on what the run
+held (measurements: docs/benchmarks.md, "memory").
+
+``limit_malloc_arenas`` caps the arenas (``mallopt(M_ARENA_MAX)``) and ``release_free_memory``
+returns every arena's free pages (``malloc_trim(0)``). Both are no-ops returning False where the
+C library is not glibc (macOS, Windows, musl).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import functools
+import logging
+import os
+import sys
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+M_ARENA_MAX = -8  # mallopt parameter number (glibc malloc.h)
+DEFAULT_ARENAS = 2  # arenas for a run: its threads are few (2 per stage by default)
+
+
+@functools.cache
+def _glibc() -> Any | None:
+    """The process's C library when it is glibc, else None."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        libc.gnu_get_libc_version  # noqa: B018 - only glibc has it (musl does not)
+        libc.malloc_trim.argtypes = [ctypes.c_size_t]
+        libc.mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
+    except (OSError, AttributeError):
+        return None
+    return libc
+
+
+def limit_malloc_arenas(n: int = DEFAULT_ARENAS) -> bool:
+    """Let all threads of this process share at most ``n`` malloc arenas from now on.
+
+    glibc fixes its arena limit when it first needs a ninth arena, so call this early (before
+    many threads have allocated); arenas that exist already are kept, new threads reuse them.
+    A limit set by the user (``MALLOC_ARENA_MAX`` or ``GLIBC_TUNABLES=glibc.malloc.arena_max``)
+    wins. True when the limit was set.
+    """
+    if n < 1:
+        raise ValueError(f"limit_malloc_arenas: n must be >= 1 (got {n})")
+    libc = _glibc()
+    if libc is None:
+        return False
+    if "MALLOC_ARENA_MAX" in os.environ or "arena_max" in os.environ.get("GLIBC_TUNABLES", ""):
+        log.debug("malloc arena limit left to the environment")
+        return False
+    return bool(libc.mallopt(M_ARENA_MAX, int(n)))
+
+
+def release_free_memory() -> bool:
+    """Return the free pages of every malloc arena to the operating system (``malloc_trim(0)``;
+    a few milliseconds). Live memory is untouched. True when glibc released something."""
+    libc = _glibc()
+    if libc is None:
+        return False
+    return bool(libc.malloc_trim(0))
