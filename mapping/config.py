@@ -78,6 +78,21 @@ class MappingConfig:
     robust_scale: float = 3.0  # residual (in σ units) where the robust loss starts to bend (−)
     gps_outlier_sigmas: float = 5.0  # a fix with |residual| > this × σ after fusion is an outlier
     max_nfev: int = 60  # least-squares iteration cap (function evaluations)
+    # ---------------------------------------------------------------- bundle adjustment (issue 30)
+    # refine the pose graph's poses by bundle adjustment over feature tracks (mapping.bundle):
+    # reprojection, road-plane and camera-height priors, GPS with an estimated time offset
+    bundle_adjust: bool = False
+    bundle_window_frames: int = 30  # frames per sliding window (count)
+    bundle_overlap_frames: int = 10  # frames a window shares with the next one (count)
+    bundle_pixel_sigma_px: float = 0.5  # σ of a track's pixel position (px)
+    bundle_relief_sigma_m: float = 0.003  # σ of a road point off its frame's road plane (m)
+    bundle_height_sigma_m: float = 0.005  # σ of the camera height above that plane, h (m)
+    bundle_prior_sigma_m: float = 0.3  # σ of the pull to the pose graph's centres (m; gauge)
+    # σ of the GPS - camera time offset's prior, 0 s mean (s; 0 = offset not estimated)
+    bundle_time_offset_sigma_s: float = 0.05
+    bundle_max_two_view: int = 50  # two-view tracks kept per frame (count; 3+-view: all)
+    bundle_track_tol_m: float = 0.02  # a track whose pairs disagree by more is dropped (m)
+    bundle_max_nfev: int = 20  # least-squares evaluations per window (count)
     # ---------------------------------------------------------------- global map
     # warn when consecutive frames' road footprints overlap by less than this share (0-1): below
     # half, the pairs' two-view parts no longer touch and the map has gaps between them
@@ -171,6 +186,16 @@ class MappingConfig:
         "robust_scale": "(0, inf)",
         "gps_outlier_sigmas": "(0, inf)",
         "max_nfev": "[1, inf)",
+        "bundle_window_frames": "[4, inf)",
+        "bundle_overlap_frames": "[0, inf); below bundle_window_frames - 2",
+        "bundle_pixel_sigma_px": "(0, inf)",
+        "bundle_relief_sigma_m": "(0, 1]; a relief σ above 1 m is a unit mistake",
+        "bundle_height_sigma_m": "(0, 1]",
+        "bundle_prior_sigma_m": "(0, inf)",
+        "bundle_time_offset_sigma_s": "[0, 10]; 0 = not estimated",
+        "bundle_max_two_view": "[0, inf)",
+        "bundle_track_tol_m": "(0, 1]",
+        "bundle_max_nfev": "[1, inf)",
         "min_frame_overlap": "[0, 1]",
         "voxel_m": "[0, 1]; 0 = no fusion; a voxel above 1 m is a unit mistake (mm typed as m?)",
         "max_point_depth_m": "(0, inf)",

@@ -1,0 +1,370 @@
+"""Bundle adjustment over feature tracks after the pose graph (issue 30, off by default).
+
+The pose graph solves every pair once; a road point seen by three frames is never optimised
+jointly. Here the pairs' matches are chained into tracks (``mapping.tracks``) and the poses,
+points, per-frame road planes and the GPS - camera time offset are refined together
+(``mapping.bundle_problem``) with scipy's ``least_squares`` (trust-region reflective, sparse
+analytic Jacobian, LSMR, robust loss ``cfg.robust_loss``).
+
+Sliding window: overlapping windows of ``bundle_window_frames`` frames along the drive, each
+solved once; the two frames before a window are held at their refined poses (they tie the
+window to the part already solved), and a window's last ``bundle_overlap_frames`` frames are
+solved again by the next window before they are final. Cost and memory grow linearly with the
+drive. The pose graph's solution is the initial guess and a weak prior (the gauge where GPS is
+weak); GPS σ is rescaled once from the pose graph's own GPS residuals (an RTK receiver
+reporting HDOP states a σ twenty times its real one); fixes further than
+``gps_outlier_sigmas`` from the window's solution are dropped and the window solved again.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.linalg import solve_triangular
+from scipy.optimize import least_squares
+from scipy.sparse.linalg import LinearOperator
+
+from roadsurf.core.geometry import invert_pose, up_in_cam
+from roadsurf.io.drive import Drive
+from roadsurf.mapping.bundle_problem import WindowData, WindowProblem
+from roadsurf.mapping.bundle_reduced import ReducedProblem
+from roadsurf.mapping.config import MappingConfig
+from roadsurf.mapping.pose_gps import GpsFixes, interp_weights
+from roadsurf.mapping.tracks import Tracks, build_tracks, thin_tracks
+
+if TYPE_CHECKING:
+    from roadsurf.reconstruction.types import PairResult
+
+log = logging.getLogger(__name__)
+
+N_ANCHOR = 2  # frames before a window held at their refined poses
+MIN_OBS = 8  # a frame seeing fewer track points keeps its pose graph pose
+MIN_SHARED = 8  # consecutive frames sharing fewer tracks get the constant-motion prior
+
+
+def refine_poses(
+    cfg: MappingConfig,
+    drive: Drive,
+    t: np.ndarray,
+    world: np.ndarray,
+    pairs: list[PairResult],
+    pos_of: dict[int, int],
+    gps: GpsFixes | None,
+    gps_used: np.ndarray | None,
+    R_vehicle_from_cam: np.ndarray,
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """(N, 4, 4) refined world_from_cam and a report (figures for poses_report.json)."""
+    t0 = time.perf_counter()
+    n = len(t)
+    tracks = build_tracks(pairs, pos_of, world, tol_m=cfg.bundle_track_tol_m)
+    cam = drive.camera
+    tracks = thin_tracks(tracks, cfg.bundle_max_two_view, (cam.width, cam.height))
+    report: dict[str, Any] = {
+        "n_tracks": tracks.n_tracks,
+        "n_tracks_3plus": int(np.sum(tracks.length >= 3)),
+        "n_inconsistent_tracks": tracks.n_inconsistent,
+        "n_windows": 0,
+        "time_offset_s": [],
+        "gps_rejected": [],
+    }
+    if tracks.n_tracks == 0 or n < 2:
+        report["skipped"] = "no tracks"
+        return world, report
+    K = np.array([[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1.0]])
+    n_up = up_in_cam(R_vehicle_from_cam)
+    d_down = -n_up  # the road's normal (down) in the camera: plane d·X = h
+    plane_nominal = np.array([-d_down[0], -d_down[1], cam.height_m]) / d_down[2]
+    used = np.ones(0 if gps is None else len(gps.t_s), bool)
+    if gps is not None and gps_used is not None:
+        used = gps_used.copy()
+    gps_scale = _gps_scale(world, t, gps, used)
+    report["gps_sigma_scale"] = gps_scale
+
+    cur = world.copy()  # latest estimate of every pose
+    pts = tracks.point_w.copy()  # latest estimate of every track point
+    W, n_over = cfg.bundle_window_frames, cfg.bundle_overlap_frames
+    if W <= n_over + N_ANCHOR:
+        raise ValueError(
+            f"mapping.bundle_window_frames={W} must exceed bundle_overlap_frames={n_over} + "
+            f"{N_ANCHOR}"
+        )
+    tau = 0.0
+    s = 0
+    cost0 = cost1 = 0.0
+    rms0: list[float] = []
+    rms1: list[float] = []
+    done = 0  # frames [0, done) hold refined poses (final or from the previous window)
+    while True:
+        e = min(s + W, n)
+        final_to = n if e == n else e - n_over
+        if done > 0 and e > done:
+            # frames the previous window did not reach follow its last frame's correction, so
+            # the window starts without a step at the junction
+            corr = cur[done - 1] @ invert_pose(world[done - 1])
+            cur[done:e] = corr[None] @ world[done:e]
+        res = _solve_window(
+            cfg, drive, t, s, e, cur, world, pts, tracks, gps, used, gps_scale, tau, K,
+            n_up, plane_nominal, report,
+        )  # fmt: skip
+        if res is not None:
+            tau = res["tau"]
+            cost0 += res["cost0"]
+            cost1 += res["cost1"]
+            rms0.append(res["rms0"])
+            rms1.append(res["rms1"])
+        report["n_windows"] += 1
+        done = e
+        if e == n:
+            break
+        s = final_to - N_ANCHOR
+    report["cost_initial"] = cost0
+    report["cost_final"] = cost1
+    report["reprojection_rms_px_initial"] = float(np.median(rms0)) if rms0 else float("nan")
+    report["reprojection_rms_px_final"] = float(np.median(rms1)) if rms1 else float("nan")
+    taus = report["time_offset_s"]
+    report["time_offset_s_final"] = float(taus[-1]) if taus else 0.0
+    report["elapsed_s"] = round(time.perf_counter() - t0, 3)
+    moved = np.linalg.norm(cur[:, :3, 3] - world[:, :3, 3], axis=1)
+    report["moved_m_median"] = float(np.median(moved))
+    report["moved_m_max"] = float(np.max(moved))
+    log.info(
+        "bundle: %d tracks (%d seen 3+ times), %d windows, reprojection %.2f -> %.2f px, "
+        "poses moved %.1f mm median, GPS time offset %.1f ms, %.1f s",
+        tracks.n_tracks, report["n_tracks_3plus"], report["n_windows"],
+        report["reprojection_rms_px_initial"], report["reprojection_rms_px_final"],
+        1e3 * report["moved_m_median"], 1e3 * report["time_offset_s_final"], report["elapsed_s"],
+    )  # fmt: skip
+    return cur, report
+
+
+def _gps_scale(world: np.ndarray, t: np.ndarray, gps: GpsFixes | None, used: np.ndarray) -> float:
+    """Factor on the logged GPS σ from the pose graph's residuals (MAD; a 2D error norm has
+    median 1.1774 σ): an RTK receiver reporting HDOP states decimetres for centimetre fixes.
+    Never below 1/20 (a too-good fit cannot make GPS exact)."""
+    if gps is None or used.sum() < 8:
+        return 1.0
+    k, w = interp_weights(t, gps.t_s)
+    k1 = np.minimum(k + 1, len(t) - 1)
+    pred = (1 - w)[:, None] * world[k, :3, 3] + w[:, None] * world[k1, :3, 3]
+    e = np.linalg.norm(pred[:, :2] - gps.enu_m[:, :2], axis=1) / gps.sigma_m
+    return float(np.clip(np.median(e[used]) / 1.1774, 0.05, 20.0))
+
+
+def _solve_window(
+    cfg: MappingConfig,
+    drive: Drive,
+    t: np.ndarray,
+    s: int,
+    e: int,
+    cur: np.ndarray,
+    world_pg: np.ndarray,
+    pts: np.ndarray,
+    tracks: Tracks,
+    gps: GpsFixes | None,
+    used: np.ndarray,
+    gps_scale: float,
+    tau: float,
+    K: np.ndarray,
+    n_up: np.ndarray,
+    plane_nominal: np.ndarray,
+    report: dict[str, Any],
+) -> dict[str, float] | None:
+    """Refine frames [s, e) in place in ``cur`` and their points in ``pts``."""
+    F = e - s
+    o = (tracks.obs_frame >= s) & (tracks.obs_frame < e)
+    cnt = np.bincount(tracks.obs_track[o], minlength=tracks.n_tracks)
+    o &= cnt[tracks.obs_track] >= 2
+    if not o.any():
+        return None
+    tr_ids, obs_p = np.unique(tracks.obs_track[o], return_inverse=True)
+    obs_f = tracks.obs_frame[o] - s
+    n_obs = np.bincount(obs_f, minlength=F)
+    free = n_obs >= MIN_OBS
+    if s > 0:
+        free[:N_ANCHOR] = False
+    if not free.any():
+        return None
+    R0, C0 = cur[s:e, :3, :3].copy(), cur[s:e, :3, 3].copy()
+    planes0 = _initial_planes(R0, C0, pts[tr_ids], obs_f, obs_p, plane_nominal)
+    # consecutive frames tied by too few tracks: the current relative motion as a prior
+    shared = np.zeros(max(F - 1, 0), int)
+    for i in range(F - 1):
+        a = set(obs_p[obs_f == i].tolist())
+        shared[i] = len(a.intersection(obs_p[obs_f == i + 1].tolist()))
+    gap_i = np.flatnonzero(shared < MIN_SHARED)
+    # GPS fixes inside the window's time span
+    if gps is not None:
+        # ... and, at the drive's ends, the fixes just outside it (extrapolated, σ inflated)
+        lo = -np.inf if s == 0 else t[s]
+        hi = np.inf if e == len(t) else t[e - 1]
+        g = np.flatnonzero((gps.t_s >= lo) & (gps.t_s <= hi))
+        gps_t, gps_enu, gps_sig = gps.t_s[g], gps.enu_m[g], gps.sigma_m[g]
+        gps_alt, g_used = gps.has_alt[g], used[g]
+    else:
+        g = np.zeros(0, int)
+        gps_t, gps_enu, gps_sig = np.zeros(0), np.zeros((0, 3)), np.zeros(0)
+        gps_alt, g_used = np.zeros(0, bool), np.zeros(0, bool)
+    obd_i, obd_v = np.zeros(0, int), np.zeros(0)
+    if cfg.use_obd and drive.obd is not None and len(drive.obd.timestamp_s) > 1 and F > 1:
+        tm = 0.5 * (t[s + 1 : e] + t[s : e - 1])
+        inside = (tm >= drive.obd.timestamp_s[0]) & (tm <= drive.obd.timestamp_s[-1])
+        obd_i = np.flatnonzero(inside)
+        obd_v = np.interp(tm[obd_i], drive.obd.timestamp_s, drive.obd.speed_mps)
+    data = WindowData(
+        K=K,
+        t=t[s:e],
+        R0=R0,
+        C0=C0,
+        free=free,
+        C_prior=world_pg[s:e, :3, 3],
+        planes0=planes0,
+        n_up=np.tile(n_up, (F, 1)),
+        obs_f=obs_f,
+        obs_p=obs_p,
+        obs_px=tracks.obs_px[o],
+        X0=pts[tr_ids].copy(),
+        gps_t=gps_t,
+        gps_enu=gps_enu,
+        gps_sigma=gps_sig,
+        gps_has_alt=gps_alt,
+        gap_i=gap_i,
+        obd_i=obd_i,
+        obd_v=obd_v,
+        height_m=drive.camera.height_m,
+        sigma_px=cfg.bundle_pixel_sigma_px,
+        sigma_relief_m=cfg.bundle_relief_sigma_m,
+        sigma_height_m=cfg.bundle_height_sigma_m,
+        sigma_prior_m=cfg.bundle_prior_sigma_m,
+        sigma_tilt_rad=math.radians(cfg.tilt_sigma_deg),
+        sigma_gap_m=cfg.gap_sigma_m,
+        sigma_gap_rad=math.radians(cfg.gap_sigma_rot_deg),
+        sigma_obd_mps=cfg.obd_sigma_mps,
+        vertical_factor=cfg.gps_vertical_sigma_factor,
+        tau0=tau,
+        sigma_tau_s=cfg.bundle_time_offset_sigma_s if len(gps_t) >= 3 else 0.0,
+    )
+    prob = WindowProblem(data)
+    prob.gps_used = g_used.copy()
+    prob.gps_scale = gps_scale
+    red = ReducedProblem(prob, cfg.robust_loss, cfg.robust_scale)
+    theta = np.zeros(red.n)
+    m = len(obs_f)
+    r = red.fun(theta)  # the points triangulated from the initial poses
+    rms0 = float(np.sqrt(np.mean(r[: 2 * m] ** 2)) * cfg.bundle_pixel_sigma_px)
+    cost0 = float(0.5 * np.sum(r**2))
+    for _ in range(3):
+        theta = _solve(red, theta, cfg)
+        if not len(gps_t):
+            break
+        err = prob.gps_errors(red.full_x(theta))
+        ok = g_used & (err <= cfg.gps_outlier_sigmas)
+        if np.array_equal(ok, prob.gps_used) or ok.sum() < 2:
+            break
+        prob.gps_used = ok
+        dX = red.dX
+        red = ReducedProblem(prob, cfg.robust_loss, cfg.robust_scale)  # residuals changed
+        red.dX = dX
+    x = red.full_x(theta)
+    r = prob.fun(x)
+    R, C, _, P, tau_new = prob.unpack(x)
+    fr = np.flatnonzero(free)
+    cur[s + fr, :3, :3] = R[fr]
+    cur[s + fr, :3, 3] = C[fr]
+    pts[tr_ids] = P
+    for j in np.flatnonzero(g_used & ~prob.gps_used):
+        rec = {"gps_index": int(gps.orig_index[g[j]]), "timestamp_s": float(gps_t[j])}  # type: ignore[union-attr]
+        if rec not in report["gps_rejected"]:
+            report["gps_rejected"].append(rec)
+    if data.sigma_tau_s > 0:
+        report["time_offset_s"].append(float(tau_new))
+    return {
+        "tau": tau_new if data.sigma_tau_s > 0 else tau,
+        "cost0": cost0,
+        "cost1": float(0.5 * np.sum(r**2)),
+        "rms0": rms0,
+        "rms1": float(np.sqrt(np.mean(r[: 2 * m] ** 2)) * cfg.bundle_pixel_sigma_px),
+    }
+
+
+def _whitened(J: sp.csr_matrix, T: np.ndarray) -> LinearOperator:
+    """J T as an operator: two products a LSMR step instead of a dense (rows x n) matrix."""
+    Jt = J.T.tocsr()
+    return LinearOperator(
+        (J.shape[0], T.shape[1]),
+        matvec=lambda v: J @ (T @ v),
+        rmatvec=lambda u: T.T @ (Jt @ u),
+        matmat=lambda V: J @ (T @ V),
+        rmatmat=lambda U: T.T @ (Jt @ U),
+        dtype=float,
+    )
+
+
+def _whitening(red: ReducedProblem, theta: np.ndarray) -> np.ndarray:
+    """(n, n) T = L⁻ᵀ with L Lᵀ = JᵀJ (+ a small ridge) at theta."""
+    J = red.jac(theta)
+    A = (J.T @ J).toarray()
+    A += np.diag(1e-6 * np.maximum(np.diag(A), 1e-12) + 1e-9)
+    L = np.linalg.cholesky(A)
+    return solve_triangular(L, np.eye(len(A)), lower=True).T
+
+
+def _solve(red: ReducedProblem, theta: np.ndarray, cfg: MappingConfig) -> np.ndarray:
+    """scipy least_squares (TRF, LSMR, robust loss) on the whitened camera-side unknowns
+    y = Lᵀ(θ - θ0), LLᵀ = JᵀJ at θ0: on the raw θ LSMR needs hundreds of iterations a step
+    (poses, planes and τ differ by orders of magnitude and are correlated); on y a few tens."""
+    T = _whitening(red, theta)
+    r0 = red.fun(theta)
+
+    def fun(y: np.ndarray) -> np.ndarray:
+        return red.fun(theta + T @ y)
+
+    def jac(y: np.ndarray) -> LinearOperator:
+        return _whitened(red.jac(theta + T @ y), T)
+
+    sol = least_squares(
+        fun,
+        np.zeros(red.n),
+        jac=jac,
+        method="trf",
+        loss=cfg.robust_loss,
+        f_scale=cfg.robust_scale,
+        # the first trust region as long as a full step can be (|r|): y is in σ units
+        x_scale=max(1.0, float(np.linalg.norm(r0))),
+        tr_solver="lsmr",
+        max_nfev=cfg.bundle_max_nfev,
+        ftol=1e-6,
+        xtol=1e-8,
+    )
+    log.debug("bundle window: %s after %d evaluations", sol.message, sol.nfev)
+    return theta + T @ sol.x
+
+
+def _initial_planes(
+    R: np.ndarray,
+    C: np.ndarray,
+    X: np.ndarray,
+    obs_f: np.ndarray,
+    obs_p: np.ndarray,
+    nominal: np.ndarray,
+) -> np.ndarray:
+    """Each frame's road plane Z = p0 X + p1 Y + p2 fitted to its points in its camera (one
+    trimmed refit: potholes are not road); the mount's nominal plane when too few points."""
+    out = np.tile(nominal, (len(R), 1))
+    for f in range(len(R)):
+        sel = obs_p[obs_f == f]
+        if len(sel) < 10:
+            continue
+        Xc = (X[sel] - C[f]) @ R[f]
+        A = np.column_stack([Xc[:, 0], Xc[:, 1], np.ones(len(Xc))])
+        p, *_ = np.linalg.lstsq(A, Xc[:, 2], rcond=None)
+        d = np.abs(A @ p - Xc[:, 2])
+        keep = d <= max(3.0 * np.median(d), 1e-4)
+        if keep.sum() >= 10:
+            p, *_ = np.linalg.lstsq(A[keep], Xc[keep, 2], rcond=None)
+        out[f] = p
+    return out

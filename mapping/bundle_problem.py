@@ -1,0 +1,297 @@
+"""One window of the bundle adjustment (issue 30) as a sparse least-squares problem.
+
+Unknowns: the free frames' poses (rotation vector φ with R = Exp(φ) R0, camera centre C), each
+window frame's road plane in its camera (Z = p0 X + p1 Y + p2), every track point (world) and
+the GPS - camera time offset τ. Residuals, each whitened by its σ so that one robust loss fits
+all: reprojection (px), point-on-plane (road relief), camera height above its plane (metric
+scale), GPS position at the fix time minus τ (interpolated between the frames around it), a weak
+pull towards the pose graph's centres (gauge without GPS), the tilt prior, constant motion across
+frames no track ties, OBD speed and a prior on τ. The Jacobian is analytic (small-angle
+rotation derivatives; the solver re-linearises every step)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.spatial.transform import Rotation
+
+
+@dataclass
+class WindowData:
+    """Everything one window's problem needs (frames by their position inside the window)."""
+
+    K: np.ndarray  # (3, 3) intrinsics of the undistorted ideal pixels
+    t: np.ndarray  # (F,) frame times (s)
+    R0: np.ndarray  # (F, 3, 3) initial world_from_cam rotations
+    C0: np.ndarray  # (F, 3) initial camera centres (m)
+    free: np.ndarray  # (F,) bool: pose is an unknown (else held)
+    C_prior: np.ndarray  # (F, 3) the pose graph's centres (m)
+    planes0: np.ndarray  # (F, 3) initial road planes in camera coordinates
+    n_up: np.ndarray  # (F, 3) camera-frame axis held vertical by the tilt prior
+    obs_f: np.ndarray  # (M,) window frame of each observation
+    obs_p: np.ndarray  # (M,) point of each observation
+    obs_px: np.ndarray  # (M, 2) ideal pixels
+    X0: np.ndarray  # (P, 3) initial points (m)
+    gps_t: np.ndarray  # (G,) fix times (s)
+    gps_enu: np.ndarray  # (G, 3)
+    gps_sigma: np.ndarray  # (G,) horizontal σ (m)
+    gps_has_alt: np.ndarray  # (G,) bool
+    gap_i: np.ndarray  # (B,) frames i whose motion to i+1 only the prior holds
+    obd_i: np.ndarray  # (O,) frames i with a speed for (i, i+1)
+    obd_v: np.ndarray  # (O,) m/s
+    height_m: float
+    sigma_px: float
+    sigma_relief_m: float
+    sigma_height_m: float
+    sigma_prior_m: float
+    sigma_tilt_rad: float
+    sigma_gap_m: float
+    sigma_gap_rad: float
+    sigma_obd_mps: float
+    vertical_factor: float
+    tau0: float  # prior mean of τ (s)
+    sigma_tau_s: float  # 0: τ held at tau0
+
+
+def _skew_cross(a: np.ndarray, v: np.ndarray) -> np.ndarray:
+    return np.cross(a, v)
+
+
+class WindowProblem:
+    def __init__(self, d: WindowData) -> None:
+        self.d = d
+        F, P = len(d.t), len(d.X0)
+        self.F, self.P = F, P
+        free_idx = np.flatnonzero(d.free)
+        self.pose_col = np.full(F, -1, int)
+        self.pose_col[free_idx] = 6 * np.arange(len(free_idx))
+        self.plane_col0 = 6 * len(free_idx)
+        # column order: poses, planes, τ (the camera side), then the points
+        self.tau_col = self.plane_col0 + 3 * F if d.sigma_tau_s > 0 else -1
+        self.point_col0 = self.plane_col0 + 3 * F + (1 if d.sigma_tau_s > 0 else 0)
+        self.n = self.point_col0 + 3 * P
+        self.gps_used = np.ones(len(d.gps_t), bool)
+        self.gps_scale = 1.0
+        self._cache: tuple[bytes, np.ndarray, sp.csr_matrix] | None = None
+
+    # ---------------------------------------------------------------- state
+    def unpack(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
+        d = self.d
+        R, C = d.R0.copy(), d.C0.copy()
+        fr = np.flatnonzero(self.pose_col >= 0)
+        if len(fr):
+            X = x[: self.plane_col0].reshape(-1, 6)
+            R[fr] = (Rotation.from_rotvec(X[:, :3]) * Rotation.from_matrix(d.R0[fr])).as_matrix()
+            C[fr] = d.C0[fr] + X[:, 3:]
+        planes = d.planes0 + x[self.plane_col0 : self.plane_col0 + 3 * self.F].reshape(-1, 3)
+        pts = d.X0 + x[self.point_col0 :].reshape(-1, 3)
+        tau = d.tau0 + (x[self.tau_col] if self.tau_col >= 0 else 0.0)
+        return R, C, planes, pts, float(tau)
+
+    def fun(self, x: np.ndarray) -> np.ndarray:
+        return self._eval(x)[0]
+
+    def jac(self, x: np.ndarray) -> sp.csr_matrix:
+        return self._eval(x)[1]
+
+    def _eval(self, x: np.ndarray) -> tuple[np.ndarray, sp.csr_matrix]:
+        key = x.tobytes()
+        if self._cache is not None and self._cache[0] == key:
+            return self._cache[1], self._cache[2]
+        r, J = self._build(x)
+        self._cache = (key, r, J)
+        return r, J
+
+    # ---------------------------------------------------------------- residuals + Jacobian
+    def _build(self, x: np.ndarray) -> tuple[np.ndarray, sp.csr_matrix]:
+        d = self.d
+        R, C, planes, pts, tau = self.unpack(x)
+        res: list[np.ndarray] = []
+        rows: list[np.ndarray] = []
+        cols: list[np.ndarray] = []
+        vals: list[np.ndarray] = []
+        r0 = 0
+
+        def put(row: np.ndarray, col: np.ndarray, val: np.ndarray) -> None:
+            ok = col >= 0
+            rows.append(row[ok])
+            cols.append(col[ok])
+            vals.append(val[ok])
+
+        def put_block(row: np.ndarray, col0: np.ndarray, g: np.ndarray) -> None:
+            """row (m,), first column (m,) of a 3-wide block, gradient (m, 3)."""
+            for k in range(3):
+                put(row, np.where(col0 >= 0, col0 + k, -1), g[:, k])
+
+        # ------------------------------------------------ reprojection and point-on-plane
+        f, p = d.obs_f, d.obs_p
+        m = len(f)
+        if m:
+            v = pts[p] - C[f]
+            Xc = np.einsum("mji,mj->mi", R[f], v)  # R^T v
+            z = np.maximum(Xc[:, 2], 1e-3)
+            fx, fy, cx, cy = d.K[0, 0], d.K[1, 1], d.K[0, 2], d.K[1, 2]
+            u = fx * Xc[:, 0] / z + cx
+            w = fy * Xc[:, 1] / z + cy
+            s = d.sigma_px
+            res += [(u - d.obs_px[:, 0]) / s, (w - d.obs_px[:, 1]) / s]
+            zero = np.zeros(m)
+            Ju = np.column_stack([fx / z, zero, -fx * Xc[:, 0] / z**2]) / s
+            Jv = np.column_stack([zero, fy / z, -fy * Xc[:, 1] / z**2]) / s
+            pl = planes[f]
+            sn = np.sqrt(1.0 + pl[:, 0] ** 2 + pl[:, 1] ** 2)
+            N = pl[:, 0] * Xc[:, 0] + pl[:, 1] * Xc[:, 1] + pl[:, 2] - Xc[:, 2]
+            sr = d.sigma_relief_m
+            res.append(N / sn / sr)
+            Jp = np.column_stack([pl[:, 0], pl[:, 1], -np.ones(m)]) / (sn * sr)[:, None]
+            pose0 = self.pose_col[f]
+            pcol = self.point_col0 + 3 * p
+            for k, Jx in enumerate((Ju, Jv, Jp)):
+                row = r0 + k * m + np.arange(m)
+                A = np.einsum("mi,mji->mj", Jx, R[f])  # d/dX of the residual
+                put_block(row, pcol, A)
+                put_block(row, np.where(pose0 >= 0, pose0 + 3, -1), -A)
+                put_block(row, pose0, _skew_cross(A, v))
+            row = r0 + 2 * m + np.arange(m)
+            g = N / sn
+            gpl = np.column_stack(
+                [Xc[:, 0] / sn - g * pl[:, 0] / sn**2, Xc[:, 1] / sn - g * pl[:, 1] / sn**2, 1 / sn]
+            )
+            put_block(row, self.plane_col0 + 3 * f, gpl / sr)
+            r0 += 3 * m
+
+        # ------------------------------------------------ camera height above its plane
+        sn = np.sqrt(1.0 + planes[:, 0] ** 2 + planes[:, 1] ** 2)
+        res.append((planes[:, 2] / sn - d.height_m) / d.sigma_height_m)
+        gh = np.column_stack(
+            [
+                -planes[:, 2] * planes[:, 0] / sn**3,
+                -planes[:, 2] * planes[:, 1] / sn**3,
+                1.0 / sn,
+            ]
+        )
+        put_block(
+            r0 + np.arange(self.F), self.plane_col0 + 3 * np.arange(self.F), gh / d.sigma_height_m
+        )
+        r0 += self.F
+
+        # ------------------------------------------------ GPS at fix time minus τ
+        gi = np.flatnonzero(self.gps_used)
+        if len(gi):
+            tq = d.gps_t[gi] - tau
+            k = np.clip(np.searchsorted(d.t, tq, side="right") - 1, 0, self.F - 2)
+            dt = np.maximum(d.t[k + 1] - d.t[k], 1e-9)
+            wgt = (tq - d.t[k]) / dt
+            pred = (1 - wgt)[:, None] * C[k] + wgt[:, None] * C[k + 1]
+            vel = (C[k + 1] - C[k]) / dt[:, None]
+            sg = d.gps_sigma[gi] * self.gps_scale
+            alt = d.gps_has_alt[gi]
+            for ax in range(3):
+                sel = np.arange(len(gi)) if ax < 2 else np.flatnonzero(alt)
+                if not len(sel):
+                    continue
+                sig = sg[sel] * (1.0 if ax < 2 else d.vertical_factor)
+                res.append((pred[sel, ax] - d.gps_enu[gi[sel], ax]) / sig)
+                row = r0 + np.arange(len(sel))
+                for kk, ww in ((k[sel], 1 - wgt[sel]), (k[sel] + 1, wgt[sel])):
+                    c = self.pose_col[kk]
+                    put(row, np.where(c >= 0, c + 3 + ax, -1), ww / sig)
+                if self.tau_col >= 0:
+                    put(row, np.full(len(sel), self.tau_col), -vel[sel, ax] / sig)
+                r0 += len(sel)
+
+        # ------------------------------------------------ pull towards the pose graph, tilt
+        fr = np.flatnonzero(self.pose_col >= 0)
+        if len(fr):
+            res.append(((C[fr] - d.C_prior[fr]) / d.sigma_prior_m).ravel())
+            for ax in range(3):
+                put(
+                    r0 + 3 * np.arange(len(fr)) + ax,
+                    self.pose_col[fr] + 3 + ax,
+                    np.full(len(fr), 1.0 / d.sigma_prior_m),
+                )
+            r0 += 3 * len(fr)
+            up = np.einsum("mij,mj->mi", R[fr], d.n_up[fr])
+            res.append((up[:, :2] / d.sigma_tilt_rad).ravel())
+            # d(up)/dφ = -[up]x
+            zf = np.zeros(len(fr))
+            rows_g = (
+                np.column_stack([zf, up[:, 2], -up[:, 1]]),
+                np.column_stack([-up[:, 2], zf, up[:, 0]]),
+            )
+            for ax in range(2):
+                put_block(
+                    r0 + 2 * np.arange(len(fr)) + ax,
+                    self.pose_col[fr],
+                    rows_g[ax] / d.sigma_tilt_rad,
+                )
+            r0 += 2 * len(fr)
+
+        # ------------------------------------------------ constant motion across untied frames
+        if len(d.gap_i):
+            a, b = d.gap_i, d.gap_i + 1
+            Rm = np.einsum("mji,mjk->mik", d.R0[b], d.R0[a])
+            tm = np.einsum("mji,mj->mi", d.R0[b], d.C0[a] - d.C0[b])
+            Rp = np.einsum("mji,mjk->mik", R[b], R[a])
+            rrot = (Rotation.from_matrix(Rm).inv() * Rotation.from_matrix(Rp)).as_rotvec()
+            vab = C[a] - C[b]
+            tp = np.einsum("mji,mj->mi", R[b], vab)
+            res.append((rrot / d.sigma_gap_rad).ravel())
+            res.append(((tp - tm) / d.sigma_gap_m).ravel())
+            nb = len(a)
+            for ax in range(3):
+                row = r0 + 3 * np.arange(nb) + ax
+                Ra_t = R[a][:, :, ax] / d.sigma_gap_rad  # row ax of R_a^T
+                put_block(row, self.pose_col[a], Ra_t)
+                put_block(row, self.pose_col[b], -Ra_t)
+            r0 += 3 * nb
+            for ax in range(3):
+                row = r0 + 3 * np.arange(nb) + ax
+                Rb_t = R[b][:, :, ax] / d.sigma_gap_m
+                ca, cb = self.pose_col[a], self.pose_col[b]
+                put_block(row, np.where(ca >= 0, ca + 3, -1), Rb_t)
+                put_block(row, np.where(cb >= 0, cb + 3, -1), -Rb_t)
+                put_block(row, cb, _skew_cross(Rb_t, vab))
+            r0 += 3 * nb
+
+        # ------------------------------------------------ OBD speed
+        if len(d.obd_i):
+            a, b = d.obd_i, d.obd_i + 1
+            dv = C[b] - C[a]
+            L = np.maximum(np.linalg.norm(dv, axis=1), 1e-9)
+            dt = np.maximum(d.t[b] - d.t[a], 1e-9)
+            res.append((L / dt - d.obd_v) / d.sigma_obd_mps)
+            g = dv / (L * dt * d.sigma_obd_mps)[:, None]
+            row = r0 + np.arange(len(a))
+            ca, cb = self.pose_col[a], self.pose_col[b]
+            put_block(row, np.where(cb >= 0, cb + 3, -1), g)
+            put_block(row, np.where(ca >= 0, ca + 3, -1), -g)
+            r0 += len(a)
+
+        # ------------------------------------------------ prior on τ
+        if self.tau_col >= 0:
+            res.append(np.array([(tau - d.tau0) / d.sigma_tau_s]))
+            put(np.array([r0]), np.array([self.tau_col]), np.array([1.0 / d.sigma_tau_s]))
+            r0 += 1
+
+        r = np.concatenate(res)
+        if len(r) != r0:
+            raise RuntimeError(f"bundle: {len(r)} residuals but {r0} Jacobian rows")
+        J = sp.csr_matrix(
+            (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(r0, self.n)
+        )
+        return r, J
+
+    def gps_errors(self, x: np.ndarray) -> np.ndarray:
+        """Horizontal GPS error of every fix in units of its σ (all fixes, used or not)."""
+        d = self.d
+        _, C, _, _, tau = self.unpack(x)
+        tq = d.gps_t - tau
+        k = np.clip(np.searchsorted(d.t, tq, side="right") - 1, 0, self.F - 2)
+        wgt = (tq - d.t[k]) / np.maximum(d.t[k + 1] - d.t[k], 1e-9)
+        pred = (1 - wgt)[:, None] * C[k] + wgt[:, None] * C[k + 1]
+        return np.linalg.norm(pred[:, :2] - d.gps_enu[:, :2], axis=1) / (
+            d.gps_sigma * self.gps_scale
+        )

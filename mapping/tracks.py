@@ -1,0 +1,168 @@
+"""Feature tracks: the per-pair matches chained across consecutive frames (issue 30).
+
+Frame k is image b of pair (k-1, k) and image a of pair (k, k+1). Both pairs matched the same
+keypoints of frame k, undistorted the same way, so a keypoint matched in both pairs appears
+with the same pixel position in ``px_b`` of the first and ``px_a`` of the second: chaining
+them by position (within ``tol_px``) links the two matches into one track seen by three or more
+frames. A link is kept only when both pairs put the point at the same place in the world (with
+the given poses), else the whole track is dropped as inconsistent (a wrong match that passed one
+pair's RANSAC). Pixels are the pairs' undistorted ideal pixels (the camera's K applies).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+if TYPE_CHECKING:
+    from roadsurf.reconstruction.types import PairResult
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Tracks:
+    """Observations of road points across frames (frames by position in the drive's list)."""
+
+    obs_frame: np.ndarray  # (M,) int frame position of each observation
+    obs_track: np.ndarray  # (M,) int track of each observation
+    obs_px: np.ndarray  # (M, 2) undistorted ideal pixels (px)
+    point_w: np.ndarray  # (T, 3) world position of each track (mean of its pairs' points, m)
+    length: np.ndarray  # (T,) frames that see the track
+    n_inconsistent: int = 0  # tracks dropped because their pairs disagreed
+
+    @property
+    def n_tracks(self) -> int:
+        return int(len(self.point_w))
+
+    def subset(self, keep: np.ndarray) -> Tracks:
+        """The tracks where ``keep`` (T,) is True, renumbered 0..K-1."""
+        keep = np.asarray(keep, bool)
+        new_id = np.cumsum(keep) - 1
+        o = keep[self.obs_track]
+        return Tracks(
+            self.obs_frame[o],
+            new_id[self.obs_track[o]],
+            self.obs_px[o],
+            self.point_w[keep],
+            self.length[keep],
+            self.n_inconsistent,
+        )
+
+
+def build_tracks(
+    pairs: list[PairResult],
+    pos_of: dict[int, int],
+    world_from_cam: np.ndarray,
+    *,
+    tol_px: float = 0.05,
+    tol_m: float = 0.02,
+) -> Tracks:
+    """Chain the ok consecutive pairs' matches into tracks.
+
+    pos_of: Frame.index -> position in the drive's frame list; world_from_cam: (N, 4, 4) poses
+    used to put each pair's points in the world (the pose graph's). tol_px: two pixel positions
+    of one frame closer than this are the same keypoint (px); tol_m: a track whose pairs put
+    its point further apart than this is dropped (m)."""
+    chain = sorted(
+        (p for p in pairs if p.ok and p.index_a in pos_of and p.index_b in pos_of),
+        key=lambda p: pos_of[p.index_a],
+    )
+    chain = [p for p in chain if pos_of[p.index_b] == pos_of[p.index_a] + 1 and p.n_points > 0]
+    frames: list[np.ndarray] = []
+    tracks: list[np.ndarray] = []
+    pxs: list[np.ndarray] = []
+    sum_w = np.zeros((0, 3))
+    count = np.zeros(0, int)
+    first_w = np.zeros((0, 3))  # the first pair's point of each track (consistency check)
+    bad = np.zeros(0, bool)
+    prev: tuple[int, np.ndarray, np.ndarray] | None = None  # (frame b, px_b, track ids)
+    n_tracks = 0
+    for p in chain:
+        a, b = pos_of[p.index_a], pos_of[p.index_b]
+        W = world_from_cam[a]
+        pw = np.asarray(p.points_cam_a_m, float) @ W[:3, :3].T + W[:3, 3]
+        m = len(pw)
+        ids = np.full(m, -1, int)
+        if prev is not None and prev[0] == a and len(prev[1]):
+            d, j = cKDTree(prev[1]).query(np.asarray(p.px_a, float), distance_upper_bound=tol_px)
+            hit = np.flatnonzero(np.isfinite(d))
+            # one keypoint of frame a continues at most one track: the closest claim wins
+            order = hit[np.argsort(d[hit], kind="stable")]
+            _, first = np.unique(j[order], return_index=True)
+            won = order[first]
+            ids[won] = prev[2][j[won]]
+        new = ids < 0
+        k_new = int(new.sum())
+        ids[new] = n_tracks + np.arange(k_new)
+        n_tracks += k_new
+        sum_w = np.concatenate([sum_w, np.zeros((k_new, 3))])
+        count = np.concatenate([count, np.zeros(k_new, int)])
+        first_w = np.concatenate([first_w, pw[new]])
+        bad = np.concatenate([bad, np.zeros(k_new, bool)])
+        old = ~new
+        bad[ids[old]] |= np.linalg.norm(pw[old] - first_w[ids[old]], axis=1) > tol_m
+        np.add.at(sum_w, ids, pw)
+        np.add.at(count, ids, 1)
+        # observations: image a only for new tracks (a continued track has it already)
+        frames += [np.full(k_new, a), np.full(m, b)]
+        tracks += [ids[new], ids]
+        pxs += [np.asarray(p.px_a, float)[new], np.asarray(p.px_b, float)]
+        prev = (b, np.asarray(p.px_b, float), ids)
+    if n_tracks == 0:
+        z = np.zeros(0, int)
+        return Tracks(z, z, np.zeros((0, 2)), np.zeros((0, 3)), z)
+    obs_frame = np.concatenate(frames)
+    obs_track = np.concatenate(tracks)
+    length = np.bincount(obs_track, minlength=n_tracks)
+    out = Tracks(obs_frame, obs_track, np.concatenate(pxs), sum_w / count[:, None], length)
+    if bad.any():
+        out = out.subset(~bad)
+        out.n_inconsistent = int(bad.sum())
+        log.info("tracks: dropped %d inconsistent track(s)", out.n_inconsistent)
+    return out
+
+
+def thin_tracks(
+    tracks: Tracks, max_two_view_per_frame: int, image_size: tuple[int, int], seed: int = 0
+) -> Tracks:
+    """Keep every track seen by three or more frames and at most ``max_two_view_per_frame``
+    two-view tracks per frame, spread over the image (one per grid cell, then at random):
+    a pair's hundreds of two-view matches add little beyond its first hundred but cost time."""
+    if max_two_view_per_frame <= 0:
+        return tracks.subset(tracks.length >= 3)
+    keep = tracks.length >= 3
+    two = np.flatnonzero(tracks.length == 2)
+    if len(two) == 0:
+        return tracks
+    # first observation of each two-view track: its frame and pixel
+    first = np.full(tracks.n_tracks, -1, int)
+    order = np.argsort(tracks.obs_track, kind="stable")
+    t_sorted = tracks.obs_track[order]
+    starts = order[np.r_[0, np.flatnonzero(np.diff(t_sorted)) + 1]]
+    first[tracks.obs_track[starts]] = starts
+    rng = np.random.default_rng(seed)
+    w, h = image_size
+    g = max(1, int(np.sqrt(max_two_view_per_frame)))
+    fr = tracks.obs_frame[first[two]]
+    px = tracks.obs_px[first[two]]
+    cell = (np.clip(px[:, 0] / w * g, 0, g - 1).astype(int) * g) + np.clip(
+        px[:, 1] / h * g, 0, g - 1
+    ).astype(int)
+    # random order, then by (frame, cell): the first of each (frame, cell) is spread evenly
+    perm = rng.permutation(len(two))
+    key = fr[perm] * (g * g) + cell[perm]
+    o = perm[np.argsort(key, kind="stable")]
+    key_o = fr[o] * (g * g) + cell[o]
+    is_first = np.r_[True, key_o[1:] != key_o[:-1]]
+    ranked = np.concatenate([o[is_first], o[~is_first]])  # spread ones first, then the rest
+    taken = np.zeros(int(fr.max()) + 1 if len(fr) else 0, int)
+    for i in ranked:
+        if taken[fr[i]] < max_two_view_per_frame:
+            taken[fr[i]] += 1
+            keep[two[i]] = True
+    return tracks.subset(keep)
