@@ -44,6 +44,7 @@ log = logging.getLogger(__name__)
 
 N_ANCHOR = 2  # frames before a window held at their refined poses
 MIN_OBS = 8  # a frame seeing fewer track points keeps its pose graph pose
+MIN_OFFSET_S = 0.005  # a smaller GPS time offset is not applied (s)
 MIN_SHARED = 8  # consecutive frames sharing fewer tracks get the constant-motion prior
 
 
@@ -69,7 +70,6 @@ def refine_poses(
         "n_tracks_3plus": int(np.sum(tracks.length >= 3)),
         "n_inconsistent_tracks": tracks.n_inconsistent,
         "n_windows": 0,
-        "time_offset_s": [],
         "gps_rejected": [],
     }
     if tracks.n_tracks == 0 or n < 2:
@@ -85,6 +85,52 @@ def refine_poses(
     gps_scale = _gps_scale(world, t, gps, used)
     report["gps_sigma_scale"] = gps_scale
 
+    rest = (tracks, gps, K, n_up, plane_nominal, report, used)
+    tau = 0.0
+    if gps is not None and cfg.bundle_max_time_offset_s > 0:
+        # the offset is fitted to a trajectory shaped by vision (GPS 10x looser): one fitted
+        # to lagging fixes has already bent towards them
+        loose, _ = _sweep(cfg, drive, t, world, 10.0 * gps_scale, *rest, 0.0)
+        tau, se = _fit_time_offset(loose, t, gps, used, gps_scale, cfg)
+        report["time_offset_se_s"] = se
+        if abs(tau) <= max(MIN_OFFSET_S, 3.0 * se):
+            tau = 0.0  # not significant
+        report["gps_rejected"] = []
+        report["n_windows"] = 0
+    cur, stats = _sweep(cfg, drive, t, world, gps_scale, *rest, tau)
+    report["time_offset_s"] = tau
+    report.update(stats)
+    report["elapsed_s"] = round(time.perf_counter() - t0, 3)
+    moved = np.linalg.norm(cur[:, :3, 3] - world[:, :3, 3], axis=1)
+    report["moved_m_median"] = float(np.median(moved))
+    report["moved_m_max"] = float(np.max(moved))
+    log.info(
+        "bundle: %d tracks (%d seen 3+ times), %d windows, reprojection %.2f -> %.2f px, "
+        "poses moved %.1f mm median, GPS time offset %.1f ms, %.1f s",
+        tracks.n_tracks, report["n_tracks_3plus"], report["n_windows"],
+        report["reprojection_rms_px_initial"], report["reprojection_rms_px_final"],
+        1e3 * report["moved_m_median"], 1e3 * report["time_offset_s"], report["elapsed_s"],
+    )  # fmt: skip
+    return cur, report
+
+
+def _sweep(
+    cfg: MappingConfig,
+    drive: Drive,
+    t: np.ndarray,
+    world: np.ndarray,
+    gps_scale: float,
+    tracks: Tracks,
+    gps: GpsFixes | None,
+    K: np.ndarray,
+    n_up: np.ndarray,
+    plane_nominal: np.ndarray,
+    report: dict[str, Any],
+    used: np.ndarray,
+    tau: float,
+) -> tuple[np.ndarray, dict[str, float]]:
+    """All windows along the drive with the GPS time offset tau held: refined poses, figures."""
+    n = len(t)
     cur = world.copy()  # latest estimate of every pose
     pts = tracks.point_w.copy()  # latest estimate of every track point
     W, n_over = cfg.bundle_window_frames, cfg.bundle_overlap_frames
@@ -93,7 +139,6 @@ def refine_poses(
             f"mapping.bundle_window_frames={W} must exceed bundle_overlap_frames={n_over} + "
             f"{N_ANCHOR}"
         )
-    tau = 0.0
     s = 0
     cost0 = cost1 = 0.0
     rms0: list[float] = []
@@ -112,7 +157,6 @@ def refine_poses(
             n_up, plane_nominal, report,
         )  # fmt: skip
         if res is not None:
-            tau = res["tau"]
             cost0 += res["cost0"]
             cost1 += res["cost1"]
             rms0.append(res["rms0"])
@@ -122,24 +166,65 @@ def refine_poses(
         if e == n:
             break
         s = final_to - N_ANCHOR
-    report["cost_initial"] = cost0
-    report["cost_final"] = cost1
-    report["reprojection_rms_px_initial"] = float(np.median(rms0)) if rms0 else float("nan")
-    report["reprojection_rms_px_final"] = float(np.median(rms1)) if rms1 else float("nan")
-    taus = report["time_offset_s"]
-    report["time_offset_s_final"] = float(taus[-1]) if taus else 0.0
-    report["elapsed_s"] = round(time.perf_counter() - t0, 3)
-    moved = np.linalg.norm(cur[:, :3, 3] - world[:, :3, 3], axis=1)
-    report["moved_m_median"] = float(np.median(moved))
-    report["moved_m_max"] = float(np.max(moved))
-    log.info(
-        "bundle: %d tracks (%d seen 3+ times), %d windows, reprojection %.2f -> %.2f px, "
-        "poses moved %.1f mm median, GPS time offset %.1f ms, %.1f s",
-        tracks.n_tracks, report["n_tracks_3plus"], report["n_windows"],
-        report["reprojection_rms_px_initial"], report["reprojection_rms_px_final"],
-        1e3 * report["moved_m_median"], 1e3 * report["time_offset_s_final"], report["elapsed_s"],
-    )  # fmt: skip
-    return cur, report
+    stats = {
+        "cost_initial": cost0,
+        "cost_final": cost1,
+        "reprojection_rms_px_initial": float(np.median(rms0)) if rms0 else float("nan"),
+        "reprojection_rms_px_final": float(np.median(rms1)) if rms1 else float("nan"),
+    }
+    return cur, stats
+
+
+def _rejected(gps: GpsFixes, report: dict[str, Any]) -> np.ndarray:
+    bad = {r["gps_index"] for r in report["gps_rejected"]}
+    return np.isin(gps.orig_index, list(bad))
+
+
+def _fit_time_offset(
+    cur: np.ndarray,
+    t: np.ndarray,
+    gps: GpsFixes,
+    used: np.ndarray,
+    gps_scale: float,
+    cfg: MappingConfig,
+) -> tuple[float, float]:
+    """GPS - camera time offset τ (s) and its standard error: the fixes (inside the frames'
+    time span) against the refined trajectory at t - τ, searched on a
+    1 ms grid over ±bundle_max_time_offset_s and refined by a parabola (up to a rotation and
+    shift: the loose trajectory's heading and placement are the part GPS decides). The per-window
+    solves hold τ: in a 2 s window τ and an along-track shift are nearly one unknown."""
+    sel = used & (gps.t_s >= t[0]) & (gps.t_s <= t[-1])
+    if sel.sum() < 6:
+        return 0.0, float("inf")
+    tg, g = gps.t_s[sel], gps.enu_m[sel, :2]
+    w = 1.0 / (gps.sigma_m[sel] * gps_scale) ** 2
+    C = cur[:, :2, 3]
+    taus = np.arange(-cfg.bundle_max_time_offset_s, cfg.bundle_max_time_offset_s + 5e-4, 1e-3)
+    cost = np.empty(len(taus))
+    for i, tau in enumerate(taus):
+        tq = np.clip(tg - tau, t[0], t[-1])
+        pred = np.column_stack([np.interp(tq, t, C[:, k]) for k in range(2)])
+        cost[i] = _rigid_residual(pred, g, w)
+    i = int(np.clip(np.argmin(cost), 1, len(taus) - 2))
+    c0, c1, c2 = cost[i - 1], cost[i], cost[i + 1]
+    curv = (c0 - 2 * c1 + c2) / 1e-6  # d²cost/dτ² (cost = χ², so σ_τ² = 2 / curv)
+    if curv <= 0:
+        return float(taus[i]), float("inf")
+    tau = float(taus[i] + 0.5e-3 * (c0 - c2) / (c0 - 2 * c1 + c2))
+    dof = max(int(sel.sum()) * 2 - 3, 1)
+    se = float(np.sqrt(2.0 / curv * max(c1 / dof, 1.0)))
+    return tau, se
+
+
+def _rigid_residual(a: np.ndarray, b: np.ndarray, w: np.ndarray) -> float:
+    """Weighted squared residual of 2D points a against b after the best rotation + shift."""
+    ca = np.sum(w[:, None] * a, 0) / np.sum(w)
+    cb = np.sum(w[:, None] * b, 0) / np.sum(w)
+    A, B = a - ca, b - cb
+    U, _, Vt = np.linalg.svd((w[:, None] * A).T @ B)
+    D = np.diag([1.0, np.sign(np.linalg.det(U @ Vt))])
+    R = (U @ D @ Vt).T
+    return float(np.sum(w[:, None] * (A @ R.T - B) ** 2))
 
 
 def _gps_scale(world: np.ndarray, t: np.ndarray, gps: GpsFixes | None, used: np.ndarray) -> float:
@@ -246,7 +331,7 @@ def _solve_window(
         sigma_obd_mps=cfg.obd_sigma_mps,
         vertical_factor=cfg.gps_vertical_sigma_factor,
         tau0=tau,
-        sigma_tau_s=cfg.bundle_time_offset_sigma_s if len(gps_t) >= 3 else 0.0,
+        sigma_tau_s=0.0,  # held; estimated over the drive (_fit_time_offset)
     )
     prob = WindowProblem(data)
     prob.gps_used = g_used.copy()
@@ -271,7 +356,7 @@ def _solve_window(
         red.dX = dX
     x = red.full_x(theta)
     r = prob.fun(x)
-    R, C, _, P, tau_new = prob.unpack(x)
+    R, C, _, P, _ = prob.unpack(x)
     fr = np.flatnonzero(free)
     cur[s + fr, :3, :3] = R[fr]
     cur[s + fr, :3, 3] = C[fr]
@@ -280,10 +365,7 @@ def _solve_window(
         rec = {"gps_index": int(gps.orig_index[g[j]]), "timestamp_s": float(gps_t[j])}  # type: ignore[union-attr]
         if rec not in report["gps_rejected"]:
             report["gps_rejected"].append(rec)
-    if data.sigma_tau_s > 0:
-        report["time_offset_s"].append(float(tau_new))
     return {
-        "tau": tau_new if data.sigma_tau_s > 0 else tau,
         "cost0": cost0,
         "cost1": float(0.5 * np.sum(r**2)),
         "rms0": rms0,

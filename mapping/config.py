@@ -88,8 +88,8 @@ class MappingConfig:
     bundle_relief_sigma_m: float = 0.003  # σ of a road point off its frame's road plane (m)
     bundle_height_sigma_m: float = 0.005  # σ of the camera height above that plane, h (m)
     bundle_prior_sigma_m: float = 0.3  # σ of the pull to the pose graph's centres (m; gauge)
-    # σ of the GPS - camera time offset's prior, 0 s mean (s; 0 = offset not estimated)
-    bundle_time_offset_sigma_s: float = 0.05
+    # the GPS - camera time offset (GPS latency) is searched within ± this (s; 0 = not estimated)
+    bundle_max_time_offset_s: float = 0.5
     bundle_max_two_view: int = 50  # two-view tracks kept per frame (count; 3+-view: all)
     bundle_track_tol_m: float = 0.02  # a track whose pairs disagree by more is dropped (m)
     bundle_max_nfev: int = 20  # least-squares evaluations per window (count)
@@ -192,7 +192,7 @@ class MappingConfig:
         "bundle_relief_sigma_m": "(0, 1]; a relief σ above 1 m is a unit mistake",
         "bundle_height_sigma_m": "(0, 1]",
         "bundle_prior_sigma_m": "(0, inf)",
-        "bundle_time_offset_sigma_s": "[0, 10]; 0 = not estimated",
+        "bundle_max_time_offset_s": "[0, 10]; 0 = not estimated",
         "bundle_max_two_view": "[0, inf)",
         "bundle_track_tol_m": "(0, 1]",
         "bundle_max_nfev": "[1, inf)",

@@ -1,0 +1,145 @@
+"""Seeded synthetic drives with shared road points, for the track and bundle tests.
+
+Unlike ``tests.mapping.synth`` (independent points per pair), one set of road points lies on
+the road and every frame sees the ones in its view, with one noisy keypoint position per
+(frame, point): the two pairs a frame belongs to match the same keypoints, so matches chain
+into tracks. The vehicle speeds up and slows down along an S-curve (a GPS time offset is then
+observable), and the GPS fixes can lag the camera by a latency.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from roadsurf.core.geometry import invert_pose, lla_from_enu, world_from_cam
+from roadsurf.io.drive import Drive, Frame, GpsTrack
+from roadsurf.reconstruction.types import PairResult
+from tests.mapping.synth import REF, camera
+
+
+@dataclass
+class TrackDrive:
+    drive: Drive
+    pairs: list[PairResult]
+    world_from_cam: np.ndarray  # (N, 4, 4) true poses
+    points_w: np.ndarray  # (P, 3) true road points
+    pair_point_ids: list[np.ndarray]  # per pair: the true point of each match
+
+
+def _poses(n: int, fps: float, speed: float, rng: np.random.Generator) -> tuple[np.ndarray, ...]:
+    """Times, (N, 4, 4) poses and a dense (time, centre) path for interpolating GPS truth."""
+    dt = 1.0 / fps
+    tt = np.arange(0.0, n / fps + 2.0, dt / 20)  # dense, from 0 (the first frame)
+    v = speed * (1.0 + 0.3 * np.sin(2 * np.pi * tt / 2.5))  # ±30 % speed
+    s = np.concatenate([[0.0], np.cumsum(0.5 * (v[1:] + v[:-1]) * np.diff(tt))])
+    heading = 30.0 + 25.0 * np.sin(s / 6.0)  # degrees, S-curve
+    b = np.radians(heading)
+    step = np.column_stack([np.sin(b), np.cos(b), np.zeros_like(b)])
+    pos = np.concatenate(
+        [[np.zeros(3)], np.cumsum(0.5 * (step[1:] + step[:-1]) * np.diff(s)[:, None], 0)]
+    )
+    pos[:, 2] = 1.0  # camera height above the flat road z = 0
+    t = np.arange(n) * dt
+    W = np.empty((n, 4, 4))
+    for i in range(n):
+        j = int(round(t[i] / (dt / 20)))
+        roll, pitch = np.radians(rng.normal(0, 0.3, 2))
+        W[i] = world_from_cam(heading[j], roll, pitch, pos[j])
+    return t, W, tt, pos
+
+
+def make_track_drive(
+    n: int = 50,
+    seed: int = 0,
+    fps: float = 20.0,
+    speed_mps: float = 4.0,
+    px_sigma: float = 0.2,
+    rot_noise_deg: float = 0.05,
+    trans_noise_m: float = 0.002,
+    scale_noise: float = 0.005,
+    gps_hz: float = 10.0,
+    gps_sigma_m: float = 0.02,
+    gps_latency_s: float = 0.0,
+    gps_outliers: dict[int, tuple[float, float]] | None = None,
+    density_per_m2: float = 250.0,
+) -> TrackDrive:
+    rng = np.random.default_rng(seed)
+    cam = camera(fps=fps)
+    t, W, tt, path = _poses(n, fps, speed_mps, rng)
+    # road points around the path (flat road z = 0)
+    lo = path[:, :2].min(0) - 1.0
+    hi = path[:, :2].max(0) + 1.0
+    npts = int(density_per_m2 * np.prod(hi - lo))
+    P = np.column_stack([rng.uniform(lo[0], hi[0], npts), rng.uniform(lo[1], hi[1], npts)])
+    d = np.min(np.linalg.norm(P[:, None, :] - path[None, ::20, :2], axis=2), axis=1)
+    P = P[d < 1.0]
+    pts = np.column_stack([P, np.zeros(len(P))])
+    # one keypoint per (frame, visible point)
+    kp: list[dict[int, np.ndarray]] = []
+    m = 3.0
+    for i in range(n):
+        Xc = (pts - W[i][:3, 3]) @ W[i][:3, :3]
+        uv = Xc[:, :2] / Xc[:, 2:3] * [cam.fx, cam.fy] + [cam.cx, cam.cy]
+        vis = (
+            (Xc[:, 2] > 0.1)
+            & (uv[:, 0] > m)
+            & (uv[:, 0] < cam.width - 1 - m)
+            & (uv[:, 1] > m)
+            & (uv[:, 1] < cam.height - 1 - m)
+        )
+        ids = np.flatnonzero(vis)
+        kp.append(
+            dict(zip(ids.tolist(), uv[ids] + rng.normal(0, px_sigma, (len(ids), 2)), strict=True))
+        )
+    pairs, pair_ids = [], []
+    for i in range(n - 1):
+        ids = np.array(sorted(set(kp[i]) & set(kp[i + 1])), int)
+        T = invert_pose(W[i + 1]) @ W[i]
+        k = 1.0 + rng.normal(0, scale_noise)
+        w = rng.normal(0, np.radians(rot_noise_deg), 3)
+        Rn = Rotation.from_rotvec(w).as_matrix() @ T[:3, :3]
+        tn = k * T[:3, 3] + rng.normal(0, trans_noise_m, 3)
+        Xa = k * ((pts[ids] - W[i][:3, 3]) @ W[i][:3, :3])
+        A = np.column_stack([Xa[:, 0], Xa[:, 1], np.ones(len(ids))])
+        plane, *_ = np.linalg.lstsq(A, Xa[:, 2], rcond=None)
+        pairs.append(
+            PairResult(
+                frame_a=f"{i:06d}.png",
+                frame_b=f"{i + 1:06d}.png",
+                index_a=i,
+                index_b=i + 1,
+                method="proposed",
+                status="ok",
+                points_cam_a_m=Xa,
+                px_a=np.array([kp[i][j] for j in ids]).reshape(-1, 2),
+                px_b=np.array([kp[i + 1][j] for j in ids]).reshape(-1, 2),
+                cov_m2=np.tile(np.eye(3) * 1e-8, (len(ids), 1, 1)),
+                plane_dist_m=np.zeros(len(ids)),
+                plane=plane,
+                R_b_from_a=Rn,
+                t_b_from_a_m=tn,
+                n_matches=len(ids),
+                n_inliers=len(ids),
+                match_idx=np.arange(len(ids)),
+            )
+        )
+        pair_ids.append(ids)
+    # GPS: a fix stamped tg is where the camera was at tg - latency
+    tg = np.arange(0.0, t[-1] + 1e-9, 1.0 / gps_hz)
+    true_g = np.column_stack([np.interp(tg - gps_latency_s, tt, path[:, k]) for k in range(3)])
+    meas = true_g + rng.normal(0, gps_sigma_m, true_g.shape)
+    for j, (de, dn) in (gps_outliers or {}).items():
+        meas[j, :2] += [de, dn]
+    lla = lla_from_enu(meas, REF)
+    gps = GpsTrack(
+        timestamp_s=tg, lat_deg=lla[:, 0], lon_deg=lla[:, 1], alt_m=lla[:, 2],
+        hdop=np.full(len(tg), np.nan),
+    )  # fmt: skip
+    root = Path("/nonexistent-synthetic-drive")
+    frames = [Frame(i, f"{i:06d}.png", root / f"{i:06d}.png", float(t[i])) for i in range(n)]
+    drive = Drive(root=root, camera=cam, frames=frames, gps=gps, obd=None)
+    return TrackDrive(drive, pairs, W, pts, pair_ids)

@@ -1,0 +1,62 @@
+"""Feature tracks chained from the pairs' matches (mapping.tracks) on a seeded synthetic drive
+whose frames share road points."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from roadsurf.mapping.tracks import build_tracks, thin_tracks
+from tests.mapping.bundle_synth import make_track_drive
+
+
+def _setup(n: int = 12):
+    syn = make_track_drive(n=n, seed=5, gps_hz=1.0)
+    pos_of = {i: i for i in range(n)}
+    return syn, pos_of
+
+
+def test_tracks_follow_one_road_point_across_frames() -> None:
+    syn, pos_of = _setup()
+    tr = build_tracks(syn.pairs, pos_of, syn.world_from_cam, tol_px=0.05, tol_m=0.05)
+    assert tr.n_inconsistent == 0
+    assert np.sum(tr.length >= 3) > 0.5 * tr.n_tracks  # most points are seen 3+ times here
+    # every observation of a track is the same true point: its world position agrees
+    d = np.linalg.norm(tr.point_w[:, None, :2] - syn.points_w[None, :, :2], axis=2)
+    nearest = d.argmin(1)
+    assert np.median(d.min(1)) < 0.01
+    for p, ids in zip(syn.pairs, syn.pair_point_ids, strict=True):
+        o = np.flatnonzero(tr.obs_frame == p.index_b)
+        got = nearest[tr.obs_track[o]]
+        # the track seen at this pixel in frame b belongs to the pair's true point there
+        pb = {tuple(np.round(x, 6)): j for x, j in zip(p.px_b, ids, strict=True)}
+        truth = np.array([pb.get(tuple(np.round(x, 6)), -1) for x in tr.obs_px[o]])
+        known = truth >= 0
+        assert np.mean(got[known] == truth[known]) > 0.98
+    # a track never has two observations in one frame
+    key = tr.obs_track * 1000 + tr.obs_frame
+    assert len(np.unique(key)) == len(key)
+
+
+def test_a_wrong_link_drops_the_track() -> None:
+    syn, pos_of = _setup()
+    clean = build_tracks(syn.pairs, pos_of, syn.world_from_cam, tol_m=0.02)
+    # one pair puts 5 of its points 10 cm off (a wrong match RANSAC kept)
+    p = syn.pairs[4]
+    p.points_cam_a_m = p.points_cam_a_m.copy()
+    p.points_cam_a_m[:5, 0] += 0.10
+    bad = build_tracks(syn.pairs, pos_of, syn.world_from_cam, tol_m=0.02)
+    assert 1 <= bad.n_inconsistent <= 5
+    assert bad.n_tracks == clean.n_tracks - bad.n_inconsistent
+
+
+def test_thinning_keeps_long_tracks_and_caps_two_view_ones() -> None:
+    syn, pos_of = _setup()
+    tr = build_tracks(syn.pairs, pos_of, syn.world_from_cam)
+    th = thin_tracks(tr, 5, (syn.drive.camera.width, syn.drive.camera.height))
+    assert np.sum(th.length >= 3) == np.sum(tr.length >= 3)
+    two = th.length == 2
+    first_frame = np.array([th.obs_frame[th.obs_track == k].min() for k in np.flatnonzero(two)])
+    assert np.bincount(first_frame).max() <= 5
+    # observations and points stay consistent after renumbering
+    assert th.obs_track.max() == th.n_tracks - 1
+    assert np.array_equal(np.bincount(th.obs_track), th.length)
