@@ -27,6 +27,7 @@ import math
 import threading
 import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -39,8 +40,10 @@ from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.raster import GridToEnu, TileLattice
 from roadsurf.mapping.surface import LocalSurface
 from roadsurf.mapping.types import Trajectory
-from roadsurf.reconstruction.dense.parallax import DenseHeight, dense_height
 from roadsurf.reconstruction.types import PairResult
+
+if TYPE_CHECKING:  # torch loads only when a dense surface is built (a sparse run never needs it)
+    from roadsurf.reconstruction.dense.parallax import DenseHeight
 
 log = logging.getLogger(__name__)
 
@@ -208,6 +211,8 @@ class DenseSurface:
         a, b = self.images.get(p.frame_a), self.images.get(p.frame_b)
         if a is None or b is None:
             return None
+        from roadsurf.reconstruction.dense.parallax import dense_height
+
         try:
             dh = dense_height(
                 a, b, self.cam, p.R_b_from_a, p.t_b_from_a_m, p.plane, p.H, self.cfg.dense
