@@ -3,13 +3,16 @@ stay flat in the number of frames; the target is a 3,000-frame drive within 20 %
 300-frame drive).
 
     python -m benchmarks.memory [--frames 300,3000] [--width PX] [--work DIR] [--pythonpath TREE]
+                                [--env NAME=VALUE ...]
 
 (``make bench-memory ARGS="..."``). Each drive of the ``long`` scenario is simulated once (reused
 when present) and run by ``python -m roadsurf run --overwrite`` in its own child process; the
 child's own peak RSS comes from ``os.wait4`` (its ``ru_maxrss``), so the lengths never mix.
 ``--width`` < 640 renders smaller images with the same road footprint (fx scales, no
 supersampling), which keeps long drives affordable on a small machine; every length then uses
-the same image size. ``--pythonpath`` runs another checkout (e.g. the commit before a fix).
+the same image size. ``--pythonpath`` runs another checkout (e.g. the commit before a fix);
+``--env`` sets variables for the child only (e.g. ``MALLOC_ARENA_MAX=2``, to compare malloc
+settings).
 """
 
 from __future__ import annotations
@@ -43,10 +46,12 @@ def simulate_drive(work: Path, frames: int, width: int, scenario: str = "long") 
     return drive
 
 
-def measure_run(drive: Path, out: Path, pythonpath: Path | None = None) -> dict[str, Any]:
-    """Run ``roadsurf run DRIVE --out OUT --overwrite`` in a child; its peak RSS (MB), wall
-    time (s) and exit code."""
-    env = dict(os.environ)
+def measure_run(
+    drive: Path, out: Path, pythonpath: Path | None = None, env_extra: dict[str, str] | None = None
+) -> dict[str, Any]:
+    """Run ``roadsurf run DRIVE --out OUT --overwrite`` in a child (with ``env_extra`` set);
+    its peak RSS (MB), wall time (s) and exit code."""
+    env = dict(os.environ) | dict(env_extra or {})
     cwd = None
     if pythonpath is not None:
         env["PYTHONPATH"] = str(Path(pythonpath).resolve())
@@ -77,6 +82,7 @@ def run_benchmark(
     frames: tuple[int, ...] = (300, 3000),
     width: int = 640,
     pythonpath: Path | None = None,
+    env_extra: dict[str, str] | None = None,
 ) -> dict[str, Any]:
     """Peak RSS per drive length, its ratio to the shortest drive, and a markdown table."""
     work = Path(work)
@@ -84,7 +90,7 @@ def run_benchmark(
     for n in frames:
         drive = simulate_drive(work, n, width)
         row: dict[str, Any] = {"frames": n, "image": f"{width}x{width * 3 // 4}"}
-        row |= measure_run(drive, work / f"run_{drive.name}", pythonpath)
+        row |= measure_run(drive, work / f"run_{drive.name}", pythonpath, env_extra)
         rows.append(row)
         log.info("%d frames: %s", n, row)
     base = rows[0]["peak_rss_mb"] if rows else float("nan")
@@ -104,6 +110,7 @@ def run_benchmark(
         "ratio_longest_to_shortest": ratio,
         "within_20_percent": bool(ratio <= 1.2),
         "pythonpath": str(pythonpath) if pythonpath is not None else None,
+        "env": dict(env_extra or {}),
         "markdown": "\n".join(lines) + "\n",
     }
 
@@ -120,11 +127,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", default="300,3000", help="comma-separated drive lengths")
     ap.add_argument("--width", type=int, default=640, help="image width of the drives (px)")
     ap.add_argument("--pythonpath", type=Path, default=None, help="run another checkout")
+    ap.add_argument(
+        "--env", action="append", default=[], metavar="NAME=VALUE",
+        help="environment variable for the runs (repeatable), e.g. MALLOC_ARENA_MAX=2",
+    )  # fmt: skip
     ap.add_argument("--json", type=Path, default=None, help="result file (default results/)")
     a = ap.parse_args(argv)
+    bad = [e for e in a.env if "=" not in e or not e.split("=", 1)[0]]
+    if bad:
+        ap.error(f"--env takes NAME=VALUE, got {bad[0]!r}")
+    env_extra = dict(e.split("=", 1) for e in a.env)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     frames = tuple(int(f) for f in a.frames.split(","))
-    res = run_benchmark(a.work, frames, a.width, a.pythonpath)
+    res = run_benchmark(a.work, frames, a.width, a.pythonpath, env_extra)
     print(res["markdown"])
     print(
         f"longest / shortest: {res['ratio_longest_to_shortest']:.2f}x "
