@@ -203,9 +203,7 @@ def serve(
     web_port = web_port or free_port()
     grpc_port = grpc_port or free_port()
     cmd = [
-        sys.executable,
-        "-m",
-        "rerun",
+        *_server_command(),
         "--serve-web",
         "--bind",
         "127.0.0.1",
@@ -218,7 +216,13 @@ def serve(
     errlog = tempfile.TemporaryFile()  # a pipe nobody reads would block the server
     # own process group: `python -m rerun` runs the viewer binary as a child, and stopping
     # must reach that child too
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=errlog, start_new_session=True)
+    proc = subprocess.Popen(
+        cmd,
+        stdout=subprocess.DEVNULL,
+        stderr=errlog,
+        start_new_session=True,
+        preexec_fn=_end_with_parent(),  # noqa: PLW1509 (no lock is taken: prctl only)
+    )
     try:
         _wait_ready(proc, errlog, web_port, grpc_port, wait_ready_s)
     except BaseException:  # also Ctrl-C / SIGTERM while it starts: never leave it running
@@ -227,6 +231,44 @@ def serve(
     url = viewer_url(web_port, grpc_port)
     log.info("web viewer at %s", url)
     return ViewResult("serve", res.rrd, res.counts, url=url, missing=res.missing, server=proc)
+
+
+def _server_command() -> list[str]:
+    """The Rerun server binary itself where rerun-sdk ships it (so the kernel can end it with
+    this process, ``_end_with_parent``), else ``python -m rerun`` (a wrapper that runs it)."""
+    try:
+        import rerun_cli
+
+        exe = Path(rerun_cli.__file__).parent / ("rerun.exe" if os.name == "nt" else "rerun")
+        if exe.is_file() and os.access(exe, os.X_OK):
+            return [str(exe)]
+    except ImportError:
+        pass
+    return [sys.executable, "-m", "rerun"]
+
+
+def _end_with_parent() -> Callable[[], None] | None:
+    """A pre-exec hook that asks Linux to send the server SIGTERM when this process dies, even
+    by SIGKILL (no handler runs then, and a server in its own session would outlive it, holding
+    its ports). None where prctl is missing."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        prctl = libc.prctl
+    except (OSError, AttributeError):
+        return None
+    parent = os.getpid()
+    pr_set_pdeathsig = 1
+
+    def hook() -> None:
+        prctl(pr_set_pdeathsig, int(signal.SIGTERM), 0, 0, 0)
+        if os.getppid() != parent:  # the parent died before the request took effect
+            os._exit(1)
+
+    return hook
 
 
 def _wait_ready(

@@ -116,3 +116,37 @@ def test_sigterm_ends_the_rerun_server_and_its_process_group(bare_run: Path) -> 
     assert "Traceback" not in stderr, stderr[-3000:]
     assert len([ln for ln in stderr.splitlines() if ln.startswith("stopped:")]) == 1, stderr
     assert wait_until(lambda: not group_members(pgid), 10.0), "the Rerun server outlived view"
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
+def test_kill_9_of_view_ends_the_rerun_server(bare_run: Path) -> None:
+    """No handler runs on SIGKILL; the kernel must end the server (it holds the ports)."""
+    cmd = [sys.executable, "-m", "roadsurf", "view", str(bare_run), "--serve"]
+    cmd += ["--web-port", "0", "--grpc-port", "0", "--overwrite"]
+    proc = subprocess.Popen(
+        cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True
+    )
+    ready = threading.Event()
+
+    def read_stdout() -> None:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            if line.startswith("Web viewer:"):
+                ready.set()
+
+    threading.Thread(target=read_stdout, daemon=True).start()
+    pgid = None
+    try:
+        assert wait_until(ready.is_set, 60.0), "the web viewer did not start"
+        servers = [c for c in children(proc.pid) if "rerun" in cmdline(c)]
+        assert len(servers) == 1
+        pgid = os.getpgid(servers[0])
+        proc.kill()
+        proc.wait(timeout=30)
+        assert wait_until(lambda: not group_members(pgid), 15.0), "the server outlived kill -9"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        if pgid is not None and group_members(pgid):
+            os.killpg(pgid, signal.SIGKILL)
