@@ -30,6 +30,7 @@ class PlaneFitConfig:
     max_depth_m: float = 0.25  # points further below the plane are mismatches, not defects (m)
 
     # valid values (interval notation; see roadsurf.core.config)
+    ORDER: ClassVar[tuple[tuple[str, str], ...]] = (("depth_threshold_m", "max_depth_m"),)
     RANGES: ClassVar[dict[str, str]] = {
         "depth_threshold_m": "[0, 1]; a T_d above 1 m is a unit mistake (mm typed as m?)",
         "noise_k": "[0, inf)",
@@ -114,6 +115,7 @@ class CrackConfig:
     link_m: float = 0.08  # samples closer than this on the map are one crack (m)
     join_m: float = 0.2  # confirmed cracks closer than this are joined into one (m)
 
+    ORDER: ClassVar[tuple[tuple[str, str], ...]] = (("line_m", "line_long_m"),)
     RANGES: ClassVar[dict[str, str]] = {
         "tophat_m": "(0, 1]; a top-hat disc above 1 m is a unit mistake",
         "line_m": "(0, inf)",
@@ -186,6 +188,12 @@ class SeverityConfig:
     rut_depth_high_m: float = 0.025  # ASTM D6433 rutting: high > 25 mm (m)
 
     # band edges above 1 m are unit mistakes (mm typed as m?)
+    ORDER: ClassVar[tuple[tuple[str, str], ...]] = (
+        ("depth_low_m", "depth_high_m"),
+        ("diameter_small_m", "diameter_large_m"),
+        ("crack_width_low_m", "crack_width_high_m"),
+        ("rut_depth_low_m", "rut_depth_high_m"),
+    )
     RANGES: ClassVar[dict[str, str]] = {
         "depth_low_m": "(0, 1]",
         "depth_high_m": "(0, 1]",
@@ -232,6 +240,7 @@ class MapSegmentConfig:
     frame_depth_m: float = 0.010  # frame label: deeper than this counts (m); truth uses 10 mm
     frame_min_area_m2: float = 0.002  # frame label: footprint holds at least this deep area (m²)
 
+    ORDER: ClassVar[tuple[tuple[str, str], ...]] = (("rim_threshold_m", "depth_threshold_m"),)
     RANGES: ClassVar[dict[str, str]] = {
         "depth_threshold_m": "[0, 1]; a T_d above 1 m is a unit mistake (mm typed as m?)",
         "noise_k": "[0, inf)",
@@ -308,6 +317,7 @@ class RutConfig:
     # report ruts at least this deep (m): ASTM D6433 rates rutting low from 6 mm (1/4 in)
     min_depth_m: float = 0.006
 
+    ORDER: ClassVar[tuple[tuple[str, str], ...]] = (("min_width_m", "max_width_m"),)
     RANGES: ClassVar[dict[str, str]] = {
         "straightedge_m": "(0, inf)",
         "strip_m": "(0, inf)",

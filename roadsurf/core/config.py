@@ -21,6 +21,12 @@ element) must have a range (a test checks every config class). ``from_dict`` and
 ``load_yaml_config`` check every value they are given, after type coercion, and raise one-line
 ``ConfigError``s naming the file, the dotted key, the value and the range. NaN and infinities are
 never valid.
+
+Fields that only make sense in one order (a severity band's low and high edge, a minimum and a
+maximum) are declared in ``ORDER: ClassVar[tuple[tuple[str, str], ...]]``: each ``(a, b)``
+requires ``a < b`` (a value set that inverts them would silently swap the classes or select
+nothing). The check runs after the ranges, on the built object, so a YAML that sets only one of
+the two is judged against the other's default; the error names both keys and values.
 """
 
 from __future__ import annotations
@@ -205,7 +211,25 @@ def _build(cls: type[T], data: Any, source: str, prefix: str) -> T:
         if rng is not None:
             _check(rng, coerced, value, source, dotted, fields[key])
         kwargs[key] = coerced
-    return cls(**kwargs)
+    obj = cls(**kwargs)
+    _check_order(obj, source, prefix, given=set(data))
+    return obj
+
+
+def _check_order(obj: Any, source: str, prefix: str, given: set[str] | None = None) -> None:
+    """Raise ConfigError when a pair of ``ORDER`` is not strictly increasing. The error names
+    the key the user set (of the two), else the first."""
+    for a, b in getattr(type(obj), "ORDER", ()):
+        va, vb = getattr(obj, a), getattr(obj, b)
+        if va is None or vb is None or va < vb:
+            continue
+        key = b if given is not None and b in given and a not in given else a
+        raise _KeyedConfigError(
+            source,
+            prefix + key,
+            f"{a} = {_short(va)} must be below {b} = {_short(vb)} "
+            "(they bound one interval); change one of them",
+        )
 
 
 def _check(rng: Range, value: Any, raw: Any, source: str, key: str, fld: dataclasses.Field) -> None:
@@ -239,6 +263,7 @@ def _check_obj(obj: Any, source: str, prefix: str) -> None:
             _check_obj(value, source, f"{prefix}{fld.name}.")
         elif fld.name in ranges:
             _check(ranges[fld.name], value, value, source, prefix + fld.name, fld)
+    _check_order(obj, source, prefix)
 
 
 def _short(value: Any, limit: int = 60) -> str:

@@ -269,3 +269,48 @@ def test_yaml_syntax_error_is_one_line(tmp_path):
     assert "\n" not in str(err.value) and re.match(
         rf"{re.escape(str(p))} line \d+: ", str(err.value)
     )
+
+
+def test_order_pairs_name_real_fields():
+    """Every ORDER pair names two fields of its class (a typo would silently check nothing)."""
+    n = 0
+    for cls in _config_classes():
+        names = {f.name for f in dataclasses.fields(cls)}
+        for a, b in getattr(cls, "ORDER", ()):
+            assert a in names and b in names, f"{cls.__name__}: ORDER ({a}, {b})"
+            n += 1
+    assert n >= 8
+
+
+@pytest.mark.parametrize(
+    ("text", "key", "other"),
+    [
+        (
+            "detection:\n  severity:\n    depth_low_m: 0.06\n",
+            "severity.depth_low_m",
+            "depth_high_m",
+        ),
+        (
+            "detection:\n  severity:\n    depth_high_m: 0.02\n",
+            "severity.depth_high_m",
+            "depth_low_m",
+        ),
+        ("detection:\n  rut:\n    min_width_m: 2.0\n", "rut.min_width_m", "max_width_m"),
+    ],
+)
+def test_inverted_interval_names_both_keys_and_the_line(tmp_path, text, key, other):
+    p = _write(tmp_path, text)
+    with pytest.raises(ConfigError) as e:
+        load_pipeline_config(p)
+    msg = str(e.value)
+    assert str(p) in msg and key in msg and other in msg and "\n" not in msg, msg
+    assert ":3" in msg or "line 3" in msg, msg
+
+
+def test_order_is_checked_on_built_objects_too():
+    import dataclasses as dc
+
+    from roadsurf.detection.config import SeverityConfig
+
+    with pytest.raises(ConfigError, match="depth_low_m"):
+        check_ranges(dc.replace(SeverityConfig(), depth_low_m=0.1))
