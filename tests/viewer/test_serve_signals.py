@@ -34,6 +34,40 @@ def group_members(pgid: int) -> list[int]:
     return out
 
 
+def start_serving(run: Path, stderr: int = subprocess.PIPE) -> tuple[subprocess.Popen[str], int]:
+    """`roadsurf view RUN --serve` in a child; returns it and its Rerun server's process group once
+    the web viewer is up (the server runs in its own group)."""
+    cmd = [sys.executable, "-m", "roadsurf", "view", str(run), "--serve"]
+    cmd += ["--web-port", "0", "--grpc-port", "0", "--overwrite"]
+    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=stderr, text=True)
+    ready = threading.Event()
+
+    def read_stdout() -> None:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            if line.startswith("Web viewer:"):
+                ready.set()
+
+    threading.Thread(target=read_stdout, daemon=True).start()
+    try:
+        assert wait_until(ready.is_set, 60.0), "the web viewer did not start"
+        servers = [c for c in children(proc.pid) if "rerun" in cmdline(c)]
+        assert len(servers) == 1
+        return proc, os.getpgid(servers[0])
+    except BaseException:
+        proc.kill()
+        proc.wait()
+        raise
+
+
+def stop_all(proc: subprocess.Popen[str], pgid: int | None) -> None:
+    if proc.poll() is None:
+        proc.kill()
+        proc.wait()
+    if pgid is not None and group_members(pgid):
+        os.killpg(pgid, signal.SIGKILL)
+
+
 @pytest.fixture()
 def bare_run(tmp_path: Path) -> Path:
     """A run folder with only its report (everything else is optional to the viewer)."""
@@ -81,37 +115,15 @@ def test_serve_never_overwrites_a_recording(bare_run: Path) -> None:
     reason="needs SIGTERM and /proc",
 )
 def test_sigterm_ends_the_rerun_server_and_its_process_group(bare_run: Path) -> None:
-    cmd = [sys.executable, "-m", "roadsurf", "view", str(bare_run), "--serve"]
-    cmd += ["--web-port", "0", "--grpc-port", "0", "--overwrite"]
-    proc = subprocess.Popen(
-        cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
-    )
-    ready = threading.Event()
-
-    def read_stdout() -> None:
-        assert proc.stdout is not None
-        for line in proc.stdout:
-            if line.startswith("Web viewer:"):
-                ready.set()
-
-    threading.Thread(target=read_stdout, daemon=True).start()
-    pgid = None
+    proc, pgid = start_serving(bare_run)
     try:
-        assert wait_until(ready.is_set, 60.0), "the web viewer did not start"
-        servers = [c for c in children(proc.pid) if "rerun" in cmdline(c)]
-        assert len(servers) == 1
-        pgid = os.getpgid(servers[0])
         assert pgid != os.getpgid(proc.pid) and group_members(pgid)
         proc.send_signal(signal.SIGTERM)
         assert proc.stderr is not None
         stderr = proc.stderr.read()
         proc.wait(timeout=30)
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-        if pgid is not None and group_members(pgid):
-            os.killpg(pgid, signal.SIGKILL)
+        stop_all(proc, pgid)
     assert proc.returncode != 0
     assert "Traceback" not in stderr, stderr[-3000:]
     assert len([ln for ln in stderr.splitlines() if ln.startswith("stopped:")]) == 1, stderr
@@ -121,32 +133,10 @@ def test_sigterm_ends_the_rerun_server_and_its_process_group(bare_run: Path) -> 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
 def test_kill_9_of_view_ends_the_rerun_server(bare_run: Path) -> None:
     """No handler runs on SIGKILL; the kernel must end the server (it holds the ports)."""
-    cmd = [sys.executable, "-m", "roadsurf", "view", str(bare_run), "--serve"]
-    cmd += ["--web-port", "0", "--grpc-port", "0", "--overwrite"]
-    proc = subprocess.Popen(
-        cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True
-    )
-    ready = threading.Event()
-
-    def read_stdout() -> None:
-        assert proc.stdout is not None
-        for line in proc.stdout:
-            if line.startswith("Web viewer:"):
-                ready.set()
-
-    threading.Thread(target=read_stdout, daemon=True).start()
-    pgid = None
+    proc, pgid = start_serving(bare_run, stderr=subprocess.DEVNULL)
     try:
-        assert wait_until(ready.is_set, 60.0), "the web viewer did not start"
-        servers = [c for c in children(proc.pid) if "rerun" in cmdline(c)]
-        assert len(servers) == 1
-        pgid = os.getpgid(servers[0])
         proc.kill()
         proc.wait(timeout=30)
         assert wait_until(lambda: not group_members(pgid), 15.0), "the server outlived kill -9"
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-        if pgid is not None and group_members(pgid):
-            os.killpg(pgid, signal.SIGKILL)
+        stop_all(proc, pgid)
