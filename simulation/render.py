@@ -163,8 +163,9 @@ class Renderer:
                 t = (self.world.base(xy[:, 0], xy[:, 1]) - pose.C[2]) / d[:, 2]
         return pose.C[:2] + t[:, None] * d[:, :2]
 
-    def _border_rays(self, pose: Pose) -> np.ndarray:
-        """(16, 3) world directions (camera z = 1) through the image border's pixel edges."""
+    def _border_px(self) -> tuple[np.ndarray, np.ndarray]:
+        """(16,) raw rows v and (16, 2) normalised camera coordinates of the image border's
+        pixel edges (four per side, clockwise from the top-left corner)."""
         c = self.world.cfg
         f = np.linspace(0.0, 1.0, 4, endpoint=False)
         w, h = c.width - 0.5, c.height - 0.5
@@ -173,6 +174,11 @@ class Renderer:
         n = self.camera.normalised_from_raw_px(
             np.column_stack([u, v]), criteria=RENDER_UNDISTORT_CRITERIA
         )
+        return v, n
+
+    def _border_rays(self, pose: Pose) -> np.ndarray:
+        """(16, 3) world directions (camera z = 1) through the image border's pixel edges."""
+        _, n = self._border_px()
         return np.column_stack([n, np.ones(len(n))]) @ pose.R.T
 
     def row_poses(self, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
@@ -196,13 +202,7 @@ class Renderer:
         """Rolling shutter: (16, 3) centres and (16, 3) world directions of the border rays
         of ``_border_rays``, each from its own row's pose."""
         c = self.world.cfg
-        f = np.linspace(0.0, 1.0, 4, endpoint=False)
-        w, h = c.width - 0.5, c.height - 0.5
-        u = np.concatenate([-0.5 + f * c.width, np.full(4, w), w - f * c.width, np.full(4, -0.5)])
-        v = np.concatenate([np.full(4, -0.5), -0.5 + f * c.height, np.full(4, h), h - f * c.height])
-        n = self.camera.normalised_from_raw_px(
-            np.column_stack([u, v]), criteria=RENDER_UNDISTORT_CRITERIA
-        )
+        v, n = self._border_px()
         poses = [self.world.pose(pose.t + c.readout_s * vi / c.height) for vi in v]
         d = np.array([p.R @ np.append(ni, 1.0) for p, ni in zip(poses, n, strict=True)])
         return np.array([p.C for p in poses]), d
