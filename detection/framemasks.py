@@ -30,6 +30,7 @@ import numpy as np
 
 from roadsurf.core.camera import Camera
 from roadsurf.core.fits import robust_plane_z
+from roadsurf.core.rolling import frame_motion, raw_px_from_world
 from roadsurf.detection.mapframe import MapFrame
 from roadsurf.mapping.types import Trajectory
 from roadsurf.reconstruction.types import PairResult
@@ -116,6 +117,11 @@ def road_planes(
     return out
 
 
+def motion_of(traj: Trajectory, i: int) -> tuple[np.ndarray, np.ndarray]:
+    """Frame i's linear (m/s) and angular (rad/s) velocity in ENU, for a rolling shutter."""
+    return frame_motion(traj.world_from_cam, traj.timestamp_s, i, traj.segment)
+
+
 class FrameProjector:
     """Projects grid-frame cells into one frame's raw image (see the module docstring)."""
 
@@ -125,9 +131,13 @@ class FrameProjector:
         world_from_cam: np.ndarray,
         plane: np.ndarray | None,
         mframe: MapFrame,
+        motion: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> None:
         self.camera = camera
+        # rolling shutter: the frame's velocity (m/s) and angular velocity (rad/s) in ENU
+        self.motion = motion if camera.readout_s > 0 else None
         T = np.asarray(world_from_cam, float)
+        self.T = T
         self.R, self.C = T[:3, :3], T[:3, 3]
         # Without the frame's own road points: the road height_m below the camera centre (the
         # footprints' rule)
@@ -157,7 +167,10 @@ class FrameProjector:
             nx, ny = X[:, 0] / X[:, 2], X[:, 1] / X[:, 2]
         ok = (X[:, 2] > 1e-6) & (nx >= self._nlo[0]) & (nx <= self._nhi[0])
         ok &= (ny >= self._nlo[1]) & (ny <= self._nhi[1])
-        u, v = self.camera.project(X)
+        if self.motion is None:
+            u, v = self.camera.project(X)
+        else:  # each row has its own pose (the frame's is its first row's)
+            u, v = raw_px_from_world(self.camera, np.c_[xy, z], self.T, *self.motion)
         uv = np.c_[u, v]
         ok &= np.all(np.isfinite(uv), axis=1)
         return uv, ok
@@ -212,7 +225,9 @@ def frame_views(
         near = _near(boxes, None if fp is None else fp.buffer(0.5).bounds)
         area, seen = 0.0, []
         if near:
-            proj = FrameProjector(camera, traj.world_from_cam[i], planes.get(fn), mframe)
+            proj = FrameProjector(
+                camera, traj.world_from_cam[i], planes.get(fn), mframe, motion_of(traj, i)
+            )
             for j in near:
                 c = cells[j]
                 n_deep = int(proj.inside(c.deep_xy_m).sum())
@@ -244,10 +259,12 @@ def frame_mask(
     plane: np.ndarray | None,
     mframe: MapFrame,
     cells: list[DefectCells],
+    motion: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
-    """(H, W) bool mask of the given defects' cells seen by one frame."""
+    """(H, W) bool mask of the given defects' cells seen by one frame (``motion``: its
+    velocity and angular velocity for a rolling shutter, ``motion_of``)."""
     mask = np.zeros((camera.height, camera.width), np.uint8)
-    proj = FrameProjector(camera, world_from_cam, plane, mframe)
+    proj = FrameProjector(camera, world_from_cam, plane, mframe, motion)
     for c in cells:
         proj.draw(mask, np.vstack([c.mask_xy_m, c.deep_xy_m]), c.gsd_m)
     return mask.astype(bool)
@@ -274,7 +291,7 @@ def write_frame_masks(
         if view.defects:
             mask = frame_mask(
                 camera, traj.world_from_cam[idx[fn]], planes.get(fn), mframe,
-                [cells[j] for j in view.defects],
+                [cells[j] for j in view.defects], motion_of(traj, idx[fn]),
             )  # fmt: skip
             for j in view.defects:
                 shown.setdefault(j, []).append(fn)

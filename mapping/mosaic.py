@@ -11,6 +11,7 @@ import numpy as np
 from roadsurf.core.camera import Camera
 from roadsurf.core.errors import FrameReadError
 from roadsurf.core.parallel import SharedCache
+from roadsurf.core.rolling import frame_motion, raw_px_from_world
 from roadsurf.io.drive import Frame, read_image
 from roadsurf.io.formats import GridSpec
 from roadsurf.mapping.config import MappingConfig
@@ -102,9 +103,12 @@ def mosaic_tile(
         zz = z[sl]
         zz = np.where(np.isfinite(zz), zz, road_z[i])
         W = traj.world_from_cam[i]
-        X = np.stack([e[sl] - W[0, 3], n[sl] - W[1, 3], zz - W[2, 3]], axis=-1)
-        Xc = X @ W[:3, :3]  # R^T (X - c), row-vector form
-        u, v = cam.project(Xc)
+        if cam.readout_s > 0:  # each row has its own pose: the frame's is its first row's
+            vel, om = frame_motion(traj.world_from_cam, traj.timestamp_s, i, traj.segment)
+            u, v = raw_px_from_world(cam, np.stack([e[sl], n[sl], zz], axis=-1), W, vel, om)
+        else:
+            X = np.stack([e[sl] - W[0, 3], n[sl] - W[1, 3], zz - W[2, 3]], axis=-1)
+            u, v = cam.project(X @ W[:3, :3])  # R^T (X - c), row-vector form
         d = np.minimum.reduce(
             [u - border, cam.width - 1 - border - u, v - border, cam.height - 1 - border - v]
         )
