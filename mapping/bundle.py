@@ -35,7 +35,7 @@ from roadsurf.mapping.bundle_problem import WindowData, WindowProblem
 from roadsurf.mapping.bundle_reduced import ReducedProblem
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.pose_gps import GpsFixes, interp_weights
-from roadsurf.mapping.tracks import Tracks, build_tracks, thin_tracks
+from roadsurf.mapping.tracks import Tracks, build_tracks, thin_tracks, triangulate_w
 
 if TYPE_CHECKING:
     from roadsurf.reconstruction.types import PairResult
@@ -92,6 +92,7 @@ def refine_poses(
         # to lagging fixes has already bent towards them
         loose, _ = _sweep(cfg, drive, t, world, 10.0 * gps_scale, *rest, 0.0)
         tau, se = _fit_time_offset(loose, t, gps, used, gps_scale, cfg)
+        se = max(se, _time_offset_bound_s(world, t, gps, used, gps_scale))
         report["time_offset_se_s"] = se
         if abs(tau) <= max(MIN_OFFSET_S, 3.0 * se):
             tau = 0.0  # not significant
@@ -212,18 +213,62 @@ def _fit_time_offset(
         return float(taus[i]), float("inf")
     tau = float(taus[i] + 0.5e-3 * (c0 - c2) / (c0 - 2 * c1 + c2))
     dof = max(int(sel.sum()) * 2 - 3, 1)
-    se = float(np.sqrt(2.0 / curv * max(c1 / dof, 1.0)))
+    # the residuals are not independent: a GPS receiver's slow bias and the trajectory's own
+    # drift run along the drive. With lag-one autocorrelation rho (AR(1)) the fixes count as
+    # n (1 - rho) / (1 + rho) independent ones; without this an RTK drive at constant speed read
+    # -66 ms +- 4 ms where the truth trajectory itself gives -66 +- 29 ms (no latency simulated)
+    tq = np.clip(tg - taus[i], t[0], t[-1])
+    pred = np.column_stack([np.interp(tq, t, C[:, k]) for k in range(2)])
+    res = _rigid_residual(pred, g, w, residuals=True)
+    rho = _lag1_correlation(res)
+    inflate = (1.0 + rho) / max(1.0 - rho, 1e-3)
+    se = float(np.sqrt(2.0 / curv * max(c1 / dof, 1.0) * inflate))
     return tau, se
 
 
-def _rigid_residual(a: np.ndarray, b: np.ndarray, w: np.ndarray) -> float:
-    """Weighted squared residual of 2D points a against b after the best rotation + shift."""
+def _time_offset_bound_s(
+    world: np.ndarray, t: np.ndarray, gps: GpsFixes, used: np.ndarray, gps_scale: float
+) -> float:
+    """Smallest standard error (s) the fixes allow for τ, whatever trajectory it is fitted to.
+
+    With the placement free (vision gives none), a time offset is seen only through the change
+    of velocity: the Fisher information is Σ w ||v_i - v̄||² (v at the fix times from the pose
+    graph, w = 1/σ²). On a drive at constant speed it is ~0 and τ stays unknown, however well a
+    vision-shaped trajectory's own wobble seems to pin it."""
+    sel = used & (gps.t_s >= t[0]) & (gps.t_s <= t[-1])
+    if sel.sum() < 3 or len(t) < 2:
+        return float("inf")
+    C = world[:, :2, 3]
+    v_fr = np.gradient(C, t, axis=0)
+    v = np.column_stack([np.interp(gps.t_s[sel], t, v_fr[:, k]) for k in range(2)])
+    w = 1.0 / (gps.sigma_m[sel] * gps_scale) ** 2
+    vbar = np.sum(w[:, None] * v, 0) / np.sum(w)
+    info = float(np.sum(w * np.sum((v - vbar) ** 2, 1)))
+    return float("inf") if info <= 0 else 1.0 / math.sqrt(info)
+
+
+def _lag1_correlation(res: np.ndarray) -> float:
+    """Lag-one autocorrelation (clipped to [0, 0.99]) of (G, 2) residuals in time order."""
+    if len(res) < 4:
+        return 0.0
+    r = res - res.mean(0)
+    den = float(np.sum(r**2))
+    if den <= 0:
+        return 0.0
+    return float(np.clip(np.sum(r[1:] * r[:-1]) / den, 0.0, 0.99))
+
+
+def _rigid_residual(a: np.ndarray, b: np.ndarray, w: np.ndarray, residuals: bool = False) -> Any:
+    """Weighted squared residual of 2D points a against b after the best rotation + shift
+    (float), or with residuals=True the whitened (G, 2) residuals."""
     ca = np.sum(w[:, None] * a, 0) / np.sum(w)
     cb = np.sum(w[:, None] * b, 0) / np.sum(w)
     A, B = a - ca, b - cb
     U, _, Vt = np.linalg.svd((w[:, None] * A).T @ B)
     D = np.diag([1.0, np.sign(np.linalg.det(U @ Vt))])
     R = (U @ D @ Vt).T
+    if residuals:
+        return np.sqrt(w)[:, None] * (A @ R.T - B)
     return float(np.sum(w[:, None] * (A @ R.T - B) ** 2))
 
 
@@ -275,7 +320,12 @@ def _solve_window(
     if not free.any():
         return None
     R0, C0 = cur[s:e, :3, :3].copy(), cur[s:e, :3, 3].copy()
-    planes0 = _initial_planes(R0, C0, pts[tr_ids], obs_f, obs_p, plane_nominal)
+    # the points start where the window's current poses see them (a point placed by other poses
+    # sits centimetres off after the previous window moved its frames, and the robust loss then
+    # treats its reprojections as outliers)
+    X0, tri_ok = triangulate_w(obs_p, tracks.obs_px[o], R0[obs_f], C0[obs_f], K, len(tr_ids))
+    X0[~tri_ok] = pts[tr_ids][~tri_ok]
+    planes0 = _initial_planes(R0, C0, X0, obs_f, obs_p, plane_nominal)
     # consecutive frames tied by too few tracks: the current relative motion as a prior
     shared = np.zeros(max(F - 1, 0), int)
     for i in range(F - 1):
@@ -312,7 +362,7 @@ def _solve_window(
         obs_f=obs_f,
         obs_p=obs_p,
         obs_px=tracks.obs_px[o],
-        X0=pts[tr_ids].copy(),
+        X0=X0,
         gps_t=gps_t,
         gps_enu=gps_enu,
         gps_sigma=gps_sig,

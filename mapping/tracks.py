@@ -166,3 +166,60 @@ def thin_tracks(
             taken[fr[i]] += 1
             keep[two[i]] = True
     return tracks.subset(keep)
+
+
+def triangulate_w(
+    obs_p: np.ndarray,
+    obs_px: np.ndarray,
+    R_world_from_cam: np.ndarray,
+    C_world_m: np.ndarray,
+    K: np.ndarray,
+    n_points: int,
+    *,
+    steps: int = 3,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Points (P, 3) in the world from their observations, and a (P,) bool: well posed.
+
+    obs_p: (M,) point of each observation; obs_px: (M, 2) ideal pixels; R_world_from_cam:
+    (M, 3, 3) and C_world_m: (M, 3) the observing camera's rotation and centre (m); K: (3, 3).
+    The rays' least-squares meeting point (midpoint), then ``steps`` Gauss-Newton steps on the
+    reprojection error alone (no prior): the bundle adjustment's points must start where the
+    current poses see them, not where another pose estimate put them."""
+    Kinv = np.linalg.inv(K)
+    ray_c = np.column_stack([obs_px, np.ones(len(obs_px))]) @ Kinv.T
+    d = np.einsum("mij,mj->mi", R_world_from_cam, ray_c)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    A_o = np.eye(3)[None] - d[:, :, None] * d[:, None, :]  # (M, 3, 3) projector off the ray
+    A = np.zeros((n_points, 3, 3))
+    b = np.zeros((n_points, 3))
+    np.add.at(A, obs_p, A_o)
+    np.add.at(b, obs_p, np.einsum("mij,mj->mi", A_o, C_world_m))
+    # well posed: the smallest eigenvalue of Σ(I - d dᵀ) is the rays' spread (sin² of parallax)
+    ok = np.linalg.eigvalsh(A)[:, 0] > 1e-6
+    A[~ok] += np.eye(3)
+    X = np.linalg.solve(A, b[..., None])[..., 0]
+    fx, fy = K[0, 0], K[1, 1]
+    for _ in range(steps):
+        v = X[obs_p] - C_world_m
+        Xc = np.einsum("mji,mj->mi", R_world_from_cam, v)
+        z = np.maximum(Xc[:, 2], 1e-6)
+        r = np.column_stack(
+            [fx * Xc[:, 0] / z + K[0, 2] - obs_px[:, 0], fy * Xc[:, 1] / z + K[1, 2] - obs_px[:, 1]]
+        )
+        zero = np.zeros(len(z))
+        Jc = np.stack(
+            [
+                np.column_stack([fx / z, zero, -fx * Xc[:, 0] / z**2]),
+                np.column_stack([zero, fy / z, -fy * Xc[:, 1] / z**2]),
+            ],
+            axis=1,
+        )  # (M, 2, 3) d(pixel)/d(Xc)
+        J = np.einsum("mki,mji->mkj", Jc, R_world_from_cam)  # d(pixel)/d(X world)
+        H = np.zeros((n_points, 3, 3))
+        g = np.zeros((n_points, 3))
+        np.add.at(H, obs_p, np.einsum("mki,mkj->mij", J, J))
+        np.add.at(g, obs_p, np.einsum("mki,mk->mi", J, r))
+        H[~ok] += np.eye(3)
+        H += 1e-9 * np.eye(3)
+        X = X - np.linalg.solve(H, g[..., None])[..., 0]
+    return X, ok

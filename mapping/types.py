@@ -134,6 +134,10 @@ class PoseReport:
     checks: dict[str, Any] = field(default_factory=dict)
     vertical_datum: str = ""
     mount: dict[str, Any] = field(default_factory=dict)  # mapping.mount.Mount.to_dict()
+    # bundle adjustment's figures (mapping.bundle.refine_poses; issue 30): tracks, windows,
+    # reprojection RMS before/after (px), GPS time offset (s) and rejected fixes, time (s);
+    # empty when bundle adjustment is off
+    bundle: dict[str, Any] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)

@@ -30,11 +30,13 @@ class TrackDrive:
     pair_point_ids: list[np.ndarray]  # per pair: the true point of each match
 
 
-def _poses(n: int, fps: float, speed: float, rng: np.random.Generator) -> tuple[np.ndarray, ...]:
+def _poses(
+    n: int, fps: float, speed: float, rng: np.random.Generator, speed_variation: float = 0.3
+) -> tuple[np.ndarray, ...]:
     """Times, (N, 4, 4) poses and a dense (time, centre) path for interpolating GPS truth."""
     dt = 1.0 / fps
     tt = np.arange(0.0, n / fps + 2.0, dt / 20)  # dense, from 0 (the first frame)
-    v = speed * (1.0 + 0.3 * np.sin(2 * np.pi * tt / 2.5))  # ±30 % speed
+    v = speed * (1.0 + speed_variation * np.sin(2 * np.pi * tt / 2.5))  # ±30 % speed
     s = np.concatenate([[0.0], np.cumsum(0.5 * (v[1:] + v[:-1]) * np.diff(tt))])
     heading = 30.0 + 25.0 * np.sin(s / 6.0)  # degrees, S-curve
     b = np.radians(heading)
@@ -65,11 +67,13 @@ def make_track_drive(
     gps_sigma_m: float = 0.02,
     gps_latency_s: float = 0.0,
     gps_outliers: dict[int, tuple[float, float]] | None = None,
-    density_per_m2: float = 250.0,
+    density_per_m2: float = 120.0,
+    speed_variation: float = 0.3,
+    width_px: int = 160,
 ) -> TrackDrive:
     rng = np.random.default_rng(seed)
-    cam = camera(fps=fps)
-    t, W, tt, path = _poses(n, fps, speed_mps, rng)
+    cam = camera(width=width_px, height=width_px * 3 // 4, fps=fps)
+    t, W, tt, path = _poses(n, fps, speed_mps, rng, speed_variation)
     # road points around the path (flat road z = 0)
     lo = path[:, :2].min(0) - 1.0
     hi = path[:, :2].max(0) + 1.0

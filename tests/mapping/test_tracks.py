@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from roadsurf.mapping.tracks import build_tracks, thin_tracks
+from roadsurf.mapping.tracks import build_tracks, thin_tracks, triangulate_w
 from tests.mapping.bundle_synth import make_track_drive
 
 
@@ -60,3 +60,28 @@ def test_thinning_keeps_long_tracks_and_caps_two_view_ones() -> None:
     # observations and points stay consistent after renumbering
     assert th.obs_track.max() == th.n_tracks - 1
     assert np.array_equal(np.bincount(th.obs_track), th.length)
+
+
+def test_points_are_triangulated_from_the_given_poses() -> None:
+    # the bundle's points start where its current poses see them: with the true poses the
+    # true points (keypoint noise 0.2 px on a 640 px image), not the pairs' points (scale 0.5 %
+    # off each: ~5 mm at 1 m)
+    syn = make_track_drive(n=12, seed=5, gps_hz=1.0, width_px=640, density_per_m2=60)
+    pos_of = {i: i for i in range(12)}
+    tr = build_tracks(syn.pairs, pos_of, syn.world_from_cam, tol_px=0.05, tol_m=0.05)
+    tr = tr.subset(tr.length >= 3)
+    W = syn.world_from_cam[tr.obs_frame]
+    cam = syn.drive.camera
+    K = np.array([[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1.0]])
+    X, ok = triangulate_w(tr.obs_track, tr.obs_px, W[:, :3, :3], W[:, :3, 3], K, tr.n_tracks)
+    assert ok.all()
+    d = np.linalg.norm(X[:, None, :] - syn.points_w[None], axis=2).min(1)
+    assert np.median(d) < 0.002, np.median(d)
+    d_pairs = np.linalg.norm(tr.point_w[:, None, :] - syn.points_w[None], axis=2).min(1)
+    assert np.median(d) < 0.5 * np.median(d_pairs)
+    assert np.median(np.abs(X[:, 2])) < 0.002  # on the road z = 0
+    # a ray pair that never parts (one observation twice) is not well posed
+    _, ok1 = triangulate_w(
+        np.array([0, 0]), tr.obs_px[[0, 0]], W[[0, 0], :3, :3], W[[0, 0], :3, 3], K, 1
+    )
+    assert not ok1[0]
