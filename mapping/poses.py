@@ -181,10 +181,9 @@ def estimate_trajectory(
     if cfg.bundle_adjust:  # issue 30: the pose graph's poses are the initial guess
         from roadsurf.mapping.bundle import refine_poses
 
-        world, bundle = refine_poses(
+        world, rep.bundle = refine_poses(
             cfg, drive, t, world, ok_pairs, pos_of, gps, problem.gps_used, R_vc
         )
-        rep.bundle = bundle  # type: ignore[attr-defined]  # PoseReport has no field yet
 
     # ---------------------------------------------------------------- plausibility
     if gps is not None:
