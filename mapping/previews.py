@@ -1,5 +1,5 @@
-"""PNG previews of the whole corridor: the downsampled mosaic and the colour-mapped residual
-surface, filled tile by tile (bounded size)."""
+"""PNG previews of the corridor: the downsampled mosaic and the colour-mapped residual surface,
+filled tile by tile (bounded size) and cropped to the observed data when written."""
 
 from __future__ import annotations
 
@@ -48,16 +48,31 @@ class Previews:
         fin = np.isfinite(rr)
         self.res[r0 : r0 + hh, c0 : c0 + ww][fin] = rr[fin]
 
+    def observed_box(self, margin: int = 4) -> tuple[slice, slice]:
+        """Rows and columns of the previews that hold data (mosaic or surface), with a margin:
+        the corridor's grid can be far larger than what a short drive saw."""
+        has = self.mos.any(axis=2) | np.isfinite(self.res)
+        if not has.any():
+            return slice(0, self.h), slice(0, self.w)
+        rows, cols = np.flatnonzero(has.any(axis=1)), np.flatnonzero(has.any(axis=0))
+        return (
+            slice(max(rows[0] - margin, 0), min(rows[-1] + margin + 1, self.h)),
+            slice(max(cols[0] - margin, 0), min(cols[-1] + margin + 1, self.w)),
+        )
+
     def write(self, run_dir: Path) -> None:
+        """Both PNGs, cropped to the observed data (``observed_box``)."""
         from matplotlib import colormaps
 
+        box = self.observed_box()
+        mos, res = self.mos[box], self.res[box]
         with atomic_path(run_dir / rf.MOSAIC_PREVIEW) as tmp:
-            cv2.imwrite(str(tmp), cv2.cvtColor(self.mos, cv2.COLOR_RGB2BGR))
-        fin = np.isfinite(self.res)
+            cv2.imwrite(str(tmp), cv2.cvtColor(mos, cv2.COLOR_RGB2BGR))
+        fin = np.isfinite(res)
         lim = 0.005
         if fin.any():
-            lim = max(lim, float(np.percentile(np.abs(self.res[fin]), 99.5)))
-        rgba = colormaps["RdBu"](np.clip(np.nan_to_num(self.res) / (2 * lim) + 0.5, 0, 1))
+            lim = max(lim, float(np.percentile(np.abs(res[fin]), 99.5)))
+        rgba = colormaps["RdBu"](np.clip(np.nan_to_num(res) / (2 * lim) + 0.5, 0, 1))
         img = (rgba[..., :3] * 255).astype(np.uint8)
         img[~fin] = 235
         label = f"residual height: red {-lim * 1000:.0f} mm (below) .. blue +{lim * 1000:.0f} mm"
