@@ -46,7 +46,7 @@ from roadsurf.mapping.plausibility import CHECKS_VERSION, check, make_chains
 from roadsurf.mapping.pose_gps import gps_enu, interp_weights
 from roadsurf.mapping.pose_graph import PoseGraph
 from roadsurf.mapping.pose_init import chain, initial_poses, segments
-from roadsurf.mapping.separate import separate_segments
+from roadsurf.mapping.separate import keep_apart, segment_has_gps
 from roadsurf.mapping.types import PoseReport, Trajectory, load_trajectory, save_trajectory
 
 if TYPE_CHECKING:
@@ -162,22 +162,10 @@ def estimate_trajectory(
     # ---------------------------------------------------------------- robust fusion
     problem = PoseGraph(cfg, t, init, ok_pairs, pos_of, gps, drive, comp, R_vc)
     world = problem.solve(rep)
-    apart = {
-        pos_of[p.index_b]
-        for p in pairs
-        if p.status == "no_overlap" and p.index_a in pos_of and p.index_b in pos_of
-    }
-    apart = {i for i in apart if i > 0 and segment[i] != segment[i - 1]}
-    if apart:
-        world, moved = separate_segments(world, segment, apart, drive.camera)
-        if moved:
-            msg = (
-                f"{len(moved)} segment(s) start where the images share no ground (no_overlap) "
-                "and were laid over ground already mapped; moved apart so the map does not fuse "
-                "different stretches (their placement is a guess)"
-            )
-            log.warning("poses: %s", msg)
-            rep.warnings.append(msg)
+    has_gps = segment_has_gps(segment, t, None if gps is None else gps.t_s)
+    names = [f.filename for f in frames]
+    world, warns = keep_apart(world, segment, pairs, pos_of, drive.camera, names, has_gps=has_gps)
+    rep.warnings += warns
     if cfg.bundle_adjust:  # issue 30: the pose graph's poses are the initial guess
         from roadsurf.mapping.bundle import refine_poses
 

@@ -33,17 +33,20 @@ def reconstruct_matches(
     cfg: ReconstructionConfig,
     *,
     frame_dt_s: float | None = None,
+    road_normal_cam: np.ndarray | None = None,
 ) -> PairResult:
     """Matched raw pixels (N, 2) in a and b -> metric PairResult (undistorted when needed).
 
-    A known mount (``camera.mount_deg``) tells the estimators where the road's normal is. With
+    A known mount (``camera.mount_deg``) tells the estimators where the road's normal is;
+    road_normal_cam ((3,), downward, camera coordinates) overrides it (the drive's consensus
+    normal, ``reconstruction.consensus``). With
     a rolling shutter (``camera.readout_s`` > 0, ``cfg.rolling_shutter``) each observation is
     moved to its frame's timestamp (``reconstruction.rolling_shutter``); frame_dt_s = the
     timestamp of b minus that of a (s), None = 1 / ``camera.fps``."""
     pa = camera.undistort_px(px_a)
     pb = camera.undistort_px(px_b)
     size = (camera.width, camera.height)
-    normal = road_normal_in_cam(camera)
+    normal = road_normal_in_cam(camera) if road_normal_cam is None else road_normal_cam
     if camera.readout_s > 0 and cfg.rolling_shutter:
         dt = 1.0 / camera.fps if frame_dt_s is None else float(frame_dt_s)
         rows_a = np.asarray(px_a, float).reshape(-1, 2)[:, 1]  # raw rows: the sensor's order
@@ -80,9 +83,10 @@ def reconstruct_features(
     cfg: ReconstructionConfig,
     *,
     frame_dt_s: float | None = None,
+    road_normal_cam: np.ndarray | None = None,
 ) -> PairResult:
     """Match two frames' features and reconstruct. Fills counts and the matching time.
-    frame_dt_s: as ``reconstruct_matches`` (used with a rolling shutter only)."""
+    frame_dt_s, road_normal_cam: as ``reconstruct_matches``."""
     na, nb = len(fa.keypoints_px), len(fb.keypoints_px)
     if min(na, nb) < cfg.min_features:
         res = PairResult("", "", -1, -1, cfg.method, "too_few_features")
@@ -103,10 +107,30 @@ def reconstruct_features(
         )
     else:
         res = reconstruct_matches(
-            fa.keypoints_px[ia], fb.keypoints_px[ib], camera, cfg, frame_dt_s=frame_dt_s
+            fa.keypoints_px[ia],
+            fb.keypoints_px[ib],
+            camera,
+            cfg,
+            frame_dt_s=frame_dt_s,
+            road_normal_cam=road_normal_cam,
         )
         if res.ok and res.n_points >= 3:
             _check_overlap(res, camera, cfg)
+        elif (
+            res.status == "too_few_matches"
+            and cfg.motion_prior
+            and 0 < len(ia)
+            and res.n_prior_inliers < cfg.min_matches
+        ):
+            # the same evidence as too few matches at all: of the ratio-test matches, fewer
+            # than min_matches move like one road (the rest are chance matches between two
+            # textured frames); a blurred frame gives too few keypoints or matches instead
+            res.status = "no_overlap"
+            res.reason = (
+                f"only {res.n_prior_inliers} of {len(ia)} mutual ratio-test matches agree with "
+                f"one motion of the road (motion prior; < min_matches={cfg.min_matches}): the "
+                "views probably do not overlap"
+            )
     res.n_features_a, res.n_features_b = na, nb
     res.n_matches = int(len(ia))
     res.timings_s["matching"] = t_match

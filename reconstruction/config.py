@@ -142,6 +142,9 @@ class ReconstructionConfig:
     min_parallax_deg: float = 0.0  # drop points with less triangulation angle (deg); 0 = keep
     stereo_baseline_m: float = 0.2  # stereo baseline B (m), dissertation Fig. 3.12
     min_overlap: float = 0.1  # matched area share of image a below this -> no_overlap (0-1)
+    normal_consensus: bool = True  # after all pairs: re-solve pairs whose road normal is far
+    # from the drive's (camera.yaml mount, else the pairs' majority) when their other homography
+    # decomposition is near it, fail those with none near (reconstruction.consensus)
     rolling_shutter: bool = True  # move each observation to its frame's timestamp when the
     # camera has a rolling shutter (Camera.readout_s > 0; reconstruction.rolling_shutter);
     # False treats every camera as a global shutter

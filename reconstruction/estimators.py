@@ -122,7 +122,9 @@ def _estimate(
     method = cfg.method
     keep = np.ones(n, dtype=bool)
     if cfg.motion_prior and method in ("proposed", "rotation_aware"):
-        keep = motion_prior_mask(px_a, px_b, cfg, model=prior_model(cfg))
+        keep = motion_prior_mask(
+            px_a, px_b, cfg, model=prior_model(cfg), K=K, road_normal_cam=road_normal_cam
+        )
     res.rejected_px_a, res.rejected_px_b = px_a[~keep], px_b[~keep]
     res.n_prior_inliers = int(keep.sum())
     t1 = time.perf_counter()

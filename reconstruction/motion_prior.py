@@ -9,6 +9,7 @@ import numpy as np
 
 from roadsurf.core.fits import MAD_TO_SIGMA
 from roadsurf.reconstruction.config import PriorModel, ReconstructionConfig
+from roadsurf.reconstruction.pose_planar import plane_solutions
 
 MIN_H_MATCHES = 12  # fewer matches: no homography window, the affine one is used instead
 
@@ -20,6 +21,8 @@ def motion_prior_mask(
     *,
     affine: bool = False,
     model: PriorModel | None = None,
+    K: np.ndarray | None = None,
+    road_normal_cam: np.ndarray | None = None,
 ) -> np.ndarray:
     """Motion-prior mismatch rejection (eq. 4.2-4.7): keep d inside d̄ ± λ·σ_d per axis.
 
@@ -37,7 +40,15 @@ def motion_prior_mask(
       at the window's floor and refitted on its window. A tilted camera moving forward sees
       the road's displacement grow several-fold from the top of the image to the bottom (a
       perspective field no affine map follows). Falls back to "affine" with fewer than
-      ``MIN_H_MATCHES`` matches or no homography.
+      ``MIN_H_MATCHES`` matches or no homography. With the intrinsics K the floor's share
+      applies to the displacement the camera's translation causes, not to the whole one:
+      relief parallax scales with the translation (∝ |t| δ / Z²), while a turn moves every
+      pixel without revealing depth. A hand-held camera turned 40° between shots moved the
+      road 42 px in the median but its translation 0.26 m (spd2 18-19): a 6 px window cut a
+      20 mm pothole's 17-24 px parallax. The translation's displacement is |π(H x) − π(K R
+      K⁻¹ x)| with R from the decomposition the road priors prefer (``road_normal_cam`` as
+      in ``pose_planar.plane_solutions``); the floor only grows, so a camera that does not
+      turn keeps its window.
 
     Every model keeps the same λ·MAD half-width and floor around its d̄.
     """
@@ -48,18 +59,25 @@ def motion_prior_mask(
     med = np.median(d, axis=0)
     floor = max(cfg.prior_min_halfwidth_px, cfg.prior_min_halfwidth_frac * float(np.hypot(*med)))
 
-    def window(r: np.ndarray) -> np.ndarray:
+    def window(r: np.ndarray, fl: float = floor) -> np.ndarray:
         c = np.median(r, axis=0)
         mad = MAD_TO_SIGMA * np.median(np.abs(r - c), axis=0)
-        return np.all(np.abs(r - c) <= np.maximum(cfg.lambda_prior * mad, floor), axis=1)
+        return np.all(np.abs(r - c) <= np.maximum(cfg.lambda_prior * mad, fl), axis=1)
 
     keep = window(d)
     if model == "mean":
         return keep
     if model == "homography":
-        keep_h = _homography_window(px_a, px_b, floor, window, cfg.h_ransac_iters)
-        if keep_h is not None:
-            return keep_h
+        fit = _homography_window(px_a, px_b, floor, window, cfg.h_ransac_iters)
+        if fit is not None and K is not None:
+            keep_h, H, pred = fit
+            f_t = cfg.prior_min_halfwidth_frac * _translation_flow_px(
+                px_a[keep_h], H, K, road_normal_cam
+            )
+            if f_t > floor:  # the same plane, a window as wide as the translation allows
+                return window(px_b - pred, f_t)
+        if fit is not None:
+            return fit[0]
     # Centred, scaled coordinates keep the 3-column least squares well conditioned.
     s = float(np.std(px_a)) + 1e-12
     A = np.column_stack([(px_a - px_a.mean(axis=0)) / s, np.ones(len(px_a))])
@@ -71,14 +89,33 @@ def motion_prior_mask(
     return keep
 
 
+def _translation_flow_px(
+    px_a: np.ndarray, H: np.ndarray, K: np.ndarray, road_normal_cam: np.ndarray | None
+) -> float:
+    """Median displacement (px) that the camera's translation causes on the road plane:
+    |π(H x) − π(K R K⁻¹ x)| over the pixels px_a (N, 2) of image a, H (3, 3) the road
+    homography and R its preferred decomposition's rotation. 0 when there is none."""
+    a = px_a.astype(np.float64)
+    sols = plane_solutions(a, H, K, road_normal_cam)
+    if not sols:
+        return 0.0
+    Hr = K @ sols[0][0] @ np.linalg.inv(K)
+    ph = cv2.perspectiveTransform(a.reshape(-1, 1, 2), H).reshape(-1, 2)
+    pr = cv2.perspectiveTransform(a.reshape(-1, 1, 2), Hr).reshape(-1, 2)
+    d = np.linalg.norm(ph - pr, axis=1)
+    d = d[np.isfinite(d)]
+    return float(np.median(d)) if len(d) else 0.0
+
+
 def _homography_window(
     px_a: np.ndarray,
     px_b: np.ndarray,
     floor: float,
     window: Callable[[np.ndarray], np.ndarray],
     iters: int,
-) -> np.ndarray | None:
-    """Window around the homography-predicted displacement, or None (too few / no model)."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """(window mask (N,), homography (3, 3), predicted pixels in b (N, 2)) around the
+    homography-predicted displacement, or None (too few / no model)."""
     if len(px_a) < MIN_H_MATCHES:
         return None
     a, b = px_a.astype(np.float64), px_b.astype(np.float64)
@@ -101,4 +138,4 @@ def _homography_window(
         if new.sum() < MIN_H_MATCHES:
             return None
         keep = new
-    return keep
+    return keep, H, pred

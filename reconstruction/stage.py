@@ -9,6 +9,12 @@ Artifacts (atomic writes, resumable):
   ``<index_a>_<index_b>.fingerprint`` (``pair_fingerprint``: the settings that shape a pair, the
   camera and both image files). A pair is reused only when that fingerprint still matches.
 A failed pair is a PairResult with status != "ok"; nothing here raises for bad frames.
+
+After all pairs (``cfg.normal_consensus``, proposed/rotation_aware): the road normal consensus
+(``reconstruction.consensus``) re-solves the pairs whose homography decomposition took the
+mirror solution, with the drive's normal (camera.yaml's mount, else the pairs' majority) as the
+prior, and fails those it cannot make consistent. With ``only_pairs`` the consensus is over the
+pairs of that call.
 """
 
 from __future__ import annotations
@@ -20,6 +26,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict
 from pathlib import Path
 
+import numpy as np
 from tqdm import tqdm
 
 from roadsurf.core.atomic import write_text_atomic
@@ -28,8 +35,9 @@ from roadsurf.core.errors import FrameReadError, OutputError
 from roadsurf.core.fingerprint import Fingerprint
 from roadsurf.io.drive import Drive, Frame, read_gray
 from roadsurf.io.runfolder import RunFolder, feature_filename, fingerprint_path, read_fingerprint
+from roadsurf.reconstruction import consensus
 from roadsurf.reconstruction import features as feat
-from roadsurf.reconstruction.api import reconstruct_features
+from roadsurf.reconstruction.api import reconstruct_features, road_normal_in_cam
 from roadsurf.reconstruction.config import ReconstructionConfig
 from roadsurf.reconstruction.types import Features, PairResult, load_pair, save_pair
 
@@ -197,6 +205,8 @@ def run(
             save_pair(path, res)
             write_text_atomic(fingerprint_path(path), fingerprints[key] + "\n")
             results.append(res)
+        if cfg.normal_consensus and cfg.method in ("proposed", "rotation_aware"):
+            _normal_consensus(cfg, drive, cache, results, rf, fingerprints)
     finally:
         cache.close()
     counts = Counter(r.status for r in results)
@@ -206,15 +216,52 @@ def run(
     return results
 
 
+def _normal_consensus(
+    cfg: ReconstructionConfig,
+    drive: Drive,
+    cache: _FeatureCache,
+    results: list[PairResult],
+    rf: RunFolder,
+    fingerprints: dict[tuple[int, int], str],
+) -> None:
+    """Re-decide, in place, the pairs whose road normal is far from the drive's consensus
+    (``reconstruction.consensus``): re-solved with the consensus normal as the prior, or failed
+    with the reason. Changed pairs are saved again under the same fingerprint: a resumed run
+    loads the re-decided pair, and the consensus, recomputed, keeps it."""
+    by_index = {f.index: f for f in drive.frames}
+
+    def resolve(i: int, normal: np.ndarray) -> PairResult:
+        r = results[i]
+        return _one_pair(
+            cfg, drive, cache, by_index[r.index_a], by_index[r.index_b], road_normal_cam=normal
+        )
+
+    _, changed = consensus.apply(results, drive.camera.K, road_normal_in_cam(drive.camera), resolve)
+    for i in changed:
+        key = (results[i].index_a, results[i].index_b)
+        path = rf.pair(*key)
+        fingerprint_path(path).unlink(missing_ok=True)
+        save_pair(path, results[i])
+        write_text_atomic(fingerprint_path(path), fingerprints[key] + "\n")
+
+
 def _one_pair(
-    cfg: ReconstructionConfig, drive: Drive, cache: _FeatureCache, a: Frame, b: Frame
+    cfg: ReconstructionConfig,
+    drive: Drive,
+    cache: _FeatureCache,
+    a: Frame,
+    b: Frame,
+    *,
+    road_normal_cam: np.ndarray | None = None,
 ) -> PairResult:
     try:
         fa, sa = cache.get(a)
         fb, sb = cache.get(b)
         t_feat = sa + sb
         dt = b.timestamp_s - a.timestamp_s  # the rolling shutter's frame interval
-        res = reconstruct_features(fa, fb, drive.camera, cfg, frame_dt_s=dt)
+        res = reconstruct_features(
+            fa, fb, drive.camera, cfg, frame_dt_s=dt, road_normal_cam=road_normal_cam
+        )
         res.timings_s["features"] = t_feat
     except FrameReadError as e:
         res = PairResult(a.filename, b.filename, a.index, b.index, cfg.method, "unreadable_frame")
