@@ -58,7 +58,7 @@ def test_run_writes_the_output_contract(sample_run) -> None:
         assert (out / name).is_file() and (out / name).stat().st_size > 0, name
     rep = json.loads((out / "report.json").read_text())
     truth_crs = json.loads((drive / "truth" / "scenario.json").read_text())["crs"]
-    assert rep["crs"] == truth_crs
+    assert rep["crs"] == truth_crs and rep["coordinates"].startswith(f"georeferenced: {truth_crs}")
     assert rep["counts"]["frames"] == N_FRAMES
     assert rep["counts"]["pairs_ok"] >= N_FRAMES - 2
     assert {"drive", "reconstruction", "poses", "globalmap", "total"} <= set(rep["timings_s"])

@@ -446,6 +446,12 @@ def _build_report(
         "drive": str(Path(drive.root).resolve()),
         "method": method,
         "crs": ef.crs if ef is not None else None,
+        # without GPS every output is in a local metric frame, never lon/lat
+        "coordinates": (
+            f"georeferenced: {ef.crs} (UTM metres), GeoJSON in WGS84 lon/lat"
+            if ef is not None
+            else "local ENU metres (no GPS: not georeferenced; no lon/lat is written)"
+        ),
         # the datum of every absolute height (cloud.ply z, trajectory heights); residuals and
         # defect depths are relative to the local road surface
         "vertical_datum": vertical_datum(cfg.mapping, drive, ef is not None),

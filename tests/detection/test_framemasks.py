@@ -98,6 +98,35 @@ def test_projector_rejects_points_behind_and_beyond_the_lens():
     assert proj.inside(np.array([[0.0, 0.0]])).all()
 
 
+def test_projector_uses_each_row_s_pose_with_a_rolling_shutter():
+    """With readout_s and the frame's motion the cells land where core.rolling puts them (the
+    row that exposed them); without a readout the motion is ignored."""
+    import dataclasses
+
+    from roadsurf.core.rolling import raw_px_from_world
+
+    cam = Camera(
+        width=160, height=120, fx=150.0, fy=150.0, cx=79.5, cy=59.5, height_m=1.0, fps=30,
+        readout_s=0.02,
+    )  # fmt: skip
+    T = world_from_cam(0.0, position_enu_m=np.array([0.0, 0.0, 1.0]))
+    mf = MapFrame.create(None)
+    motion = (np.array([0.0, 25.0, 0.0]), np.zeros(3))
+    xy = np.array([[0.1, 0.2], [-0.2, -0.1], [0.0, 0.3]])
+    uv, ok = FrameProjector(cam, T, None, mf, motion).project(xy)
+    enu = mf.enu_from_grid(xy)
+    u, v = raw_px_from_world(cam, np.c_[enu, np.zeros(len(enu))], T, *motion)
+    assert ok.all()
+    np.testing.assert_allclose(uv, np.c_[u, v], atol=1e-9)
+    still, _ = FrameProjector(cam, T, None, mf).project(xy)
+    assert np.abs(still - uv).max() > 5.0  # 0.5 m during readout: tens of pixels
+    gs = dataclasses.replace(cam, readout_s=0.0)
+    np.testing.assert_array_equal(
+        FrameProjector(gs, T, None, mf, motion).project(xy)[0],
+        FrameProjector(gs, T, None, mf).project(xy)[0],
+    )
+
+
 def test_every_frame_of_an_ok_pair_gets_a_mask_that_agrees_with_labels_and_defects(tmp_path):
     """Frames a and b of every ok pair get a mask; a defect frame's mask is not empty and shows
     the defects that list it; a frame no defect lists has an empty mask. The pothole's mask
