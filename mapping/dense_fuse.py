@@ -222,8 +222,14 @@ class DenseSurface:
             return None
         W = self.traj.world_from_cam[self.pose_a[k]]
         R, C = W[:3, :3], W[:3, 3]
-        X, _ = dh.points_cam_a()
-        Xw = X[:: max(1, len(X) // 20000)] @ R.T + C
+        # about 20,000 of the valid pixels level the pair
+        vv, uu = np.nonzero(dh.valid)
+        sel = slice(None, None, max(1, len(vv) // 20000))
+        vv, uu = vv[sel], uu[sel]
+        X = dh.model.points_cam_a(
+            dh.height_m[vv, uu].astype(float), uu.astype(float), vv.astype(float)
+        )
+        Xw = X @ R.T + C
         if self.cfg.dense_reference == "pair_plane":
             r = Xw[:, 2]
         else:
@@ -321,34 +327,48 @@ class DenseSurface:
         else:
             zs = _surface_height(self.surf, e, n, grid.gsd_m)
         dh, R, C = pdn.dh, pdn.R_wc, pdn.C
-        K = dh.model.K
+        K, nrm, ha = dh.model.K, dh.model.n, dh.model.h_a
         z = np.where(np.isfinite(zs), zs, C[2] - self.cam.height_m)
+        # camera-a coordinates of the cell at height z + r: the horizontal part is fixed, only
+        # the third row of R moves with the height (X = Rᵀ (P - C))
+        X0 = (e - C[0]) * R[0, 0] + (n - C[1]) * R[1, 0]
+        X1 = (e - C[0]) * R[0, 1] + (n - C[1]) * R[1, 1]
+        X2 = (e - C[0]) * R[0, 2] + (n - C[1]) * R[1, 2]
+        # a pixel's ray r = K⁻¹ (u, v, 1) reaches height η above the pair's plane at depth
+        # (h_a - η) / n·r, i.e. at ENU height C_z + (h_a - η) (R₂·r) / (n·r): both dot products
+        # are linear in u, v
+        Ki = np.linalg.inv(K)
+        a = R[2] @ Ki
+        b = nrm @ Ki
         r = np.zeros_like(z)
         for _ in range(FIXED_POINT_STEPS):
-            X = np.stack([e - C[0], n - C[1], z + r - C[2]], -1) @ R  # camera a
+            dz = z + r - C[2]
+            Z = X2 + dz * R[2, 2]
             with np.errstate(invalid="ignore", divide="ignore"):
-                Z = np.where(X[..., 2] > 1e-6, X[..., 2], np.nan)
-                u = K[0, 0] * X[..., 0] / Z + K[0, 2]
-                v = K[1, 1] * X[..., 1] / Z + K[1, 2]
+                Z = np.where(Z > 1e-6, Z, np.nan)
+                u = K[0, 0] * (X0 + dz * R[2, 0]) / Z + K[0, 2]
+                v = K[1, 1] * (X1 + dz * R[2, 1]) / Z + K[1, 2]
             uf = np.nan_to_num(u, nan=-10).astype(np.float32)
             vf = np.nan_to_num(v, nan=-10).astype(np.float32)
             eta = cv2.remap(pdn.height_filled, uf, vf, cv2.INTER_LINEAR, borderValue=0)
-            P = dh.model.points_cam_a(eta.astype(float), u, v) @ R.T + C
-            r = P[..., 2] - z
+            with np.errstate(invalid="ignore", divide="ignore"):
+                pz = C[2] + (ha - eta) * (a[0] * u + a[1] * v + a[2]) / (b[0] * u + b[1] * v + b[2])
+            r = pz - z
         ok = cv2.remap(pdn.valid_f, uf, vf, cv2.INTER_LINEAR, borderValue=0) >= 0.999
         ok &= np.isfinite(zs) & np.isfinite(r)
         if not ok.any():
             return None
-        var = cv2.remap(pdn.var, uf, vf, cv2.INTER_LINEAR, borderValue=0).astype(float)
+        rows, cols = np.nonzero(ok)
+        u, v, Z = u[ok], v[ok], Z[ok]
+        var = cv2.remap(pdn.var, uf, vf, cv2.INTER_LINEAR, borderValue=0)[ok].astype(float)
         # ground footprint of the pixel vs the cell: a coarser view weighs less
-        ray = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
+        rx, ry = (u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1]
         with np.errstate(invalid="ignore", divide="ignore"):
-            cos = np.abs(ray @ dh.model.n) / np.linalg.norm(ray, axis=-1)
+            cos = np.abs(rx * nrm[0] + ry * nrm[1] + nrm[2]) / np.sqrt(rx * rx + ry * ry + 1.0)
             foot = Z / K[0, 0] / np.sqrt(np.maximum(cos, 0.1))
         var = var * np.maximum(1.0, (foot / grid.gsd_m) ** 2)
-        rows, cols = np.nonzero(ok)
         cell = (rows + r0) * grid.width + (cols + c0)
-        return cell, (r - lev)[ok], var[ok]
+        return cell, (r - lev)[ok], var
 
 
 def _surface_height(surf: LocalSurface, e: np.ndarray, n: np.ndarray, gsd: float) -> np.ndarray:

@@ -79,6 +79,14 @@ class PlaneParallax:
         Hm = S @ self.H @ np.linalg.inv(S)
         return PlaneParallax(K, self.n, self.h_a, self.h_b, self.C_b, Hm / Hm[2, 2], K @ self.C_b)
 
+    def cropped(self, c0: int, r0: int) -> PlaneParallax:
+        """The same model on the sub-grid whose pixel (0, 0) is this grid's (c0, r0) (a crop:
+        u' = u - c0, v' = v - r0)."""
+        T = np.array([[1.0, 0.0, -c0], [0.0, 1.0, -r0], [0.0, 0.0, 1.0]])
+        K = T @ self.K
+        Hm = T @ self.H @ np.linalg.inv(T)
+        return PlaneParallax(K, self.n, self.h_a, self.h_b, self.C_b, Hm / Hm[2, 2], K @ self.C_b)
+
     # ------------------------------------------------------------------ per pixel
     def direction(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Unit epipolar direction (ŵx, ŵy) of positive height and |w| at pixels u, v (any

@@ -154,10 +154,29 @@ def dense_height(
     ppw = pp.scaled(s) if s != 1.0 else pp
     A, B, mA, mB = _resample(img_a, img_b, camera, pp.H, s)
     timings = {"resample": time.perf_counter() - t0}
+    hf, wf = A.shape
+    shift_full = np.full((hf, wf), np.nan, np.float32)
+    ncc_full = np.full((hf, wf), np.nan, np.float32)
+    height_full = np.full((hf, wf), np.nan, np.float32)
+    var_full = np.full((hf, wf), np.nan, np.float32)
+    valid_full = np.zeros((hf, wf), bool)
+    crop = _overlap_crop(ppw, mB, cfg)
+    if crop is None:  # image b sees none of image a's road
+        timings["total"] = time.perf_counter() - t0
+        return DenseHeight(
+            height_full, var_full, valid_full, shift_full, ncc_full, ppw, s,
+            {k: round(v, 4) for k, v in timings.items()},
+        )  # fmt: skip
+    r0, r1, c0, c1 = crop
+    # only the part of image a that image b sees (with the parallax's reach) is matched: its
+    # own sub-grid and model (u' = u - c0, v' = v - r0)
+    A, B, mA, mB = (x[r0:r1, c0:c1] for x in (A, B, mA, mB))
+    ppc = ppw.cropped(c0, r0) if (r0, c0) != (0, 0) else ppw
+    ss = min(1.0, max(float(cfg.sweep_scale), cfg.sweep_min_px / min(hf, wf)))
     h, w = A.shape
     v_np, u_np = np.mgrid[0:h, 0:w].astype(np.float64)
-    wx_np, wy_np, nw_np = ppw.direction(u_np, v_np)
-    nr_np = ppw.n_dot_ray(u_np, v_np)
+    wx_np, wy_np, nw_np = ppc.direction(u_np, v_np)
+    nr_np = ppc.n_dot_ray(u_np, v_np)
 
     def t_(x: np.ndarray) -> torch.Tensor:
         return torch.as_tensor(np.ascontiguousarray(x), dtype=torch.float32, device=dev)[None, None]
@@ -167,9 +186,9 @@ def dense_height(
         mAt, mBt = t_(mA.astype(np.float32)), t_(mB.astype(np.float32))
         wx, wy, nw, nr = t_(wx_np), t_(wy_np), t_(nw_np), t_(nr_np)
         t1 = time.perf_counter()
-        s_fwd = _init(cfg, At, Bt, mBt, ppw, wx, wy, nw, nr, A, B, reverse=False)
+        s_fwd = _init(cfg, At, Bt, mBt, ppc, wx, wy, nw, nr, A, B, ss, reverse=False)
         s_rev = (
-            _init(cfg, Bt, At, mAt, ppw, wx, wy, nw, nr, B, A, reverse=True)
+            _init(cfg, Bt, At, mAt, ppc, wx, wy, nw, nr, B, A, ss, reverse=True)
             if cfg.lr_check
             else None
         )
@@ -178,7 +197,8 @@ def dense_height(
         fwd = refine(At, Bt, mBt, wx, wy, s_fwd, win, cfg.refine_iters, cfg.noise_dn)
         ok = _checks(cfg, fwd, At, mAt, t_(A), t_(B), mBt, wx, wy, win)
         if s_rev is not None:
-            rev = refine(Bt, At, mAt, wx, wy, s_rev, win, cfg.refine_iters, cfg.noise_dn)
+            it_rev = cfg.refine_iters if cfg.lr_refine_iters < 0 else cfg.lr_refine_iters
+            rev = refine(Bt, At, mAt, wx, wy, s_rev, win, it_rev, cfg.noise_dn)
             ys, xs = torch.meshgrid(
                 torch.arange(h, device=dev, dtype=torch.float32),
                 torch.arange(w, device=dev, dtype=torch.float32),
@@ -193,24 +213,24 @@ def dense_height(
         var_s = fwd.var[0, 0].double().cpu().numpy()
         ncc = fwd.ncc[0, 0].cpu().numpy()
         valid = ok[0, 0].cpu().numpy()
-    eta = ppw.height_from_shift(shift, u_np, v_np, nw_np)
-    deta = ppw.dheight_dshift(shift, u_np, v_np, nw_np)
+    eta = ppc.height_from_shift(shift, u_np, v_np, nw_np)
+    deta = ppc.dheight_dshift(shift, u_np, v_np, nw_np)
     var = deta * deta * var_s + (cfg.scale_rel_sigma * eta) ** 2
     with np.errstate(invalid="ignore", divide="ignore"):
-        near = nw_np / max(abs(float(ppw.E[2])), 1e-12) < cfg.min_epipole_px * s
+        near = nw_np / max(abs(float(ppc.E[2])), 1e-12) < cfg.min_epipole_px * s
     valid &= np.isfinite(eta) & np.isfinite(var) & ~near
     valid &= (eta >= -cfg.max_depth_m - 0.01) & (eta <= cfg.max_height_m + 0.01)
+    sl = np.s_[r0:r1, c0:c1]
+    height_full[sl] = np.where(valid, eta, np.nan)
+    var_full[sl] = np.where(valid, var, np.nan)
+    valid_full[sl] = valid
+    shift_full[sl] = shift
+    ncc_full[sl] = ncc
     timings.update(init=t2 - t1, refine=t3 - t2, total=time.perf_counter() - t0)
     return DenseHeight(
-        np.where(valid, eta, np.nan).astype(np.float32),
-        np.where(valid, var, np.nan).astype(np.float32),
-        valid,
-        shift.astype(np.float32),
-        ncc.astype(np.float32),
-        ppw,
-        s,
+        height_full, var_full, valid_full, shift_full, ncc_full, ppw, s,
         {k: round(v, 4) for k, v in timings.items()},
-    )
+    )  # fmt: skip
 
 
 # --------------------------------------------------------------------------- steps
@@ -263,6 +283,32 @@ def _resample(
     return A, B, mA, mB
 
 
+def _overlap_crop(
+    pp: PlaneParallax, inside_b: np.ndarray, cfg: DenseHeightConfig
+) -> tuple[int, int, int, int] | None:
+    """Rows r0:r1 and columns c0:c1 of the work grid whose road lies inside image b, widened by
+    the largest parallax of the searched height range and a matching window; None when image
+    b sees none of it."""
+    rows = np.flatnonzero(inside_b.any(axis=1))
+    cols = np.flatnonzero(inside_b.any(axis=0))
+    if len(rows) == 0 or len(cols) == 0:
+        return None
+    h, w = inside_b.shape
+    v, u = np.mgrid[0 : h : max(h // 8, 1), 0 : w : max(w // 8, 1)].astype(float)
+    reach = np.abs(
+        np.concatenate(
+            [pp.shift_from_height(e, u, v).ravel() for e in (-cfg.max_depth_m, cfg.max_height_m)]
+        )
+    )
+    reach = reach[np.isfinite(reach)]
+    pad = int(np.ceil(reach.max() if len(reach) else 0.0)) + int(cfg.window_px) + 2
+    r0, r1 = max(int(rows[0]) - pad, 0), min(int(rows[-1]) + 1 + pad, h)
+    c0, c1 = max(int(cols[0]) - pad, 0), min(int(cols[-1]) + 1 + pad, w)
+    if r1 - r0 < 2 * cfg.window_px or c1 - c0 < 2 * cfg.window_px:
+        return None
+    return r0, r1, c0, c1
+
+
 def _init(
     cfg: DenseHeightConfig,
     ref: torch.Tensor,
@@ -275,6 +321,7 @@ def _init(
     nr: torch.Tensor,
     ref_np: np.ndarray,
     tgt_np: np.ndarray,
+    ss: float,
     reverse: bool,
 ) -> torch.Tensor:
     """Starting parallax (1, 1, h, w) px of ref's pixels in tgt along ŵ (its negative for the
@@ -290,7 +337,6 @@ def _init(
         ft = torch.as_tensor(flow, device=ref.device).permute(2, 0, 1)[None]
         return ft[:, :1] * wx + ft[:, 1:2] * wy
     h, w = ref.shape[-2:]
-    ss = min(1.0, max(float(cfg.sweep_scale), cfg.sweep_min_px / min(h, w)))
 
     def down(x: torch.Tensor) -> torch.Tensor:
         if ss == 1.0:
