@@ -1,11 +1,13 @@
 """Bundle adjustment (issue 30) on vs off on simulated drives: trajectory RMSE, drift over 5 m,
 flat-road MAE and run time, from ``roadsurf simulate / run / evaluate``.
 
-    python -m benchmarks.bundle --out /tmp/bench_bundle [--scenario flat potholes]
+    make bench-bundle ARGS="--out /tmp/bench_bundle --scenario potholes highway rough-gps"
 
-Each scenario is simulated once and run twice from scratch (pose graph only; pose graph then
-bundle adjustment, ``mapping: {bundle_adjust: true}``); prints a markdown table and writes
-``table.md`` in --out.
+Each scenario is simulated once (kept in --out/SCENARIO, reused when present) and run twice from
+scratch (pose graph only; pose graph then bundle adjustment, ``mapping: {bundle_adjust: true}``).
+Prints a markdown table, writes ``table.md`` in --out and the figures as JSON (--json, default
+benchmarks/results/bundle.json): per run the evaluation's trajectory and surface figures, the
+run and poses-stage times, and the bundle's own report (reprojection RMS, windows, time offset).
 """
 
 from __future__ import annotations
@@ -17,9 +19,13 @@ import sys
 import time
 from pathlib import Path
 
+from benchmarks._result import write_result
+
 METRICS = (
     ("trajectory_rmse_m", "traj. RMSE (mm)", 1e3),
     ("drift_5m_median_pct", "drift 5 m median (%)", 1.0),
+    ("trajectory_rmse_aligned_m", "traj. RMSE aligned (mm)", 1e3),
+    ("drift_5m_p95_pct", "drift 5 m p95 (%)", 1.0),
     ("flat_mae_m", "flat-road MAE (mm)", 1e3),  # surface.aligned
     ("seam_step_max_m", "seam step (mm)", 1e3),
 )
@@ -46,8 +52,10 @@ def _find(d: object, key: str) -> float | None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, required=True)
-    ap.add_argument("--scenario", nargs="+", default=["flat", "potholes"])
+    ap.add_argument("--scenario", nargs="+", default=["potholes", "highway", "rough-gps"])
+    ap.add_argument("--json", type=Path, default=None, help="result file (default results/)")
     a = ap.parse_args()
+    figures: dict[str, dict[str, object]] = {}
     a.out.mkdir(parents=True, exist_ok=True)
     cfg = a.out / "bundle_on.yaml"
     cfg.write_text("mapping:\n  bundle_adjust: true\n")
@@ -66,9 +74,15 @@ def main() -> None:
             rep = json.loads((run / "report.json").read_text())
             poses_s = rep["stages"]["poses"]["computed_s"]
             vals = []
+            fig: dict[str, object] = {"run_s": round(secs, 1), "poses_s": poses_s}
             for key, _, f in METRICS:
-                v = _find(ev.get("surface", {}).get("aligned", {}), key) or _find(ev, key)
+                v = _find(ev.get("surface", {}).get("aligned", {}), key)
+                v = _find(ev, key) if v is None else v
                 vals.append("n/a" if v is None else f"{v * f:.3g}")
+                fig[key] = v
+            poses_rep = json.loads((run / "poses_report.json").read_text())
+            fig["bundle"] = poses_rep.get("bundle", {})
+            figures[f"{sc}_{'on' if on else 'off'}"] = fig
             rows.append(
                 f"| {sc} | {'on' if on else 'off'} | " + " | ".join(vals) + f" | {secs:.1f} | "
                 f"{poses_s:.2f} |"
@@ -76,6 +90,7 @@ def main() -> None:
     table = "\n".join(rows)
     (a.out / "table.md").write_text(table + "\n")
     print(table)
+    write_result(a.json, "bundle", {"table": table, "runs": figures})
 
 
 if __name__ == "__main__":

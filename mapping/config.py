@@ -98,6 +98,9 @@ class MappingConfig:
     bundle_max_two_view: int = 50  # two-view tracks kept per frame (count; 3+-view: all)
     bundle_track_tol_m: float = 0.02  # a track whose pairs disagree by more is dropped (m)
     bundle_max_nfev: int = 20  # least-squares evaluations per window (count)
+    # the pose graph's placement (all GPS fixes at once) is kept at scales beyond this length of
+    # path; the bundle's own placement rests on one window's fixes (m; 0 = the bundle's own)
+    bundle_placement_length_m: float = 25.0
     # ---------------------------------------------------------------- global map
     # warn when consecutive frames' road footprints overlap by less than this share (0-1): below
     # half, the pairs' two-view parts no longer touch and the map has gaps between them
@@ -201,6 +204,7 @@ class MappingConfig:
         "bundle_max_two_view": "[0, inf)",
         "bundle_track_tol_m": "(0, 1]",
         "bundle_max_nfev": "[1, inf)",
+        "bundle_placement_length_m": "[0, inf)",
         "min_frame_overlap": "[0, 1]",
         "voxel_m": "[0, 1]; 0 = no fusion; a voxel above 1 m is a unit mistake (mm typed as m?)",
         "max_point_depth_m": "(0, inf)",

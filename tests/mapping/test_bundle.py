@@ -10,7 +10,7 @@ import numpy as np
 
 from roadsurf.core.geometry import enu_from_lla, lla_from_enu
 from roadsurf.mapping import poses
-from roadsurf.mapping.bundle import _time_offset_bound_s, refine_poses
+from roadsurf.mapping.bundle import _keep_placement, _time_offset_bound_s, refine_poses
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.pose_gps import GpsFixes, gps_enu
 from roadsurf.mapping.types import PoseReport
@@ -133,3 +133,18 @@ def test_the_report_keeps_the_bundle_figures() -> None:
     assert d["bundle"]["reprojection_rms_px_final"] < 0.5
     _, rep_off = poses.estimate_trajectory(CFG, syn.drive, syn.pairs)
     assert rep_off.to_dict()["bundle"] == {}
+
+
+def test_the_pose_graph_placement_is_kept_beyond_the_placement_length() -> None:
+    # 200 m straight: the bundle's result 5 cm off sideways (one window's GPS) with a 1 m-period
+    # wiggle of 2 mm (its shape): the offset goes, the wiggle stays
+    n = 2001
+    W = np.tile(np.eye(4), (n, 1, 1))
+    W[:, 1, 3] = np.linspace(0.0, 200.0, n)
+    cur = W.copy()
+    wiggle = 0.002 * np.sin(2 * np.pi * W[:, 1, 3])
+    cur[:, 0, 3] += 0.05 + wiggle
+    out = _keep_placement(cur, W, 25.0)
+    mid = slice(300, n - 300)  # away from the ends (one-sided smoothing there)
+    assert np.max(np.abs(out[mid, 0, 3] - wiggle[mid])) < 2e-4
+    assert np.array_equal(_keep_placement(cur, W, 0.0), cur)
