@@ -18,6 +18,7 @@ reporting HDOP states a σ twenty times its real one); fixes further than
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
@@ -529,4 +530,16 @@ def _initial_planes(
         if keep.sum() >= 10:
             p, *_ = np.linalg.lstsq(A[keep], Xc[keep, 2], rcond=None)
         out[f] = p
+    return out
+
+
+def with_motions_of(
+    pairs: list[PairResult], pos_of: dict[int, int], world_from_cam: np.ndarray
+) -> list[PairResult]:
+    """Copies of the pairs with their relative pose (R_b_from_a, t_b_from_a_m) taken from the
+    (N, 4, 4) poses: the bundle's motions as pose-graph constraints."""
+    out = []
+    for p in pairs:
+        T = invert_pose(world_from_cam[pos_of[p.index_b]]) @ world_from_cam[pos_of[p.index_a]]
+        out.append(dataclasses.replace(p, R_b_from_a=T[:3, :3], t_b_from_a_m=T[:3, 3]))
     return out

@@ -101,6 +101,11 @@ class MappingConfig:
     # the pose graph's placement (all GPS fixes at once) is kept at scales beyond this length of
     # path; the bundle's own placement rests on one window's fixes (m; 0 = the bundle's own)
     bundle_placement_length_m: float = 25.0
+    # loop closure (revisits; needs a matcher, mapping.loops): frames at least this far apart
+    # in time (s) whose placed camera centres are within the gate (m: a few GPS σ of two passes'
+    # placement plus the footprint) are matched; 0 = no loop closure
+    bundle_loop_gate_m: float = 3.0
+    bundle_loop_min_gap_s: float = 10.0
     # ---------------------------------------------------------------- global map
     # warn when consecutive frames' road footprints overlap by less than this share (0-1): below
     # half, the pairs' two-view parts no longer touch and the map has gaps between them
@@ -205,6 +210,8 @@ class MappingConfig:
         "bundle_track_tol_m": "(0, 1]",
         "bundle_max_nfev": "[1, inf)",
         "bundle_placement_length_m": "[0, inf)",
+        "bundle_loop_gate_m": "[0, inf)",
+        "bundle_loop_min_gap_s": "(0, inf)",
         "min_frame_overlap": "[0, 1]",
         "voxel_m": "[0, 1]; 0 = no fusion; a voxel above 1 m is a unit mistake (mm typed as m?)",
         "max_point_depth_m": "(0, inf)",

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -114,9 +115,17 @@ def _fingerprint(cfg: MappingConfig, drive: Drive, pairs: list[PairResult]) -> s
 
 
 def estimate_trajectory(
-    cfg: MappingConfig, drive: Drive, pairs: list[PairResult]
+    cfg: MappingConfig,
+    drive: Drive,
+    pairs: list[PairResult],
+    *,
+    loop_match: Callable[[int, int], PairResult | None] | None = None,
 ) -> tuple[Trajectory, PoseReport]:
-    """Pure computation (no files): fused Trajectory and a PoseReport."""
+    """Pure computation (no files): fused Trajectory and a PoseReport.
+
+    loop_match(i, j): the pair API on the frames at positions i and j (revisits, issue 30):
+    with it, frames the pose graph placed within ``bundle_loop_gate_m`` of each other at least
+    ``bundle_loop_min_gap_s`` apart are matched, and the confirmed pairs close the loop."""
     frames = drive.frames
     n = len(frames)
     rep = PoseReport(n_frames=n)
@@ -166,12 +175,32 @@ def estimate_trajectory(
     names = [f.filename for f in frames]
     world, warns = keep_apart(world, segment, pairs, pos_of, drive.camera, names, has_gps=has_gps)
     rep.warnings += warns
-    if cfg.bundle_adjust:  # issue 30: the pose graph's poses are the initial guess
-        from roadsurf.mapping.bundle import refine_poses
+    if loop_match is not None and cfg.bundle_loop_gate_m > 0:  # issue 30: revisits
+        from roadsurf.mapping.loops import confirm_loops, loop_candidates
 
-        world, rep.bundle = refine_poses(
+        cand = loop_candidates(
+            t, world[:, :3, 3], gate_m=cfg.bundle_loop_gate_m, min_gap_s=cfg.bundle_loop_min_gap_s
+        )
+        loops = confirm_loops(cand, loop_match)
+        rep.bundle["loops"] = [[pos_of[p.index_a], pos_of[p.index_b]] for p in loops]
+        if loops:
+            problem = PoseGraph(cfg, t, world, ok_pairs + loops, pos_of, gps, drive, comp, R_vc)
+            world = problem.solve(rep)
+    else:
+        loops = []
+    if cfg.bundle_adjust:  # issue 30: the pose graph's poses are the initial guess
+        from roadsurf.mapping.bundle import refine_poses, with_motions_of
+
+        world, bundle = refine_poses(
             cfg, drive, t, world, ok_pairs, pos_of, gps, problem.gps_used, R_vc
         )
+        rep.bundle.update(bundle)
+        if loops:
+            # the windows hold no loop constraint: one more pose-graph pass over the bundle's
+            # frame-to-frame motions and the loop pairs puts the passes back together
+            refined = with_motions_of(ok_pairs, pos_of, world) + loops
+            problem = PoseGraph(cfg, t, world, refined, pos_of, gps, drive, comp, R_vc)
+            world = problem.solve(rep)
 
     # ---------------------------------------------------------------- plausibility
     if gps is not None:

@@ -5,7 +5,7 @@ The expected values were recomputed when issue 31 added the GPS altitude, OBD sp
 plausibility checks' version to the poses key and the pairs' content, camera and vertical datum to
 the map key, and issue 28 the mount (MappingConfig.estimate_mount, camera.yaml mount) to
 the poses key; issues 29 and 30 added MappingConfig.surface_source, dense and bundle_* (both keys);
-bundle_relief_sigma_m's default went from 3 mm to 1 cm and bundle_placement_length_m came (issue 30).
+bundle_relief_sigma_m's default went from 3 mm to 1 cm and bundle_placement_length_m and bundle_loop_* came (issue 30).
 A change of MappingConfig's fields changes them legitimately. The keys must also
 change with what the outputs depend on (below)."""
 
@@ -21,9 +21,9 @@ from tests.mapping.synth import make_synthetic
 
 def test_poses_fingerprint_is_unchanged() -> None:
     syn = make_synthetic(n=6, seed=3, failed=(2,))
-    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "70f15cbf0c25fa3d"
+    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "5d9a376a9153a47f"
     syn = make_synthetic(n=6, seed=3, with_gps=False)
-    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "1c467678d3be2293"
+    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "07b6d417edc0ccd8"
 
 
 def test_globalmap_fingerprint_is_unchanged() -> None:
@@ -37,7 +37,7 @@ def test_globalmap_fingerprint_is_unchanged() -> None:
         reference=None,
         segment=np.zeros(6, int),
     )
-    assert globalmap._fingerprint(MappingConfig(), syn.pairs, traj) == "665cd8a1d6042875"
+    assert globalmap._fingerprint(MappingConfig(), syn.pairs, traj) == "31191e8563c23843"
 
 
 def test_poses_key_follows_the_gps_altitude() -> None:

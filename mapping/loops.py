@@ -1,0 +1,98 @@
+"""Loop closure for revisits (issue 30): a drive that passes the same place twice.
+
+Candidates are frame pairs (i, j) far apart in time (``min_gap_s``) whose camera centres, as the
+pose graph placed them, are within ``gate_m`` of each other horizontally: the GPS gate (the
+placement of two passes differs by about the GPS error, so the gate is a few GPS σ plus the
+footprint's reach). For each stretch of the later pass near the earlier one, only the closest
+pair (and every ``stride``-th after it) is tried. A candidate is confirmed by image matching:
+``match(i, j)`` returns the two frames' PairResult (the reconstruction's pair API, e.g.
+``reconstruction.api.reconstruct_pair`` on the two Frames), and an ok pair becomes one more
+relative constraint in the pose graph (``mapping.pose_graph.PoseGraph`` takes any frame pair),
+which the bundle's windows then start from.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from roadsurf.reconstruction.types import PairResult
+
+log = logging.getLogger(__name__)
+
+
+def loop_candidates(
+    t: np.ndarray,
+    centres_m: np.ndarray,
+    *,
+    gate_m: float,
+    min_gap_s: float,
+    stride: int = 5,
+    tries: int = 12,
+) -> list[tuple[int, int]]:
+    """Frame pairs (i, j), i < j, t_j - t_i >= min_gap_s and horizontal distance <= gate_m.
+
+    t: (N,) frame times (s); centres_m: (N, 3) camera centres (m). Later frames j with an
+    earlier frame within the gate form runs; per run the closest j and every ``stride``-th
+    frame of the run (a few constraints per revisit, not one per frame). For each such j, up to
+    ``tries`` earlier frames within the gate, closest first: the passes' placement differs by
+    the GPS error, so the frame that really saw the same ground is often not the closest."""
+    n = len(t)
+    if n < 2 or gate_m <= 0:
+        return []
+    xy = np.asarray(centres_m, float)[:, :2]
+    best = np.full(n, -1)
+    dist = np.full(n, np.inf)
+    for j in range(n):
+        early = np.flatnonzero(t <= t[j] - min_gap_s)
+        if not len(early):
+            continue
+        d = np.linalg.norm(xy[early] - xy[j], axis=1)
+        k = int(np.argmin(d))
+        if d[k] <= gate_m:
+            best[j], dist[j] = early[k], d[k]
+    out: list[tuple[int, int]] = []
+    j = 0
+    while j < n:
+        if best[j] < 0:
+            j += 1
+            continue
+        run_end = j
+        while run_end + 1 < n and best[run_end + 1] >= 0:
+            run_end += 1
+        run = np.arange(j, run_end + 1)
+        c = int(run[np.argmin(dist[run])])
+        for k in sorted(set(run[(run - c) % stride == 0].tolist())):
+            early = np.flatnonzero(t <= t[k] - min_gap_s)
+            d = np.linalg.norm(xy[early] - xy[k], axis=1)
+            near = early[np.argsort(d, kind="stable")][: int(np.sum(d <= gate_m))][:tries]
+            out += [(int(i), int(k)) for i in near]
+        j = run_end + 1
+    return out
+
+
+def confirm_loops(
+    candidates: list[tuple[int, int]],
+    match: Callable[[int, int], PairResult | None],
+    *,
+    min_inliers: int = 30,
+) -> list[PairResult]:
+    """The candidates whose frames match (an ok PairResult with at least ``min_inliers`` points):
+    the loop constraints, at most one per later frame j (the first that matches, in the
+    candidates' order). ``match`` gets frame positions (i, j) and returns the pair i -> j
+    (index_a / index_b: the frames' Frame.index) or None."""
+    found = []
+    done: set[int] = set()
+    for i, j in candidates:
+        if j in done:
+            continue
+        p = match(i, j)
+        if p is not None and p.ok and p.n_points >= min_inliers:
+            found.append(p)
+            done.add(j)
+    log.info("loops: %d of %d candidate pair(s) confirmed", len(found), len(candidates))
+    return found
