@@ -53,15 +53,18 @@ FIXED_POINT_STEPS = 3  # cell -> pixel projections at the sampled height (nadir:
 
 
 def dense_gsd_m(cfg: MappingConfig, cam: Camera, traj: Trajectory, road_z: np.ndarray) -> float:
-    """GSD of the dense rasters (m): ``dense_gsd_m`` when set, else the images' ground sampling
-    at the matching scale (median camera height over the road / fx / scale, rounded to 0.1 mm),
-    never finer than ``dense_min_gsd_m``."""
+    """GSD of the dense rasters (m): ``dense_gsd_m`` when set, else ``dense_gsd_px`` x the
+    images' ground sampling at the matching scale (median camera height over the road / fx /
+    scale), but no coarser than the sparse raster's ``gsd_m`` unless one pixel is; rounded to
+    0.1 mm, never finer than ``dense_min_gsd_m``."""
     if cfg.dense_gsd_m > 0:
         return float(cfg.dense_gsd_m)
     h = float(np.median(traj.world_from_cam[:, 2, 3] - road_z)) if len(traj) else cam.height_m
     if not (math.isfinite(h) and h > 0):
         h = cam.height_m
-    g = h / (cam.fx * cfg.dense.scale)
+    px = h / (cam.fx * cfg.dense.scale)
+    # dense_gsd_px pixels, but no coarser than the sparse raster unless a pixel itself is
+    g = min(cfg.dense_gsd_px * px, max(px, cfg.gsd_m))
     return max(round(g * 1e4) / 1e4, cfg.dense_min_gsd_m)
 
 
@@ -413,17 +416,17 @@ def _robust_plane(
     if keep.sum() < 0.2 * len(y):
         rng = np.random.default_rng(0)
         sub = rng.choice(len(y), min(len(y), 3000), replace=False)
-        best, best_n = np.zeros(3), -1
-        for _ in range(200):
-            idx = rng.choice(sub, 3, replace=False)
-            try:
-                c = np.linalg.solve(A[idx], y[idx])
-            except np.linalg.LinAlgError:
-                continue
-            n = int((np.abs(y[sub] - A[sub] @ c) < band).sum())
-            if n > best_n:
-                best, best_n = c, n
-        keep = np.abs(y - A @ best) < band
+        # 200 3-point planes at once; degenerate triples (collinear) score nothing
+        idx = sub[rng.integers(0, len(sub), (200, 3))]
+        M, b = A[idx], y[idx]
+        ok = np.abs(np.linalg.det(M)) > 1e-12
+        coefs = np.zeros((200, 3))
+        coefs[ok] = np.linalg.solve(M[ok], b[ok][..., None])[..., 0]
+        As, ys = A[sub], y[sub]
+        pred = coefs[:, :1] + coefs[:, 1:2] * As[:, 1] + coefs[:, 2:3] * As[:, 2]
+        n_in = np.where(ok, (np.abs(ys - pred) < band).sum(axis=1), -1)
+        best = coefs[int(np.argmax(n_in))]
+        keep = np.abs(y - (best[0] + best[1] * A[:, 1] + best[2] * A[:, 2])) < band
     coef = np.zeros(3)
     for _ in range(8):
         if keep.sum() < 20:

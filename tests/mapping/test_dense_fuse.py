@@ -133,7 +133,8 @@ def test_dense_products_and_grid(drive_maps: dict[str, object]) -> None:
     d = root / "dense"
     with rasterio.open(d / "surface.tif") as s, rasterio.open(d / "mosaic.tif") as m:
         assert s.transform == m.transform and s.shape == m.shape
-        assert s.transform.a == pytest.approx(0.0037)  # the images' ground sampling, 1.1 / 300
+        # 2 px of the images' ground sampling (1.1 / 300 = 3.7 mm), capped at the sparse 5 mm
+        assert s.transform.a == pytest.approx(0.005)
         res = s.read(1)
     with rasterio.open(d / "surface_nobs.tif") as n, rasterio.open(d / "surface_sigma.tif") as g:
         nobs, sig = n.read(1), g.read(1)
@@ -196,3 +197,21 @@ def test_map_key_holds_the_dense_settings_only_when_dense() -> None:
     assert key(surface_source="dense", dense_gsd_m=0.003) != dense
     assert key(surface_source="dense", dense=DenseHeightConfig(window_px=7)) != dense
     assert key(surface_source="dense", dense=DenseHeightConfig(device="cpu")) == dense
+
+
+def test_pair_levelling_ignores_a_pothole_filling_a_third_of_the_view() -> None:
+    """The RANSAC start of the pair's road plane (tilted 10 mm/m, 0.5 mm noise) is not pulled
+    into a 30 mm deep pothole over a third of the points; a least-squares start would be."""
+    from roadsurf.mapping.dense_fuse import _robust_plane
+
+    rng = np.random.default_rng(1)
+    xy = rng.uniform(-0.5, 0.5, (20000, 2))
+    r = 0.002 + 0.01 * xy[:, 0] - 0.004 * xy[:, 1] + rng.normal(0, 0.0005, len(xy))
+    pot = np.hypot(xy[:, 0] - 0.2, xy[:, 1]) < 0.3
+    r[pot] -= 0.03
+    coef, at = _robust_plane(xy, r, 0.01, near_zero=False)
+    road = 0.002 + 0.01 * at[0] - 0.004 * at[1]
+    assert abs(coef[0] - road) < 2e-4
+    assert abs(coef[1] - 0.01) < 1e-3 and abs(coef[2] + 0.004) < 1e-3
+    lsq = np.linalg.lstsq(np.column_stack([np.ones(len(xy)), xy - at]), r, rcond=None)[0]
+    assert abs(lsq[0] - road) > 5e-3  # what the robust start avoids
