@@ -10,6 +10,7 @@ an analytic pair (flat textured road, bowl pothole, optional crack, any mount pi
 
     python -m benchmarks.dense                     # 320x240, both inits, CPU
     python -m benchmarks.dense --size 640x480 --device cuda --repeat 5
+    python -m benchmarks.dense --speed --device cuda --json OUT.json   # pairs/s, CPU agreement
 
 Figures: MAE of the height on flat road and inside the pothole (with the estimated geometry:
 after removing a plane fitted to the flat-road differences, i.e. what a local road fit sees),
@@ -351,6 +352,65 @@ def sparse_score(pair: RenderedPair) -> tuple[dict[str, float], object]:
     }, res
 
 
+def speed(
+    device: str, sizes: list[tuple[int, int]], repeat: int, pitches: list[float], cpu_check: bool
+) -> dict[str, object]:
+    """Pairs/s of ``dense_height`` on analytic pairs (``synthetic_pair``: 40 mm pothole, 2 DN
+    noise) at each size and mount pitch, the per-step times, the heights' errors, and with
+    ``cpu_check`` the largest height difference to the same pair matched on the CPU."""
+    import torch
+
+    from roadsurf.reconstruction.dense.parallax import torch_device
+
+    dev = torch_device(device)
+    out: dict[str, object] = {"device": str(dev), "torch": torch.__version__, "runs": []}
+    if dev.type == "cuda":
+        out["gpu"] = torch.cuda.get_device_name(dev)
+    cfg = DenseHeightConfig(device=str(dev))
+    runs: list[dict[str, object]] = []
+    for w, h in sizes:
+        for pitch in pitches:
+            t0 = time.perf_counter()
+            pair = synthetic_pair((w, h), pitch_deg=pitch, seed=1)
+            t_render = time.perf_counter() - t0
+
+            def one(c: DenseHeightConfig = cfg, p: RenderedPair = pair) -> DenseHeight:
+                return dense_height(p.img_a, p.img_b, p.camera, p.R, p.t, p.plane, cfg=c)
+
+            one()  # warm-up (CUDA context, kernels, allocator)
+            times, steps = [], []
+            for _ in range(repeat):
+                t1 = time.perf_counter()
+                dh = one()
+                if dev.type == "cuda":
+                    torch.cuda.synchronize(dev)
+                times.append(time.perf_counter() - t1)
+                steps.append(dh.timings_s)
+            med = float(np.median(times))
+            sc = score(dh, pair, cfg_window=cfg.window_px)
+            rec: dict[str, object] = {
+                "size": f"{w}x{h}",
+                "pitch_deg": pitch,
+                "s_per_pair_median": round(med, 4),
+                "s_per_pair_min": round(float(np.min(times)), 4),
+                "pairs_per_s": round(1.0 / med, 2),
+                "steps_s": {k: float(np.median([st[k] for st in steps])) for k in steps[0]},
+                "render_s": round(t_render, 2),
+                **{k: round(float(v), 4) for k, v in sc.items()},
+            }
+            if cpu_check and dev.type != "cpu":
+                ref = one(dataclasses.replace(cfg, device="cpu"))
+                both = ref.valid & dh.valid
+                rec["cpu_valid_agreement"] = round(float((ref.valid == dh.valid).mean()), 5)
+                rec["cpu_max_height_diff_mm"] = round(
+                    1e3 * float(np.abs(ref.height_m[both] - dh.height_m[both]).max()), 4
+                )
+            print(rec, flush=True)
+            runs.append(rec)
+    out["runs"] = runs
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--size", default="320x240")
@@ -359,7 +419,23 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--inits", default="sweep,dis")
     ap.add_argument("--set", action="append", default=[], help="DenseHeightConfig field=value")
+    ap.add_argument(
+        "--speed",
+        action="store_true",
+        help="pairs/s on analytic pairs (--sizes, --pitches) instead of the rendered comparison",
+    )
+    ap.add_argument("--sizes", default="640x480,1280x960")
+    ap.add_argument("--pitches", default="0,30", help="mount pitches (deg) for --speed")
+    ap.add_argument("--json", default=None, help="--speed: result JSON (default results/)")
     args = ap.parse_args()
+    if args.speed:
+        from benchmarks._result import write_result
+
+        sizes = [tuple(int(x) for x in z.split("x")) for z in args.sizes.split(",")]
+        pitches = [float(p) for p in args.pitches.split(",")]
+        res = speed(args.device, sizes, args.repeat, pitches, cpu_check=True)  # type: ignore[arg-type]
+        write_result(args.json, "dense_speed", res)
+        return
     w, h = (int(x) for x in args.size.split("x"))
     t0 = time.perf_counter()
     pair = render_pair((w, h), args.scenario)
