@@ -18,7 +18,8 @@ from roadsurf.io.drive import Drive, Frame
 from roadsurf.io.formats import GridSpec
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.datum import RESIDUAL_DATUM, vertical_datum
-from roadsurf.mapping.dense_fuse import NOBS, SIGMA, DenseSurface, dense_gsd_m
+from roadsurf.mapping.dense_cloud import DenseCloudWriter, cloud_stride
+from roadsurf.mapping.dense_fuse import NOBS, SIGMA, DenseSurface, _surface_height, dense_gsd_m
 from roadsurf.mapping.export import export_xyz
 from roadsurf.mapping.mosaic import ImageCache, mosaic_tile
 from roadsurf.mapping.overlap import check_frame_overlap
@@ -158,10 +159,23 @@ def rasterise(
         prev = Previews(fg, cfg.preview_max_px)
         workers = max(1, int(cfg.raster_workers))
         ds = None
+        cloud: DenseCloudWriter | None = None
         if dense:
             ds = DenseSurface(
                 cfg, drive, pairs or [], traj, surf, g2e, lat, tiles, fp_grid, workers
             )
+            # cloud.ply becomes the dense cloud (the sparse one written before is replaced)
+            datum = vertical_datum(cfg, drive, ef is not None)
+            cloud = DenseCloudWriter(
+                prod.run_dir / rf.CLOUD_PLY,
+                [
+                    f"crs: {ef.crs if ef is not None else 'local ENU (no GPS reference)'}",
+                    f"residual_m: {RESIDUAL_DATUM}",
+                    f"vertical_datum: {datum}",
+                ],
+            )
+            stride = cloud_stride(gsd, cfg.dense_cloud_spacing_m)
+            alt0 = float(ef.ref.alt_m) if ef is not None else 0.0
             nw = TiledWriter(prod.run_dir, NOBS, lat, 1, "uint8", 0, write_tiles, write_full)
             writers.append(nw)
             gw = TiledWriter(
@@ -220,15 +234,40 @@ def rasterise(
             # strip seen by one frame between two pairs (a short Delaunay edge bridges it)
             if filled.any():
                 res_t[filled & ~two_view(grid, res_t)] = np.nan
+            pts = None
             if nobs_t is not None and sig_t is not None:
                 gone = ~np.isfinite(res_t)
+                n_all = nobs_t
                 nobs_t = np.where(gone, 0, np.minimum(nobs_t, 255)).astype(np.uint8)
                 sig_t = np.where(gone, np.nan, sig_t).astype(np.float32)
-            return res_t, mos_t, wsum, nobs_t, sig_t
+                pts = cloud_points(grid, res_t, n_all, mos_t)
+            return res_t, mos_t, wsum, nobs_t, sig_t, pts
+
+        def cloud_points(
+            grid: GridSpec, res_t: np.ndarray, n_t: np.ndarray, mos_t: np.ndarray
+        ) -> tuple[np.ndarray, ...] | None:
+            """The measured cells of a dense tile (every ``stride``-th row and column) as
+            points: export xyz, colour, residual, count (the module docstring of dense_cloud)."""
+            keep = np.isfinite(res_t) & (n_t > 0)
+            if stride > 1:
+                keep[np.arange(grid.height) % stride != 0] = False
+                keep[:, np.arange(grid.width) % stride != 0] = False
+            if not keep.any():
+                return None
+            e, n = g2e.pixel_enu(grid, slice(0, grid.height), slice(0, grid.width))
+            z = _surface_height(surf, e, n, grid.gsd_m) + res_t
+            keep &= np.isfinite(z)
+            rr, cc = np.nonzero(keep)
+            x = grid.x0_m + (cc + 0.5) * grid.gsd_m
+            y = grid.y0_m - (rr + 0.5) * grid.gsd_m
+            if ef is None:  # local ENU: the grid is ENU itself
+                x, y = e[rr, cc], n[rr, cc]
+            xyz = np.column_stack([x, y, z[rr, cc] + alt0])
+            return xyz, mos_t[rr, cc], res_t[rr, cc], n_t[rr, cc]
 
         # tiles are computed by worker threads (OpenCV and numpy release the GIL) and written
         # here, in order, a bounded number ahead (GDAL datasets are not shared across threads)
-        for t, (res_t, mos_t, wsum, nobs_t, sig_t) in tqdm(
+        for t, (res_t, mos_t, wsum, nobs_t, sig_t, pts) in tqdm(
             zip(tiles, ordered_map(compute, tiles, workers), strict=True),
             total=len(tiles),
             desc="rasters",
@@ -247,6 +286,8 @@ def rasterise(
             if ds is not None:
                 nw.write(*t, nobs_t)
                 gw.write(*t, sig_t)
+            if cloud is not None and pts is not None:
+                cloud.add(*pts)
             tg = lat.tile_grid(*t)
             info: dict[str, Any] = {
                 "row": t[0],
@@ -265,9 +306,16 @@ def rasterise(
             prev.add(t, lat, res_t, mos_t)
         for w in writers:
             w.close()
+        if cloud is not None:
+            cloud.close()
+            area = prod.surface_px * gsd * gsd
+            prod.residual_stats_m["dense_cloud_points"] = cloud.n
+            prod.residual_stats_m["dense_cloud_points_per_m2"] = cloud.n / area if area else 0.0
     except BaseException:
         for w in writers:
             w.abort()
+        if cloud is not None:
+            cloud.abort()
         raise
     if write_full:
         prod.files["surface"] = rf.SURFACE_TIF

@@ -150,6 +150,34 @@ def test_dense_products_and_grid(drive_maps: dict[str, object]) -> None:
     assert prod.files["surface_nobs"] == "surface_nobs.tif"  # type: ignore[attr-defined]
 
 
+def test_dense_cloud_holds_every_measured_cell(drive_maps: dict[str, object]) -> None:
+    """cloud.ply of a dense run: one point per measured cell (5 mm cells: 40,000 points/m²),
+    at the cell's centre, its residual the surface's, z = road + residual (smooth)."""
+    from plyfile import PlyData
+
+    root = drive_maps["root"]
+    prod = drive_maps["dense"]
+    assert isinstance(root, Path)
+    d = root / "dense"
+    with rasterio.open(d / "surface.tif") as s, rasterio.open(d / "surface_nobs.tif") as n:
+        res, nobs, T = s.read(1), n.read(1), s.transform
+    v = PlyData.read(str(d / "cloud.ply"))["vertex"]
+    meas = np.isfinite(res) & (nobs > 0)
+    assert len(v) == meas.sum() == prod.residual_stats_m["dense_cloud_points"]  # type: ignore[attr-defined]
+    density = len(v) / (np.isfinite(res).sum() * T.a * T.a)
+    assert density >= 0.9 * 40_000  # measured cells / surface cells: the fill has no points
+    col, row = ~T * (np.asarray(v["x"]), np.asarray(v["y"]))
+    assert np.allclose(col % 1, 0.5, atol=1e-3) and np.allclose(row % 1, 0.5, atol=1e-3)
+    r, c = row.astype(int), col.astype(int)
+    assert meas[r, c].all()
+    assert np.allclose(v["residual_m"], res[r, c], atol=1e-7)
+    road = np.asarray(v["z"]) - np.asarray(v["residual_m"])
+    assert np.nanstd(road) < 0.05  # the road's own height: a ~1 m stretch of street
+    comments = PlyData.read(str(d / "cloud.ply")).comments
+    assert any(c.startswith("crs: ") for c in comments)
+    assert any(c.startswith("vertical_datum: ") for c in comments)
+
+
 def test_pairs_are_matched_once_and_dropped(drive_maps: dict[str, object]) -> None:
     from roadsurf.mapping.raster import GridToEnu, corridor_tiles
     from roadsurf.mapping.surface import LocalSurface
