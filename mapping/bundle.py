@@ -70,6 +70,7 @@ def refine_poses(
         "n_tracks": tracks.n_tracks,
         "n_tracks_3plus": int(np.sum(tracks.length >= 3)),
         "n_inconsistent_tracks": tracks.n_inconsistent,
+        "n_tracks_off_road": 0 if tracks.road is None else int(np.sum(~tracks.road)),
         "n_windows": 0,
         "gps_rejected": [],
     }
@@ -413,6 +414,7 @@ def _solve_window(
         vertical_factor=cfg.gps_vertical_sigma_factor,
         tau0=tau,
         sigma_tau_s=0.0,  # held; estimated over the drive (_fit_time_offset)
+        on_road=None if tracks.road is None else tracks.road[tr_ids],
     )
     prob = WindowProblem(data)
     prob.gps_used = g_used.copy()

@@ -53,6 +53,7 @@ class WindowData:
     vertical_factor: float
     tau0: float  # prior mean of τ (s)
     sigma_tau_s: float  # 0: τ held at tau0
+    on_road: np.ndarray | None = None  # (P,) bool: the point-on-plane term applies; None = all
 
 
 def _skew_cross(a: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -141,11 +142,17 @@ class WindowProblem:
             Ju = np.column_stack([fx / z, zero, -fx * Xc[:, 0] / z**2]) / s
             Jv = np.column_stack([zero, fy / z, -fy * Xc[:, 1] / z**2]) / s
             pl = planes[f]
-            sn = np.sqrt(1.0 + pl[:, 0] ** 2 + pl[:, 1] ** 2)
+            # relief as a share of the camera's height above its plane, times h: a metric
+            # distance would let the solver shrink the scene to shrink every relief residual
+            # (a scale bias only the height prior held back)
+            p2 = np.where(np.abs(pl[:, 2]) > 1e-6, pl[:, 2], 1e-6)
             N = pl[:, 0] * Xc[:, 0] + pl[:, 1] * Xc[:, 1] + pl[:, 2] - Xc[:, 2]
             sr = d.sigma_relief_m
-            res.append(N / sn / sr)
-            Jp = np.column_stack([pl[:, 0], pl[:, 1], -np.ones(m)]) / (sn * sr)[:, None]
+            q = d.height_m / (p2 * sr)
+            if d.on_road is not None:
+                q = q * d.on_road[p]  # a defect's point is not held to the road plane
+            res.append(N * q)
+            Jp = np.column_stack([pl[:, 0], pl[:, 1], -np.ones(m)]) * q[:, None]
             pose0 = self.pose_col[f]
             pcol = self.point_col0 + 3 * p
             for k, Jx in enumerate((Ju, Jv, Jp)):
@@ -155,11 +162,8 @@ class WindowProblem:
                 put_block(row, np.where(pose0 >= 0, pose0 + 3, -1), -A)
                 put_block(row, pose0, _skew_cross(A, v))
             row = r0 + 2 * m + np.arange(m)
-            g = N / sn
-            gpl = np.column_stack(
-                [Xc[:, 0] / sn - g * pl[:, 0] / sn**2, Xc[:, 1] / sn - g * pl[:, 1] / sn**2, 1 / sn]
-            )
-            put_block(row, self.plane_col0 + 3 * f, gpl / sr)
+            gpl = np.column_stack([Xc[:, 0] * q, Xc[:, 1] * q, q - N * q / p2])
+            put_block(row, self.plane_col0 + 3 * f, gpl)
             r0 += 3 * m
 
         # ------------------------------------------------ camera height above its plane

@@ -23,6 +23,10 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
+# a pair's point further from the pair's road plane than this many robust σ (1.4826 MAD of the
+# pair's plane distances, at least 1 mm) is not road: a pothole, crack or kerb point
+ROAD_SIGMAS = 3.0
+
 
 @dataclass
 class Tracks:
@@ -34,6 +38,9 @@ class Tracks:
     point_w: np.ndarray  # (T, 3) world position of each track (mean of its pairs' points, m)
     length: np.ndarray  # (T,) frames that see the track
     n_inconsistent: int = 0  # tracks dropped because their pairs disagreed
+    # (T,) bool: every pair that saw the track put it on its road plane (within ROAD_SIGMAS of
+    # the pair's own relief scatter); None = all road. Defects and kerbs are not.
+    road: np.ndarray | None = None
 
     @property
     def n_tracks(self) -> int:
@@ -51,6 +58,7 @@ class Tracks:
             self.point_w[keep],
             self.length[keep],
             self.n_inconsistent,
+            None if self.road is None else self.road[keep],
         )
 
 
@@ -80,6 +88,7 @@ def build_tracks(
     count = np.zeros(0, int)
     first_w = np.zeros((0, 3))  # the first pair's point of each track (consistency check)
     bad = np.zeros(0, bool)
+    road = np.zeros(0, bool)
     prev: tuple[int, np.ndarray, np.ndarray] | None = None  # (frame b, px_b, track ids)
     n_tracks = 0
     for p in chain:
@@ -104,6 +113,12 @@ def build_tracks(
         count = np.concatenate([count, np.zeros(k_new, int)])
         first_w = np.concatenate([first_w, pw[new]])
         bad = np.concatenate([bad, np.zeros(k_new, bool)])
+        road = np.concatenate([road, np.ones(k_new, bool)])
+        pd = np.abs(np.asarray(p.plane_dist_m, float))
+        if len(pd) == m and m:
+            sig = max(1.4826 * float(np.median(pd)), 1e-3)
+            off = ids[pd > ROAD_SIGMAS * sig]
+            road[off] = False
         old = ~new
         bad[ids[old]] |= np.linalg.norm(pw[old] - first_w[ids[old]], axis=1) > tol_m
         np.add.at(sum_w, ids, pw)
@@ -119,7 +134,9 @@ def build_tracks(
     obs_frame = np.concatenate(frames)
     obs_track = np.concatenate(tracks)
     length = np.bincount(obs_track, minlength=n_tracks)
-    out = Tracks(obs_frame, obs_track, np.concatenate(pxs), sum_w / count[:, None], length)
+    out = Tracks(
+        obs_frame, obs_track, np.concatenate(pxs), sum_w / count[:, None], length, road=road
+    )
     if bad.any():
         out = out.subset(~bad)
         out.n_inconsistent = int(bad.sum())

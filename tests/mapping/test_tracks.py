@@ -85,3 +85,27 @@ def test_points_are_triangulated_from_the_given_poses() -> None:
         np.array([0, 0]), tr.obs_px[[0, 0]], W[[0, 0], :3, :3], W[[0, 0], :3, 3], K, 1
     )
     assert not ok1[0]
+
+
+def test_points_off_the_road_plane_are_not_road() -> None:
+    # a pair that puts some points 3 cm below its road plane (a pothole; the rest scatter 1 mm):
+    # their tracks are not held to the road plane by the bundle
+    syn, pos_of = _setup()
+    rng = np.random.default_rng(0)
+    p = syn.pairs[4]
+    p.plane_dist_m = rng.normal(0, 0.001, p.n_points)
+    hole = np.arange(0, p.n_points, 10)
+    p.plane_dist_m[hole] = -0.03
+    tr = build_tracks(syn.pairs, pos_of, syn.world_from_cam, tol_px=0.05, tol_m=0.05)
+    assert tr.road is not None
+    # the tracks through the pair's observations in frame b (= index_b)
+    o = np.flatnonzero(tr.obs_frame == p.index_b)
+    px = tr.obs_px[o]
+    is_hole = np.zeros(p.n_points, bool)
+    is_hole[hole] = True
+    d = np.linalg.norm(px[:, None] - np.asarray(p.px_b)[None], axis=2)
+    near = d.argmin(1)
+    ok = d.min(1) < 1e-6
+    assert not tr.road[tr.obs_track[o][ok & is_hole[near]]].any()
+    assert tr.road[tr.obs_track[o][ok & ~is_hole[near]]].mean() > 0.98
+    assert tr.subset(tr.length >= 2).road is not None
