@@ -39,7 +39,7 @@ from roadsurf.reconstruction import consensus
 from roadsurf.reconstruction import features as feat
 from roadsurf.reconstruction.api import reconstruct_features, road_normal_in_cam
 from roadsurf.reconstruction.config import ReconstructionConfig
-from roadsurf.reconstruction.types import Features, PairResult, load_pair, save_pair
+from roadsurf.reconstruction.types import Features, PairResult, load_pair, save_pair, stored
 
 log = logging.getLogger(__name__)
 
@@ -179,7 +179,7 @@ def run(
                 stale += 1  # other settings, camera or image files: recompute
                 continue
             try:
-                cached[key] = load_pair(path)
+                cached[key] = stored(load_pair(path), path)
             except (OSError, ValueError, KeyError) as e:
                 log.warning("%s: unreadable cached pair (%s); recomputing", path, e)
     if stale:
@@ -204,7 +204,7 @@ def run(
             fingerprint_path(path).unlink(missing_ok=True)
             save_pair(path, res)
             write_text_atomic(fingerprint_path(path), fingerprints[key] + "\n")
-            results.append(res)
+            results.append(stored(res, path))  # the arrays no later stage reads stay on disk
         if cfg.normal_consensus and cfg.method in ("proposed", "rotation_aware"):
             _normal_consensus(cfg, drive, cache, results, rf, fingerprints)
     finally:

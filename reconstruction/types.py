@@ -115,6 +115,40 @@ class PairResult:
         return T
 
 
+# Fields nothing after the reconstruction reads in a drive run (the viewer and the studies load
+# pairs from RUN/pairs): ``stored`` keeps them on disk only. They are over half of a pair's
+# memory (the 3x3 covariance of every point), and a drive's pairs stay in memory to the end of
+# the run (issue 31 #10: memory flat in the drive's length).
+ON_DISK_FIELDS = ("cov_m2", "match_idx")
+
+
+class StoredPairResult(PairResult):
+    """A ``PairResult`` saved at ``npz`` (``save_pair``) whose ``ON_DISK_FIELDS`` are read from
+    that file on each access instead of being kept in memory; every other attribute is held as
+    usual, and assigning a field holds that value from then on. Made by ``stored``."""
+
+    _npz: Path
+
+    def __getattr__(self, name: str) -> Any:
+        # only called for attributes not held: the fields left on disk
+        npz = self.__dict__.get("_npz")
+        if name not in ON_DISK_FIELDS or npz is None:
+            raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+        with np.load(npz, allow_pickle=False) as z:
+            if name in z.files:
+                return z[name]
+        return PairResult.__dataclass_fields__[name].default_factory()  # type: ignore[misc]
+
+
+def stored(res: PairResult, npz: str | Path) -> PairResult:
+    """``res``, just saved at ``npz`` by ``save_pair``, as a ``StoredPairResult`` (the same
+    values; ``ON_DISK_FIELDS`` read back from the file when used)."""
+    out = StoredPairResult.__new__(StoredPairResult)
+    out.__dict__.update({k: v for k, v in res.__dict__.items() if k not in ON_DISK_FIELDS})
+    out.__dict__["_npz"] = Path(npz)
+    return out
+
+
 def save_pair(path: str | Path, res: PairResult) -> Path:
     """Write a PairResult atomically as .npz (arrays as arrays, scalars/strings as 0-d arrays)."""
     data: dict[str, np.ndarray] = {}

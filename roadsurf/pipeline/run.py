@@ -32,7 +32,7 @@ from roadsurf.core.atomic import (
 )
 from roadsurf.core.config import from_dict, load_yaml_config, to_dict
 from roadsurf.core.errors import ConfigError
-from roadsurf.core.memory import limit_malloc_arenas, release_free_memory
+from roadsurf.core.memory import fix_mmap_threshold, limit_malloc_arenas, release_free_memory
 from roadsurf.detection.classifier.config import ClassifierConfig
 from roadsurf.detection.config import DetectionConfig
 from roadsurf.io import runfolder as rf
@@ -164,6 +164,7 @@ def run_drive(
     t_start = time.perf_counter()
     _check_out_folder(Path(drive_dir), Path(out_dir))
     limit_malloc_arenas()  # before the stages' threads allocate (roadsurf.core.memory)
+    fix_mmap_threshold()  # freed arrays go back to the system, not into the arenas
     cfg = load_pipeline_config(config_path)
     job = None
     if classifier is not None and cfg.classifier.screen_in_subprocess:

@@ -12,7 +12,7 @@ import textwrap
 
 import pytest
 
-from roadsurf.core.memory import _glibc, limit_malloc_arenas
+from roadsurf.core.memory import _glibc, fix_mmap_threshold, limit_malloc_arenas
 
 needs_glibc = pytest.mark.skipif(_glibc() is None, reason="glibc malloc only (Linux)")
 
@@ -40,7 +40,8 @@ def heaps():
 
 def _run(body: str, tmp_path, env: dict[str, str] | None = None) -> dict:
     code = f"PATH = {str(tmp_path / 'info.xml')!r}\n" + _HELPERS + textwrap.dedent(body)
-    e = {k: v for k, v in os.environ.items() if k not in ("MALLOC_ARENA_MAX", "GLIBC_TUNABLES")}
+    user = ("MALLOC_ARENA_MAX", "MALLOC_MMAP_THRESHOLD_", "GLIBC_TUNABLES")
+    e = {k: v for k, v in os.environ.items() if k not in user}
     p = subprocess.run(
         [sys.executable, "-c", code], env=e | (env or {}), capture_output=True, text=True
     )
@@ -108,3 +109,49 @@ def test_a_limit_set_by_the_user_wins(tmp_path) -> None:
 def test_limit_malloc_arenas_refuses_zero() -> None:
     with pytest.raises(ValueError, match="n must be >= 1"):
         limit_malloc_arenas(0)
+
+
+@needs_glibc
+@pytest.mark.parametrize("fixed", [False, True])
+def test_fix_mmap_threshold_returns_freed_arrays_at_once(tmp_path, fixed) -> None:
+    """Once a 16 MB block was freed, glibc serves 4 MB blocks from its heap; freed between
+    long-lived small blocks they stay resident (no trim reaches them). With the threshold fixed
+    each is its own memory map, unmapped by free: the freed 160 MB leave at once."""
+    res = _run(
+        f"""
+        done = memory.fix_mmap_threshold() if {fixed} else None
+        big = bytearray(16 << 20); del big  # raises glibc's dynamic threshold to 16 MB
+        base = rss_mb()
+        blocks, kept = [], []
+        for _ in range(40):
+            blocks.append(b"\\1" * (4 << 20))  # written: resident
+            kept.append(bytearray(1000))  # long-lived, above each block
+        full = rss_mb()
+        del blocks
+        print(json.dumps({{"done": done, "grown": full - base, "left": rss_mb() - base}}))
+        """,
+        tmp_path,
+    )
+    assert res["grown"] > 150, res
+    if fixed:
+        assert res["done"] is True
+        assert res["left"] < 20, res
+    else:
+        assert res["left"] > 140, res  # the case the fix is for: still resident
+
+
+@needs_glibc
+def test_an_mmap_threshold_set_by_the_user_wins(tmp_path) -> None:
+    res = _run(
+        'print(json.dumps({"done": memory.fix_mmap_threshold()}))',
+        tmp_path,
+        env={"MALLOC_MMAP_THRESHOLD_": "1048576"},
+    )
+    assert res["done"] is False
+
+
+def test_fix_mmap_threshold_refuses_nonsense() -> None:
+    with pytest.raises(ValueError, match="n_bytes must be in"):
+        fix_mmap_threshold(0)
+    with pytest.raises(ValueError, match="n_bytes must be in"):
+        fix_mmap_threshold(64 * 2**20)
