@@ -10,7 +10,8 @@ import numpy as np
 
 from roadsurf.core.geometry import enu_from_lla, lla_from_enu
 from roadsurf.mapping import poses
-from roadsurf.mapping.bundle import _keep_placement, _time_offset_bound_s, refine_poses
+from roadsurf.mapping.bundle import refine_poses
+from roadsurf.mapping.bundle_gps import keep_placement, time_offset_bound_s
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.pose_gps import GpsFixes, gps_enu
 from roadsurf.mapping.types import PoseReport
@@ -112,7 +113,7 @@ def test_no_time_offset_is_read_from_a_drive_at_constant_speed() -> None:
         s = 6.0 * (t + var * 2.5 / (2 * np.pi) * (1 - np.cos(2 * np.pi * t / 2.5)))
         W = np.tile(np.eye(4), (len(t), 1, 1))
         W[:, 1, 3] = s
-        se[var] = _time_offset_bound_s(W, t, fixes, used, 1.0)
+        se[var] = time_offset_bound_s(W, t, fixes, used, 1.0)
     assert se[0.0] > 1.0  # unknown
     assert 0.02 < se[0.05] < 0.1  # ±5 % of 6 m/s: the potholes drive, latency not observable
     assert se[0.3] < 0.01  # the recovery test's S-curve
@@ -144,7 +145,7 @@ def test_the_pose_graph_placement_is_kept_beyond_the_placement_length() -> None:
     cur = W.copy()
     wiggle = 0.002 * np.sin(2 * np.pi * W[:, 1, 3])
     cur[:, 0, 3] += 0.05 + wiggle
-    out = _keep_placement(cur, W, 25.0)
+    out = keep_placement(cur, W, 25.0)
     mid = slice(300, n - 300)  # away from the ends (one-sided smoothing there)
     assert np.max(np.abs(out[mid, 0, 3] - wiggle[mid])) < 2e-4
-    assert np.array_equal(_keep_placement(cur, W, 0.0), cur)
+    assert np.array_equal(keep_placement(cur, W, 0.0), cur)

@@ -1,0 +1,144 @@
+"""GPS side of the bundle adjustment (issue 30): how far to trust the fixes, the GPS - camera
+time offset over the whole drive (and the least standard error the fixes allow for it), and the
+pose graph's placement kept at long scales."""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from roadsurf.mapping.pose_gps import GpsFixes, interp_weights
+
+if TYPE_CHECKING:
+    from roadsurf.mapping.config import MappingConfig
+
+
+def keep_placement(cur: np.ndarray, world_pg: np.ndarray, length_m: float) -> np.ndarray:
+    """The refined poses moved by the pose graph's placement at scales beyond ``length_m``.
+
+    The pose graph places the whole drive on all its GPS fixes at once; a window sees only the
+    fixes of its own few metres. The camera centres are shifted by the Gaussian-smoothed (σ =
+    length_m of path) difference pose graph - bundle, so the bundle's shape within a few
+    windows (drift over 5 m: weight 98 % at 25 m) stays and its placement noise goes.
+    length_m <= 0: no shift."""
+    if length_m <= 0 or len(cur) < 2:
+        return cur
+    Cp = world_pg[:, :3, 3]
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(Cp, axis=0), axis=1))])
+    out = cur.copy()
+    diff = Cp - cur[:, :3, 3]
+    # banded: beyond 4 σ the weights are < 3e-4 (memory stays linear in the drive)
+    lo = np.searchsorted(s, s - 4 * length_m)
+    hi = np.searchsorted(s, s + 4 * length_m, side="right")
+    for i in range(len(s)):
+        w = np.exp(-0.5 * ((s[lo[i] : hi[i]] - s[i]) / length_m) ** 2)
+        out[i, :3, 3] += w @ diff[lo[i] : hi[i]] / w.sum()
+    return out
+
+
+def fit_time_offset(
+    cur: np.ndarray,
+    t: np.ndarray,
+    gps: GpsFixes,
+    used: np.ndarray,
+    gps_scale: float,
+    cfg: MappingConfig,
+) -> tuple[float, float]:
+    """GPS - camera time offset τ (s) and its standard error: the fixes (inside the frames'
+    time span) against the refined trajectory at t - τ, searched on a
+    1 ms grid over ±bundle_max_time_offset_s and refined by a parabola (up to a rotation and
+    shift: the loose trajectory's heading and placement are the part GPS decides). The per-window
+    solves hold τ: in a 2 s window τ and an along-track shift are nearly one unknown."""
+    sel = used & (gps.t_s >= t[0]) & (gps.t_s <= t[-1])
+    if sel.sum() < 6:
+        return 0.0, float("inf")
+    tg, g = gps.t_s[sel], gps.enu_m[sel, :2]
+    w = 1.0 / (gps.sigma_m[sel] * gps_scale) ** 2
+    C = cur[:, :2, 3]
+    taus = np.arange(-cfg.bundle_max_time_offset_s, cfg.bundle_max_time_offset_s + 5e-4, 1e-3)
+    cost = np.empty(len(taus))
+    for i, tau in enumerate(taus):
+        tq = np.clip(tg - tau, t[0], t[-1])
+        pred = np.column_stack([np.interp(tq, t, C[:, k]) for k in range(2)])
+        cost[i] = _rigid_residual(pred, g, w)
+    i = int(np.clip(np.argmin(cost), 1, len(taus) - 2))
+    c0, c1, c2 = cost[i - 1], cost[i], cost[i + 1]
+    curv = (c0 - 2 * c1 + c2) / 1e-6  # d²cost/dτ² (cost = χ², so σ_τ² = 2 / curv)
+    if curv <= 0:
+        return float(taus[i]), float("inf")
+    tau = float(taus[i] + 0.5e-3 * (c0 - c2) / (c0 - 2 * c1 + c2))
+    dof = max(int(sel.sum()) * 2 - 3, 1)
+    # the residuals are not independent: a GPS receiver's slow bias and the trajectory's own
+    # drift run along the drive. With lag-one autocorrelation rho (AR(1)) the fixes count as
+    # n (1 - rho) / (1 + rho) independent ones; without this an RTK drive at constant speed read
+    # -66 ms +- 4 ms where the truth trajectory itself gives -66 +- 29 ms (no latency simulated)
+    tq = np.clip(tg - taus[i], t[0], t[-1])
+    pred = np.column_stack([np.interp(tq, t, C[:, k]) for k in range(2)])
+    res = _rigid_residual(pred, g, w, residuals=True)
+    rho = _lag1_correlation(res)
+    inflate = (1.0 + rho) / max(1.0 - rho, 1e-3)
+    se = float(np.sqrt(2.0 / curv * max(c1 / dof, 1.0) * inflate))
+    return tau, se
+
+
+def time_offset_bound_s(
+    world: np.ndarray, t: np.ndarray, gps: GpsFixes, used: np.ndarray, gps_scale: float
+) -> float:
+    """Smallest standard error (s) the fixes allow for τ, whatever trajectory it is fitted to.
+
+    With the placement free (vision gives none), a time offset is seen only through the change
+    of velocity: the Fisher information is Σ w ||v_i - v̄||² (v at the fix times from the pose
+    graph, w = 1/σ²). On a drive at constant speed it is ~0 and τ stays unknown, however well a
+    vision-shaped trajectory's own wobble seems to pin it."""
+    sel = used & (gps.t_s >= t[0]) & (gps.t_s <= t[-1])
+    if sel.sum() < 3 or len(t) < 2:
+        return float("inf")
+    C = world[:, :2, 3]
+    v_fr = np.gradient(C, t, axis=0)
+    v = np.column_stack([np.interp(gps.t_s[sel], t, v_fr[:, k]) for k in range(2)])
+    w = 1.0 / (gps.sigma_m[sel] * gps_scale) ** 2
+    vbar = np.sum(w[:, None] * v, 0) / np.sum(w)
+    info = float(np.sum(w * np.sum((v - vbar) ** 2, 1)))
+    return float("inf") if info <= 0 else 1.0 / math.sqrt(info)
+
+
+def _lag1_correlation(res: np.ndarray) -> float:
+    """Lag-one autocorrelation (clipped to [0, 0.99]) of (G, 2) residuals in time order."""
+    if len(res) < 4:
+        return 0.0
+    r = res - res.mean(0)
+    den = float(np.sum(r**2))
+    if den <= 0:
+        return 0.0
+    return float(np.clip(np.sum(r[1:] * r[:-1]) / den, 0.0, 0.99))
+
+
+def _rigid_residual(a: np.ndarray, b: np.ndarray, w: np.ndarray, residuals: bool = False) -> Any:
+    """Weighted squared residual of 2D points a against b after the best rotation + shift
+    (float), or with residuals=True the whitened (G, 2) residuals."""
+    ca = np.sum(w[:, None] * a, 0) / np.sum(w)
+    cb = np.sum(w[:, None] * b, 0) / np.sum(w)
+    A, B = a - ca, b - cb
+    U, _, Vt = np.linalg.svd((w[:, None] * A).T @ B)
+    D = np.diag([1.0, np.sign(np.linalg.det(U @ Vt))])
+    R = (U @ D @ Vt).T
+    if residuals:
+        return np.sqrt(w)[:, None] * (A @ R.T - B)
+    return float(np.sum(w[:, None] * (A @ R.T - B) ** 2))
+
+
+def gps_sigma_scale(
+    world: np.ndarray, t: np.ndarray, gps: GpsFixes | None, used: np.ndarray
+) -> float:
+    """Factor on the logged GPS σ from the pose graph's residuals (MAD; a 2D error norm has
+    median 1.1774 σ): an RTK receiver reporting HDOP states decimetres for centimetre fixes.
+    Never below 1/20 (a too-good fit cannot make GPS exact)."""
+    if gps is None or used.sum() < 8:
+        return 1.0
+    k, w = interp_weights(t, gps.t_s)
+    k1 = np.minimum(k + 1, len(t) - 1)
+    pred = (1 - w)[:, None] * world[k, :3, 3] + w[:, None] * world[k1, :3, 3]
+    e = np.linalg.norm(pred[:, :2] - gps.enu_m[:, :2], axis=1) / gps.sigma_m
+    return float(np.clip(np.median(e[used]) / 1.1774, 0.05, 20.0))
