@@ -20,10 +20,23 @@ from roadsurf.mapping.config import MappingConfig
 log = logging.getLogger(__name__)
 
 _OFF = 1 << 20  # lattice index offset so keys stay positive
+# nodes whose window sums are gathered at once: the (9, nodes, (2h)²) gather of a whole drive
+# grew with its length (135 MB for 3,000 frames at h = 3); a block is ~10 MB at h = 3
+_NODE_BLOCK = 4096
 
 
 def _key(ix: np.ndarray, iy: np.ndarray) -> np.ndarray:
     return (np.asarray(ix, np.int64) + _OFF) * (1 << 22) + (np.asarray(iy, np.int64) + _OFF)
+
+
+def _window_sums(cell: np.ndarray, nb: np.ndarray, block: int = _NODE_BLOCK) -> np.ndarray:
+    """``cell[:, nb].sum(axis=2)`` (cell (T, C + 1) sums per cell, nb (nodes, K) cell indices;
+    -1 the zero column) -> (T, nodes), gathered ``block`` nodes at a time so the (T, nodes, K)
+    gather never exists whole; each node's sum is the same reduction, so the same bits."""
+    out = np.empty((cell.shape[0], len(nb)))
+    for i in range(0, len(nb), block):
+        out[:, i : i + block] = cell[:, nb[i : i + block]].sum(axis=2)
+    return out
 
 
 class LocalSurface:
@@ -62,13 +75,11 @@ class LocalSurface:
         xn, yn = nix * c, niy * c
         # neighbour cell index of each node for each window offset (-1: empty cell)
         h = self.half
-        nb = []
-        for dx in range(-h, h):
-            for dy in range(-h, h):
-                k = _key(nix + dx, niy + dy)
-                pos = np.minimum(np.searchsorted(ukeys, k), len(ukeys) - 1)
-                nb.append(np.where(ukeys[pos] == k, pos, -1))
-        nb_a = np.stack(nb, axis=1)  # (nodes, (2h)²)
+        nb_a = np.empty((len(nodes), (2 * h) ** 2), np.int64)  # (nodes, (2h)²)
+        for j, (dx, dy) in enumerate((dx, dy) for dx in range(-h, h) for dy in range(-h, h)):
+            k = _key(nix + dx, niy + dy)
+            pos = np.minimum(np.searchsorted(ukeys, k), len(ukeys) - 1)
+            nb_a[:, j] = np.where(ukeys[pos] == k, pos, -1)
         terms = (np.ones_like(x), x, y, x * x, x * y, y * y, z, x * z, y * z)
         w = np.ones(len(x))
         self.node_keys = nodes
@@ -76,7 +87,7 @@ class LocalSurface:
         for _ in range(5):
             cell = np.stack([np.bincount(inv, weights=w * t, minlength=len(ukeys)) for t in terms])
             cell = np.concatenate([cell, np.zeros((len(terms), 1))], axis=1)  # index -1 = empty
-            S = cell[:, nb_a].sum(axis=2)  # (9, nodes)
+            S = _window_sums(cell, nb_a)  # (9, nodes)
             n, sx, sy, sxx, sxy, syy, sz, sxz, syz = S
             # moments about the node
             X, Y = sx - n * xn, sy - n * yn
