@@ -184,7 +184,9 @@ class MappingConfig:
     # where the relief is road (surface_fill_relief_min_m): the matching windows stop a few
     # pixels short of the images' borders; 0 = off
     dense_fill_max_m: float = 0.01
-    dense: DenseHeightConfig = field(default_factory=DenseHeightConfig)  # the matching
+    # the matching; the heights smoothed edge-preserving over ~one window (smooth_px = 3 px,
+    # range 3 mm: about 2 x the cells' noise σ): see DenseHeightConfig.smooth_px
+    dense: DenseHeightConfig = field(default_factory=lambda: DenseHeightConfig(smooth_px=3.0))
 
     # valid values (interval notation; see roadsurf.core.config). Upper bounds only where a
     # larger value is a unit mistake

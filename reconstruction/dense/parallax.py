@@ -93,6 +93,38 @@ def torch_device(name: str) -> torch.device:
     return dev
 
 
+_HEAP_LOCK = threading.Lock()
+_heap_users = 0
+
+
+@contextlib.contextmanager
+def heap_blocks(dev: torch.device) -> Iterator[None]:
+    """While pairs are matched on the CPU, malloc serves blocks up to 32 MB from its heap. A run
+    gives every block from 256 KB up its own memory map (``core.memory.fix_mmap_threshold``),
+    and the matcher allocates and frees hundreds of image-sized temporaries per pair: each one
+    then cost a map, page faults and an unmap (640 x 480: 0.125 -> 0.46 CPU s per pair, most of
+    it system time). When the last concurrent matcher leaves, the run's threshold is set back
+    and the freed heap returned to the system (``release_free_memory``), so no freed block
+    stays resident. A threshold the user set (environment) is left alone."""
+    global _heap_users
+    from roadsurf.core.memory import fix_mmap_threshold, release_free_memory
+
+    if dev.type != "cpu":
+        yield
+        return
+    with _HEAP_LOCK:
+        if _heap_users == 0:
+            fix_mmap_threshold(32 * 2**20)
+        _heap_users += 1
+    try:
+        yield
+    finally:
+        with _HEAP_LOCK:
+            _heap_users -= 1
+            if _heap_users == 0 and fix_mmap_threshold():
+                release_free_memory()
+
+
 _THREADS_LOCK = threading.Lock()
 _threads_users = 0
 _threads_saved = 0
@@ -181,7 +213,7 @@ def dense_height(
     def t_(x: np.ndarray) -> torch.Tensor:
         return torch.as_tensor(np.ascontiguousarray(x), dtype=torch.float32, device=dev)[None, None]
 
-    with torch.no_grad(), cpu_threads(dev, cfg.cpu_threads):
+    with torch.no_grad(), cpu_threads(dev, cfg.cpu_threads), heap_blocks(dev):
         At, Bt = gaussian(t_(A), cfg.blur_px), gaussian(t_(B), cfg.blur_px)
         mAt, mBt = t_(mA.astype(np.float32)), t_(mB.astype(np.float32))
         wx, wy, nw, nr = t_(wx_np), t_(wy_np), t_(nw_np), t_(nr_np)
@@ -220,6 +252,8 @@ def dense_height(
         near = nw_np / max(abs(float(ppc.E[2])), 1e-12) < cfg.min_epipole_px * s
     valid &= np.isfinite(eta) & np.isfinite(var) & ~near
     valid &= (eta >= -cfg.max_depth_m - 0.01) & (eta <= cfg.max_height_m + 0.01)
+    if cfg.smooth_px > 0:
+        eta = _smooth(eta, valid, cfg.smooth_px, cfg.smooth_range_m)
     sl = np.s_[r0:r1, c0:c1]
     height_full[sl] = np.where(valid, eta, np.nan)
     var_full[sl] = np.where(valid, var, np.nan)
@@ -281,6 +315,14 @@ def _resample(
     A, mA = remap(img_a, ua, va)
     B, mB = remap(img_b, ub, vb)
     return A, B, mA, mB
+
+
+def _smooth(eta: np.ndarray, valid: np.ndarray, sigma_px: float, range_m: float) -> np.ndarray:
+    """Bilateral mean of the valid heights (invalid pixels, set 1 m away, get no weight)."""
+    f = np.where(valid, eta, 1.0).astype(np.float32)
+    d = 2 * int(np.ceil(2 * sigma_px)) + 1
+    out = cv2.bilateralFilter(f, d, range_m, sigma_px).astype(np.float64)
+    return np.where(valid, out, np.nan)
 
 
 def _overlap_crop(
