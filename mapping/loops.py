@@ -20,6 +20,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
+    from roadsurf.io.drive import Drive
+    from roadsurf.reconstruction.config import ReconstructionConfig
     from roadsurf.reconstruction.types import PairResult
 
 log = logging.getLogger(__name__)
@@ -96,3 +98,23 @@ def confirm_loops(
             done.add(j)
     log.info("loops: %d of %d candidate pair(s) confirmed", len(found), len(candidates))
     return found
+
+
+def frame_matcher(
+    drive: Drive, rec_cfg: ReconstructionConfig
+) -> Callable[[int, int], PairResult | None]:
+    """``match(i, j)`` for ``confirm_loops``: the reconstruction's pair API on the drive's frames
+    at positions i and j. The rolling-shutter model is off for these pairs: it assumes the
+    constant velocity of consecutive frames, which two passes minutes apart do not share."""
+    import dataclasses
+
+    from roadsurf.reconstruction.api import reconstruct_pair
+
+    cfg = dataclasses.replace(rec_cfg, rolling_shutter=False)
+
+    def match(i: int, j: int) -> PairResult | None:
+        fa, fb = drive.frames[i], drive.frames[j]
+        res = reconstruct_pair(fa, fb, drive.camera, cfg)
+        return res if res.ok else None
+
+    return match

@@ -63,11 +63,14 @@ def run(
     drive: Drive,
     pairs: list[PairResult],
     run_dir: str | Path,
+    *,
+    loop_match: Callable[[int, int], PairResult | None] | None = None,
 ) -> Trajectory:
     """Fuse GPS and pairs into the trajectory; writes RUN/poses.npz, reference.json,
-    trajectory.geojson and poses_report.json. Resumes when the inputs did not change."""
+    trajectory.geojson and poses_report.json. Resumes when the inputs did not change.
+    loop_match: as ``estimate_trajectory`` (revisits; ``mapping.loops.frame_matcher``)."""
     run = RunFolder(run_dir)
-    key = _fingerprint(cfg, drive, pairs)
+    key = _fingerprint(cfg, drive, pairs, loops=loop_match is not None)
     rep_path = run.path(rf.POSES_REPORT)
     geojson = run.path(rf.TRAJECTORY_GEOJSON)
     if not cfg.overwrite and run.poses_npz.is_file() and rep_path.is_file():
@@ -82,7 +85,7 @@ def run(
         except (OSError, ValueError, KeyError) as e:
             log.info("poses: cached result unreadable (%s); recomputing", e)
     t0 = time.perf_counter()
-    traj, report = estimate_trajectory(cfg, drive, pairs)
+    traj, report = estimate_trajectory(cfg, drive, pairs, loop_match=loop_match)
     save_trajectory(run.root, traj)
     write_trajectory_geojson(geojson, traj, drive, vertical_datum=report.vertical_datum)
     write_trajectory_csv(run.path(rf.TRAJECTORY_CSV), traj)
@@ -91,11 +94,16 @@ def run(
     return traj
 
 
-def _fingerprint(cfg: MappingConfig, drive: Drive, pairs: list[PairResult]) -> str:
+def _fingerprint(
+    cfg: MappingConfig, drive: Drive, pairs: list[PairResult], *, loops: bool = False
+) -> str:
     """What the trajectory depends on (a fixed byte stream): the config, the frames' names and
     times, the GPS fixes (time, lat, lon, altitude, HDOP), the OBD speeds, every pair's
-    transform and the version of the plausibility checks whose warnings the report keeps."""
+    transform, whether revisits are matched (``loops``) and the version of the plausibility
+    checks whose warnings the report keeps."""
     fp = Fingerprint()
+    if loops:
+        fp.add_text("loops")
     fp.add_json({k: v for k, v in to_dict(cfg).items() if k not in NOT_IN_FINGERPRINT})
     fp.add_json([(f.filename, f.timestamp_s) for f in drive.frames], default_str=False)
     fp.add_text(f"mount:{drive.camera.mount_deg}")
