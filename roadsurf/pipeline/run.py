@@ -38,6 +38,7 @@ from roadsurf.detection.config import DetectionConfig
 from roadsurf.io import runfolder as rf
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.datum import vertical_datum
+from roadsurf.mapping.loops import frame_matcher
 from roadsurf.pipeline.run_checks import check_reconstruction, claim_run_folder
 from roadsurf.reconstruction.config import ReconstructionConfig
 
@@ -266,7 +267,9 @@ def _run_drive(
 
         pairs = timed("reconstruction", reconstruct_guided)
     check_reconstruction(pairs, drive, rec_cfg, out)
-    traj = timed("poses", lambda: poses.run(cfg.mapping, drive, pairs, out))
+    # revisits (issue 30): frames of two passes are matched with the pair API and close the loop
+    loop_match = frame_matcher(drive, rec_cfg)
+    traj = timed("poses", lambda: poses.run(cfg.mapping, drive, pairs, out, loop_match=loop_match))
     if traj.mount_deg is not None and traj.mount_deg != drive.camera.mount_deg:
         # the later stages see the camera on the mount the poses used (given or estimated)
         camera = dataclasses.replace(drive.camera, mount_deg=traj.mount_deg)
