@@ -31,9 +31,12 @@ log = logging.getLogger(__name__)
 M_ARENA_MAX = -8  # mallopt parameter numbers (glibc malloc.h)
 M_MMAP_THRESHOLD = -3
 DEFAULT_ARENAS = 2  # arenas for a run: its threads are few (2 per stage by default)
-# blocks from this size up get their own memory map (bytes): a 256 x 256 float64 array is
-# 512 KB, a 320 x 240 RGB image 230 KB; glibc's initial (dynamic) threshold is 128 KB
-DEFAULT_MMAP_THRESHOLD = 256 * 1024
+# blocks from this size up get their own memory map (bytes): a raster tile's arrays (1024 x 1024
+# px: 1-8 MB) but not most image-sized temporaries (640 x 480 gray 0.3 MB, float32 1.2 MB),
+# which a stage allocates and frees by the hundred per frame: as maps they cost page faults
+# (reconstruction of 20 frames at 640 px, CPU s user/system: dynamic 5.4/0.14, fixed 256 KB
+# 5.7/1.45, 4 MB 5.6/0.9). glibc's initial (dynamic) threshold is 128 KB.
+DEFAULT_MMAP_THRESHOLD = 1024 * 1024
 
 
 @functools.cache

@@ -165,7 +165,6 @@ def run_drive(
     t_start = time.perf_counter()
     _check_out_folder(Path(drive_dir), Path(out_dir))
     limit_malloc_arenas()  # before the stages' threads allocate (roadsurf.core.memory)
-    fix_mmap_threshold()  # freed arrays go back to the system, not into the arenas
     cfg = load_pipeline_config(config_path)
     job = None
     if classifier is not None and cfg.classifier.screen_in_subprocess:
@@ -267,6 +266,9 @@ def _run_drive(
 
         pairs = timed("reconstruction", reconstruct_guided)
     check_reconstruction(pairs, drive, rec_cfg, out)
+    # from here on, freed tile-sized arrays go back to the system, not into the arenas (not
+    # during the reconstruction: its image-sized temporaries would each cost a map + page faults)
+    fix_mmap_threshold()
     # revisits (issue 30): frames of two passes are matched with the pair API and close the loop
     loop_match = frame_matcher(drive, rec_cfg)
     traj = timed("poses", lambda: poses.run(cfg.mapping, drive, pairs, out, loop_match=loop_match))
