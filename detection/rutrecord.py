@@ -69,7 +69,8 @@ def longest_trough_m(trace: RutTrace, cfg: RutConfig) -> float:
     win = np.lib.stride_tricks.sliding_window_view(pad, w)  # win[j] = pad[j : j + w]
     before = win[:n].max(axis=1)  # depth[k - w : k]
     after = win[w + 1 : w + 1 + n].max(axis=1)  # depth[k + 1 : k + 1 + w]
-    flat = depth < cfg.flat_gap_frac * np.minimum(before, after)
+    with np.errstate(invalid="ignore"):  # 0 x -inf at the ends (flat_gap_frac 0): not flat
+        flat = depth < cfg.flat_gap_frac * np.minimum(before, after)
     min_run = max(1, int(round(cfg.flat_gap_m / cfg.step_m)))
     # runs of flat stations at least min_run long cut the trace into stretches
     runs, n_runs = ndimage.label(flat)
