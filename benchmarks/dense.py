@@ -58,6 +58,10 @@ After the speed work (session 21; full 60/80-frame drives, ``roadsurf simulate -
     tilted (25°)  dense    1.17  2.05       98.2 %       98.3 %      100 / 87.5 % 3.21
     highway       sparse   1.37  2.56       99.2 %       100 %       100 / 83.3 % 2.41
     highway       dense    1.10  1.66       99.5 %       100 %       100 / 83.3 % 2.36
+    tilted (45°)  sparse   1.77  3.36       28.6 %       93.3 %      85.7 / 75 %  5.74
+    tilted (45°)  dense    1.37  2.28       95.3 %       100 %       100 / 75 %   5.43
+
+(tilted 45°: ``roadsurf simulate --scenario tilted --mount-pitch 45``.)
 
 potholes, whole run from scratch, same machine back to back: sparse 61.0 s wall / 42.6 CPU s,
 dense 69.5 s / 60.8 CPU s (before: the dense globalmap + detection alone took 116 CPU s).
