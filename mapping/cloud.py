@@ -79,12 +79,15 @@ def align_patches(
     tree = cKDTree(xyz[:, :2])
     dist, nb = tree.query(xyz[:, :2], k=8, distance_upper_bound=0.02)
     valid_nb = np.isfinite(dist)
-    nb = np.where(valid_nb, nb, 0)
+    del dist, tree  # (N, 8) float64 and the tree: not needed any more (memory, issue 31 #10)
+    nb[~valid_nb] = 0  # in place: no second (N, 8) array
     other = valid_nb & (inv[nb] != inv[:, None])
+    del valid_nb
     for _ in range(iterations):
         surf = LocalSurface(cfg, xyz, progress=False)
         r = surf.residual(xyz)
-        rn = np.where(other, r[nb], np.nan)
+        rn = r[nb]
+        rn[~other] = np.nan  # in place: one (N, 8) array, not two
         with np.errstate(all="ignore"):
             cnt = np.sum(np.isfinite(rn), axis=1)
             ref = np.where(cnt > 0, np.nansum(rn, axis=1) / np.maximum(cnt, 1), np.nan)
