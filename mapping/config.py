@@ -23,6 +23,7 @@ DENSE_SURFACE_FIELDS = (
     "dense_outlier_sigmas",
     "dense_reference",
     "dense_fill_max_m",
+    "dense_sparse_fill",
     "dense",
 )
 # settings that change how a result is computed, never the result: a run resumes across them
@@ -184,6 +185,11 @@ class MappingConfig:
     # where the relief is road (surface_fill_relief_min_m): the matching windows stop a few
     # pixels short of the images' borders; 0 = off
     dense_fill_max_m: float = 0.01
+    # cells the dense matching left empty (a real pothole's dark, wet or textureless floor fails
+    # its masks) take the sparse surface's value where the fused feature points cover them:
+    # on the spd2 photographs every pothole floor was a hole in the dense surface, so the
+    # defects were rings
+    dense_sparse_fill: bool = True
     # the matching; the heights smoothed edge-preserving over ~one window (smooth_px = 3 px,
     # range 3 mm: about 2 x the cells' noise σ): see DenseHeightConfig.smooth_px
     dense: DenseHeightConfig = field(default_factory=lambda: DenseHeightConfig(smooth_px=3.0))

@@ -197,6 +197,14 @@ def rasterise(
                 dt = ds.tile(t)
                 res_t, nobs_t, sig_t = dt.residual_m, dt.n_obs, dt.sigma_m
                 filled = np.zeros(res_t.shape, bool)
+                if cfg.dense_sparse_fill and not np.isfinite(res_t).all():
+                    sel = points_in(pts_grid, grid, margin)
+                    if sel.sum() >= 3:
+                        res_s, _ = surface_tile_filled(
+                            cfg, pts_grid[sel], resid[sel], grid, noise_m, None
+                        )
+                        take = ~np.isfinite(res_t) & np.isfinite(res_s)
+                        res_t = np.where(take, res_s, res_t).astype(np.float32)
                 if cfg.dense_fill_max_m > 0 and np.isfinite(res_t).any():
                     # the matching windows stop a few px short of the two-view part's border
                     lim = max(cfg.surface_detail_sigmas * noise_m, cfg.surface_fill_relief_min_m)

@@ -244,3 +244,34 @@ def test_pair_levelling_ignores_a_pothole_filling_a_third_of_the_view() -> None:
     assert abs(coef[1] - 0.01) < 1e-3 and abs(coef[2] + 0.004) < 1e-3
     lsq = np.linalg.lstsq(np.column_stack([np.ones(len(xy)), xy - at]), r, rcond=None)[0]
     assert abs(lsq[0] - road) > 5e-3  # what the robust start avoids
+
+
+def test_cells_the_dense_matching_leaves_empty_take_the_sparse_surface(
+    drive_maps: dict[str, object], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A real pothole's dark floor fails the dense matcher's masks: those cells take the sparse
+    surface's value where the fused points cover them (``dense_sparse_fill``), else stay NaN."""
+    root, drive, pairs, traj = (drive_maps[k] for k in ("root", "drive", "pairs", "traj"))
+    assert isinstance(root, Path)
+    orig = DenseSurface.tile
+
+    def holed(self: DenseSurface, t: tuple[int, int]):  # type: ignore[no-untyped-def]
+        dt = orig(self, t)
+        r = dt.residual_m.copy()
+        r[(np.arange(r.shape[0]) // 16) % 2 == 0, :] = np.nan  # bands the matcher "failed"
+        return dataclasses.replace(dt, residual_m=r)
+
+    monkeypatch.setattr(DenseSurface, "tile", holed)
+    cover = {}
+    for fill in (False, True):
+        cfg = MappingConfig(surface_source="dense", dense_sparse_fill=fill)
+        out = root / f"holed_{fill}"
+        globalmap.run(cfg, drive, pairs, traj, out)  # type: ignore[arg-type]
+        err, flat, _ = _errors(out, root / "D" / "truth", root / "run")
+        m = np.isfinite(err)
+        cover[fill] = m.sum()
+        if fill:
+            assert float(np.mean(np.abs(err[m & flat]))) < 2.0  # the sparse values are right
+    assert (
+        cover[True] > 1.25 * cover[False]
+    )  # measured 1.42x (the 1 cm dense fill narrows the bands)
