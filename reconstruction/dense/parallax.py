@@ -99,8 +99,9 @@ _heap_users = 0
 
 @contextlib.contextmanager
 def heap_blocks(dev: torch.device) -> Iterator[None]:
-    """While pairs are matched on the CPU, malloc serves blocks up to 32 MB from its heap. A run
-    gives every block from 256 KB up its own memory map (``core.memory.fix_mmap_threshold``),
+    """While pairs are matched on the CPU, malloc serves blocks up to 32 MB from its heap. After
+    its reconstruction a run gives every block from 1 MB up its own memory map
+    (``core.memory.fix_mmap_threshold``),
     and the matcher allocates and frees hundreds of image-sized temporaries per pair: each one
     then cost a map, page faults and an unmap (640 x 480: 0.125 -> 0.46 CPU s per pair, most of
     it system time). When the last concurrent matcher leaves, the run's threshold is set back
