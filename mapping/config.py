@@ -160,8 +160,10 @@ class MappingConfig:
     # ---------------------------------------------------------------- dense surface (issue 29)
     # where surface.tif comes from: "sparse" = the fused feature points, interpolated; "dense" =
     # every pixel of each ok pair's overlap matched (reconstruction.dense) and fused per cell
-    # (mapping.dense_fuse); surface and mosaic then share the dense GSD
-    surface_source: Literal["sparse", "dense"] = "sparse"
+    # (mapping.dense_fuse), with the sparse surface where the matching leaves a hole; surface
+    # and mosaic then share the dense GSD. Dense is the default: better flat and in-defect MAE
+    # and coverage on every measured drive (docs/mapping.md)
+    surface_source: Literal["sparse", "dense"] = "dense"
     dense_gsd_m: float = 0.0  # raster GSD with the dense surface (m); 0 = dense_gsd_px x the
     # images' ground sampling at the matching scale (1.8 mm/px for 640 x 480, f = 600 px, 1.1 m)
     # a cell of this many matched pixels (px): the heights are window means (dense.window_px =

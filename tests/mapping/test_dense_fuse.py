@@ -218,8 +218,8 @@ def test_map_key_holds_the_dense_settings_only_when_dense() -> None:
     def key(**kw: object) -> str:
         return globalmap._fingerprint(MappingConfig(**kw), syn.pairs, traj)  # type: ignore[arg-type]
 
-    sparse = key()
-    assert key(dense_gsd_m=0.003) == sparse  # ignored with the sparse surface
+    sparse = key(surface_source="sparse")
+    assert key(surface_source="sparse", dense_gsd_m=0.003) == sparse  # ignored when sparse
     dense = key(surface_source="dense")
     assert dense != sparse
     assert key(surface_source="dense", dense_gsd_m=0.003) != dense

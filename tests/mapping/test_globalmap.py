@@ -32,7 +32,9 @@ def road(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     )
 
 
-CFG = MappingConfig(gps_sigma_m=0.02, tile_px=256)
+# the sparse surface's own rules (5 mm grid, one cloud point per fused point, capped fill);
+# the dense surface (the default) has its tests in test_dense_fuse.py
+CFG = MappingConfig(gps_sigma_m=0.02, tile_px=256, surface_source="sparse")
 
 
 @pytest.fixture(scope="module")

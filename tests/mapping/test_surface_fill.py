@@ -167,7 +167,9 @@ def test_map_covers_the_pairs_overlap_and_not_beyond(tmp_path: Path) -> None:
     syn = write_images(syn, tmp_path / "drive")
     cov = {}
     for name, fill in (("old", 0.0), ("new", 0.05)):
-        cfg = MappingConfig(gps_sigma_m=0.02, tile_px=256, surface_fill_max_m=fill)
+        cfg = MappingConfig(
+            gps_sigma_m=0.02, tile_px=256, surface_fill_max_m=fill, surface_source="sparse"
+        )
         run = tmp_path / name
         traj = poses.run(cfg, syn.drive, syn.pairs, run)
         globalmap.run(cfg, syn.drive, syn.pairs, traj, run)
