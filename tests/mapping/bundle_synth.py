@@ -138,12 +138,21 @@ def make_track_drive(
     meas = true_g + rng.normal(0, gps_sigma_m, true_g.shape)
     for j, (de, dn) in (gps_outliers or {}).items():
         meas[j, :2] += [de, dn]
-    lla = lla_from_enu(meas, REF)
-    gps = GpsTrack(
+    drive = synthetic_drive(cam, t, gps_from_enu(tg, meas))
+    return TrackDrive(drive, pairs, W, pts, pair_ids)
+
+
+def gps_from_enu(tg: np.ndarray, meas_enu: np.ndarray) -> GpsTrack:
+    """A GPS track of fixes at times tg (N,) s and ENU positions (N, 3) m (no HDOP)."""
+    lla = lla_from_enu(meas_enu, REF)
+    return GpsTrack(
         timestamp_s=tg, lat_deg=lla[:, 0], lon_deg=lla[:, 1], alt_m=lla[:, 2],
         hdop=np.full(len(tg), np.nan),
     )  # fmt: skip
+
+
+def synthetic_drive(cam, t: np.ndarray, gps: GpsTrack) -> Drive:  # type: ignore[no-untyped-def]
+    """A Drive of frames at times t (N,) s with no image files (the pairs are given)."""
     root = Path("/nonexistent-synthetic-drive")
-    frames = [Frame(i, f"{i:06d}.png", root / f"{i:06d}.png", float(t[i])) for i in range(n)]
-    drive = Drive(root=root, camera=cam, frames=frames, gps=gps, obd=None)
-    return TrackDrive(drive, pairs, W, pts, pair_ids)
+    frames = [Frame(i, f"{i:06d}.png", root / f"{i:06d}.png", float(t[i])) for i in range(len(t))]
+    return Drive(root=root, camera=cam, frames=frames, gps=gps, obd=None)

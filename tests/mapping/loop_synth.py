@@ -11,15 +11,15 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from roadsurf.core.geometry import invert_pose, lla_from_enu, world_from_cam
-from roadsurf.io.drive import Drive, Frame, GpsTrack
+from roadsurf.core.geometry import invert_pose, world_from_cam
+from roadsurf.io.drive import Drive
 from roadsurf.reconstruction.types import PairResult
-from tests.mapping.synth import REF, camera
+from tests.mapping.bundle_synth import gps_from_enu, synthetic_drive
+from tests.mapping.synth import camera
 
 
 @dataclass
@@ -83,12 +83,5 @@ def make_revisit(n: int = 30, seed: int = 0, speed_mps: float = 4.0, fps: float 
     true_g = np.column_stack([np.interp(tg, t, C[:, k]) for k in range(3)])
     bias = np.where((tg < t[n])[:, None], [0.4, -0.3, 0.0], [-0.4, 0.3, 0.0])
     meas = true_g + bias + rng.normal(0, 0.1, true_g.shape)
-    lla = lla_from_enu(meas, REF)
-    gps = GpsTrack(
-        timestamp_s=tg, lat_deg=lla[:, 0], lon_deg=lla[:, 1], alt_m=lla[:, 2],
-        hdop=np.full(len(tg), np.nan),
-    )  # fmt: skip
-    root = Path("/nonexistent-synthetic-drive")
-    frames = [Frame(i, f"{i:06d}.png", root / f"{i:06d}.png", float(t[i])) for i in range(2 * n)]
-    drive = Drive(root=root, camera=cam, frames=frames, gps=gps, obd=None)
+    drive = synthetic_drive(cam, t[: 2 * n], gps_from_enu(tg, meas))
     return Revisit(drive, pairs, W, n, pair)
