@@ -18,6 +18,7 @@ the footprint, about 0.4 at 100 km/h with 20 ms).
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from roadsurf.core.camera import Camera
 
@@ -52,17 +53,7 @@ def frame_motion(
     Ta, Tb = world_from_cam[a], world_from_cam[b]
     vel = (Tb[:3, 3] - Ta[:3, 3]) / dt
     dR = Tb[:3, :3] @ Ta[:3, :3].T  # world rotation from a to b
-    return vel, _log_so3(dR) / dt
-
-
-def _log_so3(R: np.ndarray) -> np.ndarray:
-    """(3,) rotation vector of a rotation matrix (3, 3), for angles below pi."""
-    c = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
-    angle = float(np.arccos(c))
-    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    if angle < 1e-9:
-        return w / 2.0
-    return w * (angle / (2.0 * np.sin(angle)))
+    return vel, Rotation.from_matrix(dR).as_rotvec() / dt
 
 
 def raw_px_from_world(
