@@ -13,8 +13,11 @@ which the bundle's windows then start from.
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import logging
 from collections.abc import Callable
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -22,7 +25,7 @@ import numpy as np
 if TYPE_CHECKING:
     from roadsurf.io.drive import Drive
     from roadsurf.reconstruction.config import ReconstructionConfig
-    from roadsurf.reconstruction.types import PairResult
+    from roadsurf.reconstruction.types import Features, PairResult
 
 log = logging.getLogger(__name__)
 
@@ -101,20 +104,33 @@ def confirm_loops(
 
 
 def frame_matcher(
-    drive: Drive, rec_cfg: ReconstructionConfig
+    drive: Drive, rec_cfg: ReconstructionConfig, run_dir: Path
 ) -> Callable[[int, int], PairResult | None]:
     """``match(i, j)`` for ``confirm_loops``: the reconstruction's pair API on the drive's frames
-    at positions i and j. The rolling-shutter model is off for these pairs: it assumes the
-    constant velocity of consecutive frames, which two passes minutes apart do not share."""
-    import dataclasses
-
-    from roadsurf.reconstruction.api import reconstruct_pair
+    at positions i and j, with the features the reconstruction stage cached in RUN/features
+    (the same frame is tried against several others: a few are kept in memory). The
+    rolling-shutter model is off for these pairs: it assumes the constant velocity of
+    consecutive frames, which two passes minutes apart do not share."""
+    from roadsurf.core.errors import FrameReadError
+    from roadsurf.reconstruction.api import reconstruct_features
+    from roadsurf.reconstruction.stage import frame_features
 
     cfg = dataclasses.replace(rec_cfg, rolling_shutter=False)
 
+    @functools.lru_cache(maxsize=32)
+    def features(i: int) -> Features:
+        return frame_features(cfg, Path(run_dir), drive.frames[i])[0]
+
     def match(i: int, j: int) -> PairResult | None:
         fa, fb = drive.frames[i], drive.frames[j]
-        res = reconstruct_pair(fa, fb, drive.camera, cfg)
+        try:
+            res = reconstruct_features(features(i), features(j), drive.camera, cfg)
+        except FrameReadError as e:
+            log.info("loops: %s-%s not matched (%s)", fa.filename, fb.filename, e)
+            return None
+        res.frame_a, res.frame_b, res.index_a, res.index_b = (
+            fa.filename, fb.filename, fa.index, fb.index,
+        )  # fmt: skip
         return res if res.ok else None
 
     return match

@@ -78,6 +78,26 @@ def pair_fingerprint(cfg: ReconstructionConfig, camera: Camera, a: Frame, b: Fra
     return fp.hexdigest(16)
 
 
+def frame_features(
+    cfg: ReconstructionConfig, run_dir: Path, frame: Frame
+) -> tuple[Features, float]:
+    """A frame's features from RUN/features when cached there (with these detection settings
+    and this image file), else detected (and saved with ``cfg.save_features``); with the
+    detection time (s, 0 when read). FrameReadError propagates."""
+    path = _feature_path(run_dir, frame, cfg)
+    if path.is_file() and not cfg.overwrite:
+        try:
+            return feat.load_features(path), 0.0
+        except (OSError, ValueError, KeyError) as e:
+            log.warning("%s: unreadable feature cache (%s); recomputing", path, e)
+    t0 = time.perf_counter()
+    f = feat.detect(read_gray(frame), cfg.features)
+    seconds = time.perf_counter() - t0
+    if cfg.save_features:
+        feat.save_features(path, f)
+    return f, seconds
+
+
 class _FeatureCache:
     """Per-frame features: memory -> RUN/features -> detect, computed ahead in worker threads.
 
@@ -101,18 +121,7 @@ class _FeatureCache:
             self.pool.shutdown(wait=True, cancel_futures=True)
 
     def _compute(self, frame: Frame) -> tuple[Features, float]:
-        path = _feature_path(self.run_dir, frame, self.cfg)
-        if path.is_file() and not self.cfg.overwrite:
-            try:
-                return feat.load_features(path), 0.0
-            except (OSError, ValueError, KeyError) as e:
-                log.warning("%s: unreadable feature cache (%s); recomputing", path, e)
-        t0 = time.perf_counter()
-        f = feat.detect(read_gray(frame), self.cfg.features)  # FrameReadError propagates
-        seconds = time.perf_counter() - t0
-        if self.cfg.save_features:
-            feat.save_features(path, f)
-        return f, seconds
+        return frame_features(self.cfg, self.run_dir, frame)
 
     def _submit(self, frame: Frame) -> None:
         if frame.index in self.futures:

@@ -270,7 +270,7 @@ def _run_drive(
     # during the reconstruction: its image-sized temporaries would each cost a map + page faults)
     fix_mmap_threshold()
     # revisits (issue 30): frames of two passes are matched with the pair API and close the loop
-    loop_match = frame_matcher(drive, rec_cfg)
+    loop_match = frame_matcher(drive, rec_cfg, out)
     traj = timed("poses", lambda: poses.run(cfg.mapping, drive, pairs, out, loop_match=loop_match))
     if traj.mount_deg is not None and traj.mount_deg != drive.camera.mount_deg:
         # the later stages see the camera on the mount the poses used (given or estimated)
