@@ -328,7 +328,7 @@ class DenseSurface:
         if self.cfg.dense_reference == "pair_plane":
             zs, lev = lev, np.zeros_like(lev)
         else:
-            zs = _surface_height(self.surf, e, n, grid.gsd_m)
+            zs = surface_height_grid(self.surf, e, n, grid.gsd_m)
         dh, R, C = pdn.dh, pdn.R_wc, pdn.C
         K, nrm, ha = dh.model.K, dh.model.n, dh.model.h_a
         z = np.where(np.isfinite(zs), zs, C[2] - self.cam.height_m)
@@ -374,7 +374,7 @@ class DenseSurface:
         return cell, (r - lev)[ok], var
 
 
-def _surface_height(surf: LocalSurface, e: np.ndarray, n: np.ndarray, gsd: float) -> np.ndarray:
+def surface_height_grid(surf: LocalSurface, e: np.ndarray, n: np.ndarray, gsd: float) -> np.ndarray:
     """The local road height at ENU e, n (H, W): evaluated every ~4 cm and upsampled (the fit is
     smooth on its node scale), NaN where it has no node."""
     st = max(1, int(round(0.04 / gsd)))

@@ -19,7 +19,7 @@ from roadsurf.io.formats import GridSpec
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.datum import RESIDUAL_DATUM, vertical_datum
 from roadsurf.mapping.dense_cloud import DenseCloudWriter, cloud_stride
-from roadsurf.mapping.dense_fuse import NOBS, SIGMA, DenseSurface, _surface_height, dense_gsd_m
+from roadsurf.mapping.dense_fuse import NOBS, SIGMA, DenseSurface, dense_gsd_m, surface_height_grid
 from roadsurf.mapping.export import export_xyz
 from roadsurf.mapping.mosaic import ImageCache, mosaic_tile
 from roadsurf.mapping.overlap import check_frame_overlap
@@ -263,7 +263,7 @@ def rasterise(
             if not keep.any():
                 return None
             e, n = g2e.pixel_enu(grid, slice(0, grid.height), slice(0, grid.width))
-            z = _surface_height(surf, e, n, grid.gsd_m) + res_t
+            z = surface_height_grid(surf, e, n, grid.gsd_m) + res_t
             keep &= np.isfinite(z)
             rr, cc = np.nonzero(keep)
             x = grid.x0_m + (cc + 0.5) * grid.gsd_m
