@@ -5,6 +5,8 @@
   point-level path).
 - ``reconstruct_features(fa, fb, camera, cfg)``: precomputed ``Features`` -> PairResult (the stage
   reuses each frame's features for both of its pairs).
+- ``retry_stretched(res, fa, image_b, camera, cfg)``: a pair that failed for want of matches,
+  tried again with image b's features detected on vertically compressed views of it.
 
 A bad pair never raises: the PairResult's ``status``/``reason`` say what went wrong.
 """
@@ -137,6 +139,42 @@ def reconstruct_features(
     return res
 
 
+# failures that mean "not enough matches": the ones a stretched view of image b may cure
+STRETCH_RETRY_STATUSES = ("too_few_matches", "no_overlap")
+
+
+def retry_stretched(
+    res: PairResult,
+    fa: Features,
+    image_b: np.ndarray,
+    camera: Camera,
+    cfg: ReconstructionConfig,
+    *,
+    frame_dt_s: float | None = None,
+    road_normal_cam: np.ndarray | None = None,
+) -> PairResult:
+    """A pair that failed for want of matches, tried again with image b's features detected at
+    each vertical scale of ``cfg.features.stretch_retry`` (``features.detect_stretched``).
+    Returns the ok result with the most inliers (its ``stretch_b`` says the scale), else ``res``
+    unchanged; the time spent is in ``timings_s["stretch_retry"]`` either way."""
+    scales = cfg.features.stretch_retry
+    if res.ok or res.status not in STRETCH_RETRY_STATUSES or not scales:
+        return res
+    t0 = time.perf_counter()
+    best: PairResult | None = None
+    for s in scales:
+        fb = feat.detect_stretched(image_b, cfg.features, s)
+        r = reconstruct_features(
+            fa, fb, camera, cfg, frame_dt_s=frame_dt_s, road_normal_cam=road_normal_cam
+        )
+        if r.ok and (best is None or r.n_inliers > best.n_inliers):
+            r.stretch_b = float(s)
+            best = r
+    out = best if best is not None else res
+    out.timings_s["stretch_retry"] = time.perf_counter() - t0
+    return out
+
+
 def _check_overlap(res: PairResult, camera: Camera, cfg: ReconstructionConfig) -> None:
     """Mark pairs whose points cover too small a share of image a as no_overlap. The share is
     that of the convex hull without the outermost 2% (at least one point) of the points in
@@ -193,6 +231,7 @@ def reconstruct_pair(
     if frame_dt_s is None and isinstance(frame_a, Frame) and isinstance(frame_b, Frame):
         frame_dt_s = frame_b.timestamp_s - frame_a.timestamp_s
     res = reconstruct_features(fa, fb, camera, cfg, frame_dt_s=frame_dt_s)
+    res = retry_stretched(res, fa, gb, camera, cfg, frame_dt_s=frame_dt_s)
     res.frame_a, res.frame_b, res.index_a, res.index_b = names[0], names[1], idx[0], idx[1]
     res.timings_s["features"] = t_feat
     return res

@@ -47,6 +47,13 @@ class FeatureConfig:
     max_detect_megapixels: float = 0.3  # ... and at most this many Mpx (0 = off): SIFT's cost
     # grows with the area; 1024x768 -> 0.62x (same flat-road RMSE as 0.45 Mpx on the speed
     # drive, ~30% less detection CPU), 640x480 untouched (scales >= 0.95 are not applied)
+    stretch_retry: tuple[float, ...] = (0.7071, 0.5)  # vertical scales of image b (unitless,
+    # (0, 1]) at which its features are detected again when a pair fails for want of matches
+    # (ASIFT's tilt simulation along the image's vertical, in ASIFT's sqrt(2) steps): a forward-
+    # tilted camera sees a road patch less foreshortened in b (nearer) than in a, and a top-down
+    # rolling-shutter readout while the road moves down the image stretches it further, beyond
+    # what SIFT's descriptors tolerate (40° mount, 94 km/h, 20 ms readout: 0/7 pairs ok, 6/7
+    # with 0.7071 or 0.5). () = off; failed pairs only, so a good drive pays nothing
 
     # valid values (interval notation; see roadsurf.core.config)
     RANGES: ClassVar[dict[str, str]] = {
@@ -62,6 +69,7 @@ class FeatureConfig:
         "border_pad_px": "[0, inf)",
         "downscale": "(0, 1]; detection never upsamples",
         "max_detect_megapixels": "[0, inf); 0 = off",
+        "stretch_retry": "(0, 1]; each a vertical scale of image b",
     }
 
 

@@ -94,6 +94,22 @@ def detect(image: np.ndarray, cfg: FeatureConfig) -> Features:
     return Features(pts.astype(np.float32), desc, cfg.kind)
 
 
+def detect_stretched(image: np.ndarray, cfg: FeatureConfig, scale_v: float) -> Features:
+    """Features of ``image`` resized vertically by ``scale_v`` (0 < scale_v <= 1), detected and
+    described there (an affine view simulation as in ASIFT) and returned at the pixel positions
+    of the image as recorded (u right, v down), so everything after matching is unchanged."""
+    if not 0 < scale_v <= 1:
+        raise ValueError(f"vertical scale {scale_v} outside (0, 1]")
+    gray = to_gray(image)
+    if scale_v == 1:
+        return detect(gray, cfg)
+    h = max(1, int(round(gray.shape[0] * scale_v)))
+    f = detect(cv2.resize(gray, (gray.shape[1], h), interpolation=cv2.INTER_AREA), cfg)
+    pts = f.keypoints_px.astype(np.float64)
+    pts[:, 1] = (pts[:, 1] + 0.5) * (gray.shape[0] / h) - 0.5  # pixel centres, not corners
+    return Features(pts.astype(np.float32), f.descriptors, f.kind)
+
+
 def _empty(cfg: FeatureConfig) -> Features:
     return Features(np.zeros((0, 2), np.float32), np.zeros((0, 128), np.float32), cfg.kind)
 

@@ -37,7 +37,12 @@ from roadsurf.io.drive import Drive, Frame, read_gray
 from roadsurf.io.runfolder import RunFolder, feature_filename, fingerprint_path, read_fingerprint
 from roadsurf.reconstruction import consensus
 from roadsurf.reconstruction import features as feat
-from roadsurf.reconstruction.api import reconstruct_features, road_normal_in_cam
+from roadsurf.reconstruction.api import (
+    STRETCH_RETRY_STATUSES,
+    reconstruct_features,
+    retry_stretched,
+    road_normal_in_cam,
+)
 from roadsurf.reconstruction.config import ReconstructionConfig
 from roadsurf.reconstruction.types import Features, PairResult, load_pair, save_pair, stored
 
@@ -271,6 +276,24 @@ def _one_pair(
         res = reconstruct_features(
             fa, fb, drive.camera, cfg, frame_dt_s=dt, road_normal_cam=road_normal_cam
         )
+        if not res.ok and res.status in STRETCH_RETRY_STATUSES and cfg.features.stretch_retry:
+            res = retry_stretched(
+                res,
+                fa,
+                read_gray(b),
+                drive.camera,
+                cfg,
+                frame_dt_s=dt,
+                road_normal_cam=road_normal_cam,
+            )
+            if res.ok:
+                log.info(
+                    "pair %s -> %s matched with image b compressed vertically to %.2f "
+                    "(perspective / rolling-shutter stretch)",
+                    a.filename,
+                    b.filename,
+                    res.stretch_b,
+                )
         res.timings_s["features"] = t_feat
     except FrameReadError as e:
         res = PairResult(a.filename, b.filename, a.index, b.index, cfg.method, "unreadable_frame")

@@ -96,6 +96,8 @@ class PairResult:
     match_idx: np.ndarray = field(
         default_factory=lambda: np.zeros(0, dtype=np.int64)
     )  # (N,) index of each point into the input match list (reconstruct_matches order)
+    stretch_b: float = 1.0  # vertical scale of image b its features were detected at (unitless;
+    # 1 = as recorded, < 1 = the stretch retry, ``FeatureConfig.stretch_retry``)
     config_name: str = ""  # estimator detail, e.g. pycolmap's configuration (PLANAR, CALIBRATED)
 
     @property
