@@ -114,6 +114,21 @@ class CrackConfig:
     max_samples: int = 150  # samples per crack piece mapped onto the road (count)
     link_m: float = 0.08  # samples closer than this on the map are one crack (m)
     join_m: float = 0.2  # confirmed cracks closer than this are joined into one (m)
+    # Width and depth across the centre line on the surface raster (``crackraster``):
+    raster: bool = True  # measure each crack on RUN/surface.tif when there is one
+    raster_step_m: float = 0.005  # a profile across the crack every this much along it (m)
+    # road read beyond the crack's dip on each side of a profile, at least 2 footprints (m)
+    raster_road_m: float = 0.02
+    # smoothing footprint of the raster, in cells: the dense matcher's window (5 px) over the
+    # cell (dense_gsd_px = 2 px) = 2.5; the dip is at most half the width + this wide (cells)
+    raster_footprint_cells: float = 2.5
+    raster_min_profiles: int = 5  # at least this many profiles with road on both sides (count)
+    # the cross-section must be this many standard errors above 0, and a resolved dip's depth
+    # this many σ of the raster (unitless)
+    raster_z_k: float = 3.0
+    # resolved: the dip is at least this many footprints wide at half depth; then the raster
+    # gives width and depth, else only the cross-section (unitless)
+    raster_resolved_k: float = 2.0
 
     ORDER: ClassVar[tuple[tuple[str, str], ...]] = (("line_m", "line_long_m"),)
     RANGES: ClassVar[dict[str, str]] = {
@@ -138,6 +153,12 @@ class CrackConfig:
         "max_samples": "[1, inf)",
         "link_m": "[0, inf)",
         "join_m": "[0, inf)",
+        "raster_step_m": "(0, 1]; a profile step above 1 m is a unit mistake",
+        "raster_road_m": "(0, 1]",
+        "raster_footprint_cells": "[0, inf)",
+        "raster_min_profiles": "[1, inf)",
+        "raster_z_k": "[0, inf)",
+        "raster_resolved_k": "[0, inf)",
     }
 
 

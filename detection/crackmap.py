@@ -15,10 +15,12 @@ import cv2
 import numpy as np
 
 from roadsurf.detection.config import CrackConfig, DetectionConfig
+from roadsurf.detection.crackraster import measure_crack_on_raster
 from roadsurf.detection.mapframe import MapFrame
 from roadsurf.detection.mapseg import Measured, severity
 from roadsurf.detection.pairs import PairDefects
 from roadsurf.detection.types import Defect
+from roadsurf.detection.windows import WindowSource
 from roadsurf.mapping.types import Trajectory
 
 if TYPE_CHECKING:
@@ -64,9 +66,13 @@ def crack_defects(
     mframe: MapFrame,
     footprints: dict[str, Polygon],
     others: list[Defect],
+    raster: WindowSource | None = None,
 ) -> list[Defect]:
     """Cracks confirmed per pair, placed in the map and clustered (one crack seen by several
-    pairs is one defect); pieces inside a map defect's outline belong to that defect."""
+    pairs is one defect); pieces inside a map defect's outline belong to that defect.
+
+    With ``raster`` (RUN/surface.tif) each crack's width and depth are read across its centre
+    line on it where it sees the crack (``crackraster``); else they stay the pairs'."""
     from shapely import contains_xy, union_all
     from shapely.geometry import MultiPoint, Polygon
 
@@ -157,6 +163,14 @@ def crack_defects(
             # Deeper than any defect the plane fit accepts: the pooled "evidence" comes from a
             # failed reconstruction (decimetre noise), not from a crack.
             continue
+        src, n_prof = "points", 0
+        if raster is not None and cfg.crack.raster:
+            rc = measure_crack_on_raster(raster, p, w, cfg.crack)
+            n_prof = rc.profiles
+            # a raster reading beyond the dense tracks' bound is a failed surface, not a crack
+            if rc.source != "points" and 0.0 < rc.max_depth_m <= cfg.crack.dense_max_depth_m:
+                src, w, dmax = rc.source, rc.width_m, rc.max_depth_m
+            log.debug("crack at %s: raster %s", np.round(p.mean(axis=0), 2), rc)
         # Parabolic groove profile (1 - q²): the mean over the width is 2/3 of the centre depth.
         dmean = dmax * 2.0 / 3.0
         area = length * w
@@ -189,6 +203,8 @@ def crack_defects(
                 width_m=w,
                 confidence=float(np.clip(conf, 0.0, 1.0)),
                 frames=seen,
+                measured_on=src,
+                profiles=n_prof,
             )
         )
     if out:

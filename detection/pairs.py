@@ -148,7 +148,8 @@ def analyse_pairs(
     def one(kp: tuple[int, PairResult]) -> PairDefects | None:
         _, p = kp
         gray = gray_b = None
-        if cfg.use_images and cfg.refine.enabled:
+        # the image serves the 2D refinement and the crack detector, each on its own switch
+        if cfg.use_images and (cfg.refine.enabled or cfg.crack.enabled):
             gray = image(p.frame_a)
             # Image b only for the dense crack depth (parallax across each crack).
             if gray is not None and cfg.crack.enabled and cfg.crack.dense:

@@ -61,7 +61,7 @@ from roadsurf.detection.pairs import analyse_pairs
 from roadsurf.detection.ruts import trace_ruts
 from roadsurf.detection.rutscan import scan_seeds
 from roadsurf.detection.types import Defect, DetectionResult
-from roadsurf.detection.windows import PointsSource, segment_windows
+from roadsurf.detection.windows import PointsSource, RasterSource, segment_windows
 from roadsurf.io.drive import Drive
 from roadsurf.io.runfolder import RunFolder
 from roadsurf.mapping.raster import bounded_block_cache
@@ -190,7 +190,14 @@ def _detect(
             dense=dense,
         )
         steps_s["measurement"] = time.perf_counter() - t0
-        cracks = crack_defects(cfg, per_pair, traj, pose_of, mframe, footprints, defects)
+        # cracks are measured across their centre line on the raster itself (reopened lazily)
+        raster = surface if isinstance(surface, RasterSource) else None
+        try:
+            cracks = crack_defects(
+                cfg, per_pair, traj, pose_of, mframe, footprints, defects, raster=raster
+            )
+        finally:
+            surface.close()
         if cracks:
             # a crack's cells: its outline on a lattice fine enough for its width
             of = {id(d): c for d, c in zip(defects, cells, strict=True)}

@@ -26,6 +26,8 @@ DEFECT_COLUMNS = (
     "centroid_lat",
     "centroid_e_m",
     "centroid_n_m",
+    "measured_on",
+    "profiles",
 )
 _MEASURES = ("max_depth_m", "mean_depth_m", "area_m2", "volume_m3", "length_m", "width_m")
 
@@ -36,6 +38,13 @@ def _num(props: dict[str, Any], key: str) -> float:
         return float(v) if v is not None else math.nan
     except (TypeError, ValueError):
         return math.nan
+
+
+def _int(props: dict[str, Any], key: str) -> int:
+    try:
+        return int(float(props.get(key) or 0))
+    except (TypeError, ValueError):
+        return 0
 
 
 @dataclass
@@ -56,6 +65,11 @@ class Defect:
     width_m: float  # short side of the minimum-area rectangle
     confidence: float  # 0-1
     frames: list[str] = field(default_factory=list)  # filenames whose footprint saw it
+    # where a crack's width and depth come from (``crackraster``): "raster" (profiles across it
+    # on surface.tif), "cross_section" (the raster's cross-section over the image width),
+    # "points" (the pairs' points and dense tracks); "" for other types
+    measured_on: str = ""
+    profiles: int = 0  # raster profiles across the crack that were read (count; 0: none)
 
     def to_properties(self, lonlat: np.ndarray | None, exact: bool = False) -> dict[str, Any]:
         """The record as written (DEFECT_COLUMNS order): rounded for the GIS files, ``exact``
@@ -80,6 +94,8 @@ class Defect:
             "centroid_lat": None if lonlat is None else float(lonlat[1]),
             "centroid_e_m": r(self.centroid_xy_m[0], 4),
             "centroid_n_m": r(self.centroid_xy_m[1], 4),
+            "measured_on": self.measured_on,
+            "profiles": int(self.profiles),
         }
 
     @staticmethod
@@ -97,6 +113,9 @@ class Defect:
             **{k: _num(props, k) for k in _MEASURES},
             "confidence": _num(props, "confidence"),
             "frames": [str(x) for x in (props.get("frames") or [])],
+            # absent in files written before these fields existed
+            "measured_on": str(props.get("measured_on") or ""),
+            "profiles": _int(props, "profiles"),
         }
 
 

@@ -168,23 +168,27 @@ def build(
     georeferenced: bool = True,
     keep_per_pair=None,
     n_points: int = 2500,
+    camera: Camera = CAMERA,
+    step_m: float = 0.4,
 ) -> tuple[Drive, list[PairResult], Trajectory]:
-    """Write tiny images under ``root/frames`` and return (drive, pairs, trajectory)."""
+    """Write tiny images under ``root/frames`` and return (drive, pairs, trajectory)
+    (``camera`` and the spacing ``step_m`` of the frames along y: the defaults' 160 x 120 px
+    at 6.7 mm and 0.4 m)."""
     from roadsurf.core.fits import fit_plane_z, plane_signed_distance
 
     rng = np.random.default_rng(seed)
-    Ts = poses(n_frames)
+    Ts = poses(n_frames, step_m=step_m, h=camera.height_m)
     (root / "frames").mkdir(parents=True, exist_ok=True)
     frames = []
     for k, T in enumerate(Ts):
         fn = f"{k:06d}.png"
-        cv2.imwrite(str(root / "frames" / fn), render(scene, T))
+        cv2.imwrite(str(root / "frames" / fn), render(scene, T, camera))
         frames.append(Frame(k, fn, root / "frames" / fn, 0.1 * k))
-    drive = Drive(root, CAMERA, frames, gps=None, obd=None)
+    drive = Drive(root, camera, frames, gps=None, obd=None)
     pairs = []
     for k in range(n_frames - 1):
         keep = keep_per_pair(k) if keep_per_pair is not None else None
-        Pc, px = pair_points(scene, Ts[k], rng, n_points, keep=keep)
+        Pc, px = pair_points(scene, Ts[k], rng, n_points, keep=keep, camera=camera)
         plane = fit_plane_z(Pc)
         pairs.append(
             PairResult(
