@@ -8,6 +8,7 @@ import math
 
 import numpy as np
 
+from roadsurf.core.errors import ConfigError
 from roadsurf.core.geometry import utm_epsg_for, utm_from_lla
 from roadsurf.simulation.config import SimConfig
 from roadsurf.simulation.noise import fractal_noise
@@ -24,6 +25,33 @@ def _noise1d(t: np.ndarray, spacings: tuple[float, ...], weights: tuple[float, .
     return fractal_noise(t, np.full_like(t, 0.5), spacings, weights, seed).astype(np.float64)
 
 
+def _second_pass(
+    t: np.ndarray,
+    s: np.ndarray,
+    speed: np.ndarray,
+    frame_times: np.ndarray,
+    half: int,
+    period_s: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Arc length s(t) (m) and speed (m/s) of a revisit: from the first frame of the second
+    pass (``frame_times[half]``) on, s is shifted back so that pass starts where the first
+    did; between the passes (one frame period after the first pass's last frame, one before
+    the second's first, so the exposure and readout see the passes' own motion) the vehicle
+    goes back along the road at the constant speed that takes (its logs follow it)."""
+    t_e = frame_times[half - 1] + period_s
+    t_b = frame_times[half] - period_s
+    shift = float(np.interp(frame_times[half], t, s) - np.interp(frame_times[0], t, s))
+    s_e = float(np.interp(t_e, t, s))
+    s_b = float(np.interp(t_b, t, s)) - shift
+    out, v = s.copy(), speed.copy()
+    late = t >= t_b
+    out[late] -= shift
+    gap = (t > t_e) & ~late
+    out[gap] = s_e + (s_b - s_e) * (t[gap] - t_e) / (t_b - t_e)
+    v[gap] = abs(s_b - s_e) / (t_b - t_e)
+    return out, v
+
+
 def build_world(cfg: SimConfig, seed: int, n_frames: int) -> World:
     """Draw a route, a trajectory and the defects/distractors for ``seed``."""
     cfg.check_view()  # refuse a view that reaches the horizon before drawing anything
@@ -38,11 +66,18 @@ def build_world(cfg: SimConfig, seed: int, n_frames: int) -> World:
     jitter = rng.uniform(-0.0003, 0.0003, n_frames)  # trigger jitter (s)
     jitter[0] = 0.0
     frame_times = T_START_S + np.arange(n_frames) / fps + jitter
+    half = n_frames // 2
+    if cfg.revisit_after_s > 0:
+        if half < 2:
+            raise ConfigError(f"simulator: a revisit needs at least 4 frames, got {n_frames}")
+        frame_times[half:] += cfg.revisit_after_s
     dt = 0.005
     t = np.arange(T_START_S - T_PAD_S, frame_times[-1] + T_PAD_S + dt, dt)
     seeds = rng.integers(0, 2**31, size=8)
     speed = cfg.speed_mps * (1.0 + cfg.speed_var * _noise1d(t, (2.5,), (1.0,), int(seeds[0])))
     s = 3.0 + np.concatenate([[0.0], np.cumsum(0.5 * (speed[1:] + speed[:-1]) * dt)])
+    if cfg.revisit_after_s > 0:
+        s, speed = _second_pass(t, s, speed, frame_times, half, 1.0 / fps)
     f = max(cfg.vibration_hz, 0.1)
     vib = math.radians(cfg.vibration_deg)
     roll = vib * _noise1d(t, (0.5 / f, 0.15 / f), (1.0, 0.5), int(seeds[1]))
@@ -60,7 +95,7 @@ def build_world(cfg: SimConfig, seed: int, n_frames: int) -> World:
         else math.radians(90.0 * int(rng.integers(0, 4)) + rng.uniform(-5.0, 5.0))
     )
     route = Route.make(
-        float(s[-1]) + 5.0,
+        float(s.max()) + 5.0,
         heading0,
         math.radians(cfg.route_curve_amp_deg),
         cfg.route_curve_wavelength_m,

@@ -62,6 +62,10 @@ class SimConfig:
     yaw_noise_deg: float = 0.15  # std of yaw noise θz about the road heading (deg)
     height_noise_m: float = 0.003  # std of camera height noise δ_h (m)
     vibration_hz: float = 3.0  # dominant frequency of the vibration (Hz)
+    revisit_after_s: float = 0.0  # > 0: a revisit (a survey that comes back along the same
+    # lane): the second half of the frames drives the first half's road again, starting this
+    # long (s) after the first half ends (between the passes no frames; the logs follow the
+    # road back); 0 = one pass
 
     # --- road surface ------------------------------------------------------------------------
     unevenness_m: float = 0.0015  # road unevenness δ: height ~ N(0, δ), correlated over ~1 cm (m)
@@ -145,6 +149,7 @@ class SimConfig:
         "readout_s": "[0, 0.2); and at most one frame period, 1 / fps (check_readout)",
         "speed_mps": "(0, 100]; 100 m/s is 360 km/h",
         "speed_var": "[0, 1]",
+        "revisit_after_s": "[0, inf); 0 = one pass",
         "vibration_deg": "[0, 90]",
         "yaw_noise_deg": "[0, 90]",
         "height_noise_m": "[0, 1]",

@@ -97,6 +97,20 @@ SCENARIOS: dict[str, Scenario] = {
             "cloud_shadow": 0.4,
         },
     ),
+    "revisit": Scenario(
+        "the same lane driven twice, 20 s apart (a survey that comes back), consumer GPS",
+        808,
+        60,
+        {
+            "revisit_after_s": 20.0,
+            "gps_profile": "consumer",
+            "fps": 10.0,
+            "speed_mps": 4.0,
+            "n_potholes": 3,
+            "n_cracks": 1,
+            "texture": "asphalt",
+        },
+    ),
     "highway": Scenario(
         "highway: 25 m/s at 60 fps, lane markings, short exposure, overcast light",
         505,

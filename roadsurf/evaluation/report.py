@@ -111,10 +111,16 @@ def _get(d: dict[str, Any], key: str) -> Any:
     return d
 
 
+# issue 30: a drive that passes the same place twice
+TARGET_REVISIT = ("revisit_agreement_max_m", "<=", 0.01, "a revisit's passes agree within 1 cm")
+
+
 def _targets(out: dict[str, Any], scen: dict[str, Any]) -> list[dict[str, Any]]:
     sig = out.get("gps_sigma_m")
     rtk = sig is not None and sig <= 0.05
     targets = TARGETS_RTK if rtk else TARGETS_CONSUMER + TARGETS_RTK[2:]
+    if out.get("revisit_pairs"):
+        targets = [*targets, TARGET_REVISIT]
     res = []
     for key, op, thr, desc in targets:
         v = _get(out, key)
@@ -143,6 +149,8 @@ ROWS = [
     ("trajectory_rmse_aligned_m", "trajectory RMSE (after 2D rigid alignment)"),
     ("drift_5m_median_pct", "relative drift over 5 m, median"),
     ("drift_5m_p95_pct", "relative drift over 5 m, 95th pct"),
+    ("revisit_agreement_m", "revisit: the passes' disagreement, median"),
+    ("revisit_agreement_max_m", "revisit: the passes' disagreement, max"),
     ("surface.aligned.flat_mae_m", "flat-road height MAE (aligned)"),
     ("surface.aligned.flat_rmse_m", "flat-road height RMSE (aligned)"),
     ("surface.aligned.defect_mae_m", "in-defect height MAE (aligned)"),

@@ -82,6 +82,7 @@ def trajectory_metrics(est: dict[str, Any], truth: dict[str, Any]) -> dict[str, 
         if drift
         else (float("nan"),) * 3
     )
+    rv = revisit_agreement(e, t)
     metrics = {
         "n_frames_matched": len(pairs),
         "trajectory_rmse_m": float(np.sqrt(np.mean(err**2))),
@@ -93,8 +94,44 @@ def trajectory_metrics(est: dict[str, Any], truth: dict[str, Any]) -> dict[str, 
         "drift_5m_p95_pct": dstat[1],
         "drift_5m_max_pct": dstat[2],
         "distance_m": float(s[-1]),
+        "revisit_pairs": rv[0],
+        "revisit_agreement_m": rv[1],
+        "revisit_agreement_max_m": rv[2],
     }
     return {"metrics": metrics, "align": (R, tr)}
+
+
+# frames of two passes count as the same place within this horizontal distance (m) when the
+# drive travelled at least REVISIT_MIN_TRAVEL_M between them (not a stop, a pass that came back)
+REVISIT_NEAR_M = 0.25
+REVISIT_MIN_TRAVEL_M = 5.0
+
+
+def revisit_agreement(est_xy: np.ndarray, true_xy: np.ndarray) -> tuple[int, float, float]:
+    """How well two passes over the same place agree (issue 30's loop closure): for each frame
+    j and the earlier frame i nearest to it in the truth (within ``REVISIT_NEAR_M``, after at
+    least ``REVISIT_MIN_TRAVEL_M`` of true travel), the error of the estimated offset between
+    them, |(e_j - e_i) - (t_j - t_i)| (m, horizontal). est_xy, true_xy: (N, 2) matched frames
+    in drive order. Returns (number of such pairs, median, max); (0, nan, nan) without a
+    revisit. Independent of any global offset or of the GPS: only the passes' agreement."""
+    n = len(true_xy)
+    if n < 2:
+        return 0, float("nan"), float("nan")
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(true_xy, axis=0), axis=1))])
+    errs = []
+    for j in range(n):
+        early = np.flatnonzero(s <= s[j] - REVISIT_MIN_TRAVEL_M)
+        if not len(early):
+            continue
+        d = np.linalg.norm(true_xy[early] - true_xy[j], axis=1)
+        k = int(np.argmin(d))
+        if d[k] > REVISIT_NEAR_M:
+            continue
+        i = int(early[k])
+        errs.append(np.linalg.norm((est_xy[j] - est_xy[i]) - (true_xy[j] - true_xy[i])))
+    if not errs:
+        return 0, float("nan"), float("nan")
+    return len(errs), float(np.median(errs)), float(np.max(errs))
 
 
 def _body(d: np.ndarray, heading_rad: float) -> np.ndarray:

@@ -1,0 +1,43 @@
+"""The trajectory figures: the revisit agreement (issue 30) measures only how two passes over
+the same place agree, whatever the drive's global offset."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from roadsurf.evaluation.trajectory import revisit_agreement
+
+
+def _two_passes(n: int = 30, step: float = 0.4) -> np.ndarray:
+    x = np.arange(n) * step
+    return np.concatenate([np.column_stack([x, 0 * x]), np.column_stack([x, 0 * x + 0.05])])
+
+
+def test_passes_that_agree_read_zero_whatever_the_global_offset() -> None:
+    t = _two_passes()
+    k, med, mx = revisit_agreement(t + [3.0, -2.0], t)
+    assert k == 30 and med < 1e-12 and mx < 1e-12
+
+
+def test_a_pass_placed_apart_reads_its_offset() -> None:
+    t = _two_passes()
+    e = t.copy()
+    e[30:] += [0.0, 0.12]  # the second pass 12 cm off (e.g. each pass on its own GPS bias)
+    e[5] += [0.02, 0.0]  # one first-pass frame 2 cm off
+    k, med, mx = revisit_agreement(e, t)
+    assert k == 30
+    assert med == pytest.approx(0.12, abs=1e-9)
+    assert mx == pytest.approx(math.hypot(0.02, 0.12), abs=1e-9)
+
+
+def test_no_revisit_no_figure() -> None:
+    x = np.arange(40) * 0.4
+    t = np.column_stack([x, 0 * x])
+    k, med, mx = revisit_agreement(t, t)
+    assert k == 0 and math.isnan(med) and math.isnan(mx)
+    # a vehicle that stops does not revisit: frames at one place without 5 m of travel between
+    t_stop = np.concatenate([t[:10], np.repeat(t[9:10], 10, axis=0), t[10:]])
+    assert revisit_agreement(t_stop, t_stop)[0] == 0
