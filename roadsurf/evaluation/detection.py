@@ -45,6 +45,7 @@ MATCH_TOL_M = 0.05  # outlines closer than this count as overlapping (m)
 LOCAL_RADIUS_M = 3.0  # defects are aligned by the trajectory within this distance (m)
 TARGET_DEPTH_M = 0.025  # issue 5 target class: potholes at least this deep ...
 TARGET_WIDTH_M = 0.150  # ... and this wide
+CRACK_TARGET_M = 0.003  # issue 29 crack target: cracks at least this wide and this deep
 
 
 def _safe_div(a: float, b: float) -> float:
@@ -227,6 +228,9 @@ def _defect_metrics(
                 "truth_depth_m": dt,
                 "depth_err_m": err,
                 "area_rel_err": abs(float(pp["area_m2"]) - at) / at if at > 0 else float("nan"),
+                # crack length and width (issue 29: length within 20 %)
+                "length_rel_err": _rel(pp.get("length_m"), tp.get("length_m")),
+                "width_err_m": _num(pp.get("width_m")) - _num(tp.get("width_m")),
             }
         )
     matched_p = {i for i, _ in matches}
@@ -256,7 +260,42 @@ def _defect_metrics(
         "matched_by_type": _count_types(truths[j][1] for j in matched_t),
         "matches": details,
         "missed": [truths[j][1].get("id") for j in range(n_t) if j not in matched_t],
+        "crack_target": _crack_target(preds, truths, matches),
     }
+
+
+def _num(v: Any) -> float:
+    try:
+        return float(v)
+    except (TypeError, ValueError):
+        return float("nan")
+
+
+def _rel(pred: Any, truth: Any) -> float:
+    """(pred - truth) / truth, NaN when either is missing or the truth is not positive."""
+    t = _num(truth)
+    return (_num(pred) - t) / t if t > 0 else float("nan")
+
+
+def _crack_target(
+    preds: list[Any], truths: list[Any], matches: list[tuple[int, int]]
+) -> dict[str, int]:
+    """Issue 29's crack target: true cracks at least 3 mm wide and 3 mm deep, how many were
+    detected (matched), and how many of those with their length within 20 %."""
+    target = {
+        j
+        for j, (_, p) in enumerate(truths)
+        if p.get("type") == "crack"
+        and _num(p.get("width_m")) >= CRACK_TARGET_M
+        and _num(p.get("max_depth_m")) >= CRACK_TARGET_M
+    }
+    found = [(i, j) for i, j in matches if j in target]
+    ok = [
+        i
+        for i, j in found
+        if abs(_rel(preds[i][1].get("length_m"), truths[j][1].get("length_m"))) <= 0.2
+    ]
+    return {"truth": len(target), "detected": len(found), "length_within_20pct": len(ok)}
 
 
 def evaluate_detection(run_dir: str | Path, truth_dir: str | Path) -> dict[str, Any]:

@@ -146,3 +146,20 @@ def test_3mm_crack_and_40mm_pothole_on_a_rendered_drive(tmp_path):
     assert c16.width_m == pytest.approx(0.016, rel=0.2)
     assert c16.max_depth_m == pytest.approx(0.006, abs=0.001)
     assert pots[0].max_depth_m == pytest.approx(0.04, abs=0.003)
+
+
+def test_crack_target_counts_length_within_20_percent():
+    """evaluation: true cracks >= 3 mm wide and deep, detected, length within 20 %."""
+    from roadsurf.evaluation.detection import _crack_target
+
+    def crack(w, d, length):
+        return (None, {"type": "crack", "width_m": w, "max_depth_m": d, "length_m": length})
+
+    truths = [crack(0.004, 0.004, 1.0), crack(0.003, 0.002, 1.0), crack(0.005, 0.003, 0.5)]
+    preds = [crack(0.004, 0.003, 1.15), crack(0.004, 0.002, 0.9), crack(0.005, 0.002, 0.35)]
+    # the shallow truth is outside the target; the third's length is 30 % short
+    assert _crack_target(preds, truths, [(0, 0), (1, 1), (2, 2)]) == {
+        "truth": 2,
+        "detected": 2,
+        "length_within_20pct": 1,
+    }
