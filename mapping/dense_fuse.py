@@ -62,7 +62,7 @@ def dense_gsd_m(cfg: MappingConfig, cam: Camera, traj: Trajectory, road_z: np.nd
     h = float(np.median(traj.world_from_cam[:, 2, 3] - road_z)) if len(traj) else cam.height_m
     if not (math.isfinite(h) and h > 0):
         h = cam.height_m
-    px = h / (cam.fx * cfg.dense.scale)
+    px = h / (cam.fx * cfg.dense.work_scale(cam.width, cam.height))
     # dense_gsd_px pixels, but no coarser than the sparse raster unless a pixel itself is
     g = min(cfg.dense_gsd_px * px, max(px, cfg.gsd_m))
     return max(round(g * 1e4) / 1e4, cfg.dense_min_gsd_m)

@@ -183,7 +183,7 @@ def dense_height(
     if H is not None and np.all(np.isfinite(H)):
         _compare_homography(pp.H, np.asarray(H, float), camera)
     dev = device if isinstance(device, torch.device) else torch_device(device or cfg.device)
-    s = float(cfg.scale)
+    s = cfg.work_scale(camera.width, camera.height)
     ppw = pp.scaled(s) if s != 1.0 else pp
     A, B, mA, mB = _resample(img_a, img_b, camera, pp.H, s)
     timings = {"resample": time.perf_counter() - t0}
