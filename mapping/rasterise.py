@@ -9,6 +9,7 @@ import logging
 import math
 from typing import TYPE_CHECKING, Any
 
+import cv2
 import numpy as np
 from tqdm import tqdm
 
@@ -46,6 +47,48 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 NODATA_SURFACE = float("nan")
+
+
+def fill_inward(
+    values: np.ndarray, max_px: float, max_spread: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Fill the NaN cells of (H, W) ``values`` within ``max_px`` cells (L2) of finite ones ring
+    by ring from the border of the measured cells inwards, each ring with the mean of its
+    already known 8-neighbours: a hole continues the cells at its own edge, where a wide
+    smoothing kernel would mix in the road around a pothole and read its floor shallow. A cell
+    whose known neighbours span more than ``max_spread`` (a step such as a pothole wall, where
+    the hole's value is unknown by that much) stays NaN and fills nothing further.
+
+    Returns the float32 filled copy and the (H, W) bool mask of the cells within ``max_px`` of
+    the measured ones (filled or not): the holes the measured surface itself answers for."""
+    out = np.asarray(values, np.float32).copy()
+    known = np.isfinite(out)
+    if max_px <= 0 or known.all() or not known.any():
+        return out, known.copy()
+    dist = cv2.distanceTransform((~known).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    near = dist <= max_px
+    todo = ~known & near
+    k3 = (3, 3)
+    ones = np.ones(k3, np.uint8)
+    for _ in range(int(math.ceil(max_px)) + 1):
+        if not todo.any():
+            break
+        v0 = np.where(known, out, 0).astype(np.float32)
+        ssum = cv2.boxFilter(v0, -1, k3, normalize=False, borderType=cv2.BORDER_CONSTANT)
+        cnt = cv2.boxFilter(
+            known.astype(np.float32), -1, k3, normalize=False, borderType=cv2.BORDER_CONSTANT
+        )
+        hi = cv2.dilate(np.where(known, out, -np.inf).astype(np.float32), ones)
+        lo = cv2.erode(np.where(known, out, np.inf).astype(np.float32), ones)
+        ring = todo & (cnt > 0)
+        if not ring.any():
+            break
+        with np.errstate(invalid="ignore", over="ignore"):
+            ok = ring & (hi - lo <= max_spread)
+        out[ok] = ssum[ok] / cnt[ok]
+        known |= ok
+        todo &= ~ring
+    return out, near
 
 
 def rasterise(
@@ -197,13 +240,23 @@ def rasterise(
                 dt = ds.tile(t)
                 res_t, nobs_t, sig_t = dt.residual_m, dt.n_obs, dt.sigma_m
                 filled = np.zeros(res_t.shape, bool)
+                if cfg.dense.hole_fill_m > 0 and np.isfinite(res_t).any():
+                    # holes the matching leaves inside the measured surface (occluded or
+                    # smeared pothole walls) from the dense heights around them, before the
+                    # sparse surface (its interpolation reads pothole floors shallow)
+                    lim = max(cfg.surface_detail_sigmas * noise_m, cfg.surface_fill_relief_min_m)
+                    out, near = fill_inward(res_t, cfg.dense.hole_fill_m / grid.gsd_m, lim)
+                    filled = np.isfinite(out) & ~np.isfinite(res_t)
+                    res_t = out
+                else:
+                    near = np.isfinite(res_t)
                 if cfg.dense_sparse_fill and not np.isfinite(res_t).all():
                     sel = points_in(pts_grid, grid, margin)
                     if sel.sum() >= 3:
                         res_s, _ = surface_tile_filled(
                             cfg, pts_grid[sel], resid[sel], grid, noise_m, None
                         )
-                        take = ~np.isfinite(res_t) & np.isfinite(res_s)
+                        take = ~np.isfinite(res_t) & np.isfinite(res_s) & ~near
                         res_t = np.where(take, res_s, res_t).astype(np.float32)
                 if cfg.dense_fill_max_m > 0 and np.isfinite(res_t).any():
                     # the matching windows stop a few px short of the two-view part's border
@@ -211,7 +264,7 @@ def rasterise(
                     out = fill_nodata_capped(
                         res_t, two_view(grid, res_t), cfg.dense_fill_max_m / grid.gsd_m, lim
                     )
-                    filled = np.isfinite(out) & ~np.isfinite(res_t)
+                    filled |= np.isfinite(out) & ~np.isfinite(res_t)
                     res_t = out
             else:
                 sel = points_in(pts_grid, grid, margin)
