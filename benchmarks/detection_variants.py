@@ -10,7 +10,7 @@ measured fields are listed next to the truth's.
         [--variants default,no_refine,...] [--json out/variants.json]
 
 Variants (``VARIANTS``): ``default`` (DetectionConfig()), ``no_crack_raster``,
-``no_refine`` (no dark-region refinement), ``no_rut_scan``, ``no_ruts``, ``no_dense_crack``.
+``no_refine`` / ``refine`` (dark-region refinement off / on), ``no_rut_scan``, ``no_ruts``, ``no_dense_crack``.
 Writes benchmarks/results/detection_variants.json unless --json is given.
 """
 
@@ -43,6 +43,7 @@ def _cfg(name: str) -> DetectionConfig:
         "default": lambda: d,
         "no_crack_raster": lambda: r(d, crack=r(d.crack, raster=False)),
         "no_refine": lambda: r(d, refine=r(d.refine, enabled=False)),
+        "refine": lambda: r(d, refine=r(d.refine, enabled=True)),  # the default before 29
         "no_rut_scan": lambda: r(d, rut=r(d.rut, scan_step_m=0.0)),
         "no_ruts": lambda: r(d, rut=r(d.rut, enabled=False)),
         "no_dense_crack": lambda: r(d, crack=r(d.crack, dense=False)),
@@ -52,7 +53,15 @@ def _cfg(name: str) -> DetectionConfig:
     return table[name]()
 
 
-VARIANTS = ("default", "no_crack_raster", "no_refine", "no_rut_scan", "no_ruts", "no_dense_crack")
+VARIANTS = (
+    "default",
+    "no_crack_raster",
+    "no_refine",
+    "refine",
+    "no_rut_scan",
+    "no_ruts",
+    "no_dense_crack",
+)
 
 
 def redetect(run_dir: Path, drive_dir: Path, variant: str) -> Path:

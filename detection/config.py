@@ -45,7 +45,11 @@ class PlaneFitConfig:
 class RefineConfig:
     """2D + 3D refinement (Fig. 4.3 CORRECT_DEFECTS)."""
 
-    enabled: bool = True  # run the 2D gate; False keeps the 3D candidates as they are
+    # run the 2D gate with the map's frame labels too (frame_label "pair", the dissertation's
+    # per-pair decision, always runs it). Off by default since issue 29: on the dense default
+    # it changed no output on six simulated drives and the spd2 photographs (docs/detection.md,
+    # "Which 2D heuristics the dense default still needs"); True for the comparison (bool)
+    enabled: bool = False
     binarise: BinariseMode = "adaptive"  # T_b policy: adaptive (per image, local road) | fixed
     fixed_threshold: int = 90  # T_b for `fixed`: dark = grey < T_b (grey level 0-255)
     adaptive_window_frac: float = 0.25  # local road brightness window, share of image width (0-1)

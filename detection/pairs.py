@@ -50,6 +50,12 @@ class PairDefects:
         return int(self.score >= 0.5)
 
 
+def refines(cfg: DetectionConfig) -> bool:
+    """Whether the 2D + 3D refinement runs: on request (``refine.enabled``), and always for the
+    dissertation's per-pair frame decision (``frame_label`` "pair"), which is built on it."""
+    return bool(cfg.refine.enabled or cfg.frame_label == "pair")
+
+
 def analyse_pair(
     pair: PairResult,
     gray: np.ndarray | None,
@@ -75,7 +81,7 @@ def analyse_pair(
     # The image is raw (as captured); the pair's pixels are ideal (undistorted). Image work
     # reads the image where each point really is.
     px_img = _raw_px(np.asarray(pair.px_a, float), camera) if gray is not None else None
-    if cfg.refine.enabled and gray is not None and refined.any():
+    if refines(cfg) and gray is not None and refined.any():
         road = ~fit.candidate & (np.abs(fit.dist_m) < fit.threshold_m)
         dark = binarise(gray, cfg.refine, road_px=px_img[road])
         refined = correct_defects(
@@ -149,7 +155,7 @@ def analyse_pairs(
         _, p = kp
         gray = gray_b = None
         # the image serves the 2D refinement and the crack detector, each on its own switch
-        if cfg.use_images and (cfg.refine.enabled or cfg.crack.enabled):
+        if cfg.use_images and (refines(cfg) or cfg.crack.enabled):
             gray = image(p.frame_a)
             # Image b only for the dense crack depth (parallax across each crack).
             if gray is not None and cfg.crack.enabled and cfg.crack.dense:

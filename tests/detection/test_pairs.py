@@ -4,7 +4,7 @@ image is raw, so the 2D refinement must read the image where each point really i
 import cv2
 import numpy as np
 
-from roadsurf.detection.config import DetectionConfig
+from roadsurf.detection.config import DetectionConfig, RefineConfig
 from roadsurf.detection.pairs import _raw_px, analyse_pair
 from roadsurf.io.drive import Camera
 from roadsurf.reconstruction.types import PairResult
@@ -47,7 +47,8 @@ def _pair_with_dark_shallow_defect() -> tuple[PairResult, np.ndarray, np.ndarray
 
 def test_shallow_dark_defect_is_refined_at_its_raw_position():
     pair, img, inside = _pair_with_dark_shallow_defect()
-    cfg = DetectionConfig()
+    # the refinement is off by default (issue 29); this tests the option
+    cfg = DetectionConfig(refine=RefineConfig(enabled=True))
     res = analyse_pair(pair, img, cfg, camera=CAM)
     assert res is not None
     assert res.candidate[inside].mean() > 0.9
