@@ -19,9 +19,8 @@ D = 1.5 A / w with the image's w), but the matcher is not linear there: on the s
 the raster keeps 64-87 % of a 4-5 mm crack's cross-section at nadir, 26-61 % in a tilted
 camera's near field and nothing in its far field (docs/detection.md), so a depth from it would
 read 1.2-4 x shallow, or nothing at all. Such cracks, cracks the raster does not see beyond its
-noise, and
-cracks with too few profiles keep the pairs' figures (source ``points``); the profiles are
-still counted and the cross-section logged.
+noise, and cracks with too few profiles keep the pairs' figures (source ``points``); the
+profiles are still counted and the cross-section logged.
 
 The raster's noise σ is the robust spread (1.4826 MAD) of the profiles' outer parts around their
 road lines; the cross-section's standard error is the spread of the profiles' A over the square
