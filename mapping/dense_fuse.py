@@ -160,12 +160,6 @@ class DenseSurface:
             cfg, drive.camera, traj, surf, g2e, lat,
         )  # fmt: skip
         self.workers = max(1, int(workers))
-        if self.cam.readout_s > 0:  # each row has its own pose there: heights drift with the row
-            log.warning(
-                "dense surface: the camera has a rolling shutter (readout_s %.4f s); the dense "
-                "matching models a global shutter, its heights drift across the rows",
-                self.cam.readout_s,
-            )
         pose_of = {fn: i for i, fn in enumerate(traj.filenames)}
         ok = [
             p
@@ -174,6 +168,7 @@ class DenseSurface:
         ]
         self.pairs = ok
         self.pose_a = [pose_of[p.frame_a] for p in ok]
+        self.pose_b = [pose_of[p.frame_b] for p in ok]
         self.images = GrayFrames(drive.frames, 4, "dense surface")
         # tiles each pair may touch: frame a's footprint, widened by the relief's reach
         wanted = set(tiles)
@@ -217,8 +212,18 @@ class DenseSurface:
         from roadsurf.reconstruction.dense.parallax import dense_height
 
         try:
+            ts = self.traj.timestamp_s  # a rolling shutter's rows are placed in time
+            dt = float(ts[self.pose_b[k]] - ts[self.pose_a[k]])
             dh = dense_height(
-                a, b, self.cam, p.R_b_from_a, p.t_b_from_a_m, p.plane, p.H, self.cfg.dense
+                a,
+                b,
+                self.cam,
+                p.R_b_from_a,
+                p.t_b_from_a_m,
+                p.plane,
+                p.H,
+                self.cfg.dense,
+                frame_dt_s=dt,
             )
         except Exception as e:  # a pair that cannot be matched leaves its cells to the others
             log.warning("dense surface: pair %s -> %s not matched (%s)", p.frame_a, p.frame_b, e)

@@ -43,6 +43,7 @@ from roadsurf.reconstruction.dense.matching import (
     sweep,
     window_max,
 )
+from roadsurf.reconstruction.dense.rolling import raw_px_of_plane_points
 
 log = logging.getLogger(__name__)
 
@@ -164,13 +165,16 @@ def dense_height(
     H: np.ndarray | None = None,
     cfg: DenseHeightConfig | None = None,
     device: str | torch.device | None = None,
+    frame_dt_s: float | None = None,
 ) -> DenseHeight:
     """Dense height of image a's pixels above the pair's road plane (module docstring).
 
     img_a, img_b: (height, width) uint8 grey images (raw, as recorded); R, t: X_b = R X_a + t
     (m); plane: (p0, p1, p2) with z = p0 x + p1 y + p2 in camera a (m). ``H`` (the pair's
     estimated road homography, ideal px) is only compared with the one R, t and the plane give,
-    which is the one used (the parallax relation holds for it exactly)."""
+    which is the one used (the parallax relation holds for it exactly). With a rolling shutter
+    (``camera.readout_s`` > 0) and ``frame_dt_s`` (b's timestamp minus a's, s) each image is
+    resampled from the rows that saw the road (``dense.rolling``)."""
     cfg = cfg or DenseHeightConfig()
     t0 = time.perf_counter()
     for name, img in (("img_a", img_a), ("img_b", img_b)):
@@ -185,7 +189,10 @@ def dense_height(
     dev = device if isinstance(device, torch.device) else torch_device(device or cfg.device)
     s = cfg.work_scale(camera.width, camera.height)
     ppw = pp.scaled(s) if s != 1.0 else pp
-    A, B, mA, mB = _resample(img_a, img_b, camera, pp.H, s)
+    rs = None
+    if camera.readout_s > 0 and frame_dt_s is not None and frame_dt_s > 0:
+        rs = (np.asarray(R_b_from_a, float), np.asarray(t_b_from_a_m, float), plane, frame_dt_s)
+    A, B, mA, mB = _resample(img_a, img_b, camera, pp.H, s, rs)
     timings = {"resample": time.perf_counter() - t0}
     hf, wf = A.shape
     shift_full = np.full((hf, wf), np.nan, np.float32)
@@ -281,10 +288,17 @@ def _compare_homography(Hp: np.ndarray, He: np.ndarray, camera: Camera) -> None:
 
 
 def _resample(
-    img_a: np.ndarray, img_b: np.ndarray, camera: Camera, H: np.ndarray, s: float
+    img_a: np.ndarray,
+    img_b: np.ndarray,
+    camera: Camera,
+    H: np.ndarray,
+    s: float,
+    rs: tuple[np.ndarray, np.ndarray, np.ndarray, float] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Image a on its ideal pixel grid resized by ``s``, image b through H onto the same grid
-    (float32 DN), and where each sample lies inside its image (bool)."""
+    (float32 DN), and where each sample lies inside its image (bool). ``rs`` = (R, t, plane,
+    frame_dt_s): a rolling shutter, each grid pixel read from the rows that saw its road
+    point (``dense.rolling``) instead of through H at the timestamps."""
     W, Hh = camera.width, camera.height
     w, h = int(round(W * s)), int(round(Hh * s))
     if s < 1.0:  # anti-aliasing before the resampling
@@ -295,7 +309,12 @@ def _resample(
     u, v = (u + 0.5) / s - 0.5, (v + 0.5) / s - 0.5
     q = np.stack([u, v, np.ones_like(u)], -1) @ H.T
     ub, vb = q[..., 0] / q[..., 2], q[..., 1] / q[..., 2]
-    if camera.has_distortion:
+    if rs is not None:
+        R, t, plane, dt = rs
+        ua, va = raw_px_of_plane_points(u, v, camera, R, t, plane, dt, 0)
+        ub, vb = raw_px_of_plane_points(u, v, camera, R, t, plane, dt, 1)
+        ua, va, ub, vb = (np.nan_to_num(x, nan=-10.0) for x in (ua, va, ub, vb))
+    elif camera.has_distortion:
         ra = camera.distort_px(np.column_stack([u.ravel(), v.ravel()])).reshape(h, w, 2)
         rb = camera.distort_px(np.column_stack([ub.ravel(), vb.ravel()])).reshape(h, w, 2)
         ua, va, ub, vb = ra[..., 0], ra[..., 1], rb[..., 0], rb[..., 1]
