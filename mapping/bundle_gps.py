@@ -14,27 +14,50 @@ from roadsurf.mapping.pose_gps import GpsFixes, interp_weights
 if TYPE_CHECKING:
     from roadsurf.mapping.config import MappingConfig
 
+# a band of centres spread less than this (m, RMS about their mean) gets no heading correction:
+# its heading is not defined by its positions (a vehicle standing still)
+MIN_SPREAD_M = 1.0
+
 
 def keep_placement(cur: np.ndarray, world_pg: np.ndarray, length_m: float) -> np.ndarray:
-    """The refined poses moved by the pose graph's placement at scales beyond ``length_m``.
+    """The refined (N, 4, 4) world_from_cam moved onto the pose graph's placement (position and
+    heading) at scales beyond ``length_m`` of path.
 
     The pose graph places the whole drive on all its GPS fixes at once; a window sees only the
-    fixes of its own few metres. The camera centres are shifted by the Gaussian-smoothed (σ =
-    length_m of path) difference pose graph - bundle, so the bundle's shape within a few
-    windows (drift over 5 m: weight 98 % at 25 m) stays and its placement noise goes.
-    length_m <= 0: no shift."""
+    fixes of its own few metres, and every later window inherits the first one's heading through
+    the held anchor frames. For each frame the refined centres within the Gaussian band (σ =
+    length_m of path) are fitted to the pose graph's by a weighted rigid motion in the
+    horizontal plane (rotation about up + shift, and a vertical shift), and that motion is
+    applied to the frame (its centre and its rotation). So the bundle's shape within a few
+    windows stays (drift over 5 m: weight 98 % at 25 m) and its placement noise goes; a band
+    shorter than MIN_SPREAD_M (a vehicle standing still) gets the shift only.
+    length_m <= 0: no change."""
     if length_m <= 0 or len(cur) < 2:
         return cur
     Cp = world_pg[:, :3, 3]
+    Cb = cur[:, :3, 3]
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(Cp, axis=0), axis=1))])
     out = cur.copy()
-    diff = Cp - cur[:, :3, 3]
     # banded: beyond 4 σ the weights are < 3e-4 (memory stays linear in the drive)
     lo = np.searchsorted(s, s - 4 * length_m)
     hi = np.searchsorted(s, s + 4 * length_m, side="right")
     for i in range(len(s)):
         w = np.exp(-0.5 * ((s[lo[i] : hi[i]] - s[i]) / length_m) ** 2)
-        out[i, :3, 3] += w @ diff[lo[i] : hi[i]] / w.sum()
+        w /= w.sum()
+        b, p = Cb[lo[i] : hi[i]], Cp[lo[i] : hi[i]]
+        cb, cp = w @ b, w @ p
+        B, P = b[:, :2] - cb[:2], p[:, :2] - cp[:2]
+        ang = 0.0
+        if float(w @ np.sum(B**2, 1)) >= MIN_SPREAD_M**2:
+            # weighted 2D Procrustes: the angle maximising sum w (R B)·P
+            ang = math.atan2(
+                float(w @ (B[:, 0] * P[:, 1] - B[:, 1] * P[:, 0])),
+                float(w @ np.sum(B * P, 1)),
+            )
+        c, sn = math.cos(ang), math.sin(ang)
+        Rz = np.array([[c, -sn, 0.0], [sn, c, 0.0], [0.0, 0.0, 1.0]])
+        out[i, :3, 3] = Rz @ (Cb[i] - cb) + cp
+        out[i, :3, :3] = Rz @ cur[i, :3, :3]
     return out
 
 

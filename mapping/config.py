@@ -83,16 +83,18 @@ class MappingConfig:
     max_nfev: int = 60  # least-squares iteration cap (function evaluations)
     # ---------------------------------------------------------------- bundle adjustment (issue 30)
     # refine the pose graph's poses by bundle adjustment over feature tracks (mapping.bundle):
-    # reprojection, road-plane and camera-height priors, GPS with an estimated time offset
-    bundle_adjust: bool = False
+    # reprojection, road-plane and camera-height priors, the pairs' motions, GPS with an
+    # estimated time offset; False = the pose graph alone
+    bundle_adjust: bool = True
     bundle_window_frames: int = 30  # frames per sliding window (count)
     bundle_overlap_frames: int = 10  # frames a window shares with the next one (count)
     bundle_pixel_sigma_px: float = 0.5  # σ of a track's pixel position (px)
-    # σ of a road point off its frame's road plane (m): the plane only has to carry the camera
-    # height (scale) and tilt, which hundreds of points per frame pin even at 1 cm each (σ/√N
-    # ≈ 0.6 mm); a σ below the road's real relief in a frame's footprint (undulation, ruts,
-    # cross-fall: several mm) forces that relief into the poses (3 mm: reprojection rose from
-    # 0.16 to 0.24 px during the solve on the simulated potholes drive; 1 cm: 0.10 -> 0.07 px)
+    # σ of the road's departure from one plane over a frame's footprint (m; undulation, ruts,
+    # cross-fall change: several mm over 2-8 m). The departure is smooth, so a frame's N road
+    # points share it: each point's term weighs 1/√N (together one plane's worth, not N
+    # independent 1 cm measurements, which bent the point cloud and with it the cameras' tilt:
+    # potholes, 5-frame rotation error 0.15° against the pose graph's 0.04°); the plane only
+    # carries the camera height (scale). A σ below the real relief forces it into the poses
     bundle_relief_sigma_m: float = 0.01
     bundle_height_sigma_m: float = 0.005  # σ of the camera height above that plane, h (m)
     bundle_prior_sigma_m: float = 0.3  # σ of the pull to the pose graph's centres (m; gauge)
@@ -101,6 +103,12 @@ class MappingConfig:
     bundle_max_two_view: int = 50  # two-view tracks kept per frame (count; 3+-view: all)
     bundle_track_tol_m: float = 0.02  # a track whose pairs disagree by more is dropped (m)
     bundle_max_nfev: int = 20  # least-squares evaluations per window (count)
+    # refine the focal length (one scale on fx and fy for the drive; real calibrations are off by
+    # a fraction of a percent to a few percent): every window estimates it with a prior of
+    # bundle_focal_sigma around the calibration, the windows' median is held in a second pass
+    # (twice the bundle's time). The map and the dense surface keep camera.yaml's focal
+    bundle_refine_focal: bool = False
+    bundle_focal_sigma: float = 0.05  # prior σ of the focal scale around the calibration (−)
     # the pose graph's placement (all GPS fixes at once) is kept at scales beyond this length of
     # path; the bundle's own placement rests on one window's fixes (m; 0 = the bundle's own)
     bundle_placement_length_m: float = 25.0
@@ -230,6 +238,7 @@ class MappingConfig:
         "bundle_max_two_view": "[0, inf)",
         "bundle_track_tol_m": "(0, 1]",
         "bundle_max_nfev": "[1, inf)",
+        "bundle_focal_sigma": "(0, 1]",
         "bundle_placement_length_m": "[0, inf)",
         "bundle_loop_gate_m": "[0, inf)",
         "bundle_loop_min_gap_s": "(0, inf)",

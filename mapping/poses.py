@@ -99,11 +99,15 @@ def _fingerprint(
 ) -> str:
     """What the trajectory depends on (a fixed byte stream): the config, the frames' names and
     times, the GPS fixes (time, lat, lon, altitude, HDOP), the OBD speeds, every pair's
-    transform, whether revisits are matched (``loops``) and the version of the plausibility
-    checks whose warnings the report keeps."""
+    transform, whether revisits are matched (``loops``), the version of the plausibility
+    checks whose warnings the report keeps and, with the bundle adjustment on, its version."""
     fp = Fingerprint()
     if loops:
         fp.add_text("loops")
+    if cfg.bundle_adjust:
+        from roadsurf.mapping.bundle import BUNDLE_VERSION
+
+        fp.add_text(f"bundle:{BUNDLE_VERSION}")
     fp.add_json({k: v for k, v in to_dict(cfg).items() if k not in NOT_IN_FINGERPRINT})
     fp.add_json([(f.filename, f.timestamp_s) for f in drive.frames], default_str=False)
     fp.add_text(f"mount:{drive.camera.mount_deg}")

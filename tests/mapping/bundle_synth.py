@@ -30,8 +30,19 @@ class TrackDrive:
     pair_point_ids: list[np.ndarray]  # per pair: the true point of each match
 
 
+def road_height(xy: np.ndarray, amp_m: float, wavelength_m: float) -> np.ndarray:
+    """Height (m) of the undulating road at (K, 2) ENU positions: 0 for amp_m = 0."""
+    k = 2 * np.pi / wavelength_m
+    return amp_m * (np.sin(k * xy[:, 0]) + 0.5 * np.sin(k * xy[:, 1] + 1.0))
+
+
 def _poses(
-    n: int, fps: float, speed: float, rng: np.random.Generator, speed_variation: float = 0.3
+    n: int,
+    fps: float,
+    speed: float,
+    rng: np.random.Generator,
+    speed_variation: float = 0.3,
+    undulation: tuple[float, float] = (0.0, 1.0),
 ) -> tuple[np.ndarray, ...]:
     """Times, (N, 4, 4) poses and a dense (time, centre) path for interpolating GPS truth."""
     dt = 1.0 / fps
@@ -44,7 +55,7 @@ def _poses(
     pos = np.concatenate(
         [[np.zeros(3)], np.cumsum(0.5 * (step[1:] + step[:-1]) * np.diff(s)[:, None], 0)]
     )
-    pos[:, 2] = 1.0  # camera height above the flat road z = 0
+    pos[:, 2] = 1.0 + road_height(pos[:, :2], *undulation)  # 1 m above the road
     t = np.arange(n) * dt
     W = np.empty((n, 4, 4))
     for i in range(n):
@@ -70,18 +81,22 @@ def make_track_drive(
     density_per_m2: float = 120.0,
     speed_variation: float = 0.3,
     width_px: int = 160,
+    undulation_m: float = 0.0,
+    undulation_wavelength_m: float = 3.0,
 ) -> TrackDrive:
+    """undulation_m: amplitude of the road's smooth relief (m, 0 = the flat road z = 0)."""
     rng = np.random.default_rng(seed)
     cam = camera(width=width_px, height=width_px * 3 // 4, fps=fps)
-    t, W, tt, path = _poses(n, fps, speed_mps, rng, speed_variation)
-    # road points around the path (flat road z = 0)
+    und = (undulation_m, undulation_wavelength_m)
+    t, W, tt, path = _poses(n, fps, speed_mps, rng, speed_variation, und)
+    # road points around the path
     lo = path[:, :2].min(0) - 1.0
     hi = path[:, :2].max(0) + 1.0
     npts = int(density_per_m2 * np.prod(hi - lo))
     P = np.column_stack([rng.uniform(lo[0], hi[0], npts), rng.uniform(lo[1], hi[1], npts)])
     d = np.min(np.linalg.norm(P[:, None, :] - path[None, ::20, :2], axis=2), axis=1)
     P = P[d < 1.0]
-    pts = np.column_stack([P, np.zeros(len(P))])
+    pts = np.column_stack([P, road_height(P, *und)])
     # one keypoint per (frame, visible point)
     kp: list[dict[int, np.ndarray]] = []
     m = 3.0

@@ -46,7 +46,9 @@ def _relative_errors(W: np.ndarray, Wt: np.ndarray, k: int = 5) -> tuple[float, 
 
 
 def _both(syn, cfg: MappingConfig):
-    off = poses.estimate_trajectory(cfg, syn.drive, syn.pairs)
+    off = poses.estimate_trajectory(
+        dataclasses.replace(cfg, bundle_adjust=False), syn.drive, syn.pairs
+    )
     on = poses.estimate_trajectory(
         dataclasses.replace(cfg, bundle_adjust=True), syn.drive, syn.pairs
     )
@@ -71,10 +73,48 @@ def test_bundle_adjustment_reduces_the_pose_error() -> None:
     assert p1 < 0.7 * p0, (p0, p1)
 
 
+def test_a_road_that_is_not_one_plane_does_not_tilt_the_cameras() -> None:
+    # a road undulating by ±2 cm over 2 m: each frame's points depart from its road plane
+    # together, so the plane term must not count them as hundreds of independent measurements
+    # (it did: the bundle's per-frame tilt error 3.9 mrad and 5-frame rotation error 0.32°,
+    # the pose graph's 1.2 mrad and 0.16°)
+    syn = make_track_drive(
+        n=40, seed=2, gps_hz=1.0, gps_sigma_m=0.3, width_px=640, density_per_m2=120,
+        px_sigma=0.1, undulation_m=0.02, undulation_wavelength_m=2.0,
+    )  # fmt: skip
+    cfg = MappingConfig(gps_sigma_m=0.3, bundle_max_time_offset_s=0.0)
+    (t0, _), (t1, _) = _both(syn, cfg)
+    W0, W1, Wt = t0.world_from_cam, t1.world_from_cam, syn.world_from_cam
+    # per-frame tilt: the up component of each camera axis against the truth's
+    tilt0, tilt1 = (float(np.sqrt(np.mean((W[:, 2, :3] - Wt[:, 2, :3]) ** 2))) for W in (W0, W1))
+    assert tilt1 < tilt0, (tilt0, tilt1)
+    _, r0 = _relative_errors(W0, Wt)
+    _, r1 = _relative_errors(W1, Wt)
+    assert r1 < 0.5 * r0, (r0, r1)
+
+
+def test_a_one_percent_focal_error_is_recovered() -> None:
+    # camera.yaml's focal length 1 % long (the pixels are the true camera's)
+    syn = make_track_drive(n=40, seed=2, width_px=640, density_per_m2=60)
+    cam = syn.drive.camera
+    wrong = dataclasses.replace(cam, fx=cam.fx * 1.01, fy=cam.fy * 1.01)
+    drive = dataclasses.replace(syn.drive, camera=wrong)
+    cfg = dataclasses.replace(CFG, bundle_max_time_offset_s=0.0, bundle_refine_focal=True)
+    _, rep = poses.estimate_trajectory(cfg, drive, syn.pairs)
+    assert abs(rep.bundle["focal_scale"] * 1.01 - 1.0) < 0.002, rep.bundle["focal_scale"]
+    # off by default: the calibration is held
+    assert not MappingConfig().bundle_refine_focal
+    _, rep0 = poses.estimate_trajectory(
+        dataclasses.replace(cfg, bundle_refine_focal=False), drive, syn.pairs
+    )
+    assert "focal_scale" not in rep0.bundle
+
+
 def test_a_gps_outlier_is_rejected() -> None:
     syn = make_track_drive(n=32, seed=3, gps_outliers={12: (0.6, -0.4)}, density_per_m2=60)
     cfg = dataclasses.replace(CFG, bundle_max_time_offset_s=0.0)
-    traj, _ = poses.estimate_trajectory(cfg, syn.drive, syn.pairs)
+    pg = dataclasses.replace(cfg, bundle_adjust=False)
+    traj, _ = poses.estimate_trajectory(pg, syn.drive, syn.pairs)
     _, gps = gps_enu(cfg, syn.drive, traj.timestamp_s, PoseReport())
     pos_of = {i: i for i in range(len(traj.timestamp_s))}
     # every fix offered (the pose graph's own rejection bypassed): the bundle must find it
@@ -118,10 +158,18 @@ def test_no_time_offset_is_read_from_a_drive_at_constant_speed() -> None:
     assert 0.02 < se[0.05] < 0.1  # ±5 % of 6 m/s: the potholes drive, latency not observable
     assert se[0.3] < 0.01  # the recovery test's S-curve
 
+    # constant speed along an S-curve (no latency): the heading's turns make the offset
+    # observable to the bound the pose graph's velocities give (~9 ms); the reported standard
+    # error never beats it, and the fitted offset (a few ms) is not applied
     syn = make_track_drive(n=40, seed=4, speed_variation=0.0, density_per_m2=60)
-    _, (t1, rep) = _both(syn, CFG)
+    (t0, _), (t1, rep) = _both(syn, CFG)
+    _, gps = gps_enu(CFG, syn.drive, t0.timestamp_s, PoseReport())
+    bound = time_offset_bound_s(
+        t0.world_from_cam, t0.timestamp_s, gps, np.ones(len(gps.t_s), bool),
+        rep.bundle["gps_sigma_scale"],
+    )  # fmt: skip
     assert rep.bundle["time_offset_s"] == 0.0
-    assert rep.bundle["time_offset_se_s"] > 0.02
+    assert rep.bundle["time_offset_se_s"] >= bound * (1 - 1e-9), (rep.bundle, bound)
     assert _errors(t1, syn)[0] < 0.03
 
 
@@ -132,8 +180,10 @@ def test_the_report_keeps_the_bundle_figures() -> None:
     d = rep.to_dict()
     assert d["bundle"]["n_windows"] == 1
     assert d["bundle"]["reprojection_rms_px_final"] < 0.5
-    _, rep_off = poses.estimate_trajectory(CFG, syn.drive, syn.pairs)
+    off = dataclasses.replace(CFG, bundle_adjust=False)
+    _, rep_off = poses.estimate_trajectory(off, syn.drive, syn.pairs)
     assert rep_off.to_dict()["bundle"] == {}
+    assert MappingConfig().bundle_adjust  # on by default (issue 30)
 
 
 def test_the_pose_graph_placement_is_kept_beyond_the_placement_length() -> None:
@@ -149,3 +199,27 @@ def test_the_pose_graph_placement_is_kept_beyond_the_placement_length() -> None:
     mid = slice(300, n - 300)  # away from the ends (one-sided smoothing there)
     assert np.max(np.abs(out[mid, 0, 3] - wiggle[mid])) < 2e-4
     assert np.array_equal(keep_placement(cur, W, 0.0), cur)
+
+
+def test_the_pose_graph_heading_is_kept_on_a_drive_shorter_than_the_placement_length() -> None:
+    # 24 m (the potholes drive): the bundle's first window set a heading 0.1° off, which every
+    # later window inherited; a shift alone leaves 2 cm at the ends, the heading goes too
+    n = 61
+    W = np.tile(np.eye(4), (n, 1, 1))
+    W[:, 1, 3] = np.linspace(0.0, 24.0, n)
+    a = np.radians(0.1)
+    Rz = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    cur = W.copy()
+    cur[:, :3, 3] = W[:, :3, 3] @ Rz.T + [0.01, -0.02, 0.005]
+    cur[:, :3, :3] = Rz @ W[:, :3, :3]
+    out = keep_placement(cur, W, 25.0)
+    assert np.max(np.linalg.norm(out[:, :3, 3] - W[:, :3, 3], axis=1)) < 1e-6
+    assert np.allclose(out[:, :3, :3], W[:, :3, :3], atol=1e-9)
+    # standing still: no heading to fit, the shift only
+    still = np.tile(np.eye(4), (n, 1, 1))
+    moved = still.copy()
+    moved[:, :3, 3] += [0.01, 0.0, 0.0]
+    moved[:, :3, :3] = Rz
+    out = keep_placement(moved, still, 25.0)
+    assert np.allclose(out[:, :3, 3], 0.0, atol=1e-12)
+    assert np.allclose(out[:, :3, :3], Rz)

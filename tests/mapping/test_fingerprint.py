@@ -5,7 +5,10 @@ The expected values were recomputed when issue 31 added the GPS altitude, OBD sp
 plausibility checks' version to the poses key and the pairs' content, camera and vertical datum to
 the map key, and issue 28 the mount (MappingConfig.estimate_mount, camera.yaml mount) to
 the poses key; issues 29 and 30 added MappingConfig.surface_source, dense and bundle_* (both keys);
-bundle_relief_sigma_m's default went from 3 mm to 1 cm and bundle_placement_length_m and bundle_loop_* came (issue 30).
+bundle_relief_sigma_m's default went from 3 mm to 1 cm and bundle_placement_length_m and bundle_loop_* came (issue 30);
+bundle_adjust became the default, bundle_refine_focal and bundle_focal_sigma came and the poses key
+holds the bundle's version (issue 30); the map key also moved with DenseHeightConfig.hole_fill_m
+(issue 29).
 A change of MappingConfig's fields changes them legitimately. The keys must also
 change with what the outputs depend on (below)."""
 
@@ -21,9 +24,9 @@ from tests.mapping.synth import make_synthetic
 
 def test_poses_fingerprint_is_unchanged() -> None:
     syn = make_synthetic(n=6, seed=3, failed=(2,))
-    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "5d9a376a9153a47f"
+    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "052e410657f3d5da"
     syn = make_synthetic(n=6, seed=3, with_gps=False)
-    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "07b6d417edc0ccd8"
+    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "03334ee4d82cdd63"
 
 
 def test_globalmap_fingerprint_is_unchanged() -> None:
@@ -37,7 +40,7 @@ def test_globalmap_fingerprint_is_unchanged() -> None:
         reference=None,
         segment=np.zeros(6, int),
     )
-    assert globalmap._fingerprint(MappingConfig(), syn.pairs, traj) == "fc20eb0cf1a254f7"
+    assert globalmap._fingerprint(MappingConfig(), syn.pairs, traj) == "a1ef5d651fc214e7"
 
 
 def test_poses_key_follows_the_gps_altitude() -> None:

@@ -1,5 +1,6 @@
 """Pose fusion on seeded synthetic drives with known poses (GPS gaps, outliers, no GPS, failed
-pairs, consumer GPS), plus the trajectory artifacts and resume."""
+pairs, consumer GPS), plus the trajectory artifacts and resume. The pose graph alone
+(bundle_adjust=False): the bundle adjustment after it has tests/mapping/test_bundle.py."""
 
 from __future__ import annotations
 
@@ -17,7 +18,7 @@ from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.types import load_trajectory
 from tests.mapping.synth import REF, make_synthetic
 
-RTK = MappingConfig(gps_sigma_m=0.02)
+RTK = MappingConfig(bundle_adjust=False, gps_sigma_m=0.02)
 
 
 def _true_frame_positions(traj, syn) -> tuple[np.ndarray, np.ndarray]:
@@ -104,7 +105,9 @@ def test_failed_pair_without_gps_starts_a_new_segment() -> None:
 
 def test_consumer_gps_keeps_relative_drift_below_one_percent() -> None:
     syn = make_synthetic(n=300, seed=7, gps_hz=1.0, gps_sigma_m=1.0, gps_gap_s=(5.0, 8.0))
-    traj, _ = poses.estimate_trajectory(MappingConfig(gps_sigma_m=1.0), syn.drive, syn.pairs)
+    traj, _ = poses.estimate_trajectory(
+        MappingConfig(bundle_adjust=False, gps_sigma_m=1.0), syn.drive, syn.pairs
+    )
     e, t = _true_frame_positions(traj, syn)
     he = np.radians(traj.heading_deg)
     ht = np.radians([np.degrees(np.arctan2(-W[0, 1], -W[1, 1])) for W in syn.world_from_cam])
@@ -133,7 +136,7 @@ def test_fixes_just_outside_a_short_drive_are_used() -> None:
     for seed in range(12):
         syn = make_synthetic(n=60, seed=seed, gps_sigma_m=1.0, gps_margin_s=1.5, hdop=2.0)
         for ext in rmse:
-            cfg = MappingConfig(gps_extrapolate_s=ext)
+            cfg = MappingConfig(bundle_adjust=False, gps_extrapolate_s=ext)
             traj, rep = poses.estimate_trajectory(cfg, syn.drive, syn.pairs)
             assert rep.n_gps_used == (len(syn.drive.gps) if ext else 3)
             rmse[ext].append(_h_rmse(traj, syn))
@@ -147,7 +150,7 @@ def test_fixes_just_outside_a_short_drive_are_used() -> None:
 def test_gps_noisier_than_its_hdop_is_loosened() -> None:
     # HDOP 0.4 claims σ 0.2 m, the fixes scatter with σ 1.5 m: their weight must drop
     syn = make_synthetic(n=300, seed=8, gps_hz=2.0, gps_sigma_m=1.5, hdop=0.4)
-    traj, rep = poses.estimate_trajectory(MappingConfig(), syn.drive, syn.pairs)
+    traj, rep = poses.estimate_trajectory(MappingConfig(bundle_adjust=False), syn.drive, syn.pairs)
     assert rep.gps_sigma_scale > 3.0
     assert _h_rmse(traj, syn) < 1.0
 
@@ -155,7 +158,7 @@ def test_gps_noisier_than_its_hdop_is_loosened() -> None:
 def test_rtk_with_pessimistic_hdop_stays_accurate() -> None:
     # an RTK receiver (2 cm) that reports HDOP 1.0 (σ 0.5 m): vision carries the shape
     syn = make_synthetic(n=200, seed=8, gps_hz=5.0, hdop=1.0)
-    traj, rep = poses.estimate_trajectory(MappingConfig(), syn.drive, syn.pairs)
+    traj, rep = poses.estimate_trajectory(MappingConfig(bundle_adjust=False), syn.drive, syn.pairs)
     assert rep.gps_sigma_scale == 1.0
     assert _h_rmse(traj, syn) < 0.03
 
@@ -193,7 +196,12 @@ def test_run_writes_artifacts_and_resumes(tmp_path) -> None:
     m0 = os.stat(tmp_path / "poses.npz").st_mtime_ns
     poses.run(RTK, syn.drive, syn.pairs, tmp_path)
     assert os.stat(tmp_path / "poses.npz").st_mtime_ns == m0
-    poses.run(MappingConfig(gps_sigma_m=0.02, overwrite=True), syn.drive, syn.pairs, tmp_path)
+    poses.run(
+        MappingConfig(bundle_adjust=False, gps_sigma_m=0.02, overwrite=True),
+        syn.drive,
+        syn.pairs,
+        tmp_path,
+    )
     assert os.stat(tmp_path / "poses.npz").st_mtime_ns != m0
 
 
@@ -218,7 +226,9 @@ def test_frames_without_pairs_converge_quickly() -> None:
     assert _h_rmse(traj, syn) < 0.025
     # the prior is what makes the difference
     _, rep0 = poses.estimate_trajectory(
-        MappingConfig(gps_sigma_m=0.02, gap_accel_sigma_mps2=0.0), syn.drive, syn.pairs
+        MappingConfig(bundle_adjust=False, gps_sigma_m=0.02, gap_accel_sigma_mps2=0.0),
+        syn.drive,
+        syn.pairs,
     )
     assert rep0.n_iterations > 2 * rep.n_iterations
 
@@ -244,7 +254,7 @@ def test_tilt_prior_axis_on_a_cross_fall() -> None:
     syn = make_synthetic(n=30, seed=5, gps_hz=5.0, road_z=cross_fall)
     errs = {}
     for axis in ("road_normal", "mount"):
-        cfg = MappingConfig(gps_sigma_m=0.02, tilt_prior_axis=axis)
+        cfg = MappingConfig(bundle_adjust=False, gps_sigma_m=0.02, tilt_prior_axis=axis)
         traj, _ = poses.estimate_trajectory(cfg, syn.drive, syn.pairs)
         est = traj.world_from_cam[:, :3, 2]
         true = syn.world_from_cam[:, :3, 2]
