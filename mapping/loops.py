@@ -4,7 +4,10 @@ Candidates are frame pairs (i, j) far apart in time (``min_gap_s``) whose camera
 pose graph placed them, are within ``gate_m`` of each other horizontally: the GPS gate (the
 placement of two passes differs by about the GPS error, so the gate is a few GPS σ plus the
 footprint's reach). For each stretch of the later pass near the earlier one, only the closest
-pair (and every ``stride``-th after it) is tried. A candidate is confirmed by image matching:
+pair (and every ``stride``-th after it) is tried; with ``FrameMatcher`` each later frame's
+candidates are tried best first by image retrieval (``mapping.retrieval``), so the frame that
+really saw the same ground is matched first, not the one the GPS put nearest. A candidate is
+confirmed by image matching:
 ``match(i, j)`` returns the two frames' PairResult (the reconstruction's pair API, e.g.
 ``reconstruction.api.reconstruct_pair`` on the two Frames), and an ok pair becomes one more
 relative constraint in the pose graph (``mapping.pose_graph.PoseGraph`` takes any frame pair),
@@ -103,28 +106,44 @@ def confirm_loops(
     return found
 
 
-def frame_matcher(
-    drive: Drive, rec_cfg: ReconstructionConfig, run_dir: Path
-) -> Callable[[int, int], PairResult | None]:
+class FrameMatcher:
     """``match(i, j)`` for ``confirm_loops``: the reconstruction's pair API on the drive's frames
     at positions i and j, with the features the reconstruction stage cached in RUN/features
-    (the same frame is tried against several others: a few are kept in memory). The
-    rolling-shutter model is off for these pairs: it assumes the constant velocity of
-    consecutive frames, which two passes minutes apart do not share."""
-    from roadsurf.core.errors import FrameReadError
-    from roadsurf.reconstruction.api import reconstruct_features
-    from roadsurf.reconstruction.stage import frame_features
+    (the same frame is tried against several others: a few are kept in memory); and
+    ``score(i, j)``, the image retrieval that orders the candidates before they are matched
+    (``mapping.retrieval``). The rolling-shutter model is off for these pairs: it assumes the
+    constant velocity of consecutive frames, which two passes minutes apart do not share."""
 
-    cfg = dataclasses.replace(rec_cfg, rolling_shutter=False)
+    def __init__(self, drive: Drive, rec_cfg: ReconstructionConfig, run_dir: Path) -> None:
+        self.drive = drive
+        self.cfg = dataclasses.replace(rec_cfg, rolling_shutter=False)
+        self.run_dir = Path(run_dir)
+        self.features = functools.lru_cache(maxsize=32)(self._features)
 
-    @functools.lru_cache(maxsize=32)
-    def features(i: int) -> Features:
-        return frame_features(cfg, Path(run_dir), drive.frames[i])[0]
+    def _features(self, i: int) -> Features:
+        from roadsurf.reconstruction.stage import frame_features
 
-    def match(i: int, j: int) -> PairResult | None:
-        fa, fb = drive.frames[i], drive.frames[j]
+        return frame_features(self.cfg, self.run_dir, self.drive.frames[i])[0]
+
+    def score(self, i: int, j: int) -> int:
+        """Retrieval score of frames i and j (``retrieval.retrieval_score``); 0 when unreadable."""
+        from roadsurf.core.errors import FrameReadError
+        from roadsurf.mapping.retrieval import retrieval_score
+
         try:
-            res = reconstruct_features(features(i), features(j), drive.camera, cfg)
+            return retrieval_score(self.features(i), self.features(j), self.cfg.features)
+        except FrameReadError:
+            return 0
+
+    def __call__(self, i: int, j: int) -> PairResult | None:
+        from roadsurf.core.errors import FrameReadError
+        from roadsurf.reconstruction.api import reconstruct_features
+
+        fa, fb = self.drive.frames[i], self.drive.frames[j]
+        try:
+            res = reconstruct_features(
+                self.features(i), self.features(j), self.drive.camera, self.cfg
+            )
         except FrameReadError as e:
             log.info("loops: %s-%s not matched (%s)", fa.filename, fb.filename, e)
             return None
@@ -133,4 +152,7 @@ def frame_matcher(
         )  # fmt: skip
         return res if res.ok else None
 
-    return match
+
+def frame_matcher(drive: Drive, rec_cfg: ReconstructionConfig, run_dir: Path) -> FrameMatcher:
+    """The ``FrameMatcher`` of a drive's run folder (``match(i, j)`` and ``score(i, j)``)."""
+    return FrameMatcher(drive, rec_cfg, run_dir)

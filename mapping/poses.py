@@ -193,6 +193,11 @@ def estimate_trajectory(
         cand = loop_candidates(
             t, world[:, :3, 3], gate_m=cfg.bundle_loop_gate_m, min_gap_s=cfg.bundle_loop_min_gap_s
         )
+        score = getattr(loop_match, "score", None)  # image retrieval, when the matcher has it
+        if score is not None:
+            from roadsurf.mapping.retrieval import rank_candidates
+
+            cand = rank_candidates(cand, score)
         loops = confirm_loops(cand, loop_match)
         rep.bundle["loops"] = [[pos_of[p.index_a], pos_of[p.index_b]] for p in loops]
         if loops:

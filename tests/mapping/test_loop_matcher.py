@@ -19,6 +19,8 @@ def test_matcher_confirms_overlapping_frames_and_rejects_distant_ones(tmp_path: 
     assert near is not None and near.ok and near.n_points >= 30
     assert (near.index_a, near.index_b) == (drive.frames[0].index, drive.frames[1].index)
     assert match(0, len(drive.frames) - 1) is None  # no shared ground
+    # its image retrieval ranks the frame that shares ground first
+    assert match.score(0, 1) > 4 * match.score(0, len(drive.frames) - 1)
     # the features went to (and now come from) RUN/features, as the stage's do
     assert len(list((tmp_path / "features").iterdir())) == 3
     loops = confirm_loops([(0, len(drive.frames) - 1), (1, 2)], match)
