@@ -103,7 +103,7 @@ def _fingerprint(
     checks whose warnings the report keeps and, with the bundle adjustment on, its version."""
     fp = Fingerprint()
     if loops:
-        fp.add_text("loops")
+        fp.add_text("loops:retrieval")  # candidates ordered by image retrieval
     if cfg.bundle_adjust:
         from roadsurf.mapping.bundle import BUNDLE_VERSION
 
