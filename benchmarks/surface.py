@@ -82,7 +82,7 @@ def run_drive(spec: str, work: Path, frames: int | None) -> dict[str, dict[str, 
 
 
 def _fmt(v: float | None, scale: float) -> str:
-    return "–" if v is None else f"{v * scale:.3g}"
+    return "–" if v is None or v != v else f"{v * scale:.3g}"  # None or NaN: no such figure
 
 
 def table(rows: dict[str, dict[str, dict[str, Any]]]) -> str:

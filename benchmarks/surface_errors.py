@@ -89,7 +89,6 @@ def _views(drive: Path, truth: dict[str, Any], tr: dict[str, Any]) -> tuple[np.n
 
 def analyse(run: Path, drive: Path) -> dict[str, Any]:
     import rasterio
-    from scipy.ndimage import map_coordinates
 
     from roadsurf.evaluation.trajectory import run_trajectory, trajectory_metrics, truth_poses
 
@@ -143,9 +142,11 @@ def analyse(run: Path, drive: Path) -> dict[str, Any]:
         sm = cv2.GaussianBlur(Tz, (0, 0), sg) / np.maximum(cv2.GaussianBlur(Wt, (0, 0), sg), 1e-6)
         below[f"{sg_mm}mm"] = float(np.mean(np.abs(tv[fl] - sm[rr, cc][fl])))
     out["truth_relief_below_sigma_mae_m"] = below
-    # registration: per 0.4 m block, the shift (truth cells) that fits the run best
-    Td = Tz.astype(np.float64)
-    Ts = cv2.GaussianBlur(Tz, (0, 0), 1.0).astype(np.float64)
+    # registration: per 0.4 m block, the whole-cell shift (± 8 truth cells) that fits the run
+    # best. Whole cells only: a fractional shift samples the truth bilinearly, which smooths
+    # it towards the run's own smoothing and lowers the MAE of a perfectly registered surface
+    # (truth blurred by 6 mm + noise: 0.94 -> 0.67 mm; whole cells: unchanged, shift 0)
+    H, W = tres.shape
     fr, fc, fo = rr[fl], cc[fl], ov[fl]
     B = max(1, int(round(0.4 / abs(tT.a))))
     blk = (fr // B) * 1_000_000 + (fc // B)
@@ -154,25 +155,25 @@ def analyse(run: Path, drive: Path) -> dict[str, Any]:
         m = blk == key
         if m.sum() < 0.3 * B * B:
             continue
-
-        def err(dr: float, dc: float, T: np.ndarray, m: np.ndarray = m) -> float:
-            smp = map_coordinates(T, [fr[m] + dr, fc[m] + dc], order=1)
-            return float(np.mean(np.abs(fo[m] - smp)))
-
-        best = min((err(i, j, Ts), i, j) for i in range(-8, 9) for j in range(-8, 9))
-        steps = np.arange(-1.0, 1.01, 0.25)
-        fine = min((err(best[1] + i, best[2] + j, Td), best[1] + i, best[2] + j)
-                   for i in steps for j in steps)  # fmt: skip
-        rows.append((m.sum(), float(np.mean(np.abs(d[m]))), fine[0], fine[1], fine[2]))
+        best = (np.inf, 0, 0)
+        for i in range(-8, 9):
+            for j in range(-8, 9):
+                t = Tz[np.clip(fr[m] + i, 0, H - 1), np.clip(fc[m] + j, 0, W - 1)]
+                e = float(np.mean(np.abs(fo[m] - t)))
+                if e < best[0]:
+                    best = (e, i, j)
+        rows.append((m.sum(), float(np.mean(np.abs(d[m]))), *best))
     if rows:
-        g = np.array(rows)
+        g = np.array(rows, float)
         wts = g[:, 0] / g[:, 0].sum()
+        mm = abs(tT.a) * 1e3
         out["flat_mae_blocks_m"] = float((wts * g[:, 1]).sum())
         out["flat_mae_after_block_shift_m"] = float((wts * g[:, 2]).sum())
-        out["block_shift_median_mm"] = [float(np.median(g[:, 3]) * abs(tT.a) * 1e3),
-                                        float(np.median(g[:, 4]) * abs(tT.a) * 1e3)]  # fmt: skip
-        out["block_shift_std_mm"] = [float(g[:, 3].std() * abs(tT.a) * 1e3),
-                                     float(g[:, 4].std() * abs(tT.a) * 1e3)]  # fmt: skip
+        out["block_shift_median_mm"] = [
+            float(np.median(g[:, 3]) * mm),
+            float(np.median(g[:, 4]) * mm),
+        ]
+        out["block_shift_std_mm"] = [float(g[:, 3].std() * mm), float(g[:, 4].std() * mm)]
         out["n_blocks"] = len(g)
     # the aligned camera centres' along-track / lateral error
     idx = {f: i for i, f in enumerate(tr["filename"])}
