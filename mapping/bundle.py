@@ -36,6 +36,7 @@ from scipy.linalg import solve_triangular
 from scipy.optimize import least_squares
 from scipy.sparse.linalg import LinearOperator
 
+from roadsurf.core.camera import Camera
 from roadsurf.core.geometry import invert_pose, up_in_cam
 from roadsurf.io.drive import Drive
 from roadsurf.mapping.bundle_gps import (
@@ -44,7 +45,7 @@ from roadsurf.mapping.bundle_gps import (
     keep_placement,
     time_offset_bound_s,
 )
-from roadsurf.mapping.bundle_problem import WindowData, WindowProblem
+from roadsurf.mapping.bundle_problem import WindowData, WindowProblem, true_px_from_observed_px
 from roadsurf.mapping.bundle_reduced import ReducedProblem
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.pose_gps import GpsFixes
@@ -133,19 +134,28 @@ def refine_poses(
             tau = 0.0  # not significant
         report["gps_rejected"] = []
         report["n_windows"] = 0
-    psi = 0.0
-    if cfg.bundle_refine_focal:
-        # per-window focal estimates with the calibration as prior; their median is held below
-        _, st = _sweep(cfg, drive, t, world, gps_scale, *rest, tau, (0.0, cfg.bundle_focal_sigma))
-        psis = st.pop("focal_log_scales")
-        if psis:
-            psi = float(np.median(psis))
+    psi = kappa = 0.0
+    if cfg.bundle_refine_focal or cfg.bundle_refine_k1:
+        # per-window focal and k1 estimates with the calibration as prior; their medians (one
+        # camera for the drive) are held below
+        sf = cfg.bundle_focal_sigma if cfg.bundle_refine_focal else 0.0
+        sk = cfg.bundle_k1_sigma if cfg.bundle_refine_k1 else 0.0
+        _, st = _sweep(cfg, drive, t, world, gps_scale, *rest, tau, (0.0, sf), (0.0, sk))
+        psis, kaps = st.pop("focal_log_scales"), st.pop("k1_corrections")
         report["gps_rejected"] = []
         report["n_windows"] = 0
-        report["focal_scale"] = math.exp(psi)
-        report["focal_scale_windows"] = [round(math.exp(v), 5) for v in psis]
-    cur, stats = _sweep(cfg, drive, t, world, gps_scale, *rest, tau, (psi, 0.0))
+        if cfg.bundle_refine_focal:
+            psi = float(np.median(psis)) if psis else 0.0
+            report["focal_scale"] = math.exp(psi)
+            report["focal_scale_windows"] = [round(math.exp(v), 5) for v in psis]
+        if cfg.bundle_refine_k1:
+            kappa = float(np.median(kaps)) if kaps else 0.0
+            report["k1"] = float(cam.dist[0]) + kappa
+            report["k1_calibration"] = float(cam.dist[0])
+            report["k1_windows"] = [round(float(cam.dist[0]) + v, 5) for v in kaps]
+    cur, stats = _sweep(cfg, drive, t, world, gps_scale, *rest, tau, (psi, 0.0), (kappa, 0.0))
     stats.pop("focal_log_scales", None)
+    stats.pop("k1_corrections", None)
     if tau == 0.0:  # (the pose graph placed the drive on lagging fixes otherwise)
         cur = keep_placement(cur, world, cfg.bundle_placement_length_m)
     report["time_offset_s"] = tau
@@ -162,6 +172,16 @@ def refine_poses(
         1e3 * report["moved_m_median"], 1e3 * report["time_offset_s"], report["elapsed_s"],
     )  # fmt: skip
     return cur, report
+
+
+def refined_camera(camera: Camera, bundle_report: dict[str, Any]) -> Camera:
+    """The camera the later stages use: camera.yaml's with the bundle's refined k1 (``dist[0]``)
+    when ``bundle_refine_k1`` estimated one (a report without "k1": the camera unchanged). The
+    focal scale is reported only (the map and the dense surface keep camera.yaml's focal)."""
+    if "k1" not in bundle_report:
+        return camera
+    dist = (float(bundle_report["k1"]), *camera.dist[1:])
+    return dataclasses.replace(camera, dist=dist)  # type: ignore[arg-type]
 
 
 def _px(v: float | None) -> str:
@@ -184,6 +204,7 @@ def _sweep(
     rel_rot: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]],
     tau: float,
     focal: tuple[float, float] = (0.0, 0.0),
+    k1: tuple[float, float] = (0.0, 0.0),
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """All windows along the drive with the GPS time offset tau held: refined poses, figures."""
     n = len(t)
@@ -200,6 +221,7 @@ def _sweep(
     rms0: list[float] = []
     rms1: list[float] = []
     psis: list[float] = []
+    kaps: list[float] = []
     done = 0  # frames [0, done) hold refined poses (final or from the previous window)
     while True:
         e = min(s + W, n)
@@ -211,11 +233,13 @@ def _sweep(
             cur[done:e] = corr[None] @ world[done:e]
         res = _solve_window(
             cfg, drive, t, s, e, cur, world, pts, tracks, gps, used, gps_scale, tau, K,
-            n_up, plane_nominal, report, rel_rot, focal,
+            n_up, plane_nominal, report, rel_rot, focal, k1,
         )  # fmt: skip
         if res is not None:
             if focal[1] > 0:
                 psis.append(res["psi"])
+            if k1[1] > 0:
+                kaps.append(res["kappa"])
             cost0 += res["cost0"]
             cost1 += res["cost1"]
             rms0.append(res["rms0"])
@@ -232,6 +256,7 @@ def _sweep(
         "reprojection_rms_px_initial": float(np.median(rms0)) if rms0 else None,
         "reprojection_rms_px_final": float(np.median(rms1)) if rms1 else None,
         "focal_log_scales": psis,
+        "k1_corrections": kaps,
     }
     return cur, stats
 
@@ -256,6 +281,7 @@ def _solve_window(
     report: dict[str, Any],
     rel_rot: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]],
     focal: tuple[float, float] = (0.0, 0.0),
+    k1: tuple[float, float] = (0.0, 0.0),
 ) -> dict[str, float] | None:
     """Refine frames [s, e) in place in ``cur`` and their points in ``pts``."""
     F = e - s
@@ -283,7 +309,9 @@ def _solve_window(
     # treats its reprojections as outliers)
     Kf = K.copy()  # with the focal length the window starts from
     Kf[:2, :2] *= math.exp(focal[0])
-    X0, tri_ok = triangulate_w(obs_p, tracks.obs_px[o], R0[obs_f], C0[obs_f], Kf, len(tr_ids))
+    # ... and the k1 correction it starts from
+    px_tri = true_px_from_observed_px(tracks.obs_px[o], Kf, k1[0])
+    X0, tri_ok = triangulate_w(obs_p, px_tri, R0[obs_f], C0[obs_f], Kf, len(tr_ids))
     X0[~tri_ok] = pts[tr_ids][~tri_ok]
     planes0 = _initial_planes(R0, C0, X0, obs_f, obs_p, plane_nominal)
     # consecutive frames tied by too few tracks: the current relative motion as a prior
@@ -355,6 +383,8 @@ def _solve_window(
         sigma_rel_m=sig_t,
         focal0=focal[0],
         sigma_focal=focal[1],
+        k1_0=k1[0],
+        sigma_k1=k1[1],
     )
     prob = WindowProblem(data)
     prob.gps_used = g_used.copy()
@@ -390,6 +420,7 @@ def _solve_window(
             report["gps_rejected"].append(rec)
     return {
         "psi": prob.focal_log_scale(x),
+        "kappa": prob.k1_correction(x),
         "cost0": cost0,
         "cost1": float(0.5 * np.sum(r**2)),
         "rms0": rms0,

@@ -7,7 +7,10 @@ all: reprojection (px), point-on-plane (road relief; a frame's points share one 
 weight), camera height above its plane (metric scale), GPS position at the fix time minus τ
 (interpolated between the frames around it), a weak pull towards the pose graph's centres (gauge
 without GPS), the tilt prior, the pairs' relative motions (the pose graph's factors), constant
-motion across frames no track ties, OBD speed and a prior on τ. The Jacobian is analytic
+motion across frames no track ties, OBD speed and a prior on τ. Optionally the focal length
+(log scale ψ) and a radial distortion correction κ (k1's error: the observations are pixels
+undistorted with camera.yaml's k1, so they sit at x (1 + κ r²) of the true ideal ones, r the
+normalised radius; first order in κ times camera.yaml's own distortion), each with a prior. The Jacobian is analytic
 (small-angle rotation derivatives; the solver re-linearises every step)."""
 
 from __future__ import annotations
@@ -65,6 +68,25 @@ class WindowData:
     # focal length: K's fx, fy scaled by exp(ψ); ψ starts at focal0 with a prior σ (0: held)
     focal0: float = 0.0
     sigma_focal: float = 0.0
+    # radial distortion: the observed (camera.yaml-undistorted) normalised point is the true one
+    # times (1 + κ r²); κ (= true k1 - camera.yaml's k1) starts at k1_0 with a prior σ (0: held)
+    k1_0: float = 0.0
+    sigma_k1: float = 0.0
+
+
+def true_px_from_observed_px(px: np.ndarray, K: np.ndarray, kappa: float) -> np.ndarray:
+    """(M, 2) ideal pixels of the true camera from (M, 2) pixels undistorted with camera.yaml's
+    k1, given the k1 correction κ (−) and K (3, 3): x_obs = x (1 + κ r²) solved for the
+    normalised x by fixed-point iteration (|κ r²| ≪ 1)."""
+    if kappa == 0.0 or len(px) == 0:
+        return px
+    f = np.array([K[0, 0], K[1, 1]])
+    c = np.array([K[0, 2], K[1, 2]])
+    xo = (px - c) / f
+    x = xo.copy()
+    for _ in range(8):
+        x = xo / (1.0 + kappa * np.sum(x**2, axis=1, keepdims=True))
+    return x * f + c
 
 
 def _skew_cross(a: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -85,7 +107,9 @@ class WindowProblem:
         self.tau_col = nxt if d.sigma_tau_s > 0 else -1
         nxt += 1 if d.sigma_tau_s > 0 else 0
         self.focal_col = nxt if d.sigma_focal > 0 else -1
-        self.point_col0 = nxt + (1 if d.sigma_focal > 0 else 0)
+        nxt += 1 if d.sigma_focal > 0 else 0
+        self.k1_col = nxt if d.sigma_k1 > 0 else -1
+        self.point_col0 = nxt + (1 if d.sigma_k1 > 0 else 0)
         self.n = self.point_col0 + 3 * P
         self.gps_used = np.ones(len(d.gps_t), bool)
         self.gps_scale = 1.0
@@ -117,6 +141,10 @@ class WindowProblem:
     def focal_log_scale(self, x: np.ndarray) -> float:
         """ψ: the focal length is the calibration's times exp(ψ)."""
         return self.d.focal0 + (float(x[self.focal_col]) if self.focal_col >= 0 else 0.0)
+
+    def k1_correction(self, x: np.ndarray) -> float:
+        """κ: the true k1 minus camera.yaml's (first order)."""
+        return self.d.k1_0 + (float(x[self.k1_col]) if self.k1_col >= 0 else 0.0)
 
     def fun(self, x: np.ndarray) -> np.ndarray:
         return self._eval(x)[0]
@@ -162,13 +190,21 @@ class WindowProblem:
             z = np.maximum(Xc[:, 2], 1e-3)
             fs = np.exp(self.focal_log_scale(x))
             fx, fy, cx, cy = d.K[0, 0] * fs, d.K[1, 1] * fs, d.K[0, 2], d.K[1, 2]
-            u = fx * Xc[:, 0] / z + cx
-            w = fy * Xc[:, 1] / z + cy
+            kap = self.k1_correction(x)
+            xn, yn = Xc[:, 0] / z, Xc[:, 1] / z
+            r2 = xn**2 + yn**2
+            a = 1.0 + kap * r2  # the k1 correction's radial factor (1 when κ = 0)
+            u = fx * xn * a + cx
+            w = fy * yn * a + cy
             s = d.sigma_px
             res += [(u - d.obs_px[:, 0]) / s, (w - d.obs_px[:, 1]) / s]
             zero = np.zeros(m)
-            Ju = np.column_stack([fx / z, zero, -fx * Xc[:, 0] / z**2]) / s
-            Jv = np.column_stack([zero, fy / z, -fy * Xc[:, 1] / z**2]) / s
+            # d(xn)/dXc = [1/z, 0, -xn/z], d(yn)/dXc = [0, 1/z, -yn/z]
+            dxn = np.column_stack([1.0 / z, zero, -xn / z])
+            dyn = np.column_stack([zero, 1.0 / z, -yn / z])
+            cxy = 2.0 * kap * xn * yn
+            Ju = fx * ((a + 2.0 * kap * xn**2)[:, None] * dxn + cxy[:, None] * dyn) / s
+            Jv = fy * (cxy[:, None] * dxn + (a + 2.0 * kap * yn**2)[:, None] * dyn) / s
             pl = planes[f]
             # relief as a share of the camera's height above its plane, times h: a metric
             # distance would let the solver shrink the scene to shrink every relief residual
@@ -192,6 +228,10 @@ class WindowProblem:
                 fc = np.full(m, self.focal_col)
                 put(r0 + np.arange(m), fc, (u - cx) / s)
                 put(r0 + m + np.arange(m), fc, (w - cy) / s)
+            if self.k1_col >= 0:  # du/dκ = fx xn r²
+                kc = np.full(m, self.k1_col)
+                put(r0 + np.arange(m), kc, fx * xn * r2 / s)
+                put(r0 + m + np.arange(m), kc, fy * yn * r2 / s)
             row = r0 + 2 * m + np.arange(m)
             gpl = np.column_stack([Xc[:, 0] * q, Xc[:, 1] * q, q - N * q / p2])
             put_block(row, self.plane_col0 + 3 * f, gpl)
@@ -341,6 +381,12 @@ class WindowProblem:
         if self.focal_col >= 0:
             res.append(np.array([(self.focal_log_scale(x) - d.focal0) / d.sigma_focal]))
             put(np.array([r0]), np.array([self.focal_col]), np.array([1.0 / d.sigma_focal]))
+            r0 += 1
+
+        # ------------------------------------------------ prior on the k1 correction
+        if self.k1_col >= 0:
+            res.append(np.array([(self.k1_correction(x) - d.k1_0) / d.sigma_k1]))
+            put(np.array([r0]), np.array([self.k1_col]), np.array([1.0 / d.sigma_k1]))
             r0 += 1
 
         r = np.concatenate(res)

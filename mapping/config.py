@@ -109,6 +109,15 @@ class MappingConfig:
     # (twice the bundle's time). The map and the dense surface keep camera.yaml's focal
     bundle_refine_focal: bool = False
     bundle_focal_sigma: float = 0.05  # prior σ of the focal scale around the calibration (−)
+    # refine the radial distortion k1 (dist[0]; one value for the drive, as the focal length: a
+    # per-window estimate with a prior of bundle_k1_sigma around camera.yaml's k1, the windows'
+    # median held in a second pass). With it on, the later stages (map, dense surface,
+    # detection) use the refined k1. k1 is the coefficient of r² with r the normalised radius
+    # (a point's distance from the principal point in units of the focal length)
+    bundle_refine_k1: bool = False
+    # prior σ of k1 around camera.yaml's (−, per unit r²): a weak prior, wider than the spread
+    # of a real lens's k1 against a nominal 0 (consumer lenses |k1| ≲ 0.3)
+    bundle_k1_sigma: float = 0.1
     # the pose graph's placement (all GPS fixes at once) is kept at scales beyond this length of
     # path; the bundle's own placement rests on one window's fixes (m; 0 = the bundle's own)
     bundle_placement_length_m: float = 25.0
@@ -239,6 +248,7 @@ class MappingConfig:
         "bundle_track_tol_m": "(0, 1]",
         "bundle_max_nfev": "[1, inf)",
         "bundle_focal_sigma": "(0, 1]",
+        "bundle_k1_sigma": "(0, 1]",
         "bundle_placement_length_m": "[0, inf)",
         "bundle_loop_gate_m": "[0, inf)",
         "bundle_loop_min_gap_s": "(0, inf)",

@@ -276,6 +276,12 @@ def _run_drive(
         # the later stages see the camera on the mount the poses used (given or estimated)
         camera = dataclasses.replace(drive.camera, mount_deg=traj.mount_deg)
         drive = dataclasses.replace(drive, camera=camera)
+    if cfg.mapping.bundle_refine_k1 and (out / rf.POSES_REPORT).is_file():
+        # ... and with the bundle's refined k1 (issue 30; off by default)
+        from roadsurf.mapping.bundle import refined_camera
+
+        bundle_rep = read_json(out / rf.POSES_REPORT).get("bundle", {})
+        drive = dataclasses.replace(drive, camera=refined_camera(drive.camera, bundle_rep))
     products = timed("globalmap", lambda: globalmap.run(cfg.mapping, drive, pairs, traj, out))
     detections = timed(
         "detection",

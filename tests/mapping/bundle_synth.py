@@ -83,8 +83,11 @@ def make_track_drive(
     width_px: int = 160,
     undulation_m: float = 0.0,
     undulation_wavelength_m: float = 3.0,
+    k1: float = 0.0,
 ) -> TrackDrive:
-    """undulation_m: amplitude of the road's smooth relief (m, 0 = the flat road z = 0)."""
+    """undulation_m: amplitude of the road's smooth relief (m, 0 = the flat road z = 0); k1: the
+    lens's radial distortion (−, OpenCV's k1): the keypoints are the true lens's (normalised x
+    times 1 + k1 r²), the drive's camera has none (camera.yaml's k1 = 0)."""
     rng = np.random.default_rng(seed)
     cam = camera(width=width_px, height=width_px * 3 // 4, fps=fps)
     und = (undulation_m, undulation_wavelength_m)
@@ -102,7 +105,12 @@ def make_track_drive(
     m = 3.0
     for i in range(n):
         Xc = (pts - W[i][:3, 3]) @ W[i][:3, :3]
-        uv = Xc[:, :2] / Xc[:, 2:3] * [cam.fx, cam.fy] + [cam.cx, cam.cy]
+        xn = Xc[:, :2] / Xc[:, 2:3]
+        r2 = np.sum(xn**2, axis=1)
+        xn = xn * (1.0 + k1 * r2)[:, None]
+        uv = xn * [cam.fx, cam.fy] + [cam.cx, cam.cy]
+        # beyond the radius where r (1 + k1 r²) turns back (k1 < 0), far points fold into view
+        uv[1.0 + 3.0 * k1 * r2 <= 0.0] = -1.0
         vis = (
             (Xc[:, 2] > 0.1)
             & (uv[:, 0] > m)

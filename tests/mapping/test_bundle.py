@@ -10,7 +10,7 @@ import numpy as np
 
 from roadsurf.core.geometry import enu_from_lla, lla_from_enu
 from roadsurf.mapping import poses
-from roadsurf.mapping.bundle import refine_poses
+from roadsurf.mapping.bundle import refine_poses, refined_camera
 from roadsurf.mapping.bundle_gps import keep_placement, time_offset_bound_s
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.pose_gps import GpsFixes, gps_enu
@@ -108,6 +108,25 @@ def test_a_one_percent_focal_error_is_recovered() -> None:
         dataclasses.replace(cfg, bundle_refine_focal=False), drive, syn.pairs
     )
     assert "focal_scale" not in rep0.bundle
+
+
+def test_a_radial_distortion_error_is_recovered() -> None:
+    # the lens has k1 = -0.05 (barrel: 9.6 px inwards at the corners of 640 x 480, f 576 px,
+    # r = 0.69), camera.yaml says 0: the refined k1 must come within 0.0025 (5 % of the error,
+    # 0.5 px at the corners against the keypoints' 0.2 px noise; measured: -0.0504)
+    syn = make_track_drive(n=30, seed=2, width_px=640, density_per_m2=60, k1=-0.05)
+    cfg = dataclasses.replace(CFG, bundle_max_time_offset_s=0.0, bundle_refine_k1=True)
+    _, rep = poses.estimate_trajectory(cfg, syn.drive, syn.pairs)
+    assert abs(rep.bundle["k1"] + 0.05) < 0.0025, rep.bundle["k1"]
+    cam = refined_camera(syn.drive.camera, rep.bundle)
+    assert cam.dist[0] == rep.bundle["k1"] and cam.dist[1:] == syn.drive.camera.dist[1:]
+    # off by default: camera.yaml's k1 is held and the later stages' camera is camera.yaml's
+    assert not MappingConfig().bundle_refine_k1
+    _, rep0 = poses.estimate_trajectory(
+        dataclasses.replace(cfg, bundle_refine_k1=False), syn.drive, syn.pairs
+    )
+    assert "k1" not in rep0.bundle
+    assert refined_camera(syn.drive.camera, rep0.bundle) is syn.drive.camera
 
 
 def test_a_gps_outlier_is_rejected() -> None:

@@ -8,7 +8,7 @@ the poses key; issues 29 and 30 added MappingConfig.surface_source, dense and bu
 bundle_relief_sigma_m's default went from 3 mm to 1 cm and bundle_placement_length_m and bundle_loop_* came (issue 30);
 bundle_adjust became the default, bundle_refine_focal and bundle_focal_sigma came and the poses key
 holds the bundle's version (issue 30); the map key also moved with DenseHeightConfig.hole_fill_m
-(issue 29).
+(issue 29); bundle_refine_k1 and bundle_k1_sigma came (issue 30).
 A change of MappingConfig's fields changes them legitimately. The keys must also
 change with what the outputs depend on (below)."""
 
@@ -24,9 +24,9 @@ from tests.mapping.synth import make_synthetic
 
 def test_poses_fingerprint_is_unchanged() -> None:
     syn = make_synthetic(n=6, seed=3, failed=(2,))
-    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "052e410657f3d5da"
+    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "33ebcb41392d3332"
     syn = make_synthetic(n=6, seed=3, with_gps=False)
-    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "03334ee4d82cdd63"
+    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "f0e3a96735b61fde"
 
 
 def test_globalmap_fingerprint_is_unchanged() -> None:
@@ -40,7 +40,7 @@ def test_globalmap_fingerprint_is_unchanged() -> None:
         reference=None,
         segment=np.zeros(6, int),
     )
-    assert globalmap._fingerprint(MappingConfig(), syn.pairs, traj) == "a1ef5d651fc214e7"
+    assert globalmap._fingerprint(MappingConfig(), syn.pairs, traj) == "ebdabf847606a9c1"
 
 
 def test_poses_key_follows_the_gps_altitude() -> None:
