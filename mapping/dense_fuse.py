@@ -55,8 +55,8 @@ FIXED_POINT_STEPS = 3  # cell -> pixel projections at the sampled height (nadir:
 def dense_gsd_m(cfg: MappingConfig, cam: Camera, traj: Trajectory, road_z: np.ndarray) -> float:
     """GSD of the dense rasters (m): ``dense_gsd_m`` when set, else ``dense_gsd_px`` x the
     images' ground sampling at the matching scale (median camera height over the road / fx /
-    scale), but no coarser than the sparse raster's ``gsd_m`` unless one pixel is; rounded to
-    0.1 mm, never finer than ``dense_min_gsd_m``."""
+    ``dense.work_scale``), but no coarser than the sparse raster's ``gsd_m`` unless one pixel
+    is; rounded to 0.1 mm, never finer than ``dense_min_gsd_m``."""
     if cfg.dense_gsd_m > 0:
         return float(cfg.dense_gsd_m)
     h = float(np.median(traj.world_from_cam[:, 2, 3] - road_z)) if len(traj) else cam.height_m
@@ -212,8 +212,12 @@ class DenseSurface:
         from roadsurf.reconstruction.dense.parallax import dense_height
 
         try:
-            ts = self.traj.timestamp_s  # a rolling shutter's rows are placed in time
-            dt = float(ts[self.pose_b[k]] - ts[self.pose_a[k]])
+            # a rolling shutter's rows are placed in time, when the pair's R, t come from the
+            # rolling-shutter model (a global-shutter fit has absorbed part of the skew)
+            ts = self.traj.timestamp_s
+            dt: float | None = float(ts[self.pose_b[k]] - ts[self.pose_a[k]])
+            if "rs_iterations" not in p.config_name:
+                dt = None
             dh = dense_height(
                 a,
                 b,

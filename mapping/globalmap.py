@@ -89,8 +89,8 @@ def _fingerprint(
 ) -> str:
     """What the map depends on (a fixed byte stream): the config, the poses, every pair's status
     and content (its points and pixels, and the reconstruction's fingerprint of the pair's
-    settings, camera and image files when ``run_dir`` holds one), the camera and the vertical
-    datum of the exported heights."""
+    settings, camera and image files when ``run_dir`` holds one), the camera, the vertical
+    datum of the exported heights and, for a rolling shutter, the dense resampling's version."""
     fp = Fingerprint()
     d = to_dict(cfg)
     fp.add_json({k: v for k, v in d.items() if k not in NOT_IN_FINGERPRINT})
@@ -107,6 +107,10 @@ def _fingerprint(
             fp.add_text(read_fingerprint(run.pair(p.index_a, p.index_b)) or "-")
     if drive is not None:
         fp.add_json(dataclasses.asdict(drive.camera)).add_text(vertical_datum(cfg, drive))
+        if cfg.surface_source != "sparse" and drive.camera.readout_s > 0:
+            from roadsurf.reconstruction.dense.rolling import DENSE_ROLLING_VERSION
+
+            fp.add_text(f"dense_rolling:{DENSE_ROLLING_VERSION}")  # how the rows are resampled
     return fp.hexdigest(16)
 
 

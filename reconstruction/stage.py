@@ -277,23 +277,7 @@ def _one_pair(
             fa, fb, drive.camera, cfg, frame_dt_s=dt, road_normal_cam=road_normal_cam
         )
         if not res.ok and res.status in STRETCH_RETRY_STATUSES and cfg.features.stretch_retry:
-            res = retry_stretched(
-                res,
-                fa,
-                read_gray(b),
-                drive.camera,
-                cfg,
-                frame_dt_s=dt,
-                road_normal_cam=road_normal_cam,
-            )
-            if res.ok:
-                log.info(
-                    "pair %s -> %s matched with image b compressed vertically to %.2f "
-                    "(perspective / rolling-shutter stretch)",
-                    a.filename,
-                    b.filename,
-                    res.stretch_b,
-                )
+            res = _stretch_retry(cfg, drive, res, fa, b, dt, road_normal_cam)
         res.timings_s["features"] = t_feat
     except FrameReadError as e:
         res = PairResult(a.filename, b.filename, a.index, b.index, cfg.method, "unreadable_frame")
@@ -308,3 +292,32 @@ def _one_pair(
     if not res.ok:
         log.debug("pair %s -> %s: %s (%s)", a.filename, b.filename, res.status, res.reason)
     return res
+
+
+def _stretch_retry(
+    cfg: ReconstructionConfig,
+    drive: Drive,
+    res: PairResult,
+    fa: Features,
+    b: Frame,
+    dt: float,
+    road_normal_cam: np.ndarray | None,
+) -> PairResult:
+    """``api.retry_stretched`` on a pair short of matches; an image b that cannot be read now
+    (its features came from the cache) keeps the pair's own failure."""
+    try:
+        gb = read_gray(b)
+    except FrameReadError as e:
+        log.debug("stretch retry of %s skipped: %s", b.filename, e)
+        return res
+    out = retry_stretched(
+        res, fa, gb, drive.camera, cfg, frame_dt_s=dt, road_normal_cam=road_normal_cam
+    )
+    if out.ok:
+        log.info(
+            "pair -> %s matched with image b compressed vertically to %.2f "
+            "(perspective / rolling-shutter stretch)",
+            b.filename,
+            out.stretch_b,
+        )
+    return out

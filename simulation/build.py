@@ -70,6 +70,11 @@ def build_world(cfg: SimConfig, seed: int, n_frames: int) -> World:
     if cfg.revisit_after_s > 0:
         if half < 2:
             raise ConfigError(f"simulator: a revisit needs at least 4 frames, got {n_frames}")
+        if cfg.revisit_after_s <= 2.0 / fps:  # the way back must fit between two exposures
+            raise ConfigError(
+                f"simulator: revisit_after_s = {cfg.revisit_after_s:g} s is too short for a way "
+                f"back between the passes; use more than two frame periods ({2.0 / fps:g} s)"
+            )
         frame_times[half:] += cfg.revisit_after_s
     dt = 0.005
     t = np.arange(T_START_S - T_PAD_S, frame_times[-1] + T_PAD_S + dt, dt)

@@ -98,8 +98,12 @@ class World:
         return Pose(t, T[:3, 3].copy(), R, hd % 360.0, roll, pitch)
 
     def camera_path_lateral(self, s: np.ndarray) -> np.ndarray:
-        """Lateral offset of the camera where it passes arc length s (m)."""
-        return np.interp(s, self.traj.s, self.traj.lateral)
+        """Lateral offset of the camera where it first passes arc length s (m): a revisit's
+        arc length goes back (``SimConfig.revisit_after_s``), so only its first pass is read."""
+        tr = self.traj
+        back = np.flatnonzero(np.diff(tr.s) < 0)
+        n = int(back[0]) + 1 if len(back) else len(tr.s)
+        return np.interp(s, tr.s[:n], tr.lateral[:n])
 
     # ---- cast shadows of the relief (pothole rims onto their floor)
     def _relief_shadow_window(

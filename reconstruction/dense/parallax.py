@@ -43,7 +43,7 @@ from roadsurf.reconstruction.dense.matching import (
     sweep,
     window_max,
 )
-from roadsurf.reconstruction.dense.rolling import raw_px_of_plane_points
+from roadsurf.reconstruction.dense.rolling import raw_px_from_plane_px
 
 log = logging.getLogger(__name__)
 
@@ -311,8 +311,8 @@ def _resample(
     ub, vb = q[..., 0] / q[..., 2], q[..., 1] / q[..., 2]
     if rs is not None:
         R, t, plane, dt = rs
-        ua, va = raw_px_of_plane_points(u, v, camera, R, t, plane, dt, 0)
-        ub, vb = raw_px_of_plane_points(u, v, camera, R, t, plane, dt, 1)
+        ua, va = raw_px_from_plane_px(u, v, camera, R, t, plane, dt, 0)
+        ub, vb = raw_px_from_plane_px(u, v, camera, R, t, plane, dt, 1)
         ua, va, ub, vb = (np.nan_to_num(x, nan=-10.0) for x in (ua, va, ub, vb))
     elif camera.has_distortion:
         ra = camera.distort_px(np.column_stack([u.ravel(), v.ravel()])).reshape(h, w, 2)

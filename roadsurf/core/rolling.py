@@ -17,6 +17,8 @@ the footprint, about 0.4 at 100 km/h with 20 ms).
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -82,13 +84,26 @@ def raw_px_from_world(
         d = d - np.cross(om * tau, d)  # (I + [w tau]x)^T d: small-angle rotation during readout
         return camera.project(d @ R)
 
-    u, v = row_after(np.zeros(X.shape[:-1]))
+    return solve_rows(row_after, X.shape[:-1], rounds)
+
+
+def solve_rows(
+    project_at_row: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
+    shape: tuple[int, ...],
+    rounds: int = 2,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The raw pixels (u, v) of points in a rolling-shutter frame: the fixed point v =
+    project_at_row(v)[1], where ``project_at_row(v)`` projects each point with the pose of raw
+    row v (any shape ``shape``, px). Aitken's acceleration of the plain iteration, ``rounds``
+    times (exact when the row is linear in the exposure time; the plain iteration contracts by
+    the image's own motion during the readout over the image height). NaN stays NaN."""
+    u, v = project_at_row(np.zeros(shape))
     for _ in range(rounds):
         v0 = v
-        _, v1 = row_after(v0)
-        _, v2 = row_after(v1)
+        _, v1 = project_at_row(v0)
+        _, v2 = project_at_row(v1)
         den = v2 - 2.0 * v1 + v0
         with np.errstate(divide="ignore", invalid="ignore"):
             acc = v0 - (v1 - v0) ** 2 / den
         v = np.where(np.abs(den) > 1e-9, acc, v2)
-    return row_after(v)
+    return project_at_row(v)

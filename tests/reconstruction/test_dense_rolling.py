@@ -16,7 +16,7 @@ from roadsurf.reconstruction.api import reconstruct_pair
 from roadsurf.reconstruction.config import ReconstructionConfig
 from roadsurf.reconstruction.dense.config import DenseHeightConfig
 from roadsurf.reconstruction.dense.parallax import dense_height
-from roadsurf.reconstruction.dense.rolling import raw_px_of_plane_points
+from roadsurf.reconstruction.dense.rolling import raw_px_from_plane_px
 from roadsurf.reconstruction.rolling_shutter import poses_at, row_times_s
 from roadsurf.simulation.scenarios import simulate
 
@@ -33,9 +33,9 @@ def _grid() -> tuple[np.ndarray, np.ndarray]:
 
 def test_a_global_shutter_reads_the_timestamps_poses() -> None:
     u, v = _grid()
-    ua, va = raw_px_of_plane_points(u, v, CAM, R, T, PLANE, 1 / 15, 0)
+    ua, va = raw_px_from_plane_px(u, v, CAM, R, T, PLANE, 1 / 15, 0)
     assert np.allclose(ua, u) and np.allclose(va, v)
-    ub, vb = raw_px_of_plane_points(u, v, CAM, R, T, PLANE, 1 / 15, 1)
+    ub, vb = raw_px_from_plane_px(u, v, CAM, R, T, PLANE, 1 / 15, 1)
     assert np.allclose(ub, u) and np.allclose(vb, v + 0.4 * 300 / 1.1)  # H of a translation
 
 
@@ -43,7 +43,7 @@ def test_a_global_shutter_reads_the_timestamps_poses() -> None:
 def test_each_pixel_is_read_at_the_row_that_saw_it(frame: int) -> None:
     cam = dataclasses.replace(CAM, readout_s=0.03)
     u, v = _grid()
-    ur, vr = raw_px_of_plane_points(u, v, cam, R, T, PLANE, 1 / 15, frame)
+    ur, vr = raw_px_from_plane_px(u, v, cam, R, T, PLANE, 1 / 15, frame)
     # the plane point behind (u, v), seen from the pose of row vr, projects to (ur, vr)
     d = np.stack([(u.ravel() - cam.cx) / cam.fx, (v.ravel() - cam.cy) / cam.fy, np.ones(u.size)], 1)
     X = d * 1.1
@@ -54,14 +54,18 @@ def test_each_pixel_is_read_at_the_row_that_saw_it(frame: int) -> None:
     assert np.allclose(q[:, 0] / q[:, 2], ur.ravel(), atol=0.02)
     assert np.allclose(q[:, 1] / q[:, 2], vr.ravel(), atol=0.02)
     # and the readout moved it: the road moves down the image while the rows are read
-    assert (vr - raw_px_of_plane_points(u, v, CAM, R, T, PLANE, 1 / 15, frame)[1]).max() > 5
+    assert (vr - raw_px_from_plane_px(u, v, CAM, R, T, PLANE, 1 / 15, frame)[1]).max() > 5
 
 
 def test_horizon_pixels_are_nan() -> None:
     tilted = np.array([0.0, -8.0, 1.1])  # a plane so steep that the top rows never meet it
     u, v = _grid()
-    ua, _ = raw_px_of_plane_points(u, v, CAM, R, T, tilted, 1 / 15, 0)
+    ua, _ = raw_px_from_plane_px(u, v, CAM, R, T, tilted, 1 / 15, 0)
     assert np.isnan(ua).any() and np.isfinite(ua).any()
+    # a frame b turned to look up sees the road behind it: NaN, never a sign-flipped pixel
+    up = np.diag([1.0, -1.0, -1.0])
+    ub, _ = raw_px_from_plane_px(u, v, CAM, up, T, PLANE, 1 / 15, 1)
+    assert np.isnan(ub).all()
 
 
 def _flat_pair(out: Path, readout_s: float) -> Path:

@@ -37,3 +37,5 @@ def test_one_pass_is_the_default_and_a_revisit_needs_frames() -> None:
     assert SCENARIOS["revisit"].overrides["revisit_after_s"] > 0
     with pytest.raises(ConfigError, match="revisit needs at least 4 frames"):
         build_world(make_config("revisit", **SMALL), 7, 3)
+    with pytest.raises(ConfigError, match="too short for a way back"):
+        build_world(make_config("revisit", revisit_after_s=0.1, **SMALL), 7, 8)
