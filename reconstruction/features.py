@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 
 from roadsurf.core.atomic import write_npz_atomic
+from roadsurf.core.camera import capped_scale
 from roadsurf.core.errors import ConfigError
 from roadsurf.reconstruction.config import FeatureConfig
 from roadsurf.reconstruction.types import Features
@@ -57,11 +58,7 @@ def detect(image: np.ndarray, cfg: FeatureConfig) -> Features:
     """Detect and describe keypoints of one image, at most cfg.max_features, spread on a grid."""
     check_available(cfg)
     gray = to_gray(image)
-    scale = float(cfg.downscale)
-    if cfg.max_detect_megapixels > 0:
-        scale = min(scale, float(np.sqrt(cfg.max_detect_megapixels * 1e6 / gray.size)))
-    if scale >= 0.95:  # a few per cent smaller is not worth a resampling blur
-        scale = 1.0
+    scale = capped_scale(cfg.downscale, gray.shape[1], gray.shape[0], cfg.max_detect_megapixels)
     if 0 < scale < 1:
         gray = cv2.resize(gray, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
     if cfg.clahe_clip > 0:  # even out shadows / dark pothole floors for the detector only

@@ -3,9 +3,10 @@ field with its unit; ranges in ``RANGES`` (see ``roadsurf.core.config``)."""
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import ClassVar, Literal
+
+from roadsurf.core.camera import capped_scale
 
 
 @dataclass(frozen=True)
@@ -74,13 +75,8 @@ class DenseHeightConfig:
 
     def work_scale(self, width: int, height: int) -> float:
         """The work grid's scale for images of width x height px: ``scale``, lowered so the
-        grid holds at most ``max_megapixels``; a lowering to >= 0.95 x is not applied."""
-        s = float(self.scale)
-        if self.max_megapixels > 0 and width * height > 0:
-            cap = math.sqrt(self.max_megapixels * 1e6 / (width * height))
-            if cap < 0.95 * s:
-                s = cap
-        return s
+        grid holds at most ``max_megapixels`` (``core.camera.capped_scale``)."""
+        return capped_scale(self.scale, width, height, self.max_megapixels)
 
     RANGES: ClassVar[dict[str, str]] = {
         "scale": "(0, 1]",

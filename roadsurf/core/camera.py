@@ -200,3 +200,16 @@ def px_from_cam(X: np.ndarray, K: np.ndarray) -> np.ndarray:
     X = check_shape("X", X, (None, 3))
     z = X[:, 2]
     return np.stack([K[0, 0] * X[:, 0] / z + K[0, 2], K[1, 1] * X[:, 1] / z + K[1, 2]], axis=1)
+
+
+def capped_scale(scale: float, width: int, height: int, max_megapixels: float) -> float:
+    """The scale (unitless) to resize a width x height px image by: ``scale``, lowered so the
+    result holds at most ``max_megapixels`` (Mpx; 0 = no cap). A lowering to 0.95 x the
+    requested scale or more is not applied: a few per cent smaller is not worth a resampling
+    blur (640 x 480 stays whole under a 0.3 Mpx cap)."""
+    s = float(scale)
+    if max_megapixels > 0 and width * height > 0:
+        cap = float(np.sqrt(max_megapixels * 1e6 / (width * height)))
+        if cap < 0.95 * s:
+            s = cap
+    return s
