@@ -88,6 +88,7 @@ def evaluate_run(run_dir: str | Path, truth_dir: str | Path) -> dict[str, Any]:
     out["surface"] = surf.pop("metrics")
     out.update(surf)
     out["seam_step_max_m"], out["seam_step_p95_m"], out["seam_pairs"] = seam_steps(run_dir)
+    out["cloud_points_per_m2"] = cloud_density(run_dir, out.get("observed_area_m2"))
     out["targets"] = _targets(out, scen)
     if (run_dir / rf.DEFECTS_GEOJSON).is_file():
         try:
@@ -98,6 +99,22 @@ def evaluate_run(run_dir: str | Path, truth_dir: str | Path) -> dict[str, Any]:
     write_json_atomic(run_dir / rf.EVALUATION_JSON, out)
     write_text_atomic(run_dir / rf.EVALUATION_MD, markdown_table([out]))
     return out
+
+
+def cloud_density(run_dir: Path, observed_m2: float | None) -> float | None:
+    """Points of RUN/cloud.ply (its PLY header's vertex count) per m² of the observed surface
+    (the cells of surface.tif with a value); None without either."""
+    path = run_dir / rf.CLOUD_PLY
+    if not observed_m2 or not path.is_file():
+        return None
+    with open(path, "rb") as f:
+        for _ in range(64):
+            line = f.readline().decode("ascii", "replace").split()
+            if line[:2] == ["element", "vertex"]:
+                return int(line[2]) / observed_m2
+            if line[:1] == ["end_header"]:
+                break
+    return None
 
 
 # --------------------------------------------------------------------------- targets / report
@@ -138,6 +155,8 @@ def _fmt(v: Any, key: str) -> str:
         return f"{v * 1000:.2f} mm" if abs(v) < 0.1 else f"{v:.3f} m"
     if key.endswith("_pct"):
         return f"{v:.2f} %"
+    if key.endswith("_per_m2"):
+        return f"{v:,.0f}"
     if key.startswith("coverage") or key.endswith(("accuracy", "precision", "recall")):
         return f"{v * 100:.1f} %"
     return f"{v:.3g}" if isinstance(v, float) else str(v)
@@ -160,6 +179,7 @@ ROWS = [
     ("coverage", "coverage of the imaged corridor"),
     ("coverage_two_view", "coverage of the part seen by two consecutive frames"),
     ("coverage_two_view_share", "share of the corridor seen by two consecutive frames"),
+    ("cloud_points_per_m2", "cloud.ply density (points per m² of observed surface)"),
     ("seam_step_max_m", "largest seam step between patches"),
     ("detection.frames.accuracy", "detection: frame accuracy"),
     ("detection.defects.precision", "detection: defect precision"),

@@ -122,6 +122,7 @@ def surface_metrics(
     acc = {k: [] for k in ("raw_flat", "raw_def", "al_flat", "al_def")}
     n_in_corridor = 0
     our_px_area = 0.0
+    observed_m2 = 0.0  # area of every observed cell of our surface (m²)
     with rasterio.open(path) as src:
         nd = src.nodata
         W, H = src.width, src.height
@@ -136,6 +137,7 @@ def surface_metrics(
                 if len(rr) == 0:
                     continue
                 T = src.window_transform(win)
+                observed_m2 += len(rr) * abs(T.a * T.e)
                 x = T.c + (cc + 0.5) * T.a
                 y = T.f + (rr + 0.5) * T.e
                 v = a[rr, cc]
@@ -187,6 +189,7 @@ def surface_metrics(
             "defect_bias_m": dd["bias_m"],
             "defect_n": dd["n"],
         }
+    res["observed_area_m2"] = observed_m2
     if cmask is not None and cmask.any():
         # our pixels (their own area) inside the true corridor, over the corridor's area
         area = float(cmask.sum() * abs(tT.a * tT.e))

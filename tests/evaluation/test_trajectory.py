@@ -41,3 +41,15 @@ def test_no_revisit_no_figure() -> None:
     # a vehicle that stops does not revisit: frames at one place without 5 m of travel between
     t_stop = np.concatenate([t[:10], np.repeat(t[9:10], 10, axis=0), t[10:]])
     assert revisit_agreement(t_stop, t_stop)[0] == 0
+
+
+def test_cloud_density_reads_the_ply_header(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    from roadsurf.evaluation.report import cloud_density
+
+    header = (
+        "ply\nformat binary_little_endian 1.0\nelement vertex 5000\nproperty float x\nend_header\n"
+    )
+    (tmp_path / "cloud.ply").write_bytes(header.encode() + b"\0" * 16)
+    assert cloud_density(tmp_path, 0.1) == pytest.approx(50000.0)
+    assert cloud_density(tmp_path, None) is None
+    assert cloud_density(tmp_path / "none", 0.1) is None
