@@ -106,6 +106,19 @@ class CrackConfig:
     near_px: float = 1.0
     # 3D test pooled over all pairs whose pieces link up on the map:
     min_points: int = 5  # at least this many 3D points on the crack (count)
+    # A piece's sparse depths read against the local road: a plane through the pair's road
+    # points within this ground distance of its centre line (m; 0 = the pair's plane, the
+    # default: on the tilted drives the two agree within 0.6 mm and it found no crack more;
+    # 0.1 m holds ~50-100 road points around a 0.5 m crack, docs/detection.md) ...
+    local_road_m: float = 0.0
+    local_road_min_points: int = 12  # ... when at least this many (count; else the pair's plane)
+    # ... and farther than this from it in the image: half the reconstruction's LK window
+    # (21 px), so the crack's edge took no part in their match (px)
+    local_road_gap_px: float = 11.0
+    # one point's (one dense track's) σ is at least the crack's points' own standard deviation
+    # (3 or more): a window on a line slides along it, so they may scatter more than the road
+    # (off: measured 1.5-1.8 x the road's on the tilted drives; costs recall, docs) (-)
+    own_scatter: bool = False
     min_below_share: float = 0.6  # share of them below the road plane (0-1)
     z_k: float = 3.0  # Σ depth / sqrt(Σ n σ²) >= z_k, σ: each pair's point noise (unitless)
     # Dense depth across the crack (LK tracks of its centre line against a side road band):
@@ -149,6 +162,9 @@ class CrackConfig:
         "min_elongation": "[1, inf); length / width",
         "near_px": "[0, inf)",
         "min_points": "[1, inf)",
+        "local_road_m": "[0, inf); 0 = the pair's plane",
+        "local_road_min_points": "[3, inf); a plane needs 3 points",
+        "local_road_gap_px": "[0, inf)",
         "min_below_share": "[0, 1]",
         "z_k": "[0, inf)",
         "dense_window_px": "[3, inf); OpenCV's Lucas-Kanade needs a window wider than 2 px",

@@ -47,7 +47,9 @@ class DenseCrack:
     """Dense depth of one crack piece in one pair, from the parallax across the crack."""
 
     depth_m: np.ndarray  # (M,) depth below the local road of each valid centre-line track (m)
-    noise_m: float  # σ of one track's depth: robust spread of the side band about its fit (m)
+    # σ of one track's depth: robust spread of the side band about its fit, or the centre
+    # tracks' own spread where larger (m)
+    noise_m: float
     n_eff: float  # independent samples along the line: valid tracks / LK window length
     ref_var_m2: float  # variance of the local road reference (side-band fit) at the line (m²)
 
@@ -203,7 +205,10 @@ def dense_crack_depth(
     floor = 0.02 / max(float(np.median(np.abs(cj[:n_c][c_ok]))), 1e-9)
     sig = max(robust_sigma(res[use]), floor)
     depth = d[:n_c][c_ok] - A[:n_c][c_ok] @ coef
+    # The centre's tracks may scatter more than the road's (a window on the line slides along
+    # it): one track's σ is then their own spread, as for the sparse points (``cracks``).
+    s_own = float(np.std(depth, ddof=1)) if len(depth) >= 3 and cfg.own_scatter else 0.0
     # Independent samples: tracks closer than one LK window share their pixels.
     n_eff = max(1.0, c_ok.sum() / win)
     n_side = max(1.0, use.sum() * 4.0 / win**2)  # side pixels every 2nd: 4 px² each
-    return DenseCrack(depth, sig, n_eff, sig**2 / n_side)
+    return DenseCrack(depth, max(sig, s_own), n_eff, sig**2 / n_side)

@@ -143,12 +143,15 @@ def detect_pair_cracks(
             continue
         # No decision here: one pair holds only a few points on a crack; the evidence of all
         # pairs that saw it is pooled on the map (``crack_evidence``).
-        d = -np.asarray(dist_m, float)[near]  # depth below the road, positive down
         ys, xs = np.nonzero(line)
         step = max(1, len(xs) // cfg.max_samples)
         q = np.c_[xs[::step], ys[::step]].astype(float)
         q = (q if cam is None else cam.undistort_px(q)).astype(np.float32).reshape(-1, 1, 2)
         xy = cv2.perspectiveTransform(q, H).reshape(-1, 2).astype(float)
+        # Road points whose tracking window (the reconstruction's LK window) reached the crack
+        # are not its reference: the crack's edge dominates their match.
+        off = dist_px[v, u] > max(cfg.local_road_gap_px, wpx)
+        d, var = _local_depths(P, dist_m, road & off, near, xy, noise_m, cfg)
         zc = np.c_[xy, np.ones(len(xy))] @ zcoef
         xyz.append(np.c_[xy, zc])
         labels.append(np.full(len(xy), len(wd)))
@@ -156,7 +159,7 @@ def detect_pair_cracks(
         sd.append(float(d.sum()))
         nn.append(n)
         nb.append(int((d > 0).sum()))
-        vv.append(n * noise_m**2)
+        vv.append(var)
         # robust max: the second-deepest point (two points must reach it); with fewer points,
         # the dense reading's 90th percentile (a lower bound, like every dense depth), and a
         # lone point only when there is nothing else
@@ -176,3 +179,61 @@ def detect_pair_cracks(
         *(np.asarray(a, float) for a in (wd, sd, nn, nb, vv, mx)),
         *(np.asarray(a, float) for a in zip(*dd, strict=True)),
     )
+
+
+def _local_depths(
+    P: np.ndarray,
+    dist_m: np.ndarray,
+    road: np.ndarray,
+    near: np.ndarray,
+    line_xy_m: np.ndarray,
+    noise_m: float,
+    cfg: CrackConfig,
+) -> tuple[np.ndarray, float]:
+    """Depths of the ``near`` points below the crack's *local* road, and the variance of their
+    sum: ((n,) m positive down, m²).
+
+    The pair's plane is fitted to the whole image; under a tilted camera the far field holds a
+    small share of its points and sits far from their centroid, so a small tilt error of the
+    plane there becomes a millimetre offset — the size of a crack. The reference is instead a
+    plane (least squares, 3 σ trimmed) through the signed distances of the road points whose
+    ground position (camera X, Y) lies within ``local_road_m`` of the crack's centre line
+    (``line_xy_m``, (K, 2); ``road`` already without the points next to the crack); their spread
+    about it is the local point noise σ (the far field's points are noisier than the pair's
+    average). The points on the crack may scatter more than the road's (a feature on a line
+    slides along it: where the crack runs with the parallax that is depth), so each point's σ
+    is the larger of σ and their own standard deviation (3 points or more). Var(Σ d) = n σ² +
+    the reference's own variance at the crack's points (σ² 1ᵀ A_c (AᵀA)⁻¹ A_cᵀ 1). With fewer
+    than ``local_road_min_points`` such road points: the pair's plane and ``noise_m``.
+    """
+    d_glob = -np.asarray(dist_m, float)[near]
+    n = len(d_glob)
+    s_own = float(np.std(d_glob, ddof=1)) if n >= 3 and cfg.own_scatter else 0.0
+    fallback = d_glob, n * max(noise_m, s_own) ** 2
+    if cfg.local_road_m <= 0 or n == 0 or len(line_xy_m) == 0:
+        return fallback
+    from scipy.spatial import cKDTree
+
+    from roadsurf.core.fits import robust_sigma
+
+    gap = cKDTree(line_xy_m).query(P[:, :2], distance_upper_bound=cfg.local_road_m)[0]
+    ring = road & ~near & (gap <= cfg.local_road_m)
+    if ring.sum() < cfg.local_road_min_points:
+        return fallback
+    o = line_xy_m.mean(axis=0)
+    A = np.c_[np.ones(int(ring.sum())), P[ring, :2] - o]
+    r = np.asarray(dist_m, float)[ring]
+    use = np.ones(len(r), bool)
+    for _ in range(3):
+        coef = np.linalg.lstsq(A[use], r[use], rcond=None)[0]
+        res = r - A @ coef
+        sig = max(robust_sigma(res[use]), 1e-6)
+        use = np.abs(res) <= 3.0 * sig
+        if use.sum() < cfg.local_road_min_points:
+            return fallback
+    Ac = np.c_[np.ones(n), P[near, :2] - o]
+    a = Ac.sum(axis=0)
+    ref_var = sig**2 * float(a @ np.linalg.pinv(A[use].T @ A[use]) @ a)
+    d = -(np.asarray(dist_m, float)[near] - Ac @ coef)
+    s_own = float(np.std(d, ddof=1)) if n >= 3 and cfg.own_scatter else 0.0
+    return d, n * max(sig, s_own) ** 2 + ref_var
