@@ -31,10 +31,6 @@ import time
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import scipy.sparse as sp
-from scipy.linalg import solve_triangular
-from scipy.optimize import least_squares
-from scipy.sparse.linalg import LinearOperator
 
 from roadsurf.core.camera import Camera
 from roadsurf.core.geometry import invert_pose, up_in_cam
@@ -46,7 +42,7 @@ from roadsurf.mapping.bundle_gps import (
     time_offset_bound_s,
 )
 from roadsurf.mapping.bundle_problem import WindowData, WindowProblem, true_px_from_observed_px
-from roadsurf.mapping.bundle_reduced import ReducedProblem
+from roadsurf.mapping.bundle_reduced import ReducedProblem, solve_reduced
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.pose_gps import GpsFixes
 from roadsurf.mapping.tracks import Tracks, build_tracks, thin_tracks, triangulate_w
@@ -58,10 +54,15 @@ log = logging.getLogger(__name__)
 
 # the algorithm's version, in the poses stage's fingerprint: a run resumed after a change
 # recomputes its poses (2: relief weight per frame, the pairs' motions, heading placement)
-BUNDLE_VERSION = 2
+BUNDLE_VERSION = 3
 N_ANCHOR = 2  # frames before a window held at their refined poses
 MIN_OBS = 8  # a frame seeing fewer 3+-view track points keeps its pose graph pose
 MIN_OFFSET_S = 0.005  # a smaller GPS time offset is not applied (s)
+# ... nor one within this many standard errors of 0. The standard error counts the fixes' noise
+# and its correlation, not the trajectory's own systematic errors (scale, grade, a tilted
+# camera's pitch), which a time offset partly mimics along the track: a tilted RTK drive with
+# no latency read -151 +- 43 ms (3.5 σ) and was moved 15 cm; a real 60 ms latency reads 11 σ.
+TIME_OFFSET_SIGMAS = 5.0
 MIN_SHARED = 8  # consecutive frames sharing fewer tracks get the constant-motion prior
 
 
@@ -130,7 +131,7 @@ def refine_poses(
         tau, se = fit_time_offset(loose, t, gps, used, fit_scale, cfg)
         se = max(se, time_offset_bound_s(world, t, gps, used, fit_scale))
         report["time_offset_se_s"] = se
-        if abs(tau) <= max(MIN_OFFSET_S, 3.0 * se):
+        if abs(tau) <= max(MIN_OFFSET_S, TIME_OFFSET_SIGMAS * se):
             tau = 0.0  # not significant
         report["gps_rejected"] = []
         report["n_windows"] = 0
@@ -181,7 +182,7 @@ def refined_camera(camera: Camera, bundle_report: dict[str, Any]) -> Camera:
     if "k1" not in bundle_report:
         return camera
     dist = (float(bundle_report["k1"]), *camera.dist[1:])
-    return dataclasses.replace(camera, dist=dist)  # type: ignore[arg-type]
+    return dataclasses.replace(camera, dist=dist)
 
 
 def _px(v: float | None) -> str:
@@ -396,7 +397,7 @@ def _solve_window(
     rms0 = float(np.sqrt(np.mean(r[: 2 * m] ** 2)) * cfg.bundle_pixel_sigma_px)
     cost0 = float(0.5 * np.sum(r**2))
     for _ in range(3):
-        theta = _solve(red, theta, cfg)
+        theta = solve_reduced(red, theta, cfg)
         if not len(gps_t):
             break
         err = prob.gps_errors(red.full_x(theta))
@@ -426,59 +427,6 @@ def _solve_window(
         "rms0": rms0,
         "rms1": float(np.sqrt(np.mean(r[: 2 * m] ** 2)) * cfg.bundle_pixel_sigma_px),
     }
-
-
-def _whitened(J: sp.csr_matrix, T: np.ndarray) -> LinearOperator:
-    """J T as an operator: two products a LSMR step instead of a dense (rows x n) matrix."""
-    Jt = J.T.tocsr()
-    return LinearOperator(
-        (J.shape[0], T.shape[1]),
-        matvec=lambda v: J @ (T @ v),
-        rmatvec=lambda u: T.T @ (Jt @ u),
-        matmat=lambda V: J @ (T @ V),
-        rmatmat=lambda U: T.T @ (Jt @ U),
-        dtype=float,
-    )
-
-
-def _whitening(red: ReducedProblem, theta: np.ndarray) -> np.ndarray:
-    """(n, n) T = L⁻ᵀ with L Lᵀ = JᵀJ (+ a small ridge) at theta."""
-    J = red.jac(theta)
-    A = (J.T @ J).toarray()
-    A += np.diag(1e-6 * np.maximum(np.diag(A), 1e-12) + 1e-9)
-    L = np.linalg.cholesky(A)
-    return solve_triangular(L, np.eye(len(A)), lower=True).T
-
-
-def _solve(red: ReducedProblem, theta: np.ndarray, cfg: MappingConfig) -> np.ndarray:
-    """scipy least_squares (TRF, LSMR, robust loss) on the whitened camera-side unknowns
-    y = Lᵀ(θ - θ0), LLᵀ = JᵀJ at θ0: on the raw θ LSMR needs hundreds of iterations a step
-    (poses, planes and τ differ by orders of magnitude and are correlated); on y a few tens."""
-    T = _whitening(red, theta)
-    r0 = red.fun(theta)
-
-    def fun(y: np.ndarray) -> np.ndarray:
-        return red.fun(theta + T @ y)
-
-    def jac(y: np.ndarray) -> LinearOperator:
-        return _whitened(red.jac(theta + T @ y), T)
-
-    sol = least_squares(
-        fun,
-        np.zeros(red.n),
-        jac=jac,
-        method="trf",
-        loss=cfg.robust_loss,
-        f_scale=cfg.robust_scale,
-        # the first trust region as long as a full step can be (|r|): y is in σ units
-        x_scale=max(1.0, float(np.linalg.norm(r0))),
-        tr_solver="lsmr",
-        max_nfev=cfg.bundle_max_nfev,
-        ftol=1e-6,
-        xtol=1e-8,
-    )
-    log.debug("bundle window: %s after %d evaluations", sol.message, sol.nfev)
-    return theta + T @ sol.x
 
 
 def _initial_planes(

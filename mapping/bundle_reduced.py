@@ -11,11 +11,19 @@ H = J_Xᵀ W J_X block-diagonal per point): the Schur complement, built with spa
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import scipy.sparse as sp
+from scipy.linalg import solve_triangular
+from scipy.optimize import least_squares
+from scipy.sparse.linalg import LinearOperator
 
 from roadsurf.mapping.bundle_problem import WindowProblem
+from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.pose_graph import _robust_weights
+
+log = logging.getLogger(__name__)
 
 INNER_STEPS = 3  # Gauss-Newton steps per point and evaluation (warm-started)
 
@@ -92,3 +100,56 @@ def _block_diag3(A: sp.spmatrix, P: int) -> np.ndarray:
     out = np.zeros((P, 3, 3))
     np.add.at(out, (i[on] // 3, i[on] % 3, j[on] % 3), A.data[on])
     return out
+
+
+def _whitened(J: sp.csr_matrix, T: np.ndarray) -> LinearOperator:
+    """J T as an operator: two products a LSMR step instead of a dense (rows x n) matrix."""
+    Jt = J.T.tocsr()
+    return LinearOperator(
+        (J.shape[0], T.shape[1]),
+        matvec=lambda v: J @ (T @ v),
+        rmatvec=lambda u: T.T @ (Jt @ u),
+        matmat=lambda V: J @ (T @ V),
+        rmatmat=lambda U: T.T @ (Jt @ U),
+        dtype=float,
+    )
+
+
+def _whitening(red: ReducedProblem, theta: np.ndarray) -> np.ndarray:
+    """(n, n) T = L⁻ᵀ with L Lᵀ = JᵀJ (+ a small ridge) at theta."""
+    J = red.jac(theta)
+    A = (J.T @ J).toarray()
+    A += np.diag(1e-6 * np.maximum(np.diag(A), 1e-12) + 1e-9)
+    L = np.linalg.cholesky(A)
+    return solve_triangular(L, np.eye(len(A)), lower=True).T
+
+
+def solve_reduced(red: ReducedProblem, theta: np.ndarray, cfg: MappingConfig) -> np.ndarray:
+    """scipy least_squares (TRF, LSMR, robust loss) on the whitened camera-side unknowns
+    y = Lᵀ(θ - θ0), LLᵀ = JᵀJ at θ0: on the raw θ LSMR needs hundreds of iterations a step
+    (poses, planes and τ differ by orders of magnitude and are correlated); on y a few tens."""
+    T = _whitening(red, theta)
+    r0 = red.fun(theta)
+
+    def fun(y: np.ndarray) -> np.ndarray:
+        return red.fun(theta + T @ y)
+
+    def jac(y: np.ndarray) -> LinearOperator:
+        return _whitened(red.jac(theta + T @ y), T)
+
+    sol = least_squares(
+        fun,
+        np.zeros(red.n),
+        jac=jac,
+        method="trf",
+        loss=cfg.robust_loss,
+        f_scale=cfg.robust_scale,
+        # the first trust region as long as a full step can be (|r|): y is in σ units
+        x_scale=max(1.0, float(np.linalg.norm(r0))),
+        tr_solver="lsmr",
+        max_nfev=cfg.bundle_max_nfev,
+        ftol=1e-6,
+        xtol=1e-8,
+    )
+    log.debug("bundle window: %s after %d evaluations", sol.message, sol.nfev)
+    return theta + T @ sol.x
