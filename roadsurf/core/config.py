@@ -168,9 +168,11 @@ def from_dict(cls: type[T], data: dict[str, Any] | None, where: str = "config") 
     return _build(cls, data, where, "")
 
 
-def _build(cls: type[T], data: Any, source: str, prefix: str) -> T:
+def _build(cls: type[T], data: Any, source: str, prefix: str, base: T | None = None) -> T:
+    """``cls`` from a mapping; keys not given keep ``base``'s values (the enclosing config's
+    default for this section, which may differ from the class's own), else the class's."""
     if data is None:
-        return cls()
+        return base if base is not None else cls()
     section = prefix.rstrip(".")
     if not isinstance(data, dict):
         raise _KeyedConfigError(
@@ -206,14 +208,24 @@ def _build(cls: type[T], data: Any, source: str, prefix: str) -> T:
     kwargs: dict[str, Any] = {}
     for key, value in data.items():
         dotted = prefix + key
-        coerced = _coerce(hints[key], value, source, dotted)
+        if dataclasses.is_dataclass(hints[key]):  # a section: start from its default here
+            coerced = _build(hints[key], value, source, dotted + ".", _default(fields[key]))
+        else:
+            coerced = _coerce(hints[key], value, source, dotted)
         rng = ranges.get(key)
         if rng is not None:
             _check(rng, coerced, value, source, dotted, fields[key])
         kwargs[key] = coerced
-    obj = cls(**kwargs)
+    obj = dataclasses.replace(base, **kwargs) if base is not None else cls(**kwargs)  # type: ignore[type-var]
     _check_order(obj, source, prefix, given=set(data))
     return obj
+
+
+def _default(f: dataclasses.Field[Any]) -> Any:
+    """A dataclass field's default value (None when it has none)."""
+    if f.default_factory is not dataclasses.MISSING:
+        return f.default_factory()
+    return None if f.default is dataclasses.MISSING else f.default
 
 
 def _check_order(obj: Any, source: str, prefix: str, given: set[str] | None = None) -> None:
