@@ -37,6 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from roadsurf.detection.config import CrackConfig
+from roadsurf.detection.rutprofile import run_extent
 from roadsurf.detection.windows import WindowSource
 
 log = logging.getLogger(__name__)
@@ -186,13 +187,7 @@ def _width_at(prof: np.ndarray, level: float, ds: float) -> float:
     its deepest point; the run's ends are interpolated linearly between samples."""
     if not np.isfinite(level) or level <= 0:
         return 0.0
-    k = int(np.argmax(prof))
-    a = k
-    while a > 0 and prof[a - 1] >= level:
-        a -= 1
-    b = k
-    while b < len(prof) - 1 and prof[b + 1] >= level:
-        b += 1
+    a, b = run_extent(prof, int(np.argmax(prof)), level)
     w = (b - a) * ds
     if a > 0 and prof[a] > prof[a - 1]:
         w += ds * (prof[a] - level) / (prof[a] - prof[a - 1])

@@ -92,8 +92,9 @@ def _smooth1d(y: np.ndarray, sigma_px: float) -> np.ndarray:
     return out
 
 
-def _extent(depth: np.ndarray, i: int, t: float) -> tuple[int, int]:
-    """Contiguous run of samples around i with depth >= t: (first, last) indices."""
+def run_extent(depth: np.ndarray, i: int, t: float) -> tuple[int, int]:
+    """Contiguous run of samples around i with depth >= t: (first, last) indices (a rut's
+    profile here, a crack's cross profile in ``crackraster``)."""
     lo = i
     while lo > 0 and depth[lo - 1] >= t:
         lo -= 1
@@ -173,9 +174,11 @@ def measure_station(
     d_max = float(depth[i])
     rim = max(mc.rim_threshold_m, mc.rim_noise_k * noise)
     ok = d_max >= max(cfg.trace_min_m, cfg.trace_noise_k * noise)
-    lo, hi = _extent(np.nan_to_num(depth, nan=-1.0), i, rim)
+    lo, hi = run_extent(np.nan_to_num(depth, nan=-1.0), i, rim)
     w_t = (hi - lo + 1) * gsd
-    lo2, hi2 = _extent(np.nan_to_num(depth, nan=-1.0), i, 2 * rim) if d_max >= 2 * rim else (i, i)
+    lo2, hi2 = (
+        run_extent(np.nan_to_num(depth, nan=-1.0), i, 2 * rim) if d_max >= 2 * rim else (i, i)
+    )
     w_2t = (hi2 - lo2 + 1) * gsd if d_max >= 2 * rim else 0.0
     w0 = min(max(w_t, 2 * w_t - w_2t), 2 * w_t) if w_2t > 0 else w_t
     grow = 0.5 * (w0 - w_t)
