@@ -70,7 +70,8 @@ def run(
     trajectory.geojson and poses_report.json. Resumes when the inputs did not change.
     loop_match: as ``estimate_trajectory`` (revisits; ``mapping.loops.frame_matcher``)."""
     run = RunFolder(run_dir)
-    key = _fingerprint(cfg, drive, pairs, loops=loop_match is not None)
+    order = "retrieval" if getattr(loop_match, "score", None) is not None else "gps"
+    key = _fingerprint(cfg, drive, pairs, loops=order if loop_match is not None else "")
     rep_path = run.path(rf.POSES_REPORT)
     geojson = run.path(rf.TRAJECTORY_GEOJSON)
     if not cfg.overwrite and run.poses_npz.is_file() and rep_path.is_file():
@@ -95,15 +96,15 @@ def run(
 
 
 def _fingerprint(
-    cfg: MappingConfig, drive: Drive, pairs: list[PairResult], *, loops: bool = False
+    cfg: MappingConfig, drive: Drive, pairs: list[PairResult], *, loops: str = ""
 ) -> str:
     """What the trajectory depends on (a fixed byte stream): the config, the frames' names and
     times, the GPS fixes (time, lat, lon, altitude, HDOP), the OBD speeds, every pair's
     transform, whether revisits are matched (``loops``), the version of the plausibility
     checks whose warnings the report keeps and, with the bundle adjustment on, its version."""
     fp = Fingerprint()
-    if loops:
-        fp.add_text("loops:retrieval")  # candidates ordered by image retrieval
+    if loops:  # how the candidates are ordered: "retrieval" (image retrieval) or "gps"
+        fp.add_text(f"loops:{loops}")
     if cfg.bundle_adjust:
         from roadsurf.mapping.bundle import BUNDLE_VERSION
 
