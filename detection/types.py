@@ -66,8 +66,8 @@ class Defect:
     confidence: float  # 0-1
     frames: list[str] = field(default_factory=list)  # filenames whose footprint saw it
     # where a crack's width and depth come from (``crackraster``): "raster" (profiles across it
-    # on surface.tif), "cross_section" (the raster's cross-section over the image width),
-    # "points" (the pairs' points and dense tracks); "" for other types
+    # on surface.tif, where the raster resolves it) or "points" (the pairs' points and dense
+    # tracks); "" for other types
     measured_on: str = ""
     profiles: int = 0  # raster profiles across the crack that were read (count; 0: none)
 
