@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks._result import write_result
+from benchmarks.surface import simulated
 from benchmarks.tilted import _cli
 
 VARIANTS = {"loops": None, "no_loops": "mapping:\n  bundle_loop_gate_m: 0\n"}
@@ -51,12 +52,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", type=Path, default=None, help="result file (default results/)")
     a = ap.parse_args(argv)
     a.work.mkdir(parents=True, exist_ok=True)
-    drive = a.work / "drive"
-    if not (drive / "frames.csv").is_file():
-        extra = ["--frames", str(a.frames)] if a.frames else []
-        _cli(
-            "simulate", "--scenario", "revisit", "--out", str(drive), *extra, log=a.work / "sim.log"
-        )
+    drive = simulated("revisit", a.work / "drive", a.frames, a.work / "sim.log")
     rows: dict[str, Any] = {}
     for name, cfg_text in VARIANTS.items():
         run = a.work / name

@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks._result import write_result
-from benchmarks.surface import REDONE
+from benchmarks.surface import REDONE, simulated
 from benchmarks.tilted import _cli
 
 # (name, config YAML or None, how the run is made)
@@ -65,11 +65,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", type=Path, default=None, help="result file (default results/)")
     a = ap.parse_args(argv)
     a.work.mkdir(parents=True, exist_ok=True)
-    drive = a.work / "drive"
-    if not (drive / "truth").is_dir():
-        extra = ["--frames", str(a.frames)] if a.frames else []
-        _cli("simulate", "--scenario", a.scenario, "--out", str(drive), *extra,
-             log=a.work / "simulate.log")  # fmt: skip
+    drive = simulated(a.scenario, a.work / "drive", a.frames, a.work / "simulate.log")
     seconds: dict[str, float] = {}
     outs: list[Path] = []
     if a.rescore:  # the runs of an earlier call, scored again (their times from its result)

@@ -48,12 +48,18 @@ def simulate_args(spec: str, drive: Path, frames: int | None) -> list[str]:
     return args
 
 
+def simulated(spec: str, drive: Path, frames: int | None, log: Path) -> Path:
+    """The drive ``spec`` (``SCENARIO[@PITCH]``) in folder ``drive``, rendered once (reused when
+    its truth is there)."""
+    if not (drive / "truth").is_dir():
+        _cli(*simulate_args(spec, drive, frames), log=log)
+    return drive
+
+
 def run_drive(spec: str, work: Path, frames: int | None) -> dict[str, dict[str, Any]]:
     """Figures of one drive with the dense (default) and the sparse surface."""
     tag = spec.replace("@", "_")
-    drive = work / f"drive_{tag}"
-    if not (drive / "truth").is_dir():
-        _cli(*simulate_args(spec, drive, frames), log=work / f"simulate_{tag}.log")
+    drive = simulated(spec, work / f"drive_{tag}", frames, work / f"simulate_{tag}.log")
     sparse_cfg = work / "sparse.yaml"
     sparse_cfg.write_text("mapping:\n  surface_source: sparse\n")
     out: dict[str, dict[str, Any]] = {}
