@@ -136,8 +136,10 @@ class CrackConfig:
     raster_step_m: float = 0.005  # a profile across the crack every this much along it (m)
     # road read beyond the crack's dip on each side of a profile, at least 2 footprints (m)
     raster_road_m: float = 0.02
-    # smoothing footprint of the raster, in cells: the dense matcher's window (5 px) over the
-    # cell (dense_gsd_px = 2 px) = 2.5; the dip is at most half the width + this wide (cells)
+    # smoothing footprint of a raster whose surface.tif has no DENSE_FOOTPRINT_M tag (mapping
+    # writes the dense window's ground footprint there), in cells: the dense matcher's window
+    # (5 px) over the cell (dense_gsd_px = 2 px) = 2.5; the dip is at most half the width +
+    # this wide (cells)
     raster_footprint_cells: float = 2.5
     raster_min_profiles: int = 5  # at least this many profiles with road on both sides (count)
     # the cross-section must be this many standard errors above 0, and a resolved dip's depth

@@ -122,7 +122,11 @@ def measure_crack_on_raster(
     """
     g = src.grid
     gsd = float(g.gsd_m)
-    foot = cfg.raster_footprint_cells * gsd  # the raster's smoothing footprint (m)
+    # the raster's smoothing footprint (m): the dense matching window on the ground, as mapping
+    # wrote it in surface.tif, else the configured number of cells
+    foot = float(getattr(src, "footprint_m", math.nan))
+    if not (math.isfinite(foot) and foot > 0):
+        foot = cfg.raster_footprint_cells * gsd
     # the crack's dip lies within this of the centre line (the image width reads up to ~25 %
     # narrow: docs/detection.md)
     inner = 0.75 * width_m + foot

@@ -37,6 +37,7 @@ class WindowSource(Protocol):
 
     grid: GridSpec
     source: str
+    footprint_m: float  # ground footprint of what one raster value measures (m); NaN: unknown
 
     def read(self, r0: int, c0: int, h: int, w: int) -> np.ndarray:
         """(h, w) float32 residual (m, negative below), NaN where unobserved."""
@@ -61,6 +62,11 @@ class RasterSource:
             t = src.transform
             self.nodata = src.nodata
             self.grid = GridSpec(str(src.crs), t.c, t.f, t.a, src.width, src.height)
+            # written by mapping for the dense surface (the matching window on the ground)
+            try:
+                self.footprint_m = float(src.tags().get("DENSE_FOOTPRINT_M", "nan"))
+            except ValueError:
+                self.footprint_m = float("nan")
         self._src = None
 
     def read(self, r0: int, c0: int, h: int, w: int) -> np.ndarray:
@@ -92,6 +98,7 @@ class PointsSource:
         self.xy = xy
         self.residual = np.asarray(residual_m, float)
         self.source = source
+        self.footprint_m = float("nan")  # one cell per value
         lo = np.floor(xy.min(axis=0) / gsd_m) * gsd_m - 2 * gsd_m
         hi = np.ceil(xy.max(axis=0) / gsd_m) * gsd_m + 2 * gsd_m
         width = int(round((hi[0] - lo[0]) / gsd_m))

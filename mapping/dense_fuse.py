@@ -59,13 +59,19 @@ def dense_gsd_m(cfg: MappingConfig, cam: Camera, traj: Trajectory, road_z: np.nd
     is; rounded to 0.1 mm, never finer than ``dense_min_gsd_m``."""
     if cfg.dense_gsd_m > 0:
         return float(cfg.dense_gsd_m)
-    h = float(np.median(traj.world_from_cam[:, 2, 3] - road_z)) if len(traj) else cam.height_m
-    if not (math.isfinite(h) and h > 0):
-        h = cam.height_m
-    px = h / (cam.fx * cfg.dense.work_scale(cam.width, cam.height))
+    px = dense_px_m(cfg, cam, traj, road_z)
     # dense_gsd_px pixels, but no coarser than the sparse raster unless a pixel itself is
     g = min(cfg.dense_gsd_px * px, max(px, cfg.gsd_m))
     return max(round(g * 1e4) / 1e4, cfg.dense_min_gsd_m)
+
+
+def dense_px_m(cfg: MappingConfig, cam: Camera, traj: Trajectory, road_z: np.ndarray) -> float:
+    """Ground size (m) of one pixel of the dense work grid at the drive's median camera height
+    over the road (camera.yaml's height when the trajectory gives none)."""
+    h = float(np.median(traj.world_from_cam[:, 2, 3] - road_z)) if len(traj) else cam.height_m
+    if not (math.isfinite(h) and h > 0):
+        h = cam.height_m
+    return h / (cam.fx * cfg.dense.work_scale(cam.width, cam.height))
 
 
 # --------------------------------------------------------------------------- fusion of samples

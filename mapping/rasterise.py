@@ -20,7 +20,14 @@ from roadsurf.io.formats import GridSpec
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.datum import RESIDUAL_DATUM, vertical_datum
 from roadsurf.mapping.dense_cloud import DenseCloudWriter, cloud_stride
-from roadsurf.mapping.dense_fuse import NOBS, SIGMA, DenseSurface, dense_gsd_m, surface_height_grid
+from roadsurf.mapping.dense_fuse import (
+    NOBS,
+    SIGMA,
+    DenseSurface,
+    dense_gsd_m,
+    dense_px_m,
+    surface_height_grid,
+)
 from roadsurf.mapping.export import export_xyz
 from roadsurf.mapping.mosaic import ImageCache, mosaic_tile
 from roadsurf.mapping.overlap import check_frame_overlap
@@ -131,6 +138,16 @@ def rasterise(
     allxy = np.concatenate([*samples, pts_grid]) if samples else pts_grid
     dense = cfg.surface_source == "dense" and pairs is not None
     gsd = dense_gsd_m(cfg, cam, traj, road_z) if dense else cfg.gsd_m
+    tags = {
+        "units": "m",
+        "description": "height above the local road, negative below",
+        "VERTICAL_DATUM": RESIDUAL_DATUM,
+        "ROAD_HEIGHT_DATUM": vertical_datum(cfg, drive, traj.reference is not None),
+    }
+    if dense:  # the matching window's ground footprint: what the raster resolves (detection)
+        tags["DENSE_FOOTPRINT_M"] = (
+            f"{cfg.dense.window_px * dense_px_m(cfg, cam, traj, road_z):.6f}"
+        )
     lat, tiles = corridor_tiles(allxy, crs, gsd, cfg.tile_px)
     # footprint bounding boxes in pixel coordinates of the full grid, and frames per tile
     fg = lat.full_grid
@@ -189,12 +206,7 @@ def rasterise(
             NODATA_SURFACE,
             write_tiles,
             write_full,
-            tags={
-                "units": "m",
-                "description": "height above the local road, negative below",
-                "VERTICAL_DATUM": RESIDUAL_DATUM,
-                "ROAD_HEIGHT_DATUM": vertical_datum(cfg, drive, traj.reference is not None),
-            },
+            tags=tags,
         )
         writers.append(sw)
         mw = TiledWriter(prod.run_dir, rf.MOSAIC, lat, 3, "uint8", 0, write_tiles, write_full)

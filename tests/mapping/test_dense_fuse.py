@@ -149,6 +149,12 @@ def test_dense_products_and_grid(drive_maps: dict[str, object]) -> None:
     # strip of ~20%; measured 19%)
     assert (nobs >= 2).sum() > 0.1 * fin.sum()
     assert prod.files["surface_nobs"] == "surface_nobs.tif"  # type: ignore[attr-defined]
+    # what one value measures on the ground: the 5 px window at ~3.7 mm a pixel, for detection
+    from roadsurf.detection.windows import RasterSource
+
+    src = RasterSource(d / "surface.tif")
+    assert src.footprint_m == pytest.approx(5 * 1.1 / 300, rel=0.1)
+    assert np.isnan(RasterSource(root / "sparse" / "surface.tif").footprint_m)
 
 
 def test_dense_cloud_holds_every_measured_cell(drive_maps: dict[str, object]) -> None:
