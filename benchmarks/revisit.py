@@ -15,13 +15,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
-import time
 from pathlib import Path
 from typing import Any
 
 from benchmarks._result import write_result
-from benchmarks.surface import simulated
+from benchmarks.surface import simulated, timed_run
 from benchmarks.tilted import _cli
 
 VARIANTS = {"loops": None, "no_loops": "mapping:\n  bundle_loop_gate_m: 0\n"}
@@ -56,15 +54,7 @@ def main(argv: list[str] | None = None) -> int:
     rows: dict[str, Any] = {}
     for name, cfg_text in VARIANTS.items():
         run = a.work / name
-        shutil.rmtree(run, ignore_errors=True)
-        args = ["run", str(drive), "--out", str(run)]
-        if cfg_text:
-            cfg = a.work / f"{name}.yaml"
-            cfg.write_text(cfg_text)
-            args += ["--config", str(cfg)]
-        t0 = time.perf_counter()
-        _cli(*args, log=a.work / f"{name}.log")
-        seconds = time.perf_counter() - t0
+        seconds = timed_run(drive, run, a.work / f"{name}.log", cfg_text or "")
         _cli("evaluate", str(run), "--truth", str(drive / "truth"), log=a.work / f"{name}_eval.log")
         ev = json.loads((run / "evaluation.json").read_text())
         report = json.loads((run / "report.json").read_text())

@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks._result import write_result
-from benchmarks.surface import REDONE, simulated
+from benchmarks.surface import simulated, timed_run
 from benchmarks.tilted import _cli
 
 # (name, config YAML or None, how the run is made)
@@ -76,21 +76,9 @@ def main(argv: list[str] | None = None) -> int:
             seconds = {k: v.get("run_s", float("nan")) for k, v in runs.items()}
     for name, cfg_text in () if a.rescore else RUNS:
         run = a.work / name
-        args = ["run", str(drive), "--out", str(run)]
-        if name == "roadsurf_sparse":  # the default run's pairs and poses, map and detection redone
-            shutil.rmtree(run, ignore_errors=True)
-            shutil.copytree(a.work / "roadsurf", run)
-            for f in REDONE:
-                (run / f).unlink(missing_ok=True)
-        else:
-            shutil.rmtree(run, ignore_errors=True)
-        if cfg_text:
-            cfg = a.work / f"{name}.yaml"
-            cfg.write_text(cfg_text)
-            args += ["--config", str(cfg)]
-        t0 = time.perf_counter()
-        _cli(*args, log=a.work / f"{name}.log")
-        seconds[name] = time.perf_counter() - t0
+        # the sparse surface on the default run's pairs and poses: map and detection redone
+        reuse = a.work / "roadsurf" if name == "roadsurf_sparse" else None
+        seconds[name] = timed_run(drive, run, a.work / f"{name}.log", cfg_text or "", reuse)
         outs.append(run)
     if not a.no_sfm and not a.rescore:
         sfm = a.work / "pycolmap"

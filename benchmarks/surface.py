@@ -56,33 +56,48 @@ def simulated(spec: str, drive: Path, frames: int | None, log: Path) -> Path:
     return drive
 
 
+def timed_run(
+    drive: Path, run: Path, log: Path, config_text: str = "", reuse: Path | None = None
+) -> float:
+    """``roadsurf run`` of ``drive`` into a fresh ``run`` folder, or into a copy of the finished
+    run ``reuse`` without its map and detection (``REDONE``: only those are recomputed), with
+    ``config_text`` as --config when given (written next to the log). Returns the seconds."""
+    shutil.rmtree(run, ignore_errors=True)
+    if reuse is not None:
+        shutil.copytree(reuse, run)
+        for name in REDONE:
+            (run / name).unlink(missing_ok=True)
+    args = ["run", str(drive), "--out", str(run)]
+    if config_text:
+        cfg = log.with_suffix(".yaml")
+        cfg.write_text(config_text)
+        args += ["--config", str(cfg)]
+    t0 = time.perf_counter()
+    _cli(*args, log=log)
+    return time.perf_counter() - t0
+
+
 def run_drive(spec: str, work: Path, frames: int | None) -> dict[str, dict[str, Any]]:
     """Figures of one drive with the dense (default) and the sparse surface."""
     tag = spec.replace("@", "_")
     drive = simulated(spec, work / f"drive_{tag}", frames, work / f"simulate_{tag}.log")
-    sparse_cfg = work / "sparse.yaml"
-    sparse_cfg.write_text("mapping:\n  surface_source: sparse\n")
     out: dict[str, dict[str, Any]] = {}
     for surface in ("dense", "sparse"):
         run = work / f"run_{tag}_{surface}"
-        t0 = time.perf_counter()
         if surface == "dense":
-            _cli("run", str(drive), "--out", str(run), "--overwrite", log=work / f"{tag}_dense.log")
+            seconds = timed_run(drive, run, work / f"{tag}_dense.log")
         else:  # the same pairs and poses: only the global map and detection are recomputed
-            shutil.rmtree(run, ignore_errors=True)
-            shutil.copytree(work / f"run_{tag}_dense", run)
-            for name in REDONE:
-                (run / name).unlink(missing_ok=True)
-            cmd = ["run", str(drive), "--out", str(run), "--config", str(sparse_cfg)]
-            _cli(*cmd, log=work / f"{tag}_sparse.log")
-        t1 = time.perf_counter()
+            seconds = timed_run(
+                drive, run, work / f"{tag}_sparse.log", "mapping:\n  surface_source: sparse\n",
+                reuse=work / f"run_{tag}_dense",
+            )  # fmt: skip
         _cli("evaluate", str(run), "--truth", str(drive / "truth"), log=work / f"{tag}_eval.log")
         ev = json.loads((run / "evaluation.json").read_text())
         rep = json.loads((run / "report.json").read_text())
         fig = figures(ev, rep)
         fig.pop("warnings", None)
         fig["coverage_two_view"] = ev.get("coverage_two_view")
-        out[surface] = fig | {"run_s": round(t1 - t0, 1)}
+        out[surface] = fig | {"run_s": round(seconds, 1)}
         print(f"{spec} {surface}: {json.dumps(out[surface])}", flush=True)
     return out
 

@@ -252,11 +252,12 @@ def rasterise(
                 dt = ds.tile(t)
                 res_t, nobs_t, sig_t = dt.residual_m, dt.n_obs, dt.sigma_m
                 filled = np.zeros(res_t.shape, bool)
+                # the relief a fill may bridge: more is a step (a pothole wall)
+                lim = max(cfg.surface_detail_sigmas * noise_m, cfg.surface_fill_relief_min_m)
                 if cfg.dense.hole_fill_m > 0 and np.isfinite(res_t).any():
                     # holes the matching leaves inside the measured surface (occluded or
                     # smeared pothole walls) from the dense heights around them, before the
                     # sparse surface (its interpolation reads pothole floors shallow)
-                    lim = max(cfg.surface_detail_sigmas * noise_m, cfg.surface_fill_relief_min_m)
                     out, near = fill_inward(res_t, cfg.dense.hole_fill_m / grid.gsd_m, lim)
                     filled = np.isfinite(out) & ~np.isfinite(res_t)
                     res_t = out
@@ -272,7 +273,6 @@ def rasterise(
                         res_t = np.where(take, res_s, res_t).astype(np.float32)
                 if cfg.dense_fill_max_m > 0 and np.isfinite(res_t).any():
                     # the matching windows stop a few px short of the two-view part's border
-                    lim = max(cfg.surface_detail_sigmas * noise_m, cfg.surface_fill_relief_min_m)
                     out = fill_nodata_capped(
                         res_t, two_view(grid, res_t), cfg.dense_fill_max_m / grid.gsd_m, lim
                     )

@@ -143,6 +143,11 @@ def reconstruct_features(
 STRETCH_RETRY_STATUSES = ("too_few_matches", "no_overlap")
 
 
+def wants_stretch_retry(res: PairResult, cfg: ReconstructionConfig) -> bool:
+    """Whether ``retry_stretched`` would try the pair (so a caller reads image b only then)."""
+    return not res.ok and res.status in STRETCH_RETRY_STATUSES and bool(cfg.features.stretch_retry)
+
+
 def retry_stretched(
     res: PairResult,
     fa: Features,
@@ -157,12 +162,11 @@ def retry_stretched(
     each vertical scale of ``cfg.features.stretch_retry`` (``features.detect_stretched``).
     Returns the ok result with the most inliers (its ``stretch_b`` says the scale), else ``res``
     unchanged; the time spent is in ``timings_s["stretch_retry"]`` either way."""
-    scales = cfg.features.stretch_retry
-    if res.ok or res.status not in STRETCH_RETRY_STATUSES or not scales:
+    if not wants_stretch_retry(res, cfg):
         return res
     t0 = time.perf_counter()
     best: PairResult | None = None
-    for s in scales:
+    for s in cfg.features.stretch_retry:
         fb = feat.detect_stretched(image_b, cfg.features, s)
         r = reconstruct_features(
             fa, fb, camera, cfg, frame_dt_s=frame_dt_s, road_normal_cam=road_normal_cam

@@ -38,10 +38,10 @@ from roadsurf.io.runfolder import RunFolder, feature_filename, fingerprint_path,
 from roadsurf.reconstruction import consensus
 from roadsurf.reconstruction import features as feat
 from roadsurf.reconstruction.api import (
-    STRETCH_RETRY_STATUSES,
     reconstruct_features,
     retry_stretched,
     road_normal_in_cam,
+    wants_stretch_retry,
 )
 from roadsurf.reconstruction.config import ReconstructionConfig
 from roadsurf.reconstruction.types import Features, PairResult, load_pair, save_pair, stored
@@ -276,7 +276,7 @@ def _one_pair(
         res = reconstruct_features(
             fa, fb, drive.camera, cfg, frame_dt_s=dt, road_normal_cam=road_normal_cam
         )
-        if not res.ok and res.status in STRETCH_RETRY_STATUSES and cfg.features.stretch_retry:
+        if wants_stretch_retry(res, cfg):
             res = _stretch_retry(cfg, drive, res, fa, b, dt, road_normal_cam)
         res.timings_s["features"] = t_feat
     except FrameReadError as e:
