@@ -24,6 +24,7 @@ DENSE_SURFACE_FIELDS = (
     "dense_reference",
     "dense_fill_max_m",
     "dense_sparse_fill",
+    "dense_single_view",
     "dense",
 )
 # settings that change how a result is computed, never the result: a run resumes across them
@@ -209,6 +210,13 @@ class MappingConfig:
     # on the spd2 photographs every pothole floor was a hole in the dense surface, so the
     # defects were rings
     dense_sparse_fill: bool = True
+    # cells of the imaged corridor that no ok pair saw twice (a tilted camera's far-field
+    # corners: a wide trapezoid top passes out of view before the next shot; 15 % of the
+    # corridor at 25-45° forward, measured): "road" = the local road model's height (residual
+    # 0), with count 0 in surface_nobs.tif and σ the road's per-point spread (a modelled, not a
+    # measured, height; left out of cloud.ply and of the measured share in report.json);
+    # "empty" = left NaN. A single view has no parallax, so nothing better can be measured there
+    dense_single_view: Literal["road", "empty"] = "road"
     # the matching; the heights smoothed edge-preserving over ~one window (smooth_px = 3 px,
     # range 3 mm: about 2 x the cells' noise σ): see DenseHeightConfig.smooth_px
     dense: DenseHeightConfig = field(default_factory=lambda: DenseHeightConfig(smooth_px=3.0))

@@ -241,6 +241,10 @@ def rasterise(
         cache = ImageCache(12 * workers)
         frame_list = [frames_by_index.get(int(k)) for k in traj.frame_indices]
         pf = list(pair_frames or [])
+        single_view = ds is not None and cfg.dense_single_view == "road"
+        # the modelled cells' σ: the road's spread about the local road model, read on the
+        # feature points (their MAD also holds their matching noise: an upper bound)
+        model_sigma = np.float32(noise_m)
 
         def two_view(g: GridSpec, resid_g: np.ndarray | None = None) -> np.ndarray:
             return two_view_mask(cam, traj, surf, g2e, g, pf, fp_grid, road_z, resid_g)
@@ -305,16 +309,24 @@ def rasterise(
             # surface's own heights: a pothole floor near an image border is seen where the road
             # above it would not be). Interpolated ones are kept as before, also across a thin
             # strip seen by one frame between two pairs (a short Delaunay edge bridges it)
-            if filled.any():
-                res_t[filled & ~two_view(grid, res_t)] = np.nan
+            tv = two_view(grid, res_t) if filled.any() or single_view else None
+            if filled.any() and tv is not None:
+                res_t[filled & ~tv] = np.nan
             pts = None
+            n_model = 0
             if nobs_t is not None and sig_t is not None:
                 gone = ~np.isfinite(res_t)
                 n_all = nobs_t
                 nobs_t = np.where(gone, 0, np.minimum(nobs_t, 255)).astype(np.uint8)
                 sig_t = np.where(gone, np.nan, sig_t).astype(np.float32)
+                if single_view and tv is not None:
+                    # imaged by one frame only: no parallax, the road model (count 0)
+                    model = gone & (wsum > 0) & ~tv
+                    res_t[model] = 0.0
+                    sig_t[model] = model_sigma
+                    n_model = int(model.sum())
                 pts = cloud_points(grid, res_t, n_all, mos_t)
-            return res_t, mos_t, wsum, nobs_t, sig_t, pts
+            return res_t, mos_t, wsum, nobs_t, sig_t, pts, n_model
 
         def cloud_points(
             grid: GridSpec, res_t: np.ndarray, n_t: np.ndarray, mos_t: np.ndarray
@@ -340,7 +352,7 @@ def rasterise(
 
         # tiles are computed by worker threads (OpenCV and numpy release the GIL) and written
         # here, in order, a bounded number ahead (GDAL datasets are not shared across threads)
-        for t, (res_t, mos_t, wsum, nobs_t, sig_t, pts) in tqdm(
+        for t, (res_t, mos_t, wsum, nobs_t, sig_t, pts, n_model) in tqdm(
             zip(tiles, ordered_map(compute, tiles, workers), strict=True),
             total=len(tiles),
             desc="rasters",
@@ -353,6 +365,7 @@ def rasterise(
                 continue
             prod.n_tiles += 1
             prod.surface_px += int(np.isfinite(res_t).sum())
+            prod.surface_model_px += n_model
             prod.mosaic_px += int((wsum > 0).sum())
             sw.write(*t, res_t)
             mw.write(*t, mos_t)
@@ -381,7 +394,7 @@ def rasterise(
             w.close()
         if cloud is not None:
             cloud.close()
-            area = prod.surface_px * gsd * gsd
+            area = (prod.surface_px - prod.surface_model_px) * gsd * gsd
             prod.residual_stats_m["dense_cloud_points"] = cloud.n
             prod.residual_stats_m["dense_cloud_points_per_m2"] = cloud.n / area if area else 0.0
     except BaseException:
@@ -410,6 +423,15 @@ def rasterise(
             msg = f"dense surface: {st['pairs_failed']} of {st['pairs']} pairs not matched"
             log.warning("globalmap: %s", msg)
             prod.warnings.append(msg)
+    if prod.surface_model_px:
+        log.info(
+            "globalmap: %d of %d surface cells (%.0f %%) seen by one frame only: the road model "
+            "(count 0 in %s)",
+            prod.surface_model_px,
+            prod.surface_px,
+            100.0 * prod.surface_model_px / max(prod.surface_px, 1),
+            NOBS,
+        )
     prev.write(prod.run_dir)
     prod.files["mosaic_preview"] = rf.MOSAIC_PREVIEW
     prod.files["surface_preview"] = rf.SURFACE_PREVIEW

@@ -157,6 +157,8 @@ class MapProducts:
     files: dict[str, str] = field(default_factory=dict)
     residual_stats_m: dict[str, float] = field(default_factory=dict)
     surface_px: int = 0  # observed pixels in surface.tif
+    # ... of which the road model, not measured (seen by one frame only; dense_single_view)
+    surface_model_px: int = 0
     mosaic_px: int = 0  # imaged pixels in mosaic.tif
     patch_alignment: dict[str, float] = field(default_factory=dict)
     # share of each frame's road footprint the next frame also sees: median, 10th percentile

@@ -113,6 +113,9 @@ def test_evaluate_scores_the_run(sample_run) -> None:
     assert ev["trajectory_rmse_m"] < 0.1
     assert ev["surface"]["aligned"]["flat_mae_m"] < 0.004
     assert 0.3 < ev["coverage"] <= 1.0
+    # the measured cells (count > 0) are a part of it; the rest is filled or the road model
+    assert 0.3 < ev["coverage_measured"] <= ev["coverage"]
+    assert 0 < ev["measured_area_m2"] <= ev["observed_area_m2"]
     assert (out / "evaluation.json").is_file() and (out / "evaluation.md").is_file()
 
 

@@ -67,6 +67,7 @@ def summary_section(data: RunData) -> str:
             ("gsd_m", "GSD", lambda v: f"{1000 * float(v):.1f} mm"),
             ("n_points", "points", lambda v: f"{int(v):,}"),
             ("surface_px", "surface pixels", lambda v: f"{int(v):,}"),
+            ("surface_model_px", "of which road model (seen once)", lambda v: f"{int(v):,}"),
             ("mosaic_px", "mosaic pixels", lambda v: f"{int(v):,}"),
         )
         if isinstance(m.get(key), (int, float))

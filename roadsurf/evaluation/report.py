@@ -88,7 +88,9 @@ def evaluate_run(run_dir: str | Path, truth_dir: str | Path) -> dict[str, Any]:
     out["surface"] = surf.pop("metrics")
     out.update(surf)
     out["seam_step_max_m"], out["seam_step_p95_m"], out["seam_pairs"] = seam_steps(run_dir)
-    out["cloud_points_per_m2"] = cloud_density(run_dir, out.get("observed_area_m2"))
+    out["cloud_points_per_m2"] = cloud_density(
+        run_dir, out.get("measured_area_m2", out.get("observed_area_m2"))
+    )
     out["targets"] = _targets(out, scen)
     if (run_dir / rf.DEFECTS_GEOJSON).is_file():
         try:
@@ -177,6 +179,7 @@ ROWS = [
     ("surface.raw.flat_mae_m", "flat-road height MAE (raw)"),
     ("surface.raw.defect_mae_m", "in-defect height MAE (raw)"),
     ("coverage", "coverage of the imaged corridor"),
+    ("coverage_measured", "coverage of the imaged corridor by measured cells (count > 0)"),
     ("coverage_two_view", "coverage of the part seen by two consecutive frames"),
     ("coverage_two_view_share", "share of the corridor seen by two consecutive frames"),
     ("cloud_points_per_m2", "cloud.ply density (points per m² of observed surface)"),

@@ -5,6 +5,7 @@ patches."""
 from __future__ import annotations
 
 import math
+from contextlib import ExitStack
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -14,6 +15,7 @@ from roadsurf.core.camera import RENDER_UNDISTORT_CRITERIA
 from roadsurf.io import runfolder as rf
 from roadsurf.io.drive.camera_yaml import load_camera
 from roadsurf.io.formats import read_geojson
+from roadsurf.mapping.dense_fuse import NOBS
 
 if TYPE_CHECKING:
     from shapely import Geometry
@@ -24,6 +26,10 @@ def _open_surface(run_dir: Path) -> Path | None:
         if (run_dir / name).exists():
             return run_dir / name
     return None
+
+
+def _nobs_paths(run_dir: Path) -> list[Path]:
+    return [run_dir / f"{NOBS}.tif", run_dir / f"{NOBS}.vrt"]
 
 
 def _corridor_polygon(
@@ -123,7 +129,15 @@ def surface_metrics(
     n_in_corridor = 0
     our_px_area = 0.0
     observed_m2 = 0.0  # area of every observed cell of our surface (m²)
-    with rasterio.open(path) as src:
+    # cells with a measurement (count > 0): the dense surface fills cells seen by one frame
+    # only with the road model, at count 0 (mapping dense_single_view)
+    npath = next((p for p in _nobs_paths(run_dir) if p.exists()), None)
+    n_measured = 0
+    measured_m2 = 0.0
+    with rasterio.open(path) as src, ExitStack() as stack:
+        nsrc = stack.enter_context(rasterio.open(npath)) if npath is not None else None
+        if nsrc is not None and (nsrc.width, nsrc.height) != (src.width, src.height):
+            nsrc = None
         nd = src.nodata
         W, H = src.width, src.height
         bs = 1024
@@ -137,6 +151,10 @@ def surface_metrics(
                 if len(rr) == 0:
                     continue
                 T = src.window_transform(win)
+                meas = None
+                if nsrc is not None:
+                    meas = nsrc.read(1, window=win)[rr, cc] > 0
+                    measured_m2 += int(meas.sum()) * abs(T.a * T.e)
                 observed_m2 += len(rr) * abs(T.a * T.e)
                 x = T.c + (cc + 0.5) * T.a
                 y = T.f + (rr + 0.5) * T.e
@@ -161,6 +179,8 @@ def surface_metrics(
                     acc[f"{tag}_def"].append(d[isdef[good]])
                     if tag == ("al" if align else "raw") and cmask is not None:
                         n_in_corridor += int(cmask[row[ok], col[ok]].sum())
+                        if meas is not None:
+                            n_measured += int((cmask[row[ok], col[ok]] & meas[ok]).sum())
                         our_px_area = abs(T.a * T.e)
                         if smask is not None:
                             n_in_stereo += int(smask[row[ok], col[ok]].sum())
@@ -190,11 +210,15 @@ def surface_metrics(
             "defect_n": dd["n"],
         }
     res["observed_area_m2"] = observed_m2
+    if npath is not None:
+        res["measured_area_m2"] = measured_m2
     if cmask is not None and cmask.any():
         # our pixels (their own area) inside the true corridor, over the corridor's area
         area = float(cmask.sum() * abs(tT.a * tT.e))
         res["coverage"] = float(min(1.0, n_in_corridor * our_px_area / area))
         res["corridor_area_m2"] = area
+        if npath is not None:
+            res["coverage_measured"] = float(min(1.0, n_measured * our_px_area / area))
     if smask is not None and smask.any():
         sarea = float(smask.sum() * abs(tT.a * tT.e))
         res["coverage_two_view"] = float(min(1.0, n_in_stereo * our_px_area / sarea))

@@ -73,6 +73,8 @@ def drive_maps(tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]:
     for src in ("sparse", "dense"):
         cfg = MappingConfig(surface_source=src)  # type: ignore[arg-type]
         out[src] = globalmap.run(cfg, drive, pairs, traj, root / src)
+    cfg = MappingConfig(dense_single_view="empty")
+    out["dense_empty"] = globalmap.run(cfg, drive, pairs, traj, root / "dense_empty")
     return out
 
 
@@ -140,10 +142,12 @@ def test_dense_products_and_grid(drive_maps: dict[str, object]) -> None:
         nobs, sig = n.read(1), g.read(1)
     fin = np.isfinite(res)
     assert fin.sum() == prod.surface_px > 0  # type: ignore[attr-defined]
+    with rasterio.open(root / "dense_empty" / "surface.tif") as s:
+        fin2 = np.isfinite(s.read(1))  # the cells seen by one frame only left empty
     # measured cells (the rest: holes filled from the measured cells around them,
     # dense.hole_fill_m, the sparse fill and the capped fill along the two-view border)
     meas = fin & (nobs >= 1)
-    assert meas.sum() > 0.9 * fin.sum() and (nobs[~fin] == 0).all()  # measured 92.7%
+    assert meas.sum() > 0.9 * fin2.sum() and (nobs[~fin] == 0).all()  # measured 92.7%
     assert np.isfinite(sig[meas]).all() and np.median(sig[meas]) < 0.003
     # consecutive pairs' parts overlap where three frames saw the road (55% frame overlap: a
     # strip of ~20%; measured 19%)
@@ -171,7 +175,7 @@ def test_dense_cloud_holds_every_measured_cell(drive_maps: dict[str, object]) ->
     v = PlyData.read(str(d / "cloud.ply"))["vertex"]
     meas = np.isfinite(res) & (nobs > 0)
     assert len(v) == meas.sum() == prod.residual_stats_m["dense_cloud_points"]  # type: ignore[attr-defined]
-    density = len(v) / (np.isfinite(res).sum() * T.a * T.a)
+    density = len(v) / ((np.isfinite(res) & ~model_cells(root)).sum() * T.a * T.a)
     assert density >= 0.9 * 40_000  # measured cells / surface cells: the fill has no points
     col, row = ~T * (np.asarray(v["x"]), np.asarray(v["y"]))
     assert np.allclose(col % 1, 0.5, atol=1e-3) and np.allclose(row % 1, 0.5, atol=1e-3)
@@ -284,3 +288,44 @@ def test_cells_the_dense_matching_leaves_empty_take_the_sparse_surface(
     assert (
         cover[True] > 1.25 * cover[False]
     )  # measured 1.42x (the 1 cm dense fill narrows the bands)
+
+
+def model_cells(root: Path) -> np.ndarray:
+    """Cells of the dense surface that the "empty" run leaves NaN (seen by one frame only)."""
+    with rasterio.open(root / "dense" / "surface.tif") as a:
+        fa = np.isfinite(a.read(1))
+    with rasterio.open(root / "dense_empty" / "surface.tif") as b:
+        fb = np.isfinite(b.read(1))
+    return fa & ~fb
+
+
+def test_single_view_cells_take_the_road_model(drive_maps: dict[str, object]) -> None:
+    """Cells imaged by one frame only (here the drive's two ends) get the road model's height
+    (0 above the local road) at count 0, with the road's spread as σ; every other cell is the
+    same as with ``dense_single_view = "empty"``, and cloud.ply holds no modelled cell."""
+    root = drive_maps["root"]
+    assert isinstance(root, Path)
+    prod, prod_e = drive_maps["dense"], drive_maps["dense_empty"]
+    d, e = root / "dense", root / "dense_empty"
+    with rasterio.open(d / "surface.tif") as a, rasterio.open(e / "surface.tif") as b:
+        ra, rb = a.read(1), b.read(1)
+    with rasterio.open(d / "surface_nobs.tif") as n, rasterio.open(d / "surface_sigma.tif") as g:
+        nobs, sig = n.read(1), g.read(1)
+    with rasterio.open(d / "mosaic.tif") as m:
+        imaged = m.read().max(axis=0) > 0
+    model = model_cells(root)
+    # the two ends of a 10-frame nadir drive: a frame's advance each (measured 24 %)
+    assert model.sum() > 0.1 * np.isfinite(rb).sum()
+    assert model.sum() == prod.surface_model_px  # type: ignore[attr-defined]
+    assert prod_e.surface_model_px == 0  # type: ignore[attr-defined]
+    assert (ra[model] == 0).all() and (nobs[model] == 0).all()
+    assert np.isfinite(sig[model]).all() and (sig[model] > 0).all()
+    assert imaged[model].all()  # only inside the imaged corridor
+    same = np.isfinite(rb)
+    assert np.array_equal(ra[same], rb[same])
+    assert (
+        prod.residual_stats_m["dense_cloud_points"]
+        == (  # type: ignore[attr-defined]
+            prod_e.residual_stats_m["dense_cloud_points"]  # type: ignore[attr-defined]
+        )
+    )
