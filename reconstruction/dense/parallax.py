@@ -12,17 +12,17 @@
    invalid, as are textureless, saturated or dark windows, low ZNCC, samples outside image b and
    pixels next to the epipole.
 5. s -> η by the exact plane + parallax relation; var(η) = (dη/ds)² var(s) + (η σ_scale)².
+6. Pixels left invalid are matched again, steps 1-5, on a grid coarser by 2 (started from the
+   first sweep's heights) and take its heights and larger variances where it passes
+   (``pyramid``, ``DenseHeightConfig.fallback_levels``); then the optional bilateral mean.
 
 Pure function of the images, the camera and the pair's R, t and plane (``dense_height``).
 """
 
 from __future__ import annotations
 
-import contextlib
 import logging
-import threading
 import time
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import cv2
@@ -32,18 +32,18 @@ import torch.nn.functional as F
 
 from roadsurf.core.camera import Camera
 from roadsurf.core.errors import RoadsurfError
+from roadsurf.reconstruction.dense.checks import REJECT_GEOMETRY, REJECT_LR, checks
 from roadsurf.reconstruction.dense.config import DenseHeightConfig
 from roadsurf.reconstruction.dense.geometry import PlaneParallax
 from roadsurf.reconstruction.dense.matching import (
-    RefineResult,
-    box,
     gaussian,
     refine,
     sample,
     sweep,
-    window_max,
 )
+from roadsurf.reconstruction.dense.pyramid import LevelMatch, fill_from_coarse, prior_on_grid
 from roadsurf.reconstruction.dense.rolling import raw_px_from_plane_px
+from roadsurf.reconstruction.dense.runtime import cpu_threads, heap_blocks, torch_device
 
 log = logging.getLogger(__name__)
 
@@ -60,6 +60,12 @@ class DenseHeight:
     model: PlaneParallax  # the plane + parallax model of the work grid (its K)
     scale: float  # work grid = image x scale
     timings_s: dict[str, float] = field(default_factory=dict)
+    # (h, w) int8: the grid a valid pixel's height was matched on (0 = the work grid, k = the
+    # fallback grid coarser by 2^k, ``dense.pyramid``), -1 where invalid; None: all level 0
+    level: np.ndarray | None = None
+    # (h, w) uint8 the checks that refused each pixel on the work grid (``dense.checks``
+    # REJECT_* bits, 0 = passed; a pixel filled from a coarser grid keeps its flags)
+    reject: np.ndarray | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -84,77 +90,6 @@ class DenseHeight:
         return X, self.var_m2[m].astype(float)
 
 
-def torch_device(name: str) -> torch.device:
-    """``auto`` -> CUDA when present, else CPU; any other name as torch reads it."""
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    dev = torch.device(name)
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise RoadsurfError(f"dense matching on {name!r}: no CUDA device here; use 'cpu'")
-    return dev
-
-
-_HEAP_LOCK = threading.Lock()
-_heap_users = 0
-
-
-@contextlib.contextmanager
-def heap_blocks(dev: torch.device) -> Iterator[None]:
-    """While pairs are matched on the CPU, malloc serves blocks up to 32 MB from its heap. After
-    its reconstruction a run gives every block from 1 MB up its own memory map
-    (``core.memory.fix_mmap_threshold``),
-    and the matcher allocates and frees hundreds of image-sized temporaries per pair: each one
-    then cost a map, page faults and an unmap (640 x 480: 0.125 -> 0.46 CPU s per pair, most of
-    it system time). When the last concurrent matcher leaves, the run's threshold is set back
-    and the freed heap returned to the system (``release_free_memory``), so no freed block
-    stays resident. A threshold the user set (environment) is left alone."""
-    global _heap_users
-    from roadsurf.core.memory import fix_mmap_threshold, release_free_memory
-
-    if dev.type != "cpu":
-        yield
-        return
-    with _HEAP_LOCK:
-        if _heap_users == 0:
-            fix_mmap_threshold(32 * 2**20)
-        _heap_users += 1
-    try:
-        yield
-    finally:
-        with _HEAP_LOCK:
-            _heap_users -= 1
-            if _heap_users == 0 and fix_mmap_threshold():
-                release_free_memory()
-
-
-_THREADS_LOCK = threading.Lock()
-_threads_users = 0
-_threads_saved = 0
-
-
-@contextlib.contextmanager
-def cpu_threads(dev: torch.device, n: int) -> Iterator[None]:
-    """torch's CPU threads set to ``n`` inside (restored when the last concurrent user
-    leaves). Several pairs matched in parallel with one thread each beat one pair on all cores
-    (the images are small), and on a busy machine torch's spinning threads cost 10x."""
-    global _threads_users, _threads_saved
-    if dev.type != "cpu" or n <= 0:
-        yield
-        return
-    with _THREADS_LOCK:
-        if _threads_users == 0:
-            _threads_saved = torch.get_num_threads()
-            torch.set_num_threads(n)
-        _threads_users += 1
-    try:
-        yield
-    finally:
-        with _THREADS_LOCK:
-            _threads_users -= 1
-            if _threads_users == 0:
-                torch.set_num_threads(_threads_saved)
-
-
 def dense_height(
     img_a: np.ndarray,
     img_b: np.ndarray,
@@ -174,7 +109,9 @@ def dense_height(
     estimated road homography, ideal px) is only compared with the one R, t and the plane give,
     which is the one used (the parallax relation holds for it exactly). With a rolling shutter
     (``camera.readout_s`` > 0) and ``frame_dt_s`` (b's timestamp minus a's, s) each image is
-    resampled from the rows that saw the road (``dense.rolling``)."""
+    resampled from the rows that saw the road (``dense.rolling``). Pixels that fail on the work
+    grid are matched again on coarser grids (``DenseHeightConfig.fallback_levels``,
+    ``dense.pyramid``)."""
     cfg = cfg or DenseHeightConfig()
     t0 = time.perf_counter()
     for name, img in (("img_a", img_a), ("img_b", img_b)):
@@ -192,21 +129,56 @@ def dense_height(
     rs = None
     if camera.readout_s > 0 and frame_dt_s is not None and frame_dt_s > 0:
         rs = (np.asarray(R_b_from_a, float), np.asarray(t_b_from_a_m, float), plane, frame_dt_s)
+    timings: dict[str, float] = {}
+    with torch.no_grad(), cpu_threads(dev, cfg.cpu_threads), heap_blocks(dev):
+        lv = _match_level(img_a, img_b, camera, pp, s, rs, cfg, dev, timings)
+        level = np.where(lv.valid, 0, -1).astype(np.int8)
+        for k in range(1, cfg.fallback_levels + 1):
+            sk = s * 0.5**k
+            if lv.valid.all() or min(camera.width, camera.height) * sk < cfg.sweep_min_px:
+                break
+            t1 = time.perf_counter()
+            coarse = _match_level(img_a, img_b, camera, pp, sk, rs, cfg, dev, {}, lv)
+            filled = fill_from_coarse(lv, coarse, ppw, sk / s)
+            level[filled] = k
+            timings[f"fallback{k}"] = time.perf_counter() - t1
+    eta, valid = lv.height_m.astype(np.float64), lv.valid
+    if cfg.smooth_px > 0:
+        eta = _smooth(np.nan_to_num(eta), valid, cfg.smooth_px, cfg.smooth_range_m)
+    timings["total"] = time.perf_counter() - t0
+    return DenseHeight(
+        np.where(valid, eta, np.nan).astype(np.float32), lv.var_m2, valid, lv.shift_px, lv.ncc,
+        ppw, s, {k: round(v, 4) for k, v in timings.items()}, level, lv.reject,
+    )  # fmt: skip
+
+
+def _match_level(
+    img_a: np.ndarray,
+    img_b: np.ndarray,
+    camera: Camera,
+    pp: PlaneParallax,
+    s: float,
+    rs: tuple[np.ndarray, np.ndarray, np.ndarray, float] | None,
+    cfg: DenseHeightConfig,
+    dev: torch.device,
+    timings: dict[str, float],
+    prior: LevelMatch | None = None,
+) -> LevelMatch:
+    """Steps 1-5 of the module docstring on the grid of image a resized by ``s``: unsmoothed
+    heights, their variance and validity on that grid (NaN / False where invalid). ``prior``: a
+    finer grid's match of the same pair (image a resized by ``s_prior``) whose sweep heights
+    start this one instead of a sweep of its own (a height is the same on every grid; the sweep
+    runs on a grid of about ``sweep_min_px`` px whatever the level, so a second sweep would
+    only repeat the first)."""
+    t0 = time.perf_counter()
+    ppw = pp.scaled(s) if s != 1.0 else pp
     A, B, mA, mB = _resample(img_a, img_b, camera, pp.H, s, rs)
-    timings = {"resample": time.perf_counter() - t0}
+    timings["resample"] = time.perf_counter() - t0
     hf, wf = A.shape
-    shift_full = np.full((hf, wf), np.nan, np.float32)
-    ncc_full = np.full((hf, wf), np.nan, np.float32)
-    height_full = np.full((hf, wf), np.nan, np.float32)
-    var_full = np.full((hf, wf), np.nan, np.float32)
-    valid_full = np.zeros((hf, wf), bool)
+    out = LevelMatch.empty(hf, wf, s)
     crop = _overlap_crop(ppw, mB, cfg)
     if crop is None:  # image b sees none of image a's road
-        timings["total"] = time.perf_counter() - t0
-        return DenseHeight(
-            height_full, var_full, valid_full, shift_full, ncc_full, ppw, s,
-            {k: round(v, 4) for k, v in timings.items()},
-        )  # fmt: skip
+        return out
     r0, r1, c0, c1 = crop
     # only the part of image a that image b sees (with the parallax's reach) is matched: its
     # own sub-grid and model (u' = u - c0, v' = v - r0)
@@ -221,58 +193,67 @@ def dense_height(
     def t_(x: np.ndarray) -> torch.Tensor:
         return torch.as_tensor(np.ascontiguousarray(x), dtype=torch.float32, device=dev)[None, None]
 
-    with torch.no_grad(), cpu_threads(dev, cfg.cpu_threads), heap_blocks(dev):
-        At, Bt = gaussian(t_(A), cfg.blur_px), gaussian(t_(B), cfg.blur_px)
-        mAt, mBt = t_(mA.astype(np.float32)), t_(mB.astype(np.float32))
-        wx, wy, nw, nr = t_(wx_np), t_(wy_np), t_(nw_np), t_(nr_np)
-        t1 = time.perf_counter()
-        s_fwd = _init(cfg, At, Bt, mBt, ppc, wx, wy, nw, nr, A, B, ss, reverse=False)
-        s_rev = (
-            _init(cfg, Bt, At, mAt, ppc, wx, wy, nw, nr, B, A, ss, reverse=True)
-            if cfg.lr_check
-            else None
+    At, Bt = gaussian(t_(A), cfg.blur_px), gaussian(t_(B), cfg.blur_px)
+    mAt, mBt = t_(mA.astype(np.float32)), t_(mB.astype(np.float32))
+    wx, wy, nw, nr = t_(wx_np), t_(wy_np), t_(nw_np), t_(nr_np)
+    t1 = time.perf_counter()
+    pf = pr = None
+    if prior is not None and prior.init_eta_fwd is not None:
+        ratio = s / prior.scale
+        pf = t_(prior_on_grid(prior.init_eta_fwd, ratio, r0, c0, h, w))
+        if prior.init_eta_rev is not None:
+            pr = t_(prior_on_grid(prior.init_eta_rev, ratio, r0, c0, h, w))
+    s_fwd, e_fwd = _init(cfg, At, Bt, mBt, ppc, wx, wy, nw, nr, A, B, ss, False, pf)
+    s_rev, e_rev = (
+        _init(cfg, Bt, At, mAt, ppc, wx, wy, nw, nr, B, A, ss, True, pr)
+        if cfg.lr_check
+        else (None, None)
+    )
+    t2 = time.perf_counter()
+    win = int(cfg.window_px) | 1
+    fwd = refine(At, Bt, mBt, wx, wy, s_fwd, win, cfg.refine_iters, cfg.noise_dn)
+    flags = checks(cfg, fwd, mAt, t_(A), t_(B), wx, wy, win)
+    if s_rev is not None:
+        it_rev = cfg.refine_iters if cfg.lr_refine_iters < 0 else cfg.lr_refine_iters
+        rev = refine(Bt, At, mAt, wx, wy, s_rev, win, it_rev, cfg.noise_dn)
+        ys, xs = torch.meshgrid(
+            torch.arange(h, device=dev, dtype=torch.float32),
+            torch.arange(w, device=dev, dtype=torch.float32),
+            indexing="ij",
         )
-        t2 = time.perf_counter()
-        win = int(cfg.window_px) | 1
-        fwd = refine(At, Bt, mBt, wx, wy, s_fwd, win, cfg.refine_iters, cfg.noise_dn)
-        ok = _checks(cfg, fwd, At, mAt, t_(A), t_(B), mBt, wx, wy, win)
-        if s_rev is not None:
-            it_rev = cfg.refine_iters if cfg.lr_refine_iters < 0 else cfg.lr_refine_iters
-            rev = refine(Bt, At, mAt, wx, wy, s_rev, win, it_rev, cfg.noise_dn)
-            ys, xs = torch.meshgrid(
-                torch.arange(h, device=dev, dtype=torch.float32),
-                torch.arange(w, device=dev, dtype=torch.float32),
-                indexing="ij",
-            )
-            x2 = xs[None, None] + fwd.shift * wx
-            y2 = ys[None, None] + fwd.shift * wy
-            back = sample(rev.shift, x2, y2)
-            ok &= (fwd.shift + back).abs() <= cfg.lr_max_px
-        t3 = time.perf_counter()
-        shift = fwd.shift[0, 0].double().cpu().numpy()
-        var_s = fwd.var[0, 0].double().cpu().numpy()
-        ncc = fwd.ncc[0, 0].cpu().numpy()
-        valid = ok[0, 0].cpu().numpy()
+        x2 = xs[None, None] + fwd.shift * wx
+        y2 = ys[None, None] + fwd.shift * wy
+        back = sample(rev.shift, x2, y2)
+        flags |= ((fwd.shift + back).abs() > cfg.lr_max_px).to(torch.uint8) * REJECT_LR
+    t3 = time.perf_counter()
+    shift = fwd.shift[0, 0].double().cpu().numpy()
+    var_s = fwd.var[0, 0].double().cpu().numpy()
+    ncc = fwd.ncc[0, 0].cpu().numpy()
+    reject = flags[0, 0].cpu().numpy()
     eta = ppc.height_from_shift(shift, u_np, v_np, nw_np)
     deta = ppc.dheight_dshift(shift, u_np, v_np, nw_np)
     var = deta * deta * var_s + (cfg.scale_rel_sigma * eta) ** 2
     with np.errstate(invalid="ignore", divide="ignore"):
         near = nw_np / max(abs(float(ppc.E[2])), 1e-12) < cfg.min_epipole_px * s
-    valid &= np.isfinite(eta) & np.isfinite(var) & ~near
-    valid &= (eta >= -cfg.max_depth_m - 0.01) & (eta <= cfg.max_height_m + 0.01)
-    if cfg.smooth_px > 0:
-        eta = _smooth(eta, valid, cfg.smooth_px, cfg.smooth_range_m)
+    with np.errstate(invalid="ignore"):
+        far = ~((eta >= -cfg.max_depth_m - 0.01) & (eta <= cfg.max_height_m + 0.01))
+    bad = ~(np.isfinite(eta) & np.isfinite(var)) | near | far
+    reject |= np.where(bad, REJECT_GEOMETRY, 0).astype(np.uint8)
+    valid = reject == 0
     sl = np.s_[r0:r1, c0:c1]
-    height_full[sl] = np.where(valid, eta, np.nan)
-    var_full[sl] = np.where(valid, var, np.nan)
-    valid_full[sl] = valid
-    shift_full[sl] = shift
-    ncc_full[sl] = ncc
-    timings.update(init=t2 - t1, refine=t3 - t2, total=time.perf_counter() - t0)
-    return DenseHeight(
-        height_full, var_full, valid_full, shift_full, ncc_full, ppw, s,
-        {k: round(v, 4) for k, v in timings.items()},
-    )  # fmt: skip
+    out.height_m[sl] = np.where(valid, eta, np.nan)
+    out.var_m2[sl] = np.where(valid, var, np.nan)
+    out.valid[sl] = valid
+    out.shift_px[sl] = shift
+    out.ncc[sl] = ncc
+    out.reject[sl] = reject
+    for e, name in ((e_fwd, "init_eta_fwd"), (e_rev, "init_eta_rev")):
+        if e is not None:
+            full = np.full((hf, wf), np.nan, np.float32)
+            full[sl] = e[0, 0].cpu().numpy()
+            setattr(out, name, full)
+    timings.update(init=t2 - t1, refine=t3 - t2)
+    return out
 
 
 # --------------------------------------------------------------------------- steps
@@ -385,10 +366,20 @@ def _init(
     tgt_np: np.ndarray,
     ss: float,
     reverse: bool,
-) -> torch.Tensor:
+    prior_eta: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor | None]:
     """Starting parallax (1, 1, h, w) px of ref's pixels in tgt along ŵ (its negative for the
-    reverse direction b -> a)."""
+    reverse direction b -> a), and the swept height it comes from (m; None for DIS). With
+    ``prior_eta`` (a height field on this grid, m) that height is used instead of a sweep."""
     sign = -1.0 if reverse else 1.0
+    hb, ha = pp.h_b, pp.h_a
+
+    def shift_on_grid(eta: torch.Tensor) -> torch.Tensor:
+        k = eta * nr / (hb * (ha - eta))
+        return sign * k * nw / (1.0 - k * float(pp.E[2]))
+
+    if prior_eta is not None and cfg.init == "sweep":
+        return shift_on_grid(prior_eta), prior_eta
     if cfg.init == "dis":
         if ref.device.type != "cpu":
             log.debug("dense: DIS runs on the CPU")
@@ -397,7 +388,7 @@ def _init(
         b8 = np.clip(tgt[0, 0].cpu().numpy() + 0.5, 0, 255).astype(np.uint8)
         flow = dis.calc(a8, b8, None)
         ft = torch.as_tensor(flow, device=ref.device).permute(2, 0, 1)[None]
-        return ft[:, :1] * wx + ft[:, 1:2] * wy
+        return ft[:, :1] * wx + ft[:, 1:2] * wy, None
     h, w = ref.shape[-2:]
 
     def down(x: torch.Tensor) -> torch.Tensor:
@@ -423,7 +414,7 @@ def _init(
     span = np.abs(pps.shift_from_height(hi, u_np, v_np) - pps.shift_from_height(lo, u_np, v_np))
     n = int(np.ceil(np.nanmax(span) / cfg.sweep_step_px)) + 1 if np.isfinite(span).any() else 2
     values = torch.linspace(lo, hi, max(n, 3), device=ref.device, dtype=torch.float32)
-    hb, ha, e2 = pp.h_b, pp.h_a, float(pps.E[2])
+    e2 = float(pps.E[2])
 
     def shift_of(eta: torch.Tensor) -> torch.Tensor:
         k = eta * nrs / (hb * (ha - eta))
@@ -440,41 +431,4 @@ def _init(
         xs = (ss * (xs + 0.5) - 0.5).clamp(0, ws - 1)[None, None]
         ys = (ss * (ys + 0.5) - 0.5).clamp(0, hs - 1)[None, None]
         eta_s = sample(eta_s, xs, ys)
-    k = eta_s * nr / (hb * (ha - eta_s))
-    return sign * k * nw / (1.0 - k * float(pp.E[2]))
-
-
-def _checks(
-    cfg: DenseHeightConfig,
-    fwd: RefineResult,
-    At: torch.Tensor,
-    mAt: torch.Tensor,
-    A_raw: torch.Tensor,
-    B_raw: torch.Tensor,
-    mBt: torch.Tensor,
-    wx: torch.Tensor,
-    wy: torch.Tensor,
-    win: int,
-) -> torch.Tensor:
-    """(1, 1, h, w) bool: the forward match is textured, unsaturated, correlated, converged and
-    its window lies inside both images."""
-    ok = fwd.inside >= 0.999
-    ok &= box(mAt, win) >= 0.999
-    ok &= fwd.grad >= cfg.min_grad_dn
-    ok &= fwd.ncc >= cfg.min_ncc
-    if cfg.refine_iters > 0:
-        ok &= fwd.last_step <= 0.05
-    # saturated or black windows in either image (b sampled at the match)
-    hw, ww = At.shape[-2:]
-    ys, xs = torch.meshgrid(
-        torch.arange(hw, device=At.device, dtype=torch.float32),
-        torch.arange(ww, device=At.device, dtype=torch.float32),
-        indexing="ij",
-    )
-    Bm = sample(B_raw, xs[None, None] + fwd.shift * wx, ys[None, None] + fwd.shift * wy)
-    for img in (A_raw, Bm):
-        hi = window_max(img, win)
-        lo = -window_max(-img, win)
-        ok &= (hi < cfg.saturated_dn) & (lo > cfg.dark_dn)
-    ok &= torch.isfinite(fwd.shift) & torch.isfinite(fwd.var)
-    return ok
+    return shift_on_grid(eta_s), eta_s

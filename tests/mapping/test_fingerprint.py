@@ -9,7 +9,7 @@ bundle_relief_sigma_m's default went from 3 mm to 1 cm and bundle_placement_leng
 bundle_adjust became the default, bundle_refine_focal and bundle_focal_sigma came and the poses key
 holds the bundle's version (issue 30); the map key also moved with DenseHeightConfig.hole_fill_m
 (issue 29); bundle_refine_k1 and bundle_k1_sigma came (issue 30); dense_single_view came
-(issue 28).
+(issue 28); DenseHeightConfig.fallback_levels came (the map key).
 A change of MappingConfig's fields changes them legitimately. The keys must also
 change with what the outputs depend on (below)."""
 
@@ -41,7 +41,7 @@ def test_globalmap_fingerprint_is_unchanged() -> None:
         reference=None,
         segment=np.zeros(6, int),
     )
-    assert globalmap._fingerprint(MappingConfig(), syn.pairs, traj) == "8a78124857574ba2"
+    assert globalmap._fingerprint(MappingConfig(), syn.pairs, traj) == "33b7535a24d1afaf"
 
 
 def test_poses_key_follows_the_gps_altitude() -> None:
