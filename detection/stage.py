@@ -27,6 +27,7 @@ This module only sequences the steps. Step 1: ``pairs`` (and ``planefit``, ``ref
 from __future__ import annotations
 
 import logging
+import math
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -188,6 +189,7 @@ def _detect(
             None if pts is None else pts[:2],
             pair_pts=pair_pts,
             dense=dense,
+            dense_raster=isinstance(surface, RasterSource) and math.isfinite(surface.footprint_m),
         )
         steps_s["measurement"] = time.perf_counter() - t0
         # cracks are measured across their centre line on the raster itself (reopened lazily)

@@ -248,3 +248,23 @@ def test_region_measured_shallower_than_the_minimum_depth_is_not_reported(tmp_pa
     assert (-pairs[0].plane_dist_m).max() > 0.008
     res = stage.run(DetectionConfig(), drive, pairs, traj, tmp_path / "run")
     assert res.defects == []
+
+
+def test_a_dense_surface_reading_deeper_than_the_tracks_wins(tmp_path):
+    """Where surface.tif is the fused dense surface (its DENSE_FOOTPRINT_M tag), its
+    supported max also bounds the dense-track reading and the deeper wins (a tilted camera's
+    tracks read a floor shallower than the fused views); an interpolated raster's does not."""
+    import rasterio
+
+    drive, pairs, traj = _two_view_with_raster(
+        tmp_path, Pothole(0.05, 0.12, RADIUS_M, DEPTH_M), Pothole(0.05, 0.12, RADIUS_M, 0.048)
+    )
+    run = tmp_path / "run"
+    res = stage.run(DetectionConfig(), drive, pairs, traj, run)
+    assert len(res.defects) == 1
+    assert res.defects[0].max_depth_m == pytest.approx(DEPTH_M, abs=0.003)  # the tracks
+    with rasterio.open(run / "surface.tif", "r+") as s:
+        s.update_tags(DENSE_FOOTPRINT_M="0.009")
+    res = stage.run(DetectionConfig(overwrite=True), drive, pairs, traj, run)
+    assert len(res.defects) == 1
+    assert res.defects[0].max_depth_m == pytest.approx(0.048, abs=0.003)  # the surface
