@@ -181,6 +181,7 @@ ROWS = [
     ("coverage", "coverage of the imaged corridor"),
     ("coverage_measured", "coverage of the imaged corridor by measured cells (count > 0)"),
     ("coverage_two_view", "coverage of the part seen by two consecutive frames"),
+    ("coverage_two_view_measured", "... by measured cells (count > 0)"),
     ("coverage_two_view_share", "share of the corridor seen by two consecutive frames"),
     ("cloud_points_per_m2", "cloud.ply density (points per m² of observed surface)"),
     ("seam_step_max_m", "largest seam step between patches"),

@@ -132,7 +132,7 @@ def surface_metrics(
     # cells with a measurement (count > 0): the dense surface fills cells seen by one frame
     # only with the road model, at count 0 (mapping dense_single_view)
     npath = next((p for p in _nobs_paths(run_dir) if p.exists()), None)
-    n_measured = 0
+    n_measured = n_stereo_measured = 0
     measured_m2 = 0.0
     with rasterio.open(path) as src, ExitStack() as stack:
         nsrc = stack.enter_context(rasterio.open(npath)) if npath is not None else None
@@ -184,6 +184,9 @@ def surface_metrics(
                         our_px_area = abs(T.a * T.e)
                         if smask is not None:
                             n_in_stereo += int(smask[row[ok], col[ok]].sum())
+                            if meas is not None:
+                                sm = smask[row[ok], col[ok]] & meas[ok]
+                                n_stereo_measured += int(sm.sum())
 
     def stats(lst: list[np.ndarray]) -> dict[str, float]:
         d = np.concatenate(lst) if lst else np.zeros(0)
@@ -222,6 +225,10 @@ def surface_metrics(
     if smask is not None and smask.any():
         sarea = float(smask.sum() * abs(tT.a * tT.e))
         res["coverage_two_view"] = float(min(1.0, n_in_stereo * our_px_area / sarea))
+        if npath is not None:
+            res["coverage_two_view_measured"] = float(
+                min(1.0, n_stereo_measured * our_px_area / sarea)
+            )
         if cmask is not None and cmask.any():
             # the ceiling of a two-view method: the drive's ends are seen by one frame only
             res["coverage_two_view_share"] = float(min(1.0, sarea / area))
