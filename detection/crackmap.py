@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 
 from roadsurf.detection.config import CrackConfig, DetectionConfig
-from roadsurf.detection.crackraster import measure_crack_on_raster
+from roadsurf.detection.crackraster import measure_crack_on_raster, raster_crack_evidence
 from roadsurf.detection.mapframe import MapFrame
 from roadsurf.detection.mapseg import Measured, severity
 from roadsurf.detection.pairs import PairDefects
@@ -124,21 +124,43 @@ def crack_defects(
     # Confirmed cracks whose samples come within ``join_m`` are one crack (a crack is often
     # confirmed in pieces where the texture hides its middle from the 2D detector).
     confirmed = [c for c in np.unique(lab) if evidence(lab == c)[0] and (lab == c).sum() >= 3]
+    # A candidate the pooled test leaves unconfirmed is tested on the raster (its cross-section
+    # below the road beyond its noise): z of the raster for those it confirms
+    by_raster: dict[int, float] = {}
+    if raster is not None and cfg.crack.raster and cfg.crack.raster_confirm:
+        for c in np.unique(lab):
+            sel = lab == c
+            if c in confirmed or sel.sum() < 3:
+                continue
+            w_c = float(np.median(pc[np.unique(piece[sel]), 0]))
+            ev = raster_crack_evidence(raster, xy[sel], w_c, cfg.crack)
+            log.debug("crack candidate at %s: raster %s", np.round(xy[sel].mean(axis=0), 2), ev)
+            if ev.confirmed:
+                by_raster[int(c)] = ev.z
+        confirmed = sorted(confirmed + list(by_raster))
     if len(confirmed) > 1:
         keep = np.isin(lab, confirmed)
         joined = cluster_cracks(xy[keep], cfg.crack.join_m)
-        first = {}
+        first: dict[int, int] = {}
+        # a joined crack holding raster-confirmed parts keeps their largest raster z
+        z_of: dict[int, float] = {}
         for c, j in zip(lab[keep].tolist(), joined.tolist(), strict=True):
             first.setdefault(j, c)
+            if c in by_raster:
+                z_of[first[j]] = max(z_of.get(first[j], -math.inf), by_raster[c])
         lab = lab.copy()
         lab[keep] = [first[j] for j in joined.tolist()]
         confirmed = sorted(set(first.values()))
+        by_raster = z_of
     close = cfg.crack.join_m / 2
     for c in confirmed:
         sel = lab == c
         p = xy[sel]
         ids = np.unique(piece[sel])
         ok, z = evidence(sel)
+        if not ok and c in by_raster:
+            ok, z = True, by_raster[c]
+            log.info("crack at %s confirmed on the raster (z %.1f)", np.round(p.mean(axis=0), 2), z)
         if not ok:
             continue
         # A crack sample inside a map defect's outline: the piece belongs to that defect.
