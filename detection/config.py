@@ -157,9 +157,9 @@ class CrackConfig:
     # profiles are pooled into blocks this many footprints long along the crack, whose means
     # are taken as independent: the dense raster's noise decorrelates within ~2 footprints (its
     # window and smoothing; autocorrelation 0.89 / 0.38 / ~0 at 1 / 3 / 5 cells of 3.7 mm on
-    # the nadir tilted drive), the blocks are twice that. Random crack-free lines on six
-    # simulated rasters reached the threshold 5 times in 1,564 (0.32 %; nominal 0.135 %; 6 and
-    # 8 footprints: 4 / 1,543 and 5 / 1,482) (unitless)
+    # the nadir tilted drive), the blocks are twice that. Random crack-free lines on five
+    # simulated rasters reached the threshold 5 times in 1,558 (0.32 %; nominal 0.135 %; 6 and
+    # 8 footprints: 4 / 1,537 and 5 / 1,476) (unitless)
     raster_block_footprints: float = 4.0
     raster_min_blocks: int = 5  # at least this many blocks (count; ~18 cm of crack at 9 mm)
 
