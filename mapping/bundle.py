@@ -44,6 +44,7 @@ from roadsurf.mapping.bundle_gps import (
 from roadsurf.mapping.bundle_problem import WindowData, WindowProblem, true_px_from_observed_px
 from roadsurf.mapping.bundle_reduced import ReducedProblem, solve_reduced
 from roadsurf.mapping.config import MappingConfig
+from roadsurf.mapping.grade import up_axes_in_cam
 from roadsurf.mapping.pose_gps import GpsFixes
 from roadsurf.mapping.tracks import Tracks, build_tracks, thin_tracks, triangulate_w
 
@@ -76,8 +77,11 @@ def refine_poses(
     gps: GpsFixes | None,
     gps_used: np.ndarray | None,
     R_vehicle_from_cam: np.ndarray,
+    grade_rad: np.ndarray | None = None,
 ) -> tuple[np.ndarray, dict[str, Any]]:
-    """(N, 4, 4) refined world_from_cam and a report (figures for poses_report.json)."""
+    """(N, 4, 4) refined world_from_cam and a report (figures for poses_report.json).
+    ``grade_rad`` (N,): the road's grade at each frame (``mapping.grade``; None: level), which
+    tips the tilt prior's axis."""
     t0 = time.perf_counter()
     n = len(t)
     tracks = build_tracks(pairs, pos_of, world, tol_m=cfg.bundle_track_tol_m)
@@ -95,9 +99,10 @@ def refine_poses(
         report["skipped"] = "no tracks"
         return world, report
     K = np.array([[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1.0]])
-    n_up = up_in_cam(R_vehicle_from_cam)
-    d_down = -n_up  # the road's normal (down) in the camera: plane d·X = h
+    d_down = -up_in_cam(R_vehicle_from_cam)  # the road's normal (down) in the camera: d·X = h
     plane_nominal = np.array([-d_down[0], -d_down[1], cam.height_m]) / d_down[2]
+    # per frame, the camera axis the tilt prior holds on world up (the grade tips it)
+    n_up = up_axes_in_cam(R_vehicle_from_cam, np.zeros(n) if grade_rad is None else grade_rad)
     used = np.ones(0 if gps is None else len(gps.t_s), bool)
     if gps is not None and gps_used is not None:
         used = gps_used.copy()
@@ -352,7 +357,7 @@ def _solve_window(
         free=free,
         C_prior=world_pg[s:e, :3, 3],
         planes0=planes0,
-        n_up=np.tile(n_up, (F, 1)),
+        n_up=n_up[s:e],
         obs_f=obs_f,
         obs_p=obs_p,
         obs_px=tracks.obs_px[o],

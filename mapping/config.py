@@ -47,6 +47,10 @@ class MappingConfig:
     heading_sigma_deg: float = 5.0  # σ of the eq. 6.1 heading between successive fixes (degrees)
     heading_min_baseline_m: float = 0.5  # fixes closer than this give no heading (m)
     tilt_sigma_deg: float = 3.0  # σ of the road normal vs world up (road grade/cross-fall) (deg)
+    # the road's grade from the GPS heights (mapping.grade): a Gaussian window of this length
+    # along the track (m); the tilt prior holds the mount's up axis on the road's normal, world
+    # up tipped by the grade (a 1 % grade moved a 25° camera's map 12 mm); 0 = a level road
+    grade_window_m: float = 10.0
     # which axis the tilt prior holds vertical: the mount's up axis (camera.yaml's mount, or
     # the one estimated from the drive; the optical axis of a nadir camera) or the road normal
     # of each pair's plane fit (assumes no cross-fall). Camera roll is not observable from GPS
@@ -234,6 +238,7 @@ class MappingConfig:
         "heading_sigma_deg": "(0, 180]",
         "heading_min_baseline_m": "[0, inf)",
         "tilt_sigma_deg": "(0, 90]",
+        "grade_window_m": "[0, inf); 0 = a level road",
         "mount_disagree_deg": "(0, 90]",
         "mount_min_pitch_deg": "[0, 90]",
         "gps_bridge_s": "[0, inf)",

@@ -122,6 +122,7 @@ def resolve(
     estimate: bool,
     disagree_deg: float,
     min_pitch_deg: float = 0.0,
+    grade_known: float = 0.0,
 ) -> Mount:
     """The mount for this run: camera.yaml's when given (checked against the drive's estimate),
     else the estimate when ``estimate`` and enough pairs, else nadir with a warning when the
@@ -153,7 +154,11 @@ def resolve(
         # mean grade look the same (an 8.7 % grade is 5°), and the tilt prior's σ and the GPS
         # heights absorb a small real one. Yaw (from the direction of travel) is kept.
         pitch, roll, yaw = est_deg
-        applied = pitch if abs(pitch) >= min_pitch_deg else 0.0
+        # ... unless the GPS heights resolve the grade (grade_known: the share of the fitted
+        # grade the tilt prior keeps, mapping.grade): the estimate is the pitch against the
+        # road, the prior then adds the grade, and the two no longer look the same
+        small = pitch * min(max(grade_known, 0.0), 1.0)
+        applied = pitch if abs(pitch) >= min_pitch_deg else small
         R = vehicle_from_cam_rotation(applied, 0.0, yaw)
         m = Mount(R, "estimated", est_deg, spread, n)
         log.info("mount estimated from %d pairs: (pitch, roll, yaw) = %s deg", n, _fmt(est_deg))

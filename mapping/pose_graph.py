@@ -17,10 +17,10 @@ from roadsurf.core.geometry import (
     forward_in_cam,
     heading_deg_from_displacement,
     invert_pose,
-    up_in_cam,
 )
 from roadsurf.io.drive import Drive
 from roadsurf.mapping.config import MappingConfig
+from roadsurf.mapping.grade import up_axes_in_cam
 from roadsurf.mapping.pose_gps import GpsFixes, interp_weights
 from roadsurf.mapping.types import PoseReport
 
@@ -88,6 +88,7 @@ class PoseGraph:
         drive: Drive,
         comp: np.ndarray,
         R_vehicle_from_cam: np.ndarray | None = None,
+        grade_rad: np.ndarray | None = None,
     ) -> None:
         self.cfg, self.t, self.n = cfg, t, len(t)
         R_vc = np.eye(3) if R_vehicle_from_cam is None else np.asarray(R_vehicle_from_cam, float)
@@ -136,8 +137,9 @@ class PoseGraph:
         self.cv_s = max(cfg.gap_accel_sigma_mps2, 1e-9) * 0.5 * (dt1 + dt2)
 
         # road-normal (tilt) prior per frame, in camera coordinates (pointing up, at the camera):
-        # the mount's up axis, or each pair's own road normal
-        n_up = np.tile(up_in_cam(R_vc), (self.n, 1))
+        # the mount's up axis tipped by the road's grade (mapping.grade; world up seen from a
+        # climbing road leans forward), or each pair's own road normal
+        n_up = up_axes_in_cam(R_vc, np.zeros(self.n) if grade_rad is None else grade_rad)
         for p in ok_pairs if cfg.tilt_prior_axis == "road_normal" else []:
             pl = np.asarray(p.plane, float)
             if np.all(np.isfinite(pl)):

@@ -26,6 +26,7 @@ This module is the stage (``run``, ``estimate_trajectory``); the GPS preprocessi
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -42,6 +43,7 @@ from roadsurf.io.runfolder import RunFolder
 from roadsurf.mapping.config import NOT_IN_FINGERPRINT, MappingConfig
 from roadsurf.mapping.datum import vertical_datum
 from roadsurf.mapping.export import write_trajectory_csv, write_trajectory_geojson
+from roadsurf.mapping.grade import road_grade
 from roadsurf.mapping.mount import resolve
 from roadsurf.mapping.plausibility import CHECKS_VERSION, check, make_chains
 from roadsurf.mapping.pose_gps import gps_enu, interp_weights
@@ -158,16 +160,26 @@ def estimate_trajectory(
     comp = np.zeros(n, int)
     for i in range(1, n):
         comp[i] = comp[i - 1] + (0 if (i - 1, i) in consecutive else 1)
+    grade = road_grade(
+        t,
+        gps,
+        window_m=cfg.grade_window_m,
+        vertical_factor=cfg.gps_vertical_sigma_factor,
+        prior_sigma_rad=math.radians(cfg.tilt_sigma_deg),
+    )
     mount = resolve(
         drive.camera,
         ok_pairs,
         estimate=cfg.estimate_mount,
         disagree_deg=cfg.mount_disagree_deg,
         min_pitch_deg=cfg.mount_min_pitch_deg,
+        grade_known=grade.mean_shrink(),
     )
     rep.mount = mount.to_dict()
+    rep.mount.update(grade.to_dict())
     rep.warnings += mount.warnings
     R_vc = mount.R_vehicle_from_cam
+    g_rad = grade.grade_rad
     init = initial_poses(cfg, t, comp, consecutive, gps, rep, R_vc)
 
     # ---------------------------------------------------------------- segments
@@ -182,7 +194,7 @@ def estimate_trajectory(
         rep.warnings.append(msg)
 
     # ---------------------------------------------------------------- robust fusion
-    problem = PoseGraph(cfg, t, init, ok_pairs, pos_of, gps, drive, comp, R_vc)
+    problem = PoseGraph(cfg, t, init, ok_pairs, pos_of, gps, drive, comp, R_vc, g_rad)
     world = problem.solve(rep)
     has_gps = segment_has_gps(segment, t, None if gps is None else gps.t_s)
     names = [f.filename for f in frames]
@@ -202,7 +214,9 @@ def estimate_trajectory(
         loops = confirm_loops(cand, loop_match)
         rep.bundle["loops"] = [[pos_of[p.index_a], pos_of[p.index_b]] for p in loops]
         if loops:
-            problem = PoseGraph(cfg, t, world, ok_pairs + loops, pos_of, gps, drive, comp, R_vc)
+            problem = PoseGraph(
+                cfg, t, world, ok_pairs + loops, pos_of, gps, drive, comp, R_vc, g_rad
+            )
             world = problem.solve(rep)
     else:
         loops = []
@@ -210,14 +224,14 @@ def estimate_trajectory(
         from roadsurf.mapping.bundle import refine_poses, with_motions_of
 
         world, bundle = refine_poses(
-            cfg, drive, t, world, ok_pairs, pos_of, gps, problem.gps_used, R_vc
+            cfg, drive, t, world, ok_pairs, pos_of, gps, problem.gps_used, R_vc, g_rad
         )
         rep.bundle.update(bundle)
         if loops:
             # the windows hold no loop constraint: one more pose-graph pass over the bundle's
             # frame-to-frame motions and the loop pairs puts the passes back together
             refined = with_motions_of(ok_pairs, pos_of, world) + loops
-            problem = PoseGraph(cfg, t, world, refined, pos_of, gps, drive, comp, R_vc)
+            problem = PoseGraph(cfg, t, world, refined, pos_of, gps, drive, comp, R_vc, g_rad)
             world = problem.solve(rep)
 
     # ---------------------------------------------------------------- plausibility

@@ -9,7 +9,8 @@ bundle_relief_sigma_m's default went from 3 mm to 1 cm and bundle_placement_leng
 bundle_adjust became the default, bundle_refine_focal and bundle_focal_sigma came and the poses key
 holds the bundle's version (issue 30); the map key also moved with DenseHeightConfig.hole_fill_m
 (issue 29); bundle_refine_k1 and bundle_k1_sigma came (issue 30); dense_single_view came
-(issue 28); DenseHeightConfig.fallback_levels came (the map key).
+(issue 28); DenseHeightConfig.fallback_levels and step_max_sigma came (the map key);
+grade_window_m came (issue 28, both keys).
 A change of MappingConfig's fields changes them legitimately. The keys must also
 change with what the outputs depend on (below)."""
 
@@ -25,9 +26,9 @@ from tests.mapping.synth import make_synthetic
 
 def test_poses_fingerprint_is_unchanged() -> None:
     syn = make_synthetic(n=6, seed=3, failed=(2,))
-    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "64dcc3901181bbdf"
+    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "a09be9629f42c25d"
     syn = make_synthetic(n=6, seed=3, with_gps=False)
-    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "e7b4497f6849df8d"
+    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "be513256f05e4d1f"
 
 
 def test_globalmap_fingerprint_is_unchanged() -> None:
@@ -41,7 +42,7 @@ def test_globalmap_fingerprint_is_unchanged() -> None:
         reference=None,
         segment=np.zeros(6, int),
     )
-    assert globalmap._fingerprint(MappingConfig(), syn.pairs, traj) == "33b7535a24d1afaf"
+    assert globalmap._fingerprint(MappingConfig(), syn.pairs, traj) == "8f35af139a13a5a9"
 
 
 def test_poses_key_follows_the_gps_altitude() -> None:

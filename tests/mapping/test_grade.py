@@ -1,0 +1,82 @@
+"""The road's grade from the GPS heights (mapping.grade) and the tilt prior's axis it gives."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from roadsurf.core.geometry import vehicle_from_cam_rotation
+from roadsurf.mapping.grade import road_grade, up_axes_in_cam
+from roadsurf.mapping.pose_gps import GpsFixes
+
+PRIOR = math.radians(3.0)
+
+
+def _fixes(slope: float, length_m: float, sigma_v: float, seed: int, hz: float = 10.0):
+    """Fixes along a straight road heading north-east at 6 m/s, heights on ``slope``."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, length_m / 6.0, 1.0 / hz)
+    s = 6.0 * t
+    e, n = s * math.sin(math.radians(40)), s * math.cos(math.radians(40))
+    z = slope * s + rng.normal(0, sigma_v, len(t))
+    g = GpsFixes(
+        t_s=t,
+        enu_m=np.column_stack([e, n, z]),
+        sigma_m=np.full(len(t), sigma_v / 2.0),
+        has_alt=np.ones(len(t), bool),
+        orig_index=np.arange(len(t)),
+    )
+    return t, g
+
+
+@pytest.mark.parametrize("slope", [0.0, 0.01, -0.03])
+def test_an_rtk_grade_is_recovered(slope: float) -> None:
+    t, g = _fixes(slope, 60.0, 0.05, seed=1)
+    gr = road_grade(t, g, window_m=10.0, vertical_factor=2.0, prior_sigma_rad=PRIOR)
+    mid = slice(len(t) // 4, 3 * len(t) // 4)
+    err = np.degrees(gr.grade_rad[mid]) - math.degrees(math.atan(slope))
+    assert np.max(np.abs(err)) < 0.15  # RTK heights over ±10 m: ~0.05° standard error
+    assert gr.shrink[mid].min() > 0.95
+    assert np.all(np.degrees(gr.sigma_rad[mid]) < 0.1)
+
+
+def test_metre_level_heights_leave_the_road_level() -> None:
+    t, g = _fixes(0.02, 60.0, 3.0, seed=2, hz=1.0)
+    gr = road_grade(t, g, window_m=10.0, vertical_factor=1.0, prior_sigma_rad=PRIOR)
+    assert gr.mean_shrink() < 0.1  # a consumer receiver: the fit is noise, the prior wins
+    assert np.max(np.abs(np.degrees(gr.grade_rad))) < 1.0
+
+
+def test_a_short_track_or_no_heights_give_a_level_road() -> None:
+    t, g = _fixes(0.02, 12.0, 0.05, seed=3)
+    assert not road_grade(
+        t, g, window_m=10.0, vertical_factor=2.0, prior_sigma_rad=PRIOR
+    ).shrink.any()
+    t, g = _fixes(0.02, 60.0, 0.05, seed=3)
+    g.has_alt[:] = False
+    gr = road_grade(t, g, window_m=10.0, vertical_factor=2.0, prior_sigma_rad=PRIOR)
+    assert not gr.grade_rad.any() and gr.mean_shrink() == 0.0
+    assert not road_grade(
+        t, None, window_m=10.0, vertical_factor=2.0, prior_sigma_rad=PRIOR
+    ).shrink.any()
+
+
+@pytest.mark.parametrize("pitch_deg", [0.0, 25.0, 45.0])
+def test_the_tilt_axis_of_a_vehicle_on_a_grade_maps_to_world_up(pitch_deg: float) -> None:
+    """A vehicle climbing a grade γ is pitched nose-up by γ; its camera (mount relative to the
+    vehicle) seen in the world: the axis ``up_axes_in_cam`` gives maps to world up exactly."""
+    R_vc = vehicle_from_cam_rotation(pitch_deg, 0.0, 0.0)
+    gamma = math.radians(3.0)
+    # vehicle frame: x right, y backward, z down; world (for a north-heading vehicle on a level
+    # road): x east, y north, z up -> world_from_vehicle = diag(1, -1, -1); nose-up by γ is a
+    # rotation about the vehicle's x axis (right)
+    c, s = math.cos(gamma), math.sin(gamma)
+    level = np.diag([1.0, -1.0, -1.0])
+    nose_up = np.array([[1, 0, 0], [0, c, -s], [0, s, c]])  # about world x: forward (y) rises
+    R_wc = nose_up @ level @ R_vc
+    ax = up_axes_in_cam(R_vc, np.array([gamma]))[0]
+    assert R_wc @ ax == pytest.approx([0.0, 0.0, 1.0], abs=1e-12)
+    # and with a level road, the mount's own up axis
+    assert (level @ R_vc) @ up_axes_in_cam(R_vc, np.zeros(1))[0] == pytest.approx([0, 0, 1.0])
