@@ -12,7 +12,7 @@ from roadsurf.reconstruction.dense.matching import RefineResult, box, sample, wi
 REJECT_OUTSIDE = 1  # the window leaves image a, or its match image b
 REJECT_TEXTURE = 2  # RMS gradient along the epipolar line below min_grad_dn
 REJECT_NCC = 4  # ZNCC below min_ncc
-REJECT_STEP = 8  # Lucas-Kanade not converged (last step > 0.05 px)
+REJECT_STEP = 8  # Lucas-Kanade not converged (last step > 0.05 px and > step_max_sigma σ)
 REJECT_EXPOSURE = 16  # a dark or saturated pixel in either window
 REJECT_LR = 32  # the b -> a match disagrees by more than lr_max_px
 REJECT_GEOMETRY = 64  # non-finite, next to the epipole, or outside the searched heights
@@ -53,7 +53,8 @@ def checks(
     f |= flag(~(fwd.grad >= cfg.min_grad_dn), REJECT_TEXTURE)
     f |= flag(~(fwd.ncc >= cfg.min_ncc), REJECT_NCC)
     if cfg.refine_iters > 0:
-        f |= flag(~(fwd.last_step <= STEP_MAX_PX), REJECT_STEP)
+        tol = (cfg.step_max_sigma * fwd.var.sqrt()).clamp_min(STEP_MAX_PX)
+        f |= flag(~(fwd.last_step <= tol), REJECT_STEP)
     # saturated or black windows in either image (b sampled at the match)
     hw, ww = A_raw.shape[-2:]
     ys, xs = torch.meshgrid(

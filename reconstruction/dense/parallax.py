@@ -13,8 +13,9 @@
    pixels next to the epipole.
 5. s -> η by the exact plane + parallax relation; var(η) = (dη/ds)² var(s) + (η σ_scale)².
 6. Pixels left invalid are matched again, steps 1-5, on a grid coarser by 2 (started from the
-   first sweep's heights) and take its heights and larger variances where it passes
-   (``pyramid``, ``DenseHeightConfig.fallback_levels``); then the optional bilateral mean.
+   first sweep's heights) and take its heights where it passes, with its variance widened by
+   the relief in its window (``pyramid``, ``DenseHeightConfig.fallback_levels``); then the
+   optional bilateral mean. Which check refused a pixel: ``DenseHeight.reject`` (``checks``).
 
 Pure function of the images, the camera and the pair's R, t and plane (``dense_height``).
 """
@@ -139,7 +140,7 @@ def dense_height(
                 break
             t1 = time.perf_counter()
             coarse = _match_level(img_a, img_b, camera, pp, sk, rs, cfg, dev, {}, lv)
-            filled = fill_from_coarse(lv, coarse, ppw, sk / s)
+            filled = fill_from_coarse(lv, coarse, ppw, sk / s, int(cfg.window_px) | 1)
             level[filled] = k
             timings[f"fallback{k}"] = time.perf_counter() - t1
     eta, valid = lv.height_m.astype(np.float64), lv.valid
@@ -228,6 +229,8 @@ def _match_level(
     t3 = time.perf_counter()
     shift = fwd.shift[0, 0].double().cpu().numpy()
     var_s = fwd.var[0, 0].double().cpu().numpy()
+    if cfg.refine_iters > 0:  # what the iteration has left: about its last step
+        var_s = var_s + fwd.last_step[0, 0].double().cpu().numpy() ** 2
     ncc = fwd.ncc[0, 0].cpu().numpy()
     reject = flags[0, 0].cpu().numpy()
     eta = ppc.height_from_shift(shift, u_np, v_np, nw_np)

@@ -4,21 +4,26 @@ matched on a grid coarser by 2^k (``DenseHeightConfig.fallback_levels``).
 Why: a matching window of a fixed number of pixels spans a fixed share of the road's grain. On
 real photographs of potholes (spd2, 0.3 Mpx work grid, ~1 mm per pixel) the floors' fine
 texture does not correlate between the two shots (a view-dependent look of loose or wet
-material is the likely cause, not measured), while their coarser texture does: of the labelled pothole pixels of a pair (median of 26 pairs) 33 % fail the ZNCC test, 13 % do
-not converge and 5 % fail the left-right check, while only 2.5 % are textureless and none dark
-or saturated; 30 % keep a height. Matched on a 0.1 Mpx grid instead, 64 % do. With one
-fallback level (the work grid, then a grid of a quarter of its pixels where it failed) 62 %,
-and where both grids pass the coarse height is the fine one's +0.04 mm (MAD 0.4 mm; +0.2-0.3
-mm on the labelled pixels, whose walls a wider window averages). The coarser window sees the
-floor's coarser, view-stable relief at 2x the footprint, so its height is a 2x wider average and
-its σ about 2x larger (median 0.60 against 0.29 mm there); the variance it carries says so.
+material is the likely cause, not measured) while their coarser texture does. Of the labelled
+pothole pixels of a pair (median of 26 pairs) 33 % fail the ZNCC test, 13 % do not converge
+and 5 % fail the left-right check, while only 2.5 % are textureless and none dark or saturated;
+30 % keep a height. Matched on a 0.1 Mpx grid instead, 64 % do; with one fallback level (the
+work grid, then a grid of a quarter of its pixels where it failed) 62 %. Where both grids pass,
+the coarse height is the fine one's +0.04 mm (MAD 0.4 mm; +0.2-0.3 mm on the labelled pixels,
+whose walls a wider window averages), its own σ about 2x the fine one's (median 0.60 against
+0.29 mm): the coarser window sees the floor's coarser, view-stable texture at 2x the footprint.
 
 Each coarse pixel is matched with the full set of checks (ZNCC, texture, convergence,
 left-right, range) on its own grid, so what it gives passed the same tests; a work pixel is
 filled only when its four bilinear neighbours on the coarse grid are all valid (no fill across
 the edge of a coarse hole, e.g. the occluded band of a pothole wall), and its variance is the
-interpolated coarse variance plus (half the four heights' spread)², a bound of the
-interpolation's own error where the coarse heights change fast (a wall).
+interpolated coarse variance plus (half the relief of the coarse heights within their windows)²:
+a window that spans a wall reads a mix of its surfaces (the wider the window, the wider the band
+it "fattens"), so its height is only known to lie within that relief. The fine grid failed there
+for a reason, often the wall itself: on a rendered 45°-pitch pair the filled pixels at the far
+rim read the rim (+15 mm), with the plain coarse variance their median |error| / σ was 1.95,
+with this bound 0.72; on flat floors the bound is conservative (median |error| / σ 0.15-0.2, the
+fills weigh less than any work-grid height of another pair).
 """
 
 from __future__ import annotations
@@ -78,13 +83,26 @@ def prior_on_grid(
     return cv2.remap(src, uf, vf, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
+def relief(level: LevelMatch, win: int) -> np.ndarray:
+    """(h, w) float32 range (max - min, m) of ``level``'s valid heights in the win x win window
+    around each pixel (NaN where the pixel is invalid)."""
+    k = np.ones((win, win), np.uint8)
+    v = level.valid
+    h = np.where(v, level.height_m, 0.0).astype(np.float32)
+    big = np.float32(1e3)  # m: out of any road's reach, finite (no overflow in hi - lo)
+    hi = cv2.dilate(np.where(v, h, -big), k)
+    lo = -cv2.dilate(np.where(v, -h, -big), k)
+    return np.where(v, hi - lo, np.nan).astype(np.float32)
+
+
 def fill_from_coarse(
-    fine: LevelMatch, coarse: LevelMatch, pp_fine: PlaneParallax, ratio: float
+    fine: LevelMatch, coarse: LevelMatch, pp_fine: PlaneParallax, ratio: float, win: int = 1
 ) -> np.ndarray:
     """Fill ``fine``'s invalid pixels (in place) from ``coarse`` (the same pair matched on the
-    work grid resized by ``ratio``): bilinear heights where all four coarse neighbours are
-    valid, variance as in the module docstring, the parallax recomputed on the work grid from
-    the height (``pp_fine``, the work grid's model). Returns the (h, w) bool mask filled."""
+    work grid resized by ``ratio`` with win x win windows): bilinear heights where all four
+    coarse neighbours are valid, variance as in the module docstring, the parallax recomputed
+    on the work grid from the height (``pp_fine``, the work grid's model). Returns the (h, w)
+    bool mask filled."""
     h, w = fine.valid.shape
     hc, wc = coarse.valid.shape
     todo = ~fine.valid
@@ -110,7 +128,9 @@ def fill_from_coarse(
     hts = np.stack([coarse.height_m[r, c].astype(float) for r, c in rc])
     eta = sum(wt * x for wt, x in zip(wk, hts, strict=True))
     var = sum(wt * coarse.var_m2[r, c] for wt, (r, c) in zip(wk, rc, strict=True))
-    var = var + (0.5 * (hts.max(0) - hts.min(0))) ** 2
+    rel = relief(coarse, max(int(win), 1))
+    span = np.max(np.stack([rel[r, c] for r, c in rc]), axis=0)
+    var = var + (0.5 * np.maximum(span, hts.max(0) - hts.min(0))) ** 2
     ncc = sum(wt * coarse.ncc[r, c] for wt, (r, c) in zip(wk, rc, strict=True))
     shift = pp_fine.shift_from_height(eta, uu.astype(float), vv.astype(float))
     good = np.isfinite(eta) & np.isfinite(var) & np.isfinite(shift)
