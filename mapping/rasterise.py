@@ -98,6 +98,29 @@ def fill_inward(
     return out, near
 
 
+def single_view_heights(
+    values: np.ndarray, cells: np.ndarray, near_px: float, road_m: float
+) -> np.ndarray:
+    """Heights for the (H, W) bool ``cells`` of ``values`` (NaN there) that one frame only saw:
+    the road model, 0, except where the nearest known value within ``near_px`` cells is relief
+    (|value| > ``road_m``): NaN, unknown. A strip between two pairs' parts (seen once where a
+    faster drive's frames overlap by less than half) that crosses a pothole stays unknown: the
+    road model there split it into a defect per pair, and its depth continued joined two
+    potholes into one. Returns the (K,) float32 values of ``cells`` in row-major order."""
+    known = np.isfinite(values)
+    out = np.zeros(int(cells.sum()), np.float32)
+    if near_px <= 0 or not known.any():
+        return out
+    dist, lab = cv2.distanceTransformWithLabels(
+        (~known).astype(np.uint8), cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL
+    )
+    vals = values[known]  # labels number the known cells in row-major order, from 1
+    near = dist[cells] <= near_px
+    relief = np.abs(vals[lab[cells][near] - 1]) > road_m
+    out[np.flatnonzero(near)[relief]] = np.nan
+    return out
+
+
 def rasterise(
     cfg: MappingConfig,
     drive: Drive,
@@ -245,6 +268,7 @@ def rasterise(
         # the modelled cells' σ: the road's spread about the local road model, read on the
         # feature points (their MAD also holds their matching noise: an upper bound)
         model_sigma = np.float32(noise_m)
+        near_px = cfg.dense_single_view_relief_m / gsd
 
         def two_view(g: GridSpec, resid_g: np.ndarray | None = None) -> np.ndarray:
             return two_view_mask(cam, traj, surf, g2e, g, pf, fp_grid, road_z, resid_g)
@@ -322,8 +346,10 @@ def rasterise(
                 if single_view and tv is not None:
                     # imaged by one frame only: no parallax, the road model (count 0)
                     model = gone & (wsum > 0) & ~tv
-                    res_t[model] = 0.0
-                    sig_t[model] = model_sigma
+                    if model.any():
+                        res_t[model] = single_view_heights(res_t, model, near_px, lim)
+                        model &= np.isfinite(res_t)
+                        sig_t[model] = model_sigma
                     n_model = int(model.sum())
                 pts = cloud_points(grid, res_t, n_all, mos_t)
             return res_t, mos_t, wsum, nobs_t, sig_t, pts, n_model

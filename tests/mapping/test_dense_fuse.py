@@ -329,3 +329,28 @@ def test_single_view_cells_take_the_road_model(drive_maps: dict[str, object]) ->
             prod_e.residual_stats_m["dense_cloud_points"]  # type: ignore[attr-defined]
         )
     )
+
+
+def test_single_view_cells_next_to_relief_stay_unknown() -> None:
+    """A strip seen once between two pairs' parts: the road model (0) beside road, NaN beside
+    a pothole (the road model would split it, continuing its depth would join neighbours)."""
+    from roadsurf.mapping.rasterise import single_view_heights
+
+    v = np.full((40, 60), np.nan, np.float32)
+    v[:, :20] = 0.0005  # road before the strip
+    v[:, 30:] = 0.0005  # ... and after it
+    v[10:20, 12:20] = -0.04  # a pothole reaching the strip from the left
+    v[10:20, 30:38] = -0.04  # ... and on from its right
+    cells = ~np.isfinite(v)
+    out = np.full(v.shape, np.nan, np.float32)
+    out[cells] = single_view_heights(v, cells, near_px=6.0, road_m=0.002)
+    assert np.isnan(out[12:18, 20:30]).all()  # across the pothole: unknown
+    assert (out[30:, 20:30] == 0).all() and (out[:5, 20:30] == 0).all()  # across road: 0
+    far = np.full((40, 60), np.nan, np.float32)
+    far[:, :5] = -0.04
+    cells = ~np.isfinite(far)
+    got = single_view_heights(far, cells, near_px=6.0, road_m=0.002)
+    row = np.full(far.shape, np.nan, np.float32)
+    row[cells] = got
+    assert np.isnan(row[:, 5:11]).all() and (row[:, 12:] == 0).all()  # beyond reach: 0
+    assert (single_view_heights(far, cells, near_px=0.0, road_m=0.002) == 0).all()

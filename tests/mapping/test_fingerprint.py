@@ -10,7 +10,7 @@ bundle_adjust became the default, bundle_refine_focal and bundle_focal_sigma cam
 holds the bundle's version (issue 30); the map key also moved with DenseHeightConfig.hole_fill_m
 (issue 29); bundle_refine_k1 and bundle_k1_sigma came (issue 30); dense_single_view came
 (issue 28); DenseHeightConfig.fallback_levels and step_max_sigma came (the map key);
-grade_window_m came (issue 28, both keys).
+grade_window_m (both keys) and dense_single_view_relief_m came (issue 28).
 A change of MappingConfig's fields changes them legitimately. The keys must also
 change with what the outputs depend on (below)."""
 
@@ -42,7 +42,7 @@ def test_globalmap_fingerprint_is_unchanged() -> None:
         reference=None,
         segment=np.zeros(6, int),
     )
-    assert globalmap._fingerprint(MappingConfig(), syn.pairs, traj) == "8f35af139a13a5a9"
+    assert globalmap._fingerprint(MappingConfig(), syn.pairs, traj) == "f4d248bce4e33f82"
 
 
 def test_poses_key_follows_the_gps_altitude() -> None:
