@@ -27,6 +27,8 @@ from roadsurf.core.geometry import forward_in_cam, up_in_cam
 from roadsurf.mapping.pose_gps import GpsFixes
 
 MIN_FIXES = 5  # fewer fixes with a height than this: no grade (a level road)
+HUBER_K = 2.0  # Huber weights beyond this many σ (the fixes' stated vertical σ)
+HUBER_STEPS = 4  # reweighted fits per frame
 
 
 @dataclass(frozen=True)
@@ -97,12 +99,16 @@ def road_grade(
         n_eff = sk**2 / max((k**2).sum(), 1e-300)  # fixes the kernel effectively holds
         if sw <= 0 or n_eff < MIN_FIXES:
             continue
-        m = (w * ds).sum() / sw
-        sxx = (w * (ds - m) ** 2).sum()
-        if sxx <= 0:
+        fit = _line(ds, za, w)
+        for _ in range(HUBER_STEPS):  # a height outlier (multipath) must not tilt the line
+            if fit is None:
+                break
+            z_r = np.abs(za - fit[2] - fit[3] * (ds - fit[0])) * np.sqrt(w0)  # over its σ
+            w = w0 * k * np.minimum(1.0, HUBER_K / np.maximum(z_r, 1e-12))
+            fit = _line(ds, za, w)
+        if fit is None:
             continue
-        zm = (w * za).sum() / sw
-        b = (w * (ds - m) * (za - zm)).sum() / sxx
+        m, sxx, zm, b = fit
         # the stated σ, or the fixes' own scatter about the line when they disagree more
         # (reduced χ² of the kernel-weighted residuals)
         chi2 = (w * (za - zm - b * (ds - m)) ** 2).sum() / sk * n_eff / (n_eff - 2.0)
@@ -112,6 +118,19 @@ def road_grade(
     keep = np.where(np.isfinite(se), keep, 0.0)
     slope = grade * keep
     return RoadGrade(np.arctan(slope), np.arctan(np.where(np.isfinite(se), se, np.inf)), keep)
+
+
+def _line(x: np.ndarray, z: np.ndarray, w: np.ndarray) -> tuple[float, float, float, float] | None:
+    """Weighted line z ≈ zm + b (x - m): (m, Σw (x - m)², zm, b), or None when degenerate."""
+    sw = float(w.sum())
+    if sw <= 0:
+        return None
+    m = float((w * x).sum()) / sw
+    sxx = float((w * (x - m) ** 2).sum())
+    if sxx <= 0:
+        return None
+    zm = float((w * z).sum()) / sw
+    return m, sxx, zm, float((w * (x - m) * (z - zm)).sum()) / sxx
 
 
 def up_axes_in_cam(R_vehicle_from_cam: np.ndarray, grade_rad: np.ndarray) -> np.ndarray:

@@ -80,3 +80,15 @@ def test_the_tilt_axis_of_a_vehicle_on_a_grade_maps_to_world_up(pitch_deg: float
     assert R_wc @ ax == pytest.approx([0.0, 0.0, 1.0], abs=1e-12)
     # and with a level road, the mount's own up axis
     assert (level @ R_vc) @ up_axes_in_cam(R_vc, np.zeros(1))[0] == pytest.approx([0, 0, 1.0])
+
+
+def test_height_outliers_do_not_tilt_the_grade() -> None:
+    """Two fixes 5 m too high (multipath) inside the window: the Huber-weighted line keeps the
+    grade (a plain fit read it 0.85° off)."""
+    t, g = _fixes(0.01, 60.0, 0.05, seed=4)
+    mid = len(t) // 2
+    g.enu_m[mid + 3, 2] += 5.0
+    g.enu_m[mid + 8, 2] += 5.0
+    gr = road_grade(t, g, window_m=10.0, vertical_factor=2.0, prior_sigma_rad=PRIOR)
+    err = np.degrees(gr.grade_rad[mid - 20 : mid + 20]) - math.degrees(math.atan(0.01))
+    assert np.max(np.abs(err)) < 0.2
