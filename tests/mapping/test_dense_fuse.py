@@ -334,7 +334,7 @@ def test_single_view_cells_take_the_road_model(drive_maps: dict[str, object]) ->
 def test_single_view_cells_next_to_relief_stay_unknown() -> None:
     """A strip seen once between two pairs' parts: the road model (0) beside road, NaN beside
     a pothole (the road model would split it, continuing its depth would join neighbours)."""
-    from roadsurf.mapping.rasterise import single_view_heights
+    from roadsurf.mapping.rasterfill import single_view_heights
 
     v = np.full((40, 60), np.nan, np.float32)
     v[:, :20] = 0.0005  # road before the strip

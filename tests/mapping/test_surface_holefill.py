@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from roadsurf.mapping.rasterise import fill_inward
+from roadsurf.mapping.rasterfill import fill_inward
 
 WALL = 6.0  # width of the pothole's wall (cells): 5 mm per cell for 30 mm
 
