@@ -159,15 +159,22 @@ def resolve(
         # road, the prior then adds the grade, and the two no longer look the same
         small = pitch * min(max(grade_known, 0.0), 1.0)
         applied = pitch if abs(pitch) >= min_pitch_deg else small
-        R = vehicle_from_cam_rotation(applied, 0.0, yaw)
+        # A roll beyond any road's cross-fall (disagree_deg) is mostly the mount's: applied,
+        # the error left is the cross-fall (2 %: 1.1°, 22 mm sideways at 1.1 m), where
+        # keeping 0 left the whole roll (3°: the map 59 mm sideways, benchmarks/variation.py)
+        big_roll = abs(roll) > disagree_deg
+        R = vehicle_from_cam_rotation(applied, roll if big_roll else 0.0, yaw)
         m = Mount(R, "estimated", est_deg, spread, n)
         log.info("mount estimated from %d pairs: (pitch, roll, yaw) = %s deg", n, _fmt(est_deg))
-        if abs(roll) > disagree_deg:
+        if big_roll:
+            shift = camera.height_m * math.tan(math.radians(abs(roll)))
             warns.append(
-                f"the drive's road planes suggest a camera roll of {roll:.1f} deg (more than a "
-                f"road's cross-fall; > {disagree_deg} deg), which is not applied: roll and "
-                "cross-fall look the same. Measure it (`roadsurf calibrate --ground`) and set "
-                "mount_roll_deg in camera.yaml."
+                f"the drive's road planes give a camera roll of {roll:.1f} deg (more than a "
+                f"road's cross-fall; > {disagree_deg} deg), applied: it holds the road's "
+                "cross-fall too (2 %: 1.1 deg, a sideways map error of about "
+                f"{100 * camera.height_m * math.tan(math.radians(1.15)):.0f} cm), where "
+                f"ignoring it would move the map {100 * shift:.0f} cm sideways. Measure it "
+                "(`roadsurf calibrate --ground`) and set mount_roll_deg in camera.yaml."
             )
     else:
         m = Mount(np.eye(3), "assumed nadir", est_deg, spread, n)

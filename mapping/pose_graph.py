@@ -170,7 +170,7 @@ class PoseGraph:
 
     def _build_headings(self) -> None:
         g, cfg = self.gps, self.cfg
-        hk, hth, hs = [], [], []
+        hk, hj, hth, hs = [], [], [], []
         for j in range(len(g.t_s) - 1):
             d = g.enu_m[j + 1, :2] - g.enu_m[j, :2]
             L = float(np.linalg.norm(d))
@@ -185,8 +185,9 @@ class PoseGraph:
                 math.radians(cfg.heading_sigma_deg),
                 math.atan(math.sqrt(g.sigma_m[j] ** 2 + g.sigma_m[j + 1] ** 2) / L),
             )
-            hk.append(k), hth.append(math.radians(comp_heading)), hs.append(sig)
+            hk.append(k), hj.append(j), hth.append(math.radians(comp_heading)), hs.append(sig)
         self.hk = np.array(hk, int)
+        self.hj = np.array(hj, int)  # each heading's first fix (the second is the next one)
         self.hth = np.array(hth, float)
         self.hs = np.array(hs, float)
 
@@ -227,7 +228,10 @@ class PoseGraph:
                 fwd = R[self.hk].apply(self.fwd_cam)
                 comp = np.arctan2(fwd[:, 0], fwd[:, 1])
                 dh = np.angle(np.exp(1j * (comp - self.hth)))
-                out.append(dh / self.hs)
+                # a heading holds only while both its fixes do: one from a rejected fix (6 m
+                # off) had rotated a whole RTK drive by 0.47° (RMSE 8.6 -> 35 mm)
+                on = u[self.hj] & u[self.hj + 1]
+                out.append(np.where(on, dh / self.hs, 0.0))
         if len(self.cv_i):
             i = self.cv_i
             dv = (p[i + 1] - p[i]) / self.cv_dt2[:, None] - (p[i] - p[i - 1]) / self.cv_dt1[:, None]

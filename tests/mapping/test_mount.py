@@ -76,3 +76,13 @@ def test_nadir_drive_keeps_a_nadir_mount() -> None:
     traj, rep = poses.estimate_trajectory(CFG, syn.drive, syn.pairs)
     assert abs(rep.mount["pitch_deg"]) < 0.5 and abs(rep.mount["yaw_deg"]) < 1.0
     assert not rep.warnings
+
+
+def test_a_roll_beyond_any_cross_fall_is_applied_and_said() -> None:
+    """A 4.5° roll (beyond mount_disagree_deg, 3°: no road's cross-fall) is applied with a
+    warning that names it; keeping 0 left the whole roll in the poses."""
+    syn = make_synthetic(n=40, seed=4, gps_hz=5.0, gps_sigma_m=0.05, mount_deg=(25.0, 4.5, 0.0))
+    traj, rep = poses.estimate_trajectory(CFG, syn.drive, syn.pairs)
+    assert rep.mount["roll_deg"] == pytest.approx(4.5, abs=0.5)
+    assert _errors(traj, syn)[1] < 1.0
+    assert any("camera roll of 4." in w and "applied" in w for w in rep.warnings)

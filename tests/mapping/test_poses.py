@@ -261,3 +261,35 @@ def test_tilt_prior_axis_on_a_cross_fall() -> None:
         errs[axis] = np.degrees(np.arccos(np.clip(np.sum(est * true, axis=1), -1, 1)))
     assert np.median(errs["mount"]) < 0.6
     assert np.median(errs["road_normal"]) > 1.2
+
+
+def test_a_heading_holds_only_while_both_its_fixes_do() -> None:
+    """eq. 6.1 headings come from pairs of fixes; once a fix is rejected as an outlier, the
+    headings it takes part in leave the problem too (one from a fix 6 m off had rotated a whole
+    RTK drive by 0.47°: trajectory RMSE 8.6 -> 35 mm, benchmarks/variation.py)."""
+    from scipy.spatial.transform import Rotation
+
+    from roadsurf.mapping.pose_gps import gps_enu
+    from roadsurf.mapping.pose_graph import PoseGraph
+    from roadsurf.mapping.types import PoseReport
+    from tests.mapping.synth import make_synthetic
+
+    syn = make_synthetic(n=36, seed=7, gps_hz=5.0, gps_sigma_m=0.01)
+    t = np.array([f.timestamp_s for f in syn.drive.frames])
+    _, gps = gps_enu(RTK, syn.drive, t, PoseReport(n_frames=len(t)))
+    assert gps is not None
+    pos_of = {f.index: i for i, f in enumerate(syn.drive.frames)}
+    pg = PoseGraph(
+        RTK, t, syn.world_from_cam.copy(), syn.pairs, pos_of, gps, syn.drive, np.zeros(len(t), int)
+    )
+    assert len(pg.hk) >= 3
+    pg.R0 = pg.R0 * Rotation.from_euler("z", 2.0, degrees=True)  # headings now disagree
+    x = np.zeros(6 * len(t))
+    nh = len(pg.hk)  # the headings are the last residuals (no gap, OBD or pinned frame)
+    before = pg.residuals(x)[-nh:]
+    assert np.all(before != 0)  # every heading disagrees with the rotated poses
+    j = int(pg.hj[1])
+    pg.gps_used[j] = False
+    after = pg.residuals(x)[-nh:]
+    gone = (pg.hj == j) | (pg.hj + 1 == j)
+    assert np.all(after[gone] == 0) and np.all(after[~gone] != 0)
