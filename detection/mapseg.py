@@ -57,6 +57,8 @@ class Region:
     noise_m: float = float("nan")  # σ of the raster window it was segmented in (m)
     seed_m: float = float("nan")  # T_d used in that window (m)
     rut: RutTrace | None = None  # set when the region is a traced rut (``ruts``)
+    # area of its cells deeper than T_d measured alike by >= 2 pairs of the dense surface (m²)
+    dense_support_m2: float = 0.0
 
 
 @dataclass

@@ -76,9 +76,15 @@ def measure_regions(
         why = None
         if max_depth < (mc.min_depth_m if rut is None else cfg.rut.min_depth_m):
             why = f"shallow ({1000 * max_depth:.1f} mm)"
-        elif have_pairs and (
-            len(reg.support_pairs) < mc.min_support_pairs
-            or reg.n_support_points < mc.min_support_points
+        elif (
+            have_pairs
+            and (
+                len(reg.support_pairs) < mc.min_support_pairs
+                or reg.n_support_points < mc.min_support_points
+            )
+            # ... unless two pairs' dense heights agree on it over the minimum area: small
+            # potholes of a tilted camera hold 2 sparse points (variation sweep)
+            and reg.dense_support_m2 < max(mc.min_area_m2, 1e-12)
         ):
             why = f"{reg.n_support_points} defect point(s) from {len(reg.support_pairs)} pair(s)"
         elif small and (rut is not None or dense is None):

@@ -152,7 +152,11 @@ def _detect(
             t0 = time.perf_counter()
             seg = segment_windows(
                 surface, cfg.map, seeds_xy, ev_xy, ev_pair,
-                min_points=cfg.map.min_support_points if per_pair else 1,
+                # with the dense surface's counts a window around fewer points may still be
+                # confirmed by two pairs' dense heights (measurement)
+                min_points=cfg.map.min_support_points
+                if per_pair and getattr(surface, "count_path", None) is None
+                else 1,
             )  # fmt: skip
             steps_s["windows"] = time.perf_counter() - t0
             if cfg.rut.enabled:

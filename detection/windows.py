@@ -28,6 +28,7 @@ import numpy as np
 from roadsurf.detection.config import MapSegmentConfig
 from roadsurf.detection.mapseg import Region, Segmentation, Surface, segment
 from roadsurf.io.formats import GridSpec
+from roadsurf.mapping.dense_fuse import NOBS as NOBS_NAME
 
 log = logging.getLogger(__name__)
 
@@ -41,6 +42,11 @@ class WindowSource(Protocol):
 
     def read(self, r0: int, c0: int, h: int, w: int) -> np.ndarray:
         """(h, w) float32 residual (m, negative below), NaN where unobserved."""
+        ...
+
+    def read_count(self, r0: int, c0: int, h: int, w: int) -> np.ndarray | None:
+        """(h, w) pairs' samples fused into each cell (the dense surface's surface_nobs), or
+        None when the source has no such count."""
         ...
 
 
@@ -68,6 +74,15 @@ class RasterSource:
             except ValueError:
                 self.footprint_m = float("nan")
         self._src = None
+        # the dense surface's per-cell count, written next to it on the same grid
+        self.count_path: Path | None = self.path.with_name(NOBS_NAME + self.path.suffix)
+        if not self.count_path.is_file():
+            self.count_path = None
+        else:
+            with rasterio.open(self.count_path) as c:
+                if (c.width, c.height) != (src.width, src.height):
+                    self.count_path = None
+        self._cnt = None
 
     def read(self, r0: int, c0: int, h: int, w: int) -> np.ndarray:
         import rasterio
@@ -81,10 +96,22 @@ class RasterSource:
             res[res == self.nodata] = np.nan
         return res
 
+    def read_count(self, r0: int, c0: int, h: int, w: int) -> np.ndarray | None:
+        import rasterio
+        from rasterio.windows import Window
+
+        if self.count_path is None:
+            return None
+        if self._cnt is None:
+            self._cnt = rasterio.open(self.count_path)
+        return np.asarray(self._cnt.read(1, window=Window(c0, r0, w, h)))
+
     def close(self) -> None:
-        if self._src is not None:
-            self._src.close()
-            self._src = None
+        for name in ("_src", "_cnt"):
+            f = getattr(self, name)
+            if f is not None:
+                f.close()
+                setattr(self, name, None)
 
 
 class PointsSource:
@@ -105,6 +132,9 @@ class PointsSource:
         height = int(round((hi[1] - lo[1]) / gsd_m))
         self.grid = GridSpec(crs, float(lo[0]), float(hi[1]), gsd_m, width, height)
         self._rc = np.floor(self.grid.rowcol_from_xy(xy) + 0.5).astype(np.int64)
+
+    def read_count(self, r0: int, c0: int, h: int, w: int) -> np.ndarray | None:
+        return None
 
     def read(self, r0: int, c0: int, h: int, w: int) -> np.ndarray:
         rc = self._rc
@@ -208,6 +238,7 @@ def segment_windows(
             )
         seg = segment(Surface(data, wgrid, source.source), cfg, ev_xy[sel], ev_pair[sel])
         del data
+        count = source.read_count(win.r0, win.c0, win.h, win.w)
         if not np.isfinite(seg.noise_m):
             continue
         noises.append(seg.noise_m)
@@ -220,6 +251,12 @@ def segment_windows(
             reg.cols = reg.cols + c_off
             reg.support_idx = sel[reg.support_idx]
             reg.noise_m, reg.seed_m = seg.noise_m, seg.seed_m
+            if count is not None:
+                # cells deeper than T_d that two or more pairs measured alike (dense_fuse keeps
+                # a pair's sample only within 3 σ of the cell's weighted median)
+                deep = np.nan_to_num(reg.depth_m, nan=0.0) >= reg.seed_m
+                n2 = count[reg.rows - win.r0, reg.cols - win.c0] >= 2
+                reg.dense_support_m2 = float((deep & n2).sum() * grid.gsd_m**2)
             regions.append(reg)
     merged = merge_regions(regions, grid.width, ev_pair)
     noise = float(np.median(noises)) if noises else float("nan")
@@ -295,6 +332,7 @@ def merge_regions(regions: list[Region], width: int, ev_pair: np.ndarray) -> lis
         reg.support_idx = idx
         reg.support_pairs = set(np.unique(ev_pair[idx]).tolist()) if len(idx) else set()
         reg.n_support_points = len(idx)
+        reg.dense_support_m2 = float(sum(p.dense_support_m2 for p in parts))
         reg.noise_m = float(np.median([p.noise_m for p in parts]))
         reg.seed_m = float(np.median([p.seed_m for p in parts]))
         out.append(reg)

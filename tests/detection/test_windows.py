@@ -176,3 +176,41 @@ def test_merge_regions_memory_stays_with_the_regions_not_9x_their_cells():
     # the merged region's own arrays (rows, cols, depths: 32 B/cell) and the int64 keys with
     # their sort are needed (about 110 B/cell); the old edge lists took about 590 B/cell
     assert peak < 160 * n_cells, f"merge_regions traced peak {peak / 2**20:.0f} MB"
+
+
+class _ArraySource:
+    """A residual raster and its per-cell count held in memory (as RasterSource reads them)."""
+
+    def __init__(self, res: np.ndarray, count: np.ndarray | None, gsd: float = 0.005) -> None:
+        self.res, self.count = res, count
+        self.grid = GridSpec("EPSG:32617", 500000.0, 4800000.0, gsd, res.shape[1], res.shape[0])
+        self.source, self.footprint_m = "surface.tif", 0.009
+
+    def read(self, r0: int, c0: int, h: int, w: int) -> np.ndarray:
+        return self.res[r0 : r0 + h, c0 : c0 + w].copy()
+
+    def read_count(self, r0: int, c0: int, h: int, w: int) -> np.ndarray | None:
+        return None if self.count is None else self.count[r0 : r0 + h, c0 : c0 + w]
+
+
+def test_dense_support_counts_deep_cells_two_pairs_measured() -> None:
+    """A region's dense support: its cells deeper than T_d that two or more pairs' dense
+    heights share (surface_nobs >= 2), as an area; none without a count raster."""
+    rng = np.random.default_rng(5)
+    n = 240
+    res = rng.normal(0, 0.0003, (n, n)).astype(np.float32)
+    rr, cc = np.mgrid[0:n, 0:n]
+    disc = (rr - 120) ** 2 + (cc - 120) ** 2 < 30**2
+    res[disc] -= 0.03
+    count = np.ones((n, n), np.uint8)
+    count[:, :120] = 2  # the left half seen by two pairs
+    g = _ArraySource(res, count).grid
+    seed = g.xy_from_rowcol(np.array([120]), np.array([120]))
+    segs = {}
+    for name, cnt in (("count", count), ("none", None)):
+        src = _ArraySource(res, cnt)
+        segs[name] = segment_windows(src, CFG.map, seed, seed, np.zeros(1, int), min_points=1)
+    (reg,) = [r for r in segs["count"].regions if len(r.rows) > 1000]
+    half = disc[:, :120].sum() * 0.005**2
+    assert reg.dense_support_m2 == pytest.approx(half, rel=0.1)
+    assert all(r.dense_support_m2 == 0 for r in segs["none"].regions)
