@@ -214,3 +214,25 @@ def test_dense_support_counts_deep_cells_two_pairs_measured() -> None:
     half = disc[:, :120].sum() * 0.005**2
     assert reg.dense_support_m2 == pytest.approx(half, rel=0.1)
     assert all(r.dense_support_m2 == 0 for r in segs["none"].regions)
+
+
+def test_raster_source_reads_the_road_model_cells_as_unknown(tmp_path) -> None:
+    """surface.tif's cells one frame only saw hold the road model (0 at count 0): detection
+    reads them as unknown; measured cells and filled ones (count 0, a non-zero height) stay."""
+    from roadsurf.detection.windows import RasterSource
+    from roadsurf.io.formats import write_geotiff
+
+    g = GridSpec("EPSG:32617", 500000.0, 4800000.0, 0.005, 4, 2)
+    res = np.array([[0.001, -0.02, 0.0, 0.0], [0.0004, 0.0, np.nan, 0.0]], np.float32)
+    cnt = np.array([[2, 1, 0, 1], [0, 0, 0, 3]], np.uint8)
+    write_geotiff(tmp_path / "surface.tif", res, g, nodata=float("nan"))
+    src = RasterSource(tmp_path / "surface.tif")
+    assert src.count_path is None
+    np.testing.assert_array_equal(src.read(0, 0, 2, 4), res)  # no count raster: as written
+    write_geotiff(tmp_path / "surface_nobs.tif", cnt, g, nodata=0)
+    src = RasterSource(tmp_path / "surface.tif")
+    got = src.read(0, 0, 2, 4)
+    src.close()
+    want = res.copy()
+    want[0, 2] = want[1, 1] = np.nan  # the road model; a measured 0 (count 1 / 3) stays
+    np.testing.assert_array_equal(got, want)
