@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 
 from roadsurf.core.camera import Camera
-from roadsurf.core.fits import robust_sigma
+from roadsurf.core.fits import robust_sigma, trimmed_lstsq
 from roadsurf.detection.config import CrackConfig
 from roadsurf.detection.densepair import as_u8
 from roadsurf.reconstruction.features import track_forward_backward
@@ -191,15 +191,10 @@ def dense_crack_depth(
         return None
     # Local road: a plane in the image through the side band's δ (robust: 3 σ trimmed).
     A = np.c_[np.ones(len(raw)), (raw - raw[:n_c].mean(axis=0)) / max(w, h)]
-    As, ds = A[n_c:][s_ok], d[n_c:][s_ok]
-    use = np.ones(len(ds), bool)
-    for _ in range(3):
-        coef = np.linalg.lstsq(As[use], ds[use], rcond=None)[0]
-        res = ds - As @ coef
-        sig = max(robust_sigma(res[use]), 1e-5)
-        use = np.abs(res) <= 3.0 * sig
-        if use.sum() < 2 * win:
-            return None
+    fit = trimmed_lstsq(A[n_c:][s_ok], d[n_c:][s_ok], 2 * win, 1e-5)
+    if fit is None:
+        return None
+    coef, res, _, use = fit
     # Floor: LK's sub-pixel precision (0.02 px, as the forward-backward floor in densepair.py)
     # over the parallax across the crack per metre of depth: a noiseless render is not exact.
     floor = 0.02 / max(float(np.median(np.abs(cj[:n_c][c_ok]))), 1e-9)

@@ -214,7 +214,7 @@ def _local_depths(
         return fallback
     from scipy.spatial import cKDTree
 
-    from roadsurf.core.fits import robust_sigma
+    from roadsurf.core.fits import trimmed_lstsq
 
     gap = cKDTree(line_xy_m).query(P[:, :2], distance_upper_bound=cfg.local_road_m)[0]
     ring = road & ~near & (gap <= cfg.local_road_m)
@@ -222,15 +222,10 @@ def _local_depths(
         return fallback
     o = line_xy_m.mean(axis=0)
     A = np.c_[np.ones(int(ring.sum())), P[ring, :2] - o]
-    r = np.asarray(dist_m, float)[ring]
-    use = np.ones(len(r), bool)
-    for _ in range(3):
-        coef = np.linalg.lstsq(A[use], r[use], rcond=None)[0]
-        res = r - A @ coef
-        sig = max(robust_sigma(res[use]), 1e-6)
-        use = np.abs(res) <= 3.0 * sig
-        if use.sum() < cfg.local_road_min_points:
-            return fallback
+    fit = trimmed_lstsq(A, np.asarray(dist_m, float)[ring], cfg.local_road_min_points, 1e-6)
+    if fit is None:
+        return fallback
+    coef, _, sig, use = fit
     Ac = np.c_[np.ones(n), P[near, :2] - o]
     a = Ac.sum(axis=0)
     ref_var = sig**2 * float(a @ np.linalg.pinv(A[use].T @ A[use]) @ a)

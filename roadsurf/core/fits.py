@@ -26,6 +26,30 @@ def robust_sigma(values: np.ndarray) -> float:
     return float(MAD_TO_SIGMA * np.median(np.abs(v - np.median(v))))
 
 
+def trimmed_lstsq(
+    A: np.ndarray,
+    y: np.ndarray,
+    min_used: int,
+    sigma_floor: float,
+    k: float = 3.0,
+    iterations: int = 3,
+) -> tuple[np.ndarray, np.ndarray, float, np.ndarray] | None:
+    """Least squares y ≈ A coef, refitted ``iterations`` times on the rows within ``k`` robust
+    σ (MAD, at least ``sigma_floor``) of the previous fit. A (N, P), y (N,). Returns (coef (P,),
+    residuals of every row (N,), σ, rows kept (N,) bool), or None once fewer than ``min_used``
+    rows stay."""
+    use = np.ones(len(y), bool)
+    coef, res, sig = np.zeros(A.shape[1]), np.zeros(len(y)), sigma_floor
+    for _ in range(iterations):
+        coef = np.linalg.lstsq(A[use], y[use], rcond=None)[0]
+        res = y - A @ coef
+        sig = max(robust_sigma(res[use]), sigma_floor)
+        use = np.abs(res) <= k * sig
+        if use.sum() < min_used:
+            return None
+    return coef, res, sig, use
+
+
 # ---------------------------------------------------------------------------------- planes
 def fit_plane_z(points_m: np.ndarray) -> np.ndarray:
     """Least-squares plane Z = p0 X + p1 Y + p2 through (N, 3) points (N >= 3); returns (3,)."""

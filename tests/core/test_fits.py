@@ -66,3 +66,20 @@ def test_plane_fits_ignore_a_pothole() -> None:
 def test_fit_plane_needs_three_points() -> None:
     with pytest.raises(ValueError, match="at least 3"):
         fit_plane_z(np.zeros((2, 3)))
+
+
+def test_trimmed_lstsq_drops_outliers_and_refuses_too_few_rows() -> None:
+    from roadsurf.core.fits import trimmed_lstsq
+
+    rng = np.random.default_rng(2)
+    x = rng.uniform(-1, 1, 200)
+    A = np.c_[np.ones_like(x), x]
+    y = 0.5 + 2.0 * x + rng.normal(0, 0.01, len(x))
+    y[:6] += 0.2  # a few rows 20 σ off
+    fit = trimmed_lstsq(A, y, min_used=50, sigma_floor=1e-6)
+    assert fit is not None
+    coef, res, sig, use = fit
+    assert coef == pytest.approx([0.5, 2.0], abs=0.005)
+    assert not use[:6].any() and use[6:].mean() > 0.95
+    assert sig == pytest.approx(0.01, rel=0.2) and res.shape == y.shape
+    assert trimmed_lstsq(A, y, min_used=190, sigma_floor=1e-6) is None
