@@ -83,6 +83,7 @@ class RasterSource:
                 if (c.width, c.height) != (src.width, src.height):
                     self.count_path = None
         self._cnt = None
+        self._last_count: tuple[tuple[int, int, int, int] | None, np.ndarray | None] = (None, None)
 
     def read(self, r0: int, c0: int, h: int, w: int) -> np.ndarray:
         import rasterio
@@ -108,9 +109,12 @@ class RasterSource:
 
         if self.count_path is None:
             return None
-        if self._cnt is None:
-            self._cnt = rasterio.open(self.count_path)
-        return np.asarray(self._cnt.read(1, window=Window(c0, r0, w, h)))
+        key = (r0, c0, h, w)
+        if self._last_count[0] != key:  # read() and the segmentation ask for the same window
+            if self._cnt is None:
+                self._cnt = rasterio.open(self.count_path)
+            self._last_count = (key, np.asarray(self._cnt.read(1, window=Window(c0, r0, w, h))))
+        return self._last_count[1]
 
     def close(self) -> None:
         for name in ("_src", "_cnt"):

@@ -114,10 +114,8 @@ def road_grade(
         chi2 = (w * (za - zm - b * (ds - m)) ** 2).sum() / sk * n_eff / (n_eff - 2.0)
         se[i] = math.sqrt(max(chi2, 1.0) / sxx)
         grade[i] = b
-    keep = prior_var / (prior_var + np.where(np.isfinite(se), se, np.inf) ** 2)
-    keep = np.where(np.isfinite(se), keep, 0.0)
-    slope = grade * keep
-    return RoadGrade(np.arctan(slope), np.arctan(np.where(np.isfinite(se), se, np.inf)), keep)
+    keep = prior_var / (prior_var + se**2)  # 0 where no fit (se = inf)
+    return RoadGrade(np.arctan(grade * keep), np.arctan(se), keep)
 
 
 def _line(x: np.ndarray, z: np.ndarray, w: np.ndarray) -> tuple[float, float, float, float] | None:

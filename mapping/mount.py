@@ -172,7 +172,7 @@ def resolve(
                 f"the drive's road planes give a camera roll of {roll:.1f} deg (more than a "
                 f"road's cross-fall; > {disagree_deg} deg), applied: it holds the road's "
                 "cross-fall too (2 %: 1.1 deg, a sideways map error of about "
-                f"{100 * camera.height_m * math.tan(math.radians(1.15)):.0f} cm), where "
+                f"{100 * camera.height_m * 0.02:.0f} cm), where "
                 f"ignoring it would move the map {100 * shift:.0f} cm sideways. Measure it "
                 "(`roadsurf calibrate --ground`) and set mount_roll_deg in camera.yaml."
             )
