@@ -37,6 +37,7 @@ from roadsurf.core.parallel import ordered_map
 from roadsurf.io.drive import Drive, GrayFrames
 from roadsurf.io.formats import GridSpec
 from roadsurf.mapping.config import MappingConfig
+from roadsurf.mapping.dense_seams import SeamSamples
 from roadsurf.mapping.raster import GridToEnu, TileLattice
 from roadsurf.mapping.surface import LocalSurface
 from roadsurf.mapping.types import Trajectory
@@ -208,6 +209,7 @@ class DenseSurface:
         self._done: dict[int, _PairDense | None] = {}
         self._tiles_left = [set(ts) for ts in self.pair_tiles]
         self.stats = {"pairs": 0, "pairs_failed": 0, "match_s": 0.0, "valid_px": 0}
+        self.seams: SeamSamples | None = None  # set: the pairs' samples where they overlap
 
     # ------------------------------------------------------------------ pairs
     def _match(self, k: int) -> _PairDense | None:
@@ -294,6 +296,7 @@ class DenseSurface:
         grid = self.lat.tile_grid(*t)
         n = grid.width * grid.height
         cells, vals, vars_ = [], [], []
+        frames: list[int] = []
         for pdn in got:
             if pdn is None:
                 continue
@@ -302,6 +305,12 @@ class DenseSurface:
                 cells.append(out[0])
                 vals.append(out[1])
                 vars_.append(out[2])
+                frames.append(int(self.pairs[pdn.index].index_a))
+        if self.seams is not None:
+            tp = self.lat.tile_px
+            self.seams.add(
+                t[0] * tp, t[1] * tp, grid.width, list(zip(frames, cells, vals, strict=True))
+            )
         with self._lock:  # drop pairs whose every tile is done
             for k in ks:
                 self._tiles_left[k].discard(t)

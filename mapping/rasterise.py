@@ -27,6 +27,7 @@ from roadsurf.mapping.dense_fuse import (
     dense_px_m,
     surface_height_grid,
 )
+from roadsurf.mapping.dense_seams import DENSE_SEAMS, SeamSamples, seam_stride_cells
 from roadsurf.mapping.export import export_xyz
 from roadsurf.mapping.mosaic import ImageCache, mosaic_tile
 from roadsurf.mapping.overlap import check_frame_overlap
@@ -177,6 +178,8 @@ def rasterise(
             ds = DenseSurface(
                 cfg, drive, pairs or [], traj, surf, g2e, lat, tiles, fp_grid, workers
             )
+            cell_px = gsd / dense_px_m(cfg, cam, traj, road_z)  # work-grid px per cell
+            ds.seams = SeamSamples(fg, seam_stride_cells(cfg.dense.window_px, cell_px))
             # cloud.ply becomes the dense cloud (the sparse one written before is replaced)
             datum = vertical_datum(cfg, drive, ef is not None)
             cloud = DenseCloudWriter(
@@ -376,6 +379,9 @@ def rasterise(
                 prod.files[name] = f"{name}.tif"
             if write_tiles:
                 prod.files[f"{name}_vrt"] = f"{name}.vrt"
+        if ds.seams is not None:  # the pairs' samples where they overlap (evaluate's seams)
+            ds.seams.write(prod.run_dir / DENSE_SEAMS)
+            prod.files["dense_seams"] = DENSE_SEAMS
         st = ds.stats
         prod.timings_s["dense_match"] = round(st["match_s"], 3)
         prod.residual_stats_m["dense_pairs"] = st["pairs"]

@@ -2,7 +2,7 @@
 
 Works on any run folder that follows the output contract (roadsurf or the SfM baseline):
 ``trajectory.geojson`` (Points with filename), ``surface.tif`` or ``surface.vrt``, and optionally
-``map_points.npz`` (for the seam step) and ``defects.geojson`` (scored by
+``dense_seams.npz`` or ``map_points.npz`` (for the seam step) and ``defects.geojson`` (scored by
 ``evaluation.detection.evaluate_detection``).
 
 Figures (targets of issue 4 are printed as met / not met):
@@ -11,7 +11,8 @@ Figures (targets of issue 4 are printed as met / not met):
 - surface height MAE / RMSE (m) on flat road and inside defects, after removing the absolute
   GPS offset with the 2D rigid alignment of the trajectory (raw figures too);
 - coverage of the imaged corridor (union of the true camera footprints on the road);
-- the largest seam step between neighbouring pair patches (from map_points.npz).
+- the largest seam step between neighbouring pair patches (``evaluation.seams``: the dense
+  surface's per-pair samples, dense_seams.npz, else map_points.npz), its standard error.
 """
 
 from __future__ import annotations
@@ -24,7 +25,8 @@ from typing import Any
 from roadsurf.core.atomic import read_json, write_json_atomic, write_text_atomic
 from roadsurf.core.errors import RoadsurfError
 from roadsurf.evaluation.detection import evaluate_detection
-from roadsurf.evaluation.surface import seam_steps, surface_metrics
+from roadsurf.evaluation.seams import seam_report
+from roadsurf.evaluation.surface import surface_metrics
 from roadsurf.evaluation.trajectory import (
     gps_noise_m,
     gps_rmse_m,
@@ -87,7 +89,7 @@ def evaluate_run(run_dir: str | Path, truth_dir: str | Path) -> dict[str, Any]:
     surf = surface_metrics(run_dir, truth_dir, truth, align, crs, scen, seen)
     out["surface"] = surf.pop("metrics")
     out.update(surf)
-    out["seam_step_max_m"], out["seam_step_p95_m"], out["seam_pairs"] = seam_steps(run_dir)
+    out.update(seam_report(run_dir))  # seam_step_max_m, _p95_m, seam_pairs, source, error
     out["cloud_points_per_m2"] = cloud_density(
         run_dir, out.get("measured_area_m2", out.get("observed_area_m2"))
     )

@@ -236,34 +236,7 @@ def surface_metrics(
 
 
 # --------------------------------------------------------------------------- seams
+# the seam steps moved to evaluation.seams (dense samples first, the sparse points as fallback)
+from roadsurf.evaluation.seams import seam_report, seam_steps  # noqa: E402
 
-
-def seam_steps(run_dir: Path) -> tuple[float, float, int]:
-    """Height disagreement between neighbouring patches: for patches k and the next one, the
-    median residual difference of nearby points (within 1.5 cm) on flat road (|r| < 1 cm)."""
-    path = run_dir / rf.MAP_POINTS
-    if not path.is_file():
-        return float("nan"), float("nan"), 0
-    from scipy.spatial import cKDTree
-
-    with np.load(path, allow_pickle=False) as z:
-        xyz, r, fr = z["xyz"], z["residual_m"].astype(float), z["frame_index"]
-    flat = np.abs(r) < 0.01
-    xyz, r, fr = xyz[flat], r[flat], fr[flat]
-    ids = np.unique(fr)
-    steps = []
-    for a, b in zip(ids[:-1], ids[1:], strict=True):
-        A, B = fr == a, fr == b
-        if A.sum() < 20 or B.sum() < 20:
-            continue
-        tree = cKDTree(xyz[A, :2])
-        d, j = tree.query(xyz[B, :2], distance_upper_bound=0.015)
-        ok = np.isfinite(d)
-        if ok.sum() < 20:
-            continue
-        diff = r[B][ok] - r[A][j[ok]]
-        steps.append(abs(float(np.median(diff))))
-    if not steps:
-        return float("nan"), float("nan"), 0
-    s = np.array(steps)
-    return float(s.max()), float(np.percentile(s, 95)), len(s)
+__all__ = ["seam_report", "seam_steps", "surface_metrics"]

@@ -153,6 +153,14 @@ def test_dense_products_and_grid(drive_maps: dict[str, object]) -> None:
     # strip of ~20%; measured 19%)
     assert (nobs >= 2).sum() > 0.1 * fin.sum()
     assert prod.files["surface_nobs"] == "surface_nobs.tif"  # type: ignore[attr-defined]
+    # the pairs' own samples where two measured a cell, for evaluate's seam steps
+    from roadsurf.evaluation.seams import seam_report
+
+    assert prod.files["dense_seams"] == "dense_seams.npz"  # type: ignore[attr-defined]
+    seams = seam_report(d)
+    assert seams["seam_source"] == "dense" and seams["seam_pairs"] == 8
+    # measured: 298 samples a seam, standard error 0.05 mm (the sparse points: 0.2-0.4 mm)
+    assert seams["seam_step_se_median_m"] < 0.1e-3 and seams["seam_samples_median"] > 200
     # what one value measures on the ground: the 5 px window at ~3.7 mm a pixel, for detection
     from roadsurf.detection.windows import RasterSource
 
