@@ -128,6 +128,18 @@ class CrackConfig:
     # between crack and epipolar direction < 0.25, i.e. within ~15°): LK's aperture hides it (-)
     dense_min_across: float = 0.25
     dense_max_depth_m: float = 0.05  # |depth| beyond this: a failed track, not a crack floor (m)
+    # ... read by a groove model fitted to the cross-section profiles in both images
+    # (``crackgroove``) instead of the LK tracks: a window's shift sees 0.15-0.4 of a groove's
+    # depth (its rims do not move) and, on busy texture, mostly the texture's (road-level)
+    # shift; the model separates the groove's displacement from the road's. LK where the model
+    # measures nothing
+    groove: bool = True
+    # profiles (one per centre-line pixel) pooled into blocks of this many px along the crack,
+    # taken as independent: a profile reads bilinear samples and a 3 px gradient, so its
+    # neighbours within ~2 px share pixels; blocks 4x that (px)
+    groove_block_px: float = 8.0
+    groove_min_blocks: int = 5  # at least this many blocks (count; 7 cm of crack at 1.8 mm/px)
+    groove_iterations: int = 4  # Gauss-Newton steps per profile (count; 1 px moves converge in 3)
     max_samples: int = 150  # samples per crack piece mapped onto the road (count)
     link_m: float = 0.08  # samples closer than this on the map are one crack (m)
     join_m: float = 0.2  # confirmed cracks closer than this are joined into one (m)
@@ -186,6 +198,9 @@ class CrackConfig:
         "dense_window_px": "[3, inf); OpenCV's Lucas-Kanade needs a window wider than 2 px",
         "dense_min_across": "[0, 1]",
         "dense_max_depth_m": "(0, 1]; a crack deeper than 1 m is a unit mistake",
+        "groove_block_px": "(0, inf)",
+        "groove_min_blocks": "[2, inf); a spread needs 2 blocks",
+        "groove_iterations": "[1, inf)",
         "max_samples": "[1, inf)",
         "link_m": "[0, inf)",
         "join_m": "[0, inf)",

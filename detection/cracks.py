@@ -40,6 +40,7 @@ from roadsurf.core.camera import Camera
 from roadsurf.detection.config import CrackConfig
 from roadsurf.detection.crackdepth import DenseCrack, PairView, dense_crack_depth
 from roadsurf.detection.crackfilter import centre_line, thin_dark_components
+from roadsurf.detection.crackgroove import groove_crack_depth
 from roadsurf.detection.gsd import ground_px_m_raw
 
 log = logging.getLogger(__name__)
@@ -132,11 +133,7 @@ def detect_pair_cracks(
         # the points' localisation); points beside it are road and only dilute the mean depth.
         near = dist_px[v, u] <= max(cfg.near_px, 0.5 * wpx)
         n = int(near.sum())
-        dn = (
-            None
-            if view is None or not cfg.dense
-            else dense_crack_depth(line, wpx, gray, view, np.asarray(zcoef, float), cfg)
-        )
+        dn = None if view is None or not cfg.dense else _dense(line, wpx, gray, view, zcoef, cfg)
         # A thin crack often has no sparse point on it (features straddle it); its dense
         # reading alone then carries it.
         if n == 0 and dn is None:
@@ -179,6 +176,25 @@ def detect_pair_cracks(
         *(np.asarray(a, float) for a in (wd, sd, nn, nb, vv, mx)),
         *(np.asarray(a, float) for a in zip(*dd, strict=True)),
     )
+
+
+def _dense(
+    line: np.ndarray,
+    width_px: float,
+    gray: np.ndarray,
+    view: PairView,
+    zcoef: np.ndarray,
+    cfg: CrackConfig,
+) -> DenseCrack | None:
+    """Dense depth of one piece: the groove model on its cross-section profiles
+    (``crackgroove``, with ``groove``), else or where it measures nothing the LK tracks of its
+    centre line (``dense_crack_depth``)."""
+    plane = np.asarray(zcoef, float)
+    if cfg.groove:
+        dn = groove_crack_depth(line, width_px, gray, view, plane, cfg)
+        if dn is not None:
+            return dn
+    return dense_crack_depth(line, width_px, gray, view, plane, cfg)
 
 
 def _local_depths(
