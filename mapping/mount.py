@@ -37,7 +37,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-MIN_PAIRS = 3  # fewer ok pairs than this: no estimate (the camera.yaml mount or nadir)
+MIN_PAIRS = 3  # fewer ok pairs than this: an estimate that says it rests on few pairs
 MIN_BASELINE_M = 0.01  # pairs that barely moved give no direction of travel (m)
 
 
@@ -82,7 +82,9 @@ def estimate_from_pairs(
     pairs: list[PairResult],
 ) -> tuple[np.ndarray, float, int] | None:
     """(R_vehicle_from_cam (3, 3), spread of the road normals (deg), pairs used) from the ok
-    pairs' road planes and directions of travel, or None with fewer than ``MIN_PAIRS``."""
+    pairs' road planes and directions of travel, or None without a usable pair. One pair
+    counts: its plane fit (hundreds of road points) holds the tilt to a fraction of a degree,
+    where assuming nadir for a 45° camera (a two-frame photo pair) puts the road 45° off."""
     ups, fwds = [], []
     for p in pairs:
         if not p.ok:
@@ -97,7 +99,7 @@ def estimate_from_pairs(
         up = np.array([pl[0], pl[1], -1.0])  # plane z = a x + b y + c: normal towards camera
         ups.append(up / np.linalg.norm(up))
         fwds.append(c_b / np.linalg.norm(c_b))
-    if len(ups) < MIN_PAIRS:
+    if not ups:
         return None
     U, F = np.array(ups), np.array(fwds)
     up = _unit_median(U)
@@ -166,6 +168,13 @@ def resolve(
         R = vehicle_from_cam_rotation(applied, roll if big_roll else 0.0, yaw)
         m = Mount(R, "estimated", est_deg, spread, n)
         log.info("mount estimated from %d pairs: (pitch, roll, yaw) = %s deg", n, _fmt(est_deg))
+        if n < MIN_PAIRS:
+            warns.append(
+                f"the mount {_fmt(est_deg)} deg (pitch, roll, yaw) rests on {n} pair(s) only "
+                f"(a robust estimate needs {MIN_PAIRS}): a pair's vibration or a local slope "
+                "goes into the map's tilt. Give the mount in camera.yaml "
+                "(`roadsurf calibrate --ground`) for a short sequence."
+            )
         if big_roll:
             shift = camera.height_m * math.tan(math.radians(abs(roll)))
             warns.append(

@@ -318,8 +318,8 @@ def simulate(
     return out
 
 
-def _write_drive_files(world, out: Path, names: list[str]) -> None:
-    cfg = world.cfg
+def write_camera_yaml(cfg: SimConfig, out: Path) -> None:
+    """out/camera.yaml of the simulated camera (the mount only with ``write_mount``)."""
     cam = cfg.camera()
     text = (
         "# written by roadsurf simulate\n"
@@ -336,6 +336,11 @@ def _write_drive_files(world, out: Path, names: list[str]) -> None:
     if cam.readout_s > 0:  # a rolling shutter (docs/formats.md)
         text += f"readout_s: {cam.readout_s!r}\n"
     write_text_atomic(out / "camera.yaml", text)
+
+
+def _write_drive_files(world, out: Path, names: list[str]) -> None:
+    cfg = world.cfg
+    write_camera_yaml(cfg, out)
     off = time_offset_s(cfg)
     write_csv(
         out / "frames.csv",

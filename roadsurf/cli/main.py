@@ -76,6 +76,15 @@ def simulate(
             "--write-mount", help="Write the mount angles to camera.yaml (default: estimated)."
         ),
     ] = False,
+    stereo_pair: Annotated[
+        float | None,
+        typer.Option(
+            "--stereo-pair",
+            metavar="BASELINE_M",
+            help="Instead of a drive: a two-frame photo pair of a pothole, the second camera "
+            "moved this far along its own x axis (m), no GPS (default pitch 45 deg, 0.5 m high).",
+        ),
+    ] = None,
     list_scenarios: Annotated[
         bool, typer.Option("--list", help="List scenarios and exit.")
     ] = False,
@@ -104,6 +113,13 @@ def simulate(
         "write_mount": True if write_mount else None,
     }
     overrides |= {k: v for k, v in mount.items() if v is not None}  # given ones only
+    if stereo_pair is not None:
+        from roadsurf.simulation.stereo import simulate_stereo_pair
+
+        kw = {} if seed is None else {"seed": seed}
+        res = simulate_stereo_pair(out, baseline_m=stereo_pair, **kw, **overrides)
+        typer.echo(f"Wrote a stereo pair (baseline {stereo_pair} m) to {res}")
+        return
     res = scenarios.simulate(scenario, out, seed=seed, n_frames=frames, config=config, **overrides)
     typer.echo(f"Wrote drive '{scenario}' to {res}")
 
@@ -172,6 +188,14 @@ def evaluate(
     detection); writes RUN/evaluation.json and .md and prints a markdown table."""
     from roadsurf.evaluation.report import evaluate_run, markdown_table
 
+    if (truth / "stereo_pair.json").is_file():  # a photo pair (simulate --stereo-pair)
+        import json
+
+        from roadsurf.evaluation.pair import score_pair
+
+        for r in runs:
+            typer.echo(f"{r}: {json.dumps(score_pair(r, truth.parent), indent=1)}")
+        return
     results = [evaluate_run(r, truth) for r in runs]
     typer.echo(markdown_table(results, [str(r) for r in runs]))
     for r in runs:

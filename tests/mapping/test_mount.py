@@ -86,3 +86,19 @@ def test_a_roll_beyond_any_cross_fall_is_applied_and_said() -> None:
     assert rep.mount["roll_deg"] == pytest.approx(4.5, abs=0.5)
     assert _errors(traj, syn)[1] < 1.0
     assert any("camera roll of 4." in w and "applied" in w for w in rep.warnings)
+
+
+def test_one_pair_gives_the_mount_with_a_warning() -> None:
+    """A two-frame photo pair of a 45° camera: its one plane fit gives the tilt; assuming nadir
+    put the road 45° off (a pothole read 49 mm deep for 30 mm, benchmarks/stereo_pair.py)."""
+    syn = make_synthetic(n=2, seed=4, gps_hz=5.0, mount_deg=(45.0, 0.0, 0.0), with_gps=False)
+    est = estimate_from_pairs(syn.pairs)
+    assert est is not None and est[2] == 1
+    assert mount_angles_deg(est[0])[0] == pytest.approx(45.0, abs=1.0)
+    traj, rep = poses.estimate_trajectory(CFG, syn.drive, syn.pairs)
+    assert rep.mount["source"] == "estimated" and rep.mount["n_pairs"] == 1
+    assert any("rests on 1 pair(s)" in w for w in rep.warnings)
+    # no GPS: the local frame's heading is free, its up axis is not
+    up_est = traj.world_from_cam[0, :3, :3].T @ np.array([0.0, 0.0, 1.0])
+    up_true = syn.world_from_cam[0, :3, :3].T @ np.array([0.0, 0.0, 1.0])
+    assert np.degrees(np.arccos(np.clip(up_est @ up_true, -1, 1))) < 1.0
