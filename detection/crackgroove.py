@@ -168,5 +168,7 @@ def groove_crack_depth(
     t = mean / (sd / math.sqrt(nb))
     # The normal z of the same one-sided level: few blocks give a noisy spread (heavy tails).
     z = float(norm.isf(student_t.sf(abs(t), nb - 1))) * math.copysign(1.0, t)
-    sig = sd * (t / z) if abs(t) > 1e-6 and abs(z) > 1e-6 else sd
+    # (beyond float range, sf 0: far past any threshold; the normal reading then stands)
+    ok_z = math.isfinite(z) and abs(t) > 1e-6 and abs(z) > 1e-6
+    sig = sd * (t / z) if ok_z else sd
     return DenseCrack(blocks, sig, float(nb), 0.0)
