@@ -93,6 +93,25 @@ def gradients(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return gx, gy
 
 
+INSIDE_MIN = 0.999  # a bilinear sample of a 0/1 mask at least this is inside the image (−)
+
+
+def inside_weight(tgt_inside: torch.Tensor, ref_mask: torch.Tensor | None) -> torch.Tensor:
+    """(1, 1, H, W) float 0/1 weight of each window sample: 1 where the target's sampled mask
+    (bilinear, ``tgt_inside``) is at least ``INSIDE_MIN`` (its four neighbours are image data)
+    and ``ref_mask`` (None: everywhere) marks the reference pixel as image data."""
+    w = (tgt_inside >= INSIDE_MIN).to(tgt_inside.dtype)
+    return w if ref_mask is None else w * (ref_mask >= INSIDE_MIN).to(w.dtype)
+
+
+def window_count(h: int, w: int, win: int, device: torch.device) -> torch.Tensor:
+    """(1, 1, h, w) number of pixels of the win x win window inside an h x w grid (``box``
+    averages over these)."""
+    r = win // 2
+    ones = torch.ones((1, 1, h, w), device=device)
+    return F.avg_pool2d(ones, win, stride=1, padding=r, count_include_pad=True) * (win * win)
+
+
 @dataclass
 class SweepResult:
     value: torch.Tensor  # (1, 1, H, W) swept quantity at the ZNCC peak, sub-step (parabola)
@@ -108,19 +127,28 @@ def sweep(
     values: torch.Tensor,
     shift_of: Callable[[torch.Tensor], torch.Tensor],
     win: int,
+    tgt_mask: torch.Tensor | None = None,
+    ref_mask: torch.Tensor | None = None,
 ) -> SweepResult:
     """ZNCC sweep: for each candidate ``values[k]`` (a height, m) the target is sampled at ref
     pixel + shift_of(values[k]) ŵ (shift_of gives the (1, 1, H, W) parallax field in px) and
     compared with ref in win x win windows. Memory O(H W): only the running best and its two
-    neighbours' scores are kept; the peak is refined by a parabola through them."""
+    neighbours' scores are kept; the peak is refined by a parabola through them.
+
+    With ``tgt_mask`` (1, 1, H, W), 1 where tgt holds image data, and ``ref_mask`` (the same for
+    ref), a window's ZNCC uses only its samples inside both images (``inside_weight``): a window
+    that crosses the edge of the overlap correlates its part that both images see, instead of
+    the zeros beyond the edge."""
     H, W = ref.shape[-2:]
     dev, dt = ref.device, ref.dtype
     ys, xs = torch.meshgrid(
         torch.arange(H, device=dev, dtype=dt), torch.arange(W, device=dev, dtype=dt), indexing="ij"
     )
     xs, ys = xs[None, None], ys[None, None]
+    masked = tgt_mask is not None
     mu_r = box(ref, win)
     sd_r = (box(ref * ref, win) - mu_r * mu_r).clamp_min(0).sqrt()
+    tgt_stack = torch.cat([tgt, tgt_mask], dim=1) if tgt_mask is not None else tgt
     best = torch.full_like(ref, -2.0)
     left = torch.full_like(ref, -2.0)
     right = torch.full_like(ref, -2.0)
@@ -129,11 +157,26 @@ def sweep(
     just = torch.zeros_like(ref, dtype=torch.bool)  # best set at the previous step
     for k in range(len(values)):
         s = shift_of(values[k])
-        J = sample(tgt, xs + s * wx, ys + s * wy)
-        mu_j = box(J, win)
-        cov = box(ref * J, win) - mu_r * mu_j
-        sd_j = (box(J * J, win) - mu_j * mu_j).clamp_min(0).sqrt()
-        c = cov / (sd_r * sd_j + 1e-3)
+        smp = sample(tgt_stack, xs + s * wx, ys + s * wy)
+        J = smp[:, :1]
+        if masked:
+            wgt = inside_weight(smp[:, 1:2], ref_mask)
+            m = box(
+                torch.cat(
+                    [wgt, wgt * ref, wgt * ref * ref, wgt * J, wgt * J * J, wgt * ref * J], 1
+                ),
+                win,
+            )
+            m = m[:, 1:] / m[:, :1].clamp_min(1e-6)
+            mu_rw, mu_j = m[:, :1], m[:, 2:3]
+            sd_rw = (m[:, 1:2] - mu_rw * mu_rw).clamp_min(0).sqrt()
+            sd_j = (m[:, 3:4] - mu_j * mu_j).clamp_min(0).sqrt()
+            c = (m[:, 4:5] - mu_rw * mu_j) / (sd_rw * sd_j + 1e-3)
+        else:
+            mu_j = box(J, win)
+            cov = box(ref * J, win) - mu_r * mu_j
+            sd_j = (box(J * J, win) - mu_j * mu_j).clamp_min(0).sqrt()
+            c = cov / (sd_r * sd_j + 1e-3)
         right = torch.where(just, c, right)
         up = c > best
         best = torch.where(up, c, best)
@@ -158,7 +201,10 @@ class RefineResult:
     ncc: torch.Tensor  # (1, 1, H, W) ZNCC of the windows at the final parallax
     grad: torch.Tensor  # (1, 1, H, W) RMS gradient of the target along ŵ in the window (DN/px)
     last_step: torch.Tensor  # (1, 1, H, W) |last update| (px): not converged when large
-    inside: torch.Tensor  # (1, 1, H, W) share of the window's samples inside the target (0-1)
+    # (1, 1, H, W) samples of the window inside both images at the final parallax (count; the
+    # window's pixels inside the grid, win² away from its border, where all are inside)
+    samples: torch.Tensor
+    centre: torch.Tensor  # (1, 1, H, W) bool: the pixel's own sample is inside both images
 
 
 def refine(
@@ -171,6 +217,7 @@ def refine(
     win: int,
     iters: int,
     noise_dn: float,
+    ref_mask: torch.Tensor | None = None,
 ) -> RefineResult:
     """1D Lucas-Kanade along ŵ with a local gain and offset: in each window
     ref - μ_ref ≈ g (tgt(x + s ŵ) - μ_tgt) with g = σ_ref / σ_tgt. Every pixel samples the
@@ -183,7 +230,13 @@ def refine(
     alone (Σ G̃ r / Σ G̃²) would treat the neighbours as if they were at s(x); that
     iteration amplifies checkerboard errors and diverges. The variance is the LK one:
     σ_r² / (n g² var(∂tgt/∂ŵ)), σ_r² the window's residual variance (2 σ_ref² (1 - ZNCC)),
-    never below the noise of two images (2 noise_dn²)."""
+    never below the noise of two images (2 noise_dn²).
+
+    Every sum runs over the window's samples inside both images only (``inside_weight``: the
+    target's mask ``tgt_mask`` sampled at the current parallax, ``ref_mask`` at the pixel;
+    n = their count): next to the edge of the overlap the window is the part of it that both
+    images see, as ``box`` already clips it at the grid's own border, instead of a window that
+    reads the zeros beyond the edge. Where every sample is inside, the sums are the plain ones."""
     H, W = ref.shape[-2:]
     dev, dt = ref.device, ref.dtype
     ys, xs = torch.meshgrid(
@@ -192,35 +245,48 @@ def refine(
     xs, ys = xs[None, None], ys[None, None]
     # the target's gradient along ŵ, taken on its own grid (ŵ turns by s / (distance to the
     # epipole) between a pixel and its match: well under 1% where pixels are kept), sampled with
-    # the image: two channels per step instead of four
+    # the image and its mask: three channels per step instead of five
     gx, gy = gradients(tgt)
-    stack = torch.cat([tgt, gx * wx + gy * wy], dim=1)
-    mu_r = box(ref, win)
-    var_r = (box(ref * ref, win) - mu_r * mu_r).clamp_min(0)
+    stack = torch.cat([tgt, gx * wx + gy * wy, tgt_mask.to(dt)], dim=1)
+    r2 = ref * ref
     s = shift.clone()
     last = torch.zeros_like(s)
+    wgt = torch.ones_like(s)
     for it in range(iters + 1):
         px, py = xs + s * wx, ys + s * wy
         smp = sample(stack, px, py)
         J, G = smp[:, :1], smp[:, 1:2]
-        m = box(torch.cat([J, G, J * J, G * G, ref * G, J * G], dim=1), win)
-        mu_j, mu_g = m[:, :1], m[:, 1:2]
-        var_j = (m[:, 2:3] - mu_j * mu_j).clamp_min(1e-6)
-        var_g = (m[:, 3:4] - mu_g * mu_g).clamp_min(1e-9)
-        cov_rg = m[:, 4:5] - mu_r * mu_g
-        cov_jg = m[:, 5:6] - mu_j * mu_g
+        w_now = inside_weight(smp[:, 2:3], ref_mask)
+        # while iterating, a sample that leaves the target stays out of the window's sums:
+        # re-admitting it when the parallax moves back made the windows at the edge oscillate
+        # between two sets of samples (45° pair: 3x the unconverged pixels 2-3 px from the
+        # edge); the final statistics use every sample inside at the final parallax
+        wgt = w_now if it == iters else wgt * w_now
+        wJ, wG = wgt * J, wgt * G
+        m = box(
+            torch.cat([wgt, wgt * ref, wgt * r2, wJ, wG, wJ * J, wG * G, wG * ref, wJ * G], 1), win
+        )
+        share = m[:, :1]
+        m = m[:, 1:] / share.clamp_min(1e-6)
+        mu_r = m[:, :1]
+        var_r = (m[:, 1:2] - mu_r * mu_r).clamp_min(0)
+        mu_j, mu_g = m[:, 2:3], m[:, 3:4]
+        var_j = (m[:, 4:5] - mu_j * mu_j).clamp_min(1e-6)
+        var_g = (m[:, 5:6] - mu_g * mu_g).clamp_min(1e-9)
+        cov_rg = m[:, 6:7] - mu_r * mu_g
+        cov_jg = m[:, 7:8] - mu_j * mu_g
         g = (var_r / var_j).sqrt().clamp(0.5, 2.0)
         if it == iters:
             break
-        ms = box(torch.cat([s, G * s, G * G * s], dim=1), win)
+        ms = box(torch.cat([wgt * s, wG * s, wG * G * s], dim=1), win) / share.clamp_min(1e-6)
         ggs = ms[:, 2:3] - 2 * mu_g * ms[:, 1:2] + mu_g * mu_g * ms[:, :1]
         s_new = ((cov_rg - g * cov_jg) / g + ggs) / var_g
         d = (s_new - s).clamp(-1.0, 1.0)
         last = d.abs()
         s = s + d
-    cov_rj = box(ref * J, win) - mu_r * mu_j
+    cov_rj = box(wgt * ref * J, win) / share.clamp_min(1e-6) - mu_r * mu_j
     ncc = cov_rj / (var_r.sqrt() * var_j.sqrt() + 1e-3)
+    n = share * window_count(H, W, win, dev)
     res = (2.0 * var_r * (1.0 - ncc)).clamp_min(2.0 * noise_dn * noise_dn)
-    var = res / (win * win * g * g * var_g)
-    inside = box(sample(tgt_mask, px, py), win)
-    return RefineResult(s, var, ncc, var_g.sqrt(), last, inside)
+    var = res / (n.clamp_min(1.0) * g * g * var_g)
+    return RefineResult(s, var, ncc, var_g.sqrt(), last, n, wgt > 0.5)

@@ -9,8 +9,11 @@
 3. 1D Lucas-Kanade refinement of s with a local gain and offset, and its variance from the
    window's residual and texture (``matching.refine``).
 4. The same from b to a; pixels whose two parallaxes disagree (occlusions, mismatches) are
-   invalid, as are textureless, saturated or dark windows, low ZNCC, samples outside image b and
-   pixels next to the epipole.
+   invalid, as are textureless, saturated or dark windows, low ZNCC, pixels next to the epipole
+   and pixels whose own sample lies outside image b or whose window keeps fewer than
+   ``checks.min_window_samples`` samples inside both images: a window that crosses the edge of
+   the overlap is matched on its part inside (``matching``), and image b is resampled beyond
+   image a's grid by the matches' reach (``warp``).
 5. s -> η by the exact plane + parallax relation; var(η) = (dη/ds)² var(s) + (η σ_scale)².
 6. Pixels left invalid are matched again, steps 1-5, on a grid coarser by 2 (started from the
    first sweep's heights) and take its heights where it passes, with its variance widened by
@@ -43,8 +46,8 @@ from roadsurf.reconstruction.dense.matching import (
     sweep,
 )
 from roadsurf.reconstruction.dense.pyramid import LevelMatch, fill_from_coarse, prior_on_grid
-from roadsurf.reconstruction.dense.rolling import raw_px_from_plane_px
 from roadsurf.reconstruction.dense.runtime import cpu_threads, heap_blocks, torch_device
+from roadsurf.reconstruction.dense.warp import overlap_crop, reach_px, resample_pair
 
 log = logging.getLogger(__name__)
 
@@ -173,18 +176,25 @@ def _match_level(
     only repeat the first)."""
     t0 = time.perf_counter()
     ppw = pp.scaled(s) if s != 1.0 else pp
-    A, B, mA, mB = _resample(img_a, img_b, camera, pp.H, s, rs)
-    timings["resample"] = time.perf_counter() - t0
-    hf, wf = A.shape
+    hf, wf = int(round(camera.height * s)), int(round(camera.width * s))
     out = LevelMatch.empty(hf, wf, s)
-    crop = _overlap_crop(ppw, mB, cfg)
+    # the grid is padded by the matches' reach: image b's samples of image a's edge pixels may
+    # lie beyond image a's own grid (``dense.warp``); padded pixel (P, P) = work pixel (0, 0)
+    P = reach_px(ppw, cfg, hf, wf)
+    A, B, mA, mB = resample_pair(img_a, img_b, camera, pp.H, s, rs, P)
+    timings["resample"] = time.perf_counter() - t0
+    crop = overlap_crop(mA & mB, P, cfg)
     if crop is None:  # image b sees none of image a's road
         return out
     r0, r1, c0, c1 = crop
     # only the part of image a that image b sees (with the parallax's reach) is matched: its
-    # own sub-grid and model (u' = u - c0, v' = v - r0)
+    # own sub-grid and model (u' = u - c0 + P, v' = v - r0 + P); the sub-grid's pixels within
+    # image a's grid are written back (sl of the output, sub of the sub-grid)
     A, B, mA, mB = (x[r0:r1, c0:c1] for x in (A, B, mA, mB))
+    r0, r1, c0, c1 = r0 - P, r1 - P, c0 - P, c1 - P
     ppc = ppw.cropped(c0, r0) if (r0, c0) != (0, 0) else ppw
+    o0, o1, q0, q1 = max(r0, 0), min(r1, hf), max(c0, 0), min(c1, wf)
+    sl, sub = np.s_[o0:o1, q0:q1], np.s_[o0 - r0 : o1 - r0, q0 - c0 : q1 - c0]
     ss = min(1.0, max(float(cfg.sweep_scale), cfg.sweep_min_px / min(hf, wf)))
     h, w = A.shape
     v_np, u_np = np.mgrid[0:h, 0:w].astype(np.float64)
@@ -204,19 +214,19 @@ def _match_level(
         pf = t_(prior_on_grid(prior.init_eta_fwd, ratio, r0, c0, h, w))
         if prior.init_eta_rev is not None:
             pr = t_(prior_on_grid(prior.init_eta_rev, ratio, r0, c0, h, w))
-    s_fwd, e_fwd = _init(cfg, At, Bt, mBt, ppc, wx, wy, nw, nr, A, B, ss, False, pf)
+    s_fwd, e_fwd = _init(cfg, At, Bt, mBt, mAt, ppc, wx, wy, nw, nr, A, B, ss, False, pf)
     s_rev, e_rev = (
-        _init(cfg, Bt, At, mAt, ppc, wx, wy, nw, nr, B, A, ss, True, pr)
+        _init(cfg, Bt, At, mAt, mBt, ppc, wx, wy, nw, nr, B, A, ss, True, pr)
         if cfg.lr_check
         else (None, None)
     )
     t2 = time.perf_counter()
     win = int(cfg.window_px) | 1
-    fwd = refine(At, Bt, mBt, wx, wy, s_fwd, win, cfg.refine_iters, cfg.noise_dn)
-    flags = checks(cfg, fwd, mAt, t_(A), t_(B), wx, wy, win)
+    fwd = refine(At, Bt, mBt, wx, wy, s_fwd, win, cfg.refine_iters, cfg.noise_dn, mAt)
+    flags = checks(cfg, fwd, mAt, mBt, t_(A), t_(B), wx, wy, win)
     if s_rev is not None:
         it_rev = cfg.refine_iters if cfg.lr_refine_iters < 0 else cfg.lr_refine_iters
-        rev = refine(Bt, At, mAt, wx, wy, s_rev, win, it_rev, cfg.noise_dn)
+        rev = refine(Bt, At, mAt, wx, wy, s_rev, win, it_rev, cfg.noise_dn, mBt)
         ys, xs = torch.meshgrid(
             torch.arange(h, device=dev, dtype=torch.float32),
             torch.arange(w, device=dev, dtype=torch.float32),
@@ -243,17 +253,16 @@ def _match_level(
     bad = ~(np.isfinite(eta) & np.isfinite(var)) | near | far
     reject |= np.where(bad, REJECT_GEOMETRY, 0).astype(np.uint8)
     valid = reject == 0
-    sl = np.s_[r0:r1, c0:c1]
-    out.height_m[sl] = np.where(valid, eta, np.nan)
-    out.var_m2[sl] = np.where(valid, var, np.nan)
-    out.valid[sl] = valid
-    out.shift_px[sl] = shift
-    out.ncc[sl] = ncc
-    out.reject[sl] = reject
+    out.height_m[sl] = np.where(valid, eta, np.nan)[sub]
+    out.var_m2[sl] = np.where(valid, var, np.nan)[sub]
+    out.valid[sl] = valid[sub]
+    out.shift_px[sl] = shift[sub]
+    out.ncc[sl] = ncc[sub]
+    out.reject[sl] = reject[sub]
     for e, name in ((e_fwd, "init_eta_fwd"), (e_rev, "init_eta_rev")):
         if e is not None:
             full = np.full((hf, wf), np.nan, np.float32)
-            full[sl] = e[0, 0].cpu().numpy()
+            full[sl] = e[0, 0].cpu().numpy()[sub]
             setattr(out, name, full)
     timings.update(init=t2 - t1, refine=t3 - t2)
     return out
@@ -271,56 +280,6 @@ def _compare_homography(Hp: np.ndarray, He: np.ndarray, camera: Camera) -> None:
     log.debug("dense: estimated vs plane homography differ by %.2f px at the corners", d)
 
 
-def _resample(
-    img_a: np.ndarray,
-    img_b: np.ndarray,
-    camera: Camera,
-    H: np.ndarray,
-    s: float,
-    rs: tuple[np.ndarray, np.ndarray, np.ndarray, float] | None = None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Image a on its ideal pixel grid resized by ``s``, image b through H onto the same grid
-    (float32 DN), and where each sample lies inside its image (bool). ``rs`` = (R, t, plane,
-    frame_dt_s): a rolling shutter, each grid pixel read from the rows that saw its road
-    point (``dense.rolling``) instead of through H at the timestamps."""
-    W, Hh = camera.width, camera.height
-    w, h = int(round(W * s)), int(round(Hh * s))
-    if s < 1.0:  # anti-aliasing before the resampling
-        sig = 0.5 * np.sqrt(1.0 / (s * s) - 1.0)
-        img_a = cv2.GaussianBlur(img_a, (0, 0), sig)
-        img_b = cv2.GaussianBlur(img_b, (0, 0), sig)
-    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
-    u, v = (u + 0.5) / s - 0.5, (v + 0.5) / s - 0.5
-    q = np.stack([u, v, np.ones_like(u)], -1) @ H.T
-    ub, vb = q[..., 0] / q[..., 2], q[..., 1] / q[..., 2]
-    if rs is not None:
-        R, t, plane, dt = rs
-        ua, va = raw_px_from_plane_px(u, v, camera, R, t, plane, dt, 0)
-        ub, vb = raw_px_from_plane_px(u, v, camera, R, t, plane, dt, 1)
-        ua, va, ub, vb = (np.nan_to_num(x, nan=-10.0) for x in (ua, va, ub, vb))
-    elif camera.has_distortion:
-        ra = camera.distort_px(np.column_stack([u.ravel(), v.ravel()])).reshape(h, w, 2)
-        rb = camera.distort_px(np.column_stack([ub.ravel(), vb.ravel()])).reshape(h, w, 2)
-        ua, va, ub, vb = ra[..., 0], ra[..., 1], rb[..., 0], rb[..., 1]
-    else:
-        ua, va = u, v
-
-    def remap(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        out = cv2.remap(
-            img.astype(np.float32),
-            x.astype(np.float32),
-            y.astype(np.float32),
-            cv2.INTER_CUBIC,
-            borderMode=cv2.BORDER_REPLICATE,
-        )
-        inside = (x >= 0) & (x <= W - 1) & (y >= 0) & (y <= Hh - 1)
-        return out, inside
-
-    A, mA = remap(img_a, ua, va)
-    B, mB = remap(img_b, ub, vb)
-    return A, B, mA, mB
-
-
 def _smooth(eta: np.ndarray, valid: np.ndarray, sigma_px: float, range_m: float) -> np.ndarray:
     """Bilateral mean of the valid heights (invalid pixels, set 1 m away, get no weight)."""
     f = np.where(valid, eta, 1.0).astype(np.float32)
@@ -329,37 +288,12 @@ def _smooth(eta: np.ndarray, valid: np.ndarray, sigma_px: float, range_m: float)
     return np.where(valid, out, np.nan)
 
 
-def _overlap_crop(
-    pp: PlaneParallax, inside_b: np.ndarray, cfg: DenseHeightConfig
-) -> tuple[int, int, int, int] | None:
-    """Rows r0:r1 and columns c0:c1 of the work grid whose road lies inside image b, widened by
-    the largest parallax of the searched height range and a matching window; None when image
-    b sees none of it."""
-    rows = np.flatnonzero(inside_b.any(axis=1))
-    cols = np.flatnonzero(inside_b.any(axis=0))
-    if len(rows) == 0 or len(cols) == 0:
-        return None
-    h, w = inside_b.shape
-    v, u = np.mgrid[0 : h : max(h // 8, 1), 0 : w : max(w // 8, 1)].astype(float)
-    reach = np.abs(
-        np.concatenate(
-            [pp.shift_from_height(e, u, v).ravel() for e in (-cfg.max_depth_m, cfg.max_height_m)]
-        )
-    )
-    reach = reach[np.isfinite(reach)]
-    pad = int(np.ceil(reach.max() if len(reach) else 0.0)) + int(cfg.window_px) + 2
-    r0, r1 = max(int(rows[0]) - pad, 0), min(int(rows[-1]) + 1 + pad, h)
-    c0, c1 = max(int(cols[0]) - pad, 0), min(int(cols[-1]) + 1 + pad, w)
-    if r1 - r0 < 2 * cfg.window_px or c1 - c0 < 2 * cfg.window_px:
-        return None
-    return r0, r1, c0, c1
-
-
 def _init(
     cfg: DenseHeightConfig,
     ref: torch.Tensor,
     tgt: torch.Tensor,
     tgt_mask: torch.Tensor,
+    ref_mask: torch.Tensor,
     pp: PlaneParallax,
     wx: torch.Tensor,
     wy: torch.Tensor,
@@ -402,6 +336,8 @@ def _init(
         )
 
     r_s, t_s = down(ref), down(tgt)
+    # the masks' coarse samples: 1 only where all the fine pixels they average are image data
+    rm_s, tm_s = down(ref_mask), down(tgt_mask)
     hs, ws = r_s.shape[-2:]
     # the sweep grid's pixel u'' = ss (u' + 0.5) - 0.5 of the work grid's u'
     pps = pp.scaled(ss)
@@ -423,7 +359,7 @@ def _init(
         k = eta * nrs / (hb * (ha - eta))
         return sign * k * nws / (1.0 - k * e2)
 
-    res = sweep(r_s, t_s, wxs, wys, values, shift_of, int(cfg.window_px) | 1)
+    res = sweep(r_s, t_s, wxs, wys, values, shift_of, int(cfg.window_px) | 1, tm_s, rm_s)
     eta_s = res.value
     if ss != 1.0:  # back on the work grid (sweep coordinates of work pixels, clamped)
         ys, xs = torch.meshgrid(
