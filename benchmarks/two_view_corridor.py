@@ -50,7 +50,7 @@ def road_corridor(drive: Path, truth: dict[str, Any]) -> Any:
     Rs = Rotation.from_quat(np.column_stack([q[:, 1], q[:, 2], q[:, 3], q[:, 0]])).as_matrix()
     with open(td / "poses.csv", newline="") as f:
         up = {r["filename"]: float(r["up_m"]) for r in csv.DictReader(f)}
-    polys = []
+    polys: list[Any] = []
     for k in range(len(q)):
         rw = rays @ Rs[k].T
         xy0 = truth["xy"][k]
