@@ -21,6 +21,7 @@ DENSE_SURFACE_FIELDS = (
     "dense_cloud_spacing_m",
     "dense_min_gsd_m",
     "dense_outlier_sigmas",
+    "dense_visible_k",
     "dense_reference",
     "dense_fill_max_m",
     "dense_sparse_fill",
@@ -202,6 +203,11 @@ class MappingConfig:
     # a pair's sample further than this x its σ (+ 0.2 mm) from the cell's weighted median is
     # left out of the cell's mean (−)
     dense_outlier_sigmas: float = 3.0
+    # a pair's sample of a cell counts only where the point its pixel sees lies within this x
+    # max(the pixel's ground footprint, the cell) of the cell's centre (−; 0 = off; 2: inside
+    # the 5 px window that measured it): a tilted camera cannot see a pothole's near wall,
+    # whose cells otherwise took the floor's height (benchmarks/stereo_pair.py)
+    dense_visible_k: float = 2.0
     # what the dense heights are relative to: each pair's own robust plane (its road, ~1 m), or
     # the local road surface fitted to the sparse points with each pair's offset and tilt to it
     # removed
@@ -302,6 +308,7 @@ class MappingConfig:
         "dense_cloud_spacing_m": "[0, 1]",
         "dense_min_gsd_m": "(0, 1]",
         "dense_outlier_sigmas": "(0, inf)",
+        "dense_visible_k": "[0, inf); 0 = off",
         "dense_reference": "{pair_plane, local_surface}",
         "dense_fill_max_m": "[0, inf); 0 = off",
     }

@@ -12,7 +12,9 @@ run measured (``surface_nobs`` > 0):
 - ``depth_error_m``: the deepest reported pothole's ``max_depth_m`` minus the truth's deepest
   point among the measured cells (target within 3 mm); ``depth_error_median3_m`` against the
   truth's 3 x 3 median (a support like the run's supported maximum);
-- ``found``: a pothole was reported.
+- ``found``: a pothole was reported;
+- ``pothole_measured_share``: the share of the truth's pothole cells (4 mm) inside the hull of
+  the measured cells that hold a measurement (a tilted camera cannot see a steep near wall).
 """
 
 from __future__ import annotations
@@ -33,6 +35,26 @@ from roadsurf.mapping.dense_fuse import NOBS
 POTHOLE_M = 0.005  # truth residual below -5 mm counts as inside the pothole (m)
 SHIFT_M = 0.03  # horizontal registration search half-width (m): the tie's lever arm
 SHIFT_STEP_M = 0.002  # search step (m); refined to 0.5 mm around the best
+
+
+def _measured_share(truth_tif: Path, e: np.ndarray, n: np.ndarray, measured: np.ndarray) -> float:
+    """Share of the truth's pothole cells (deeper than POTHOLE_M) inside the hull of the run's
+    cells that hold a measured run cell: hidden walls and holes count against it."""
+    import cv2
+
+    data, grid, nodata = read_geotiff(truth_tif)
+    t = np.asarray(data, float)
+    rc = np.round(grid.rowcol_from_xy(np.column_stack([e, n]))).astype(np.int64)
+    inside = (rc[:, 0] >= 0) & (rc[:, 0] < t.shape[0]) & (rc[:, 1] >= 0) & (rc[:, 1] < t.shape[1])
+    rc = rc[inside]
+    hull = np.zeros(t.shape, np.uint8)
+    if len(rc) >= 3:
+        cv2.fillConvexPoly(hull, cv2.convexHull(rc[:, ::-1].astype(np.int32)), 1)
+    pit = (hull > 0) & (np.nan_to_num(t, nan=0.0) < -POTHOLE_M)
+    seen = np.zeros(t.shape, bool)
+    m = measured[inside]
+    seen[rc[m, 0], rc[m, 1]] = True
+    return float((seen & pit).sum() / pit.sum()) if pit.any() else float("nan")
 
 
 def _sampler(truth_tif: Path, median_px: int = 0):
@@ -110,8 +132,12 @@ def score_pair(run_dir: str | Path, drive_dir: str | Path) -> dict[str, Any]:
     # the raw one holds the floor's roughness spikes, which no 4-9 mm matching window keeps
     t3 = _sampler(drive_dir / "truth" / "residual.tif", 3)(e0 + dx, n0 + dy)
     true_depth_3 = float(-np.nanmin(t3[ok])) if ok.any() else float("nan")
+    share = _measured_share(
+        drive_dir / "truth" / "residual.tif", e0 + dx, n0 + dy, np.ones(len(e0), bool)
+    )
     return {
         "found": ours_depth is not None,
+        "pothole_measured_share": share,
         "cells": int(ok.sum()),
         "shift_m": [round(dx, 4), round(dy, 4)],
         "pothole_cells": int(pit.sum()),
