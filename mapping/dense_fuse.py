@@ -34,6 +34,7 @@ import numpy as np
 
 from roadsurf.core.camera import Camera
 from roadsurf.core.parallel import ordered_map
+from roadsurf.io import runfolder as rf
 from roadsurf.io.drive import Drive, GrayFrames
 from roadsurf.io.formats import GridSpec
 from roadsurf.mapping.config import MappingConfig
@@ -48,8 +49,8 @@ if TYPE_CHECKING:  # torch loads only when a dense surface is built (a sparse ru
 
 log = logging.getLogger(__name__)
 
-NOBS = "surface_nobs"  # raster of the samples kept per cell (count, uint8, 0 = none)
-SIGMA = "surface_sigma"  # raster of the σ of each cell's height (m)
+NOBS = rf.SURFACE_NOBS  # raster of the samples kept per cell (count, uint8, 0 = none)
+SIGMA = rf.SURFACE_SIGMA  # raster of the σ of each cell's height (m)
 FIXED_POINT_STEPS = 3  # cell -> pixel projections at the sampled height (nadir: 2 suffice)
 
 

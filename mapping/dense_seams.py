@@ -21,8 +21,9 @@ import numpy as np
 
 from roadsurf.core.atomic import write_npz_atomic
 from roadsurf.io.formats import GridSpec
+from roadsurf.io.runfolder import DENSE_SEAMS
 
-DENSE_SEAMS = "dense_seams.npz"  # run-folder file: the pairs' samples on cells seen by two or more
+__all__ = ["DENSE_SEAMS", "SeamSamples", "seam_stride_cells"]
 
 
 def seam_stride_cells(window_px: int, cell_px: float) -> int:

@@ -25,7 +25,6 @@ from typing import Any
 import numpy as np
 
 from roadsurf.io import runfolder as rf
-from roadsurf.mapping.dense_seams import DENSE_SEAMS
 
 FLAT_M = 0.01  # |residual| below this on both sides: flat road (m)
 MIN_SAMPLES = 20  # fewer common samples: no seam measured
@@ -42,7 +41,7 @@ def seam_table(run_dir: Path) -> tuple[str, np.ndarray]:
     """(source, rows): source ``dense``, ``sparse`` or ``none``; rows (S, 5) per seam: frame a
     of the first patch, of the second, step (second minus first, m), its standard error (m) and
     the number of samples."""
-    dense = run_dir / DENSE_SEAMS
+    dense = run_dir / rf.DENSE_SEAMS
     if dense.is_file():
         with np.load(dense, allow_pickle=False) as z:
             rows = _dense_seams(z["row"], z["col"], z["frame_index"], z["residual_m"])
