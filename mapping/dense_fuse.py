@@ -380,22 +380,26 @@ class DenseSurface:
                     v = K[1, 1] * (X1 + dz * R[2, 1]) / Z + K[1, 2]
                 uf = np.nan_to_num(u, nan=-10).astype(np.float32)
                 vf = np.nan_to_num(v, nan=-10).astype(np.float32)
+                # bilinear over the valid neighbours only (a pixel next to an invalid one
+                # keeps its value; wv: the share of the weight on valid pixels)
+                wv = cv2.remap(pdn.valid_f, uf, vf, cv2.INTER_LINEAR, borderValue=0)
                 eta = cv2.remap(pdn.height_filled, uf, vf, cv2.INTER_LINEAR, borderValue=0)
+                eta = eta / np.maximum(wv, 1e-3)
                 with np.errstate(invalid="ignore", divide="ignore"):
                     pz = C[2] + (ha - eta) * (a[0] * u + a[1] * v + a[2]) / (
                         b[0] * u + b[1] * v + b[2]
                     )
                 r = pz - z
-            return r, u, v, uf, vf, eta, Z
+            return r, u, v, uf, vf, eta, Z, wv
 
-        r, u, v, uf, vf, eta, Z = ray_steps(np.zeros_like(z))
+        r, u, v, uf, vf, eta, Z, wv = ray_steps(np.zeros_like(z))
         if self.cfg.dense_visible_k > 0:
             # on a slope along the view the step converges as c^k, c = s tanθ / (1 + s tanθ)
             # (0 on flat road): a pothole floor 70 mm down under a 45° view, rough, is left a
             # few mm off after 3 steps. Again from the local median of the first pass
             start = cv2.medianBlur(np.nan_to_num(r, nan=0.0).astype(np.float32), 5)
-            r, u, v, uf, vf, eta, Z = ray_steps(start.astype(r.dtype))
-        ok = cv2.remap(pdn.valid_f, uf, vf, cv2.INTER_LINEAR, borderValue=0) >= 0.999
+            r, u, v, uf, vf, eta, Z, wv = ray_steps(start.astype(r.dtype))
+        ok = wv >= 0.5  # at least half the bilinear weight on valid pixels
         ok &= np.isfinite(zs) & np.isfinite(r)
         # ground footprint of the pixel vs the cell: a coarser view weighs less
         rx, ry = (u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1]
@@ -416,7 +420,8 @@ class DenseSurface:
             return None
         rows, cols = np.nonzero(ok)
         u, v, foot = u[ok], v[ok], foot[ok]
-        var = cv2.remap(pdn.var, uf, vf, cv2.INTER_LINEAR, borderValue=0)[ok].astype(float)
+        var = cv2.remap(pdn.var, uf, vf, cv2.INTER_LINEAR, borderValue=0)[ok] / wv[ok]
+        var = var.astype(float)
         var = var * np.maximum(1.0, (foot / grid.gsd_m) ** 2)
         cell = (rows + r0) * grid.width + (cols + c0)
         return cell, (r - lev)[ok], var
