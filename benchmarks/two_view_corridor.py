@@ -1,9 +1,9 @@
 """Benchmark: the two-view coverage by measured cells (``roadsurf evaluate``'s
 ``coverage_two_view_measured``) against two truth corridors: the evaluation's, whose camera
-footprints lie on a flat road ``height_m`` below each true camera
-(``roadsurf.evaluation.surface._corridor_polygon``), and one whose footprints are cast on the
-true road: a plane fitted to ``truth/height.tif`` around each footprint (the simulated road's
-grade and cross slope; the plane is extrapolated where the truth raster ends).
+footprints are the image borders cast on the true road (truth/height.tif,
+``roadsurf.evaluation.surface.true_footprints``), and the flat-road one it used before, whose
+footprints lie on a flat road ``height_m`` below each true camera (its fallback without
+truth heights).
 
 Why: a forward-tilted camera sees its far corners at a grazing angle (45° pitch: ~23° below the
 horizon), where a road 5 cm higher than the flat one (2 % cross slope over 1.2 m plus a 1 %
@@ -20,7 +20,6 @@ Diagnostic, not a reference result.
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 from pathlib import Path
 from typing import Any
@@ -28,67 +27,12 @@ from typing import Any
 import numpy as np
 
 
-def road_corridor(drive: Path, truth: dict[str, Any]) -> Any:
-    """Union of consecutive true footprints' intersections, each footprint cast on a plane fitted
-    to the truth heights within 0.3 m of its flat-road footprint (shapely geometry)."""
-    import rasterio
-    import shapely
-    from scipy.spatial.transform import Rotation
-
-    from roadsurf.core.camera import RENDER_UNDISTORT_CRITERIA
-    from roadsurf.io.drive.camera_yaml import load_camera
-
-    td = drive / "truth"
-    with rasterio.open(td / "height.tif") as H:
-        hz, hT = H.read(1).astype(float), H.transform
-    cam = load_camera(drive / "camera.yaml")
-    w, h = float(cam.width), float(cam.height)
-    corners = np.array([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]], float)
-    und = cam.normalised_from_raw_px(corners, criteria=RENDER_UNDISTORT_CRITERIA)
-    rays = np.column_stack([und, np.ones(4)])
-    q = truth["q"]
-    Rs = Rotation.from_quat(np.column_stack([q[:, 1], q[:, 2], q[:, 3], q[:, 0]])).as_matrix()
-    with open(td / "poses.csv", newline="") as f:
-        up = {r["filename"]: float(r["up_m"]) for r in csv.DictReader(f)}
-    polys: list[Any] = []
-    for k in range(len(q)):
-        rw = rays @ Rs[k].T
-        xy0 = truth["xy"][k]
-        if np.any(rw[:, 2] >= -1e-6):
-            polys.append(None)
-            continue
-        flat = xy0 + (-cam.height_m / rw[:, 2])[:, None] * rw[:, :2]
-        lo, hi = flat.min(0) - 0.3, flat.max(0) + 0.3
-        c0, r1 = ~hT * (lo[0], lo[1])
-        c1, r0 = ~hT * (hi[0], hi[1])
-        r0, r1 = max(int(r0), 0), min(int(r1) + 1, hz.shape[0])
-        c0, c1 = max(int(c0), 0), min(int(c1) + 1, hz.shape[1])
-        rr, cc = np.mgrid[r0:r1:4, c0:c1:4]
-        z = hz[r0:r1:4, c0:c1:4]
-        m = np.isfinite(z)
-        if m.sum() < 3:
-            polys.append(None)
-            continue
-        x, y = hT * (cc[m] + 0.5, rr[m] + 0.5)
-        A = np.column_stack([x - xy0[0], y - xy0[1], np.ones(int(m.sum()))])
-        a, b, c = np.linalg.lstsq(A, z[m], rcond=None)[0]
-        # the ray C + λ r meets z = a dx + b dy + c
-        lam = (c - up[truth["filename"][k]]) / (rw[:, 2] - a * rw[:, 0] - b * rw[:, 1])
-        polys.append(shapely.Polygon(xy0 + lam[:, None] * rw[:, :2]))
-    pairs = [
-        p.intersection(n)
-        for p, n in zip(polys[:-1], polys[1:], strict=True)
-        if p is not None and n is not None
-    ]
-    return shapely.union_all([p for p in pairs if not p.is_empty])
-
-
 def analyse(run: Path, drive: Path) -> dict[str, Any]:
     import rasterio
     from rasterio.features import rasterize
 
     from roadsurf.core.atomic import read_json
-    from roadsurf.evaluation.surface import _corridor_polygon
+    from roadsurf.evaluation.surface import corridor_from_footprints, true_footprints
     from roadsurf.evaluation.trajectory import run_trajectory, trajectory_metrics, truth_poses
 
     td = drive / "truth"
@@ -115,8 +59,10 @@ def analyse(run: Path, drive: Path) -> dict[str, Any]:
         n[ok] = nob[row[ok], col[ok]]
         return float((n > 0).mean()), int(len(rr))
 
-    flat, n_flat = measured_share(_corridor_polygon(td, truth, set(truth["filename"]), True))
-    road, n_road = measured_share(road_corridor(drive, truth))
+    seen = set(truth["filename"])
+    flat_feet = true_footprints(td, truth, seen, road=False)
+    flat, n_flat = measured_share(corridor_from_footprints(flat_feet, stereo=True))
+    road, n_road = measured_share(corridor_from_footprints(true_footprints(td, truth, seen), True))
     return {
         "run": str(run),
         "drive": str(drive),

@@ -1,4 +1,5 @@
-"""The imaged corridor of the surface evaluation: true camera footprints from camera.yaml."""
+"""The imaged corridor of the surface evaluation: true camera footprints from camera.yaml, cast
+on the truth road (truth/height.tif) or, without it, on a flat road."""
 
 from __future__ import annotations
 
@@ -59,3 +60,193 @@ def test_two_view_corridor_pairs_consecutive_frames_after_a_skyward_frame(tmp_pa
     assert poly is not None
     w, h = 639 / 600 * 1.1, 479 / 600 * 1.1
     assert poly.area == pytest.approx((w - 0.2) * h, rel=1e-9)
+
+
+# ------------------------------------------------------------------ the corridor on the true road
+# a tilted camera over a road with the simulator's grade (1 %), cross slope (2 %) and a 1 cm
+# undulation, in UTM-sized coordinates; truth/height.tif at 1 cm cells
+X0, Y0, Z0 = 630_000.0, 4_834_000.0, 95.0
+CELL = 0.01
+
+
+def _road_z(x: np.ndarray, y: np.ndarray, phase: float) -> np.ndarray:
+    dx, dy = x - X0, y - Y0
+    return Z0 + 0.01 * dy - 0.02 * dx + 0.01 * np.sin(2 * np.pi * dy / 8.0 + phase)
+
+
+def _write_raster(path: Path, a: np.ndarray, transform: object) -> None:
+    import rasterio
+
+    with rasterio.open(
+        path,
+        "w",
+        driver="GTiff",
+        height=a.shape[0],
+        width=a.shape[1],
+        count=1,
+        dtype=a.dtype,
+        crs="EPSG:32617",
+        transform=transform,
+        nodata=None,
+    ) as dst:
+        dst.write(a, 1)
+
+
+def _tilted_drive(tmp_path: Path, pitch_deg: float, seed: int) -> tuple[Path, dict, float]:
+    """Six frames 0.3 m apart heading north, pitched forward, rolled 2°, 1.1 m above the road
+    (plus a seeded bounce of up to 1 cm); the truth height raster; returns (truth_dir, truth,
+    phase)."""
+    from rasterio.transform import from_origin
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(seed)
+    phase = float(rng.uniform(0, 2 * np.pi))
+    td = _drive(tmp_path, [0.0] * 5)
+    west, north, w, h = X0 - 3.0, Y0 + 7.0, 600, 900
+    T = from_origin(west, north, CELL, CELL)
+    cx = west + (np.arange(w) + 0.5) * CELL
+    cy = north - (np.arange(h) + 0.5) * CELL
+    z = _road_z(cx[None, :], cy[:, None], phase).astype(np.float32)
+    _write_raster(td / "height.tif", z, T)
+    _write_raster(td / "residual.tif", np.zeros_like(z), T)
+    # camera looking down (180° about x), then pitched forward (about east) and rolled
+    R = (
+        Rotation.from_euler("x", pitch_deg, degrees=True)
+        * Rotation.from_euler("y", 2.0, degrees=True)
+        * Rotation.from_euler("x", 180.0, degrees=True)
+    )
+    xy = np.column_stack([X0 + 0.05 * np.arange(6), Y0 + 0.3 * np.arange(6)])
+    up = _road_z(xy[:, 0], xy[:, 1], phase) + 1.1 + rng.uniform(-0.01, 0.01, 6)
+    qx, qy, qz, qw = R.as_quat()
+    truth = {
+        "filename": [f"f{k}.png" for k in range(6)],
+        "xy": xy,
+        "up": up,
+        "q": np.tile([qw, qx, qy, qz], (6, 1)),
+    }
+    return td, truth, phase
+
+
+def _brute_force_footprints(truth: dict, phase: float) -> list:
+    """Each frame's border rays (8 a side, pixel centres) marched from the camera in 0.5 mm steps
+    to their first point under the analytic road."""
+    import shapely
+    from scipy.spatial.transform import Rotation
+
+    n = 8
+    t = np.linspace(0.0, 1.0, n + 1)[:-1]
+    u = np.concatenate([t * 639, np.full(n, 639.0), (1 - t) * 639, np.zeros(n)])
+    v = np.concatenate([np.zeros(n), t * 479, np.full(n, 479.0), (1 - t) * 479])
+    rays = np.column_stack([(u - 319.5) / 600, (v - 239.5) / 600, np.ones(4 * n)])
+    lam = np.arange(0.2, 6.0, 0.0005)
+    out = []
+    for k in range(len(truth["filename"])):
+        q = truth["q"][k]
+        rw = rays @ Rotation.from_quat([q[1], q[2], q[3], q[0]]).as_matrix().T
+        C = np.array([*truth["xy"][k], truth["up"][k]])
+        P = C + lam[None, :, None] * rw[:, None, :]  # (rays, steps, 3)
+        below = P[..., 2] <= _road_z(P[..., 0], P[..., 1], phase)
+        assert below.any(axis=1).all()
+        out.append(shapely.Polygon(P[np.arange(len(rw)), np.argmax(below, axis=1), :2]))
+    return out
+
+
+@pytest.mark.parametrize("pitch_deg", [25.0, 45.0])
+def test_tilted_corridor_is_the_border_cast_on_the_true_road(tmp_path: Path, pitch_deg: float):
+    import shapely
+
+    from roadsurf.evaluation.surface import corridor_from_footprints, true_footprints
+
+    td, truth, phase = _tilted_drive(tmp_path, pitch_deg, seed=23)
+    seen = set(truth["filename"])
+    ref = _brute_force_footprints(truth, phase)
+    feet = true_footprints(td, truth, seen)
+    assert feet is not None
+    for got, want in zip(feet, ref, strict=True):
+        assert got is not None
+        # vertices within half a truth cell (the reference marches 0.5 mm steps)
+        assert got.hausdorff_distance(want) < 0.5 * CELL
+    want2 = shapely.union_all([a.intersection(b) for a, b in zip(ref[:-1], ref[1:], strict=True)])
+    got2 = corridor_from_footprints(feet, stereo=True)
+    assert got2 is not None
+    assert got2.symmetric_difference(want2).area < 2e-3 * want2.area
+    # the flat-road corridor (no truth heights) misplaces the far corners by centimetres
+    flat = corridor_from_footprints(true_footprints(td, truth, seen, road=False), stereo=True)
+    assert flat is not None
+    assert flat.hausdorff_distance(want2) > (0.01 if pitch_deg < 30 else 0.05)
+
+
+def _run_with_measured(tmp_path: Path, td: Path, measured: object) -> Path:
+    """A run whose surface covers the truth grid, measured (count 1) inside ``measured``."""
+    import rasterio
+    from rasterio.features import rasterize
+
+    run = tmp_path / "run"
+    run.mkdir(parents=True)
+    with rasterio.open(td / "residual.tif") as t:
+        shape, T = t.shape, t.transform
+    nobs = rasterize([measured], out_shape=shape, transform=T, fill=0, default_value=1)
+    _write_raster(run / "surface.tif", np.zeros(shape, np.float32), T)
+    _write_raster(run / "surface_nobs.tif", nobs.astype(np.uint8), T)
+    return run
+
+
+def test_two_view_measured_coverage_on_the_true_road_and_an_unmeasured_strip(
+    tmp_path: Path,
+) -> None:
+    """A run measuring exactly what two consecutive frames saw scores ~100 % on the road-cast
+    corridor; one that leaves the far 15 cm unmeasured scores 1 - the strip's share (below
+    98 %)."""
+    import shapely
+
+    from roadsurf.evaluation.surface import surface_metrics
+
+    td, truth, phase = _tilted_drive(tmp_path, 45.0, seed=7)
+    seen = set(truth["filename"])
+    ref = _brute_force_footprints(truth, phase)
+    seen_twice = shapely.union_all(
+        [a.intersection(b) for a, b in zip(ref[:-1], ref[1:], strict=True)]
+    )
+    full = surface_metrics(
+        _run_with_measured(tmp_path / "a", td, seen_twice), td, truth, None, None, {}, seen
+    )
+    assert full["corridor_road"] == "truth_height"
+    assert full["coverage_two_view_measured"] > 0.995
+
+    # the far rows' strip (where a tilted camera's matching fails first), 15 cm deep
+    x0, _, x1, y1 = seen_twice.bounds
+    strip = shapely.box(x0 - 1.0, y1 - 0.15, x1 + 1.0, y1 + 1.0)
+    part = seen_twice.difference(strip)
+    res = surface_metrics(
+        _run_with_measured(tmp_path / "b", td, part), td, truth, None, None, {}, seen
+    )
+    expected = part.area / seen_twice.area
+    assert res["coverage_two_view_measured"] < 0.98
+    assert res["coverage_two_view_measured"] == pytest.approx(expected, abs=0.005)
+
+
+def test_corridor_beyond_the_truth_heights_extrapolates_the_road_plane(tmp_path: Path) -> None:
+    """Heights only up to 2 m ahead of the first camera: the far border rays meet the plane
+    fitted under the footprint, off by the undulation's curvature only (a 1 cm wave of 8 m
+    wavelength leaves <= 4 mm over 1.5 m, x 2.4 along a ray 23° below the horizon: < 1.5 cm),
+    where the flat road misses by ~20 cm."""
+    import rasterio
+
+    from roadsurf.evaluation.surface import true_footprints
+
+    td, truth, phase = _tilted_drive(tmp_path, 45.0, seed=23)
+    with rasterio.open(td / "height.tif") as src:
+        z, T = src.read(1), src.transform
+    z[T.f - (np.arange(z.shape[0]) + 0.5) * CELL > Y0 + 2.0, :] = np.nan
+    _write_raster(td / "height.tif", z, T)
+    ref = _brute_force_footprints(truth, phase)
+    seen = set(truth["filename"])
+    for got, flat, want in zip(
+        true_footprints(td, truth, seen) or [],
+        true_footprints(td, truth, seen, road=False) or [],
+        ref,
+        strict=True,
+    ):
+        assert got is not None and flat is not None
+        assert got.hausdorff_distance(want) < 0.015
+        assert flat.hausdorff_distance(want) > 0.1
