@@ -38,11 +38,14 @@ from roadsurf.io import runfolder as rf
 from roadsurf.io.drive import Drive, GrayFrames
 from roadsurf.io.formats import GridSpec
 from roadsurf.mapping.config import MappingConfig
+from roadsurf.mapping.dense_cells import cell_samples, fuse_cells
 from roadsurf.mapping.dense_seams import SeamSamples
 from roadsurf.mapping.raster import GridToEnu, TileLattice
 from roadsurf.mapping.surface import LocalSurface
 from roadsurf.mapping.types import Trajectory
 from roadsurf.reconstruction.types import PairResult
+
+__all__ = ["DenseSurface", "DenseTile", "dense_gsd_m", "dense_px_m", "fuse_cells"]
 
 if TYPE_CHECKING:  # torch loads only when a dense surface is built (a sparse run never needs it)
     from roadsurf.reconstruction.dense.parallax import DenseHeight
@@ -51,7 +54,6 @@ log = logging.getLogger(__name__)
 
 NOBS = rf.SURFACE_NOBS  # raster of the samples kept per cell (count, uint8, 0 = none)
 SIGMA = rf.SURFACE_SIGMA  # raster of the σ of each cell's height (m)
-FIXED_POINT_STEPS = 3  # cell -> pixel projections at the sampled height (nadir: 2 suffice)
 
 
 def dense_gsd_m(cfg: MappingConfig, cam: Camera, traj: Trajectory, road_z: np.ndarray) -> float:
@@ -77,49 +79,6 @@ def dense_px_m(cfg: MappingConfig, cam: Camera, traj: Trajectory, road_z: np.nda
 
 
 # --------------------------------------------------------------------------- fusion of samples
-
-
-def fuse_cells(
-    cell: np.ndarray, value: np.ndarray, var: np.ndarray, n_cells: int, outlier_sigmas: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Robust variance-weighted estimate per cell from samples (N,) of ``value`` with variance
-    ``var`` in cells ``cell`` (0..n_cells-1): the weighted median m, then the weighted mean of
-    the samples within ``outlier_sigmas`` x their σ (+ 0.2 mm) of m. Returns (n_cells,) float32
-    estimate (NaN where empty), int32 count of the samples kept and float32 σ of the estimate:
-    sqrt(1 / Σw), or the weighted scatter / sqrt(count) when the samples disagree more."""
-    est = np.full(n_cells, np.nan, np.float32)
-    cnt = np.zeros(n_cells, np.int32)
-    sig = np.full(n_cells, np.nan, np.float32)
-    ok = np.isfinite(value) & np.isfinite(var) & (var > 0)
-    if not ok.any():
-        return est, cnt, sig
-    c, v, s2 = cell[ok].astype(np.int64), value[ok].astype(float), var[ok].astype(float)
-    w = 1.0 / s2
-    order = np.lexsort((v, c))
-    c, v, w, s2 = c[order], v[order], w[order], s2[order]
-    starts = np.flatnonzero(np.r_[True, c[1:] != c[:-1]])
-    ids = c[starts]
-    cw = np.cumsum(w)
-    before = np.r_[0.0, cw[:-1]][starts]  # cumulative weight before each group
-    tot = np.add.reduceat(w, starts)
-    grp = np.repeat(np.arange(len(starts)), np.diff(np.r_[starts, len(c)]))
-    # the first sample of each group whose cumulative weight reaches half the group's weight
-    half = (cw - before[grp]) >= 0.5 * tot[grp]
-    first = np.flatnonzero(half & np.r_[True, ~half[:-1] | (grp[1:] != grp[:-1])])
-    med = np.empty(len(starts))
-    med[grp[first]] = v[first]
-    keep = np.abs(v - med[grp]) <= outlier_sigmas * np.sqrt(s2) + 2e-4
-    kw = np.where(keep, w, 0.0)
-    sw = np.bincount(grp, kw, len(starts))
-    mean = np.bincount(grp, kw * v, len(starts)) / np.maximum(sw, 1e-300)
-    scatter = np.bincount(grp, kw * (v - mean[grp]) ** 2, len(starts)) / np.maximum(sw, 1e-300)
-    n = np.bincount(grp, keep, len(starts))
-    has = sw > 0
-    est[ids[has]] = mean[has]
-    cnt[ids[has]] = n[has]
-    sd = np.sqrt(np.maximum(1.0 / np.maximum(sw, 1e-300), scatter / np.maximum(n, 1)))
-    sig[ids[has]] = sd[has]
-    return est, cnt, sig
 
 
 # --------------------------------------------------------------------------- one pair
@@ -354,75 +313,19 @@ class DenseSurface:
             zs, lev = lev, np.zeros_like(lev)
         else:
             zs = surface_height_grid(self.surf, e, n, grid.gsd_m)
-        dh, R, C = pdn.dh, pdn.R_wc, pdn.C
-        K, nrm, ha = dh.model.K, dh.model.n, dh.model.h_a
-        z = np.where(np.isfinite(zs), zs, C[2] - self.cam.height_m)
-        # camera-a coordinates of the cell at height z + r: the horizontal part is fixed, only
-        # the third row of R moves with the height (X = Rᵀ (P - C))
-        X0 = (e - C[0]) * R[0, 0] + (n - C[1]) * R[1, 0]
-        X1 = (e - C[0]) * R[0, 1] + (n - C[1]) * R[1, 1]
-        X2 = (e - C[0]) * R[0, 2] + (n - C[1]) * R[1, 2]
-        # a pixel's ray r = K⁻¹ (u, v, 1) reaches height η above the pair's plane at depth
-        # (h_a - η) / n·r, i.e. at ENU height C_z + (h_a - η) (R₂·r) / (n·r): both dot products
-        # are linear in u, v
-        Ki = np.linalg.inv(K)
-        a = R[2] @ Ki
-        b = nrm @ Ki
-
-        def ray_steps(r: np.ndarray) -> tuple[np.ndarray, ...]:
-            """FIXED_POINT_STEPS plain steps r <- (height the ray through (cell, r) sees)."""
-            for _ in range(FIXED_POINT_STEPS):
-                dz = z + r - C[2]
-                Z = X2 + dz * R[2, 2]
-                with np.errstate(invalid="ignore", divide="ignore"):
-                    Z = np.where(Z > 1e-6, Z, np.nan)
-                    u = K[0, 0] * (X0 + dz * R[2, 0]) / Z + K[0, 2]
-                    v = K[1, 1] * (X1 + dz * R[2, 1]) / Z + K[1, 2]
-                uf = np.nan_to_num(u, nan=-10).astype(np.float32)
-                vf = np.nan_to_num(v, nan=-10).astype(np.float32)
-                # bilinear over the valid neighbours only (a pixel next to an invalid one
-                # keeps its value; wv: the share of the weight on valid pixels)
-                wv = cv2.remap(pdn.valid_f, uf, vf, cv2.INTER_LINEAR, borderValue=0)
-                eta = cv2.remap(pdn.height_filled, uf, vf, cv2.INTER_LINEAR, borderValue=0)
-                eta = eta / np.maximum(wv, 1e-3)
-                with np.errstate(invalid="ignore", divide="ignore"):
-                    pz = C[2] + (ha - eta) * (a[0] * u + a[1] * v + a[2]) / (
-                        b[0] * u + b[1] * v + b[2]
-                    )
-                r = pz - z
-            return r, u, v, uf, vf, eta, Z, wv
-
-        r, u, v, uf, vf, eta, Z, wv = ray_steps(np.zeros_like(z))
-        if self.cfg.dense_visible_k > 0:
-            # on a slope along the view the step converges as c^k, c = s tanθ / (1 + s tanθ)
-            # (0 on flat road): a pothole floor 70 mm down under a 45° view, rough, is left a
-            # few mm off after 3 steps. Again from the local median of the first pass
-            start = cv2.medianBlur(np.nan_to_num(r, nan=0.0).astype(np.float32), 5)
-            r, u, v, uf, vf, eta, Z, wv = ray_steps(start.astype(r.dtype))
-        ok = wv >= 0.5  # at least half the bilinear weight on valid pixels
-        ok &= np.isfinite(zs) & np.isfinite(r)
-        # ground footprint of the pixel vs the cell: a coarser view weighs less
-        rx, ry = (u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1]
-        with np.errstate(invalid="ignore", divide="ignore"):
-            cos = np.abs(rx * nrm[0] + ry * nrm[1] + nrm[2]) / np.sqrt(rx * rx + ry * ry + 1.0)
-            foot = Z / K[0, 0] / np.sqrt(np.maximum(cos, 0.1))
-            # the point the last pixel sees must lie on the cell: a cell camera a cannot see
-            # (a pothole's near wall under a tilted camera) or a wall too steep for the fixed
-            # point otherwise takes the height of another place (the floor seen past the rim)
-            depth = (ha - eta) / (b[0] * u + b[1] * v + b[2])
-            ex, nx = R[0] @ Ki, R[1] @ Ki
-            de = C[0] + depth * (ex[0] * u + ex[1] * v + ex[2]) - e
-            dn = C[1] + depth * (nx[0] * u + nx[1] * v + nx[2]) - n
-            off = np.hypot(de, dn)
-        if self.cfg.dense_visible_k > 0:
-            ok &= off <= self.cfg.dense_visible_k * np.maximum(foot, grid.gsd_m)
+        z = np.where(np.isfinite(zs), zs, pdn.C[2] - self.cam.height_m)
+        got = cell_samples(
+            pdn.dh.model, pdn.R_wc, pdn.C, pdn.height_filled, pdn.valid_f, pdn.var, e, n, z,
+            grid.gsd_m, self.cfg.dense_visible_k,
+        )  # fmt: skip
+        if got is None:
+            return None
+        ok, r, var = got
+        ok &= np.isfinite(zs)
         if not ok.any():
             return None
         rows, cols = np.nonzero(ok)
-        u, v, foot = u[ok], v[ok], foot[ok]
-        var = cv2.remap(pdn.var, uf, vf, cv2.INTER_LINEAR, borderValue=0)[ok] / wv[ok]
-        var = var.astype(float)
-        var = var * np.maximum(1.0, (foot / grid.gsd_m) ** 2)
+        var = var[ok]
         cell = (rows + r0) * grid.width + (cols + c0)
         return cell, (r - lev)[ok], var
 
