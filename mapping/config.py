@@ -53,6 +53,12 @@ class MappingConfig:
     # along the track (m); the tilt prior holds the mount's up axis on the road's normal, world
     # up tipped by the grade (a 1 % grade moved a 25° camera's map 12 mm); 0 = a level road
     grade_window_m: float = 10.0
+    # σ_γ: prior spread of the road's grade (%; mapping.grade shrinks the fitted grade towards
+    # a level road against it and widens the window until the fit's error is below half of it).
+    # Road design keeps most road length within ±2-4 % (arterial maxima 4-6 %, local streets up
+    # to 8-12 % in hills): 2 % puts 95 % of grades within ±4 %. Not the tilt prior's σ, which
+    # also holds cross-fall and vibration
+    grade_sigma_pct: float = 2.0
     # which axis the tilt prior holds vertical: the mount's up axis (camera.yaml's mount, or
     # the one estimated from the drive; the optical axis of a nadir camera) or the road normal
     # of each pair's plane fit (assumes no cross-fall). Camera roll is not observable from GPS
@@ -252,6 +258,7 @@ class MappingConfig:
         "heading_min_baseline_m": "[0, inf)",
         "tilt_sigma_deg": "(0, 90]",
         "grade_window_m": "[0, inf); 0 = a level road",
+        "grade_sigma_pct": "(0, 100]; 100 % = 45 deg",
         "mount_disagree_deg": "(0, 90]",
         "mount_min_pitch_deg": "[0, 90]",
         "gps_bridge_s": "[0, inf)",

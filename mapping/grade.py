@@ -8,12 +8,21 @@ seen from the road is sin γ · forward + cos γ · up (γ > 0 uphill). A 1 % gr
 at a tilted camera's 1.5 m viewing distance moves the map 15 mm along the track (tilted
 drives, 25° and 45° forward: the map sat 12 mm off the truth).
 
-The grade at each frame is the slope of a local linear fit of the fixes' heights over their
+The grade at each frame is the slope b of a local linear fit of the fixes' heights over their
 distance along the track (Gaussian weights of length ``grade_window_m``, each fix weighted by
-its vertical σ), shrunk towards a level road by its standard error against the tilt prior's
-σ (a grade's prior spread): γ = b · σ_g² / (σ_g² + se²). RTK heights resolve a 1 % grade to
-~0.1°; a consumer receiver's metre-level heights leave γ ≈ 0, i.e. the level road the prior
-assumed before, and so does a GPS track shorter than twice the window. ``shrink`` (σ_g² / (σ_g² + se²), 0-1) says how much of the fit is kept.
+its vertical σ), shrunk towards a level road by its standard error se against the grade's own
+prior σ_γ (``grade_sigma_pct``: the spread of road grades, not the tilt prior's σ, which also
+holds cross-fall and vibration): γ = k · b, k = σ_γ² / (σ_γ² + se²), the posterior mean of a
+grade drawn from N(0, σ_γ²) seen with error se. The se holds the fixes' white scatter (their
+stated σ pooled with their scatter about the line) and their slow wander (a Gauss-Markov height
+error, ``WANDER_TAU_S``). Grades change slowly (vertical curves run over hundreds of metres),
+so where a window's se is above σ_γ / 2 the window widens, doubling up to the whole track, to
+where se crosses σ_γ / 2. A fit that keeps less than 2/3 even there (``MIN_SHRINK``) gives a
+level road. RTK heights resolve a 1 % grade to ~0.1° within 10 m; a consumer receiver's (1 Hz,
+metre-level) within a few hundred metres; over a 60 m drive not at all (se ~2.6°): there the
+old per-frame 10 m fits (se ~8°, shrunk against the tilt prior's 3°) tipped frames by -1.6° to
++1.9° and doubled the bundle's trajectory error (rough-gps 6.7 -> 12.1 mm). A track shorter than
+twice the window gives a level road. ``shrink`` (k, 0-1) says how much of the fit is kept.
 """
 
 from __future__ import annotations
@@ -29,6 +38,23 @@ from roadsurf.mapping.pose_gps import GpsFixes
 MIN_FIXES = 5  # fewer fixes with a height than this: no grade (a level road)
 HUBER_K = 2.0  # Huber weights beyond this many σ (the fixes' stated vertical σ)
 HUBER_STEPS = 4  # reweighted fits per frame
+# widen a frame's window while its standard error exceeds this share of the grade's prior σ:
+# at 0.5 the fit keeps >= 80 % of its slope (σ² / (σ² + (σ/2)²))
+SE_OVER_PRIOR = 0.5
+# the stated vertical σ (HDOP × gps_sigma_per_hdop_m × the vertical factor, a generic UERE
+# scale, uncertain by a factor ~2) weighs as this many residuals against the fixes' own scatter
+STATED_DOF = 4.0
+# the least share of the fitted slope worth keeping: the posterior mean k·b (k = σ_γ² /
+# (σ_γ² + se²)) has a mean squared error σ_γ²(1 - k)(1 + 3k) when se is understated 2× (wander,
+# multipath), less than a level road's σ_γ² only for k > 2/3 (se < σ_γ / √2); below, the grade
+# is mostly the noise model's guess and the road is taken level
+MIN_SHRINK = 2.0 / 3.0
+# correlation time of a receiver's height error (s): satellite geometry, ionosphere and
+# multipath change over minutes, so over a drive of seconds the error wanders like a random walk
+# of q² = 2 σ² / τ (a first-order Gauss-Markov process of σ the stated vertical σ), which no
+# scatter about the line shows: over 15 s at 4 m/s it alone tilts a consumer receiver's slope by
+# ~0.9° (σ 1.7 m); the simulator's consumer profile wanders 1.5 m per √60 s
+WANDER_TAU_S = 120.0
 
 
 @dataclass(frozen=True)
@@ -86,36 +112,80 @@ def road_grade(
         # over a short baseline would be the slope (40 frames, 8 m, 9 fixes of 7.5 cm: 1°)
         return RoadGrade.level(n)
     s_f = np.interp(t, tt, s)  # ... at the frames
-    sa, za = s[alt], xyz[alt, 2]
+    sa, za, ta = s[alt], xyz[alt, 2], tt[alt]
     w0 = 1.0 / np.maximum(sig[alt] * vertical_factor, 1e-6) ** 2
+    dt = np.r_[0.0, np.diff(ta)]  # time between successive fixes (s)
     prior_var = math.tan(prior_sigma_rad) ** 2
     grade = np.zeros(n)
     se = np.full(n, np.inf)
+    # the windows tried, narrowest first, doubling up to the whole track (a kernel twice the
+    # track's length: each fix keeps >= 88 % of its weight)
+    windows = [window_m]
+    while windows[-1] < 2.0 * s[-1]:
+        windows.append(min(2.0 * windows[-1], 2.0 * float(s[-1])))
+    target = SE_OVER_PRIOR * math.sqrt(prior_var)
     for i in range(n):
-        ds = sa - s_f[i]
-        k = np.exp(-0.5 * (ds / window_m) ** 2)  # kernel weight of each fix
-        w = w0 * k  # ... over its vertical variance
-        sw, sk = w.sum(), k.sum()
-        n_eff = sk**2 / max((k**2).sum(), 1e-300)  # fixes the kernel effectively holds
-        if sw <= 0 or n_eff < MIN_FIXES:
-            continue
-        fit = _line(ds, za, w)
-        for _ in range(HUBER_STEPS):  # a height outlier (multipath) must not tilt the line
-            if fit is None:
+        prev: tuple[float, float] | None = None  # (window, se) of the last rung tried
+        for win in windows:
+            got = _local_slope(sa - s_f[i], za, w0, dt, win)
+            if got is None:
+                continue
+            grade[i], se[i] = got
+            if se[i] <= target:
+                if prev is not None and prev[1] > target:
+                    # the window where se crosses the target, interpolated in log-log between
+                    # the two rungs: it moves smoothly along the track, so does the grade (the
+                    # rungs alone switch neighbouring frames' windows 2× apart: 0.3° steps)
+                    u = math.log(prev[1] / target) / math.log(prev[1] / se[i])
+                    got = _local_slope(sa - s_f[i], za, w0, dt, prev[0] * (win / prev[0]) ** u)
+                    if got is not None:
+                        grade[i], se[i] = got
                 break
-            z_r = np.abs(za - fit[2] - fit[3] * (ds - fit[0])) * np.sqrt(w0)  # over its σ
-            w = w0 * k * np.minimum(1.0, HUBER_K / np.maximum(z_r, 1e-12))
-            fit = _line(ds, za, w)
-        if fit is None:
-            continue
-        m, sxx, zm, b = fit
-        # the stated σ, or the fixes' own scatter about the line when they disagree more
-        # (reduced χ² of the kernel-weighted residuals)
-        chi2 = (w * (za - zm - b * (ds - m)) ** 2).sum() / sk * n_eff / (n_eff - 2.0)
-        se[i] = math.sqrt(max(chi2, 1.0) / sxx)
-        grade[i] = b
+            prev = (win, se[i])
     keep = prior_var / (prior_var + se**2)  # 0 where no fit (se = inf)
+    # a fit that keeps less than MIN_SHRINK of its slope even over the whole track: a level road
+    keep[keep < MIN_SHRINK] = 0.0
     return RoadGrade(np.arctan(grade * keep), np.arctan(se), keep)
+
+
+def _local_slope(
+    ds: np.ndarray, za: np.ndarray, w0: np.ndarray, dt: np.ndarray, window_m: float
+) -> tuple[float, float] | None:
+    """Slope of the fixes' heights ``za`` over their distance ``ds`` (m) from the frame, Gaussian
+    kernel of σ ``window_m`` times the fixes' weights ``w0`` (1/σ², Huber-reweighted), and its
+    standard error (white scatter and slow wander, module docstring); ``dt`` (s): time since the
+    previous fix. None with too few fixes in the window."""
+    k = np.exp(-0.5 * (ds / window_m) ** 2)  # kernel weight of each fix
+    w = w0 * k  # ... over its vertical variance
+    sw, sk = w.sum(), k.sum()
+    n_eff = sk**2 / max((k**2).sum(), 1e-300)  # fixes the kernel effectively holds
+    if sw <= 0 or n_eff < MIN_FIXES:
+        return None
+    fit = _line(ds, za, w)
+    for _ in range(HUBER_STEPS):  # a height outlier (multipath) must not tilt the line
+        if fit is None:
+            break
+        z_r = np.abs(za - fit[2] - fit[3] * (ds - fit[0])) * np.sqrt(w0)  # over its σ
+        w = w0 * k * np.minimum(1.0, HUBER_K / np.maximum(z_r, 1e-12))
+        fit = _line(ds, za, w)
+    if fit is None:
+        return None
+    m, sxx, zm, b = fit
+    # the fixes' scale: their reduced χ² about the line (ν = n_eff - 2 residuals) pooled with
+    # the stated σ counted as STATED_DOF residuals (the posterior mean of the variance factor
+    # under a scaled inverse-χ² prior on it): an RTK receiver's heights scatter ~10× less than
+    # its HDOP × 0.5 m says, a consumer's scatter as stated, and a few residuals move it little
+    nu = n_eff - 2.0
+    chi2 = (w * (za - zm - b * (ds - m)) ** 2).sum() / sk * n_eff / nu
+    factor = (STATED_DOF + nu * chi2) / (STATED_DOF + nu)
+    # slow wander: a random walk of q² = 2 σ² / WANDER_TAU_S (σ² the kernel-weighted stated
+    # variance, scaled like the scatter) moves the slope by q² Σ_i Δt_i (Σ_{j >= i} c_j)², c_j =
+    # w_j (x_j - m) / Sxx the line's weights on the heights (they sum to 0)
+    c = w * (ds - m) / sxx
+    tail = np.cumsum(c[::-1])[::-1]  # Σ_{j >= i} c_j
+    q2 = 2.0 * factor * float((k / w0).sum() / sk) / WANDER_TAU_S
+    var_wander = q2 * float((dt * tail**2).sum())
+    return b, math.sqrt(factor / sxx + var_wander)
 
 
 def _line(x: np.ndarray, z: np.ndarray, w: np.ndarray) -> tuple[float, float, float, float] | None:

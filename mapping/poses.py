@@ -165,7 +165,7 @@ def estimate_trajectory(
         gps,
         window_m=cfg.grade_window_m,
         vertical_factor=cfg.gps_vertical_sigma_factor,
-        prior_sigma_rad=math.radians(cfg.tilt_sigma_deg),
+        prior_sigma_rad=math.atan(cfg.grade_sigma_pct / 100.0),
     )
     mount = resolve(
         drive.camera,

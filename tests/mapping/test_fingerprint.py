@@ -10,7 +10,8 @@ bundle_adjust became the default, bundle_refine_focal and bundle_focal_sigma cam
 holds the bundle's version (issue 30); the map key also moved with DenseHeightConfig.hole_fill_m
 (issue 29); bundle_refine_k1 and bundle_k1_sigma came (issue 30); dense_single_view came
 (issue 28); DenseHeightConfig.fallback_levels and step_max_sigma came (the map key);
-grade_window_m (both keys) and dense_single_view_relief_m came (issue 28).
+grade_window_m (both keys) and dense_single_view_relief_m came (issue 28), then grade_sigma_pct
+(both keys).
 A change of MappingConfig's fields changes them legitimately. The keys must also
 change with what the outputs depend on (below)."""
 
@@ -26,9 +27,9 @@ from tests.mapping.synth import make_synthetic
 
 def test_poses_fingerprint_is_unchanged() -> None:
     syn = make_synthetic(n=6, seed=3, failed=(2,))
-    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "a09be9629f42c25d"
+    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "d4fd5d50fbef8b98"
     syn = make_synthetic(n=6, seed=3, with_gps=False)
-    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "be513256f05e4d1f"
+    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "3cbdd2d1ab6e74c8"
 
 
 def test_globalmap_fingerprint_is_unchanged() -> None:
@@ -42,7 +43,7 @@ def test_globalmap_fingerprint_is_unchanged() -> None:
         reference=None,
         segment=np.zeros(6, int),
     )
-    assert globalmap._fingerprint(MappingConfig(), syn.pairs, traj) == "b760887d207eea72"
+    assert globalmap._fingerprint(MappingConfig(), syn.pairs, traj) == "7e7e09490fe98c40"
 
 
 def test_poses_key_follows_the_gps_altitude() -> None:
