@@ -16,6 +16,10 @@ from typing import Protocol
 import cv2
 import numpy as np
 
+# bump when the dense matching or this fusion changes what a cell's height is: a resumed run
+# then matches again (the map stage's fingerprint holds it). 2: the overlap-edge windows
+# (5439d92), the visibility test and the valid-only sampling (session 24)
+DENSE_SURFACE_VERSION = 2
 FIXED_POINT_STEPS = 3  # cell -> pixel projections at the sampled height (nadir: 2 suffice)
 MEDIAN_START_PX = 5  # the second pass starts from this median of the first (cells)
 

@@ -98,6 +98,9 @@ def _fingerprint(
         dense = {k: d[k] for k in DENSE_SURFACE_FIELDS}
         dense["dense"] = {k: v for k, v in d["dense"].items() if k not in ("device", "cpu_threads")}
         fp.add_json(dense)
+        from roadsurf.mapping.dense_cells import DENSE_SURFACE_VERSION
+
+        fp.add_text(f"dense_surface:{DENSE_SURFACE_VERSION}")  # the code, not only its settings
     fp.add_array(traj.world_from_cam)
     run = RunFolder(run_dir) if run_dir is not None else None
     for p in pairs:

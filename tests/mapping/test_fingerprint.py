@@ -11,7 +11,7 @@ holds the bundle's version (issue 30); the map key also moved with DenseHeightCo
 (issue 29); bundle_refine_k1 and bundle_k1_sigma came (issue 30); dense_single_view came
 (issue 28); DenseHeightConfig.fallback_levels and step_max_sigma came (the map key);
 grade_window_m (both keys) and dense_single_view_relief_m came (issue 28), then grade_sigma_pct
-(both keys).
+(both keys), dense_visible_k and the dense surface's code version (the map key).
 A change of MappingConfig's fields changes them legitimately. The keys must also
 change with what the outputs depend on (below)."""
 
@@ -43,7 +43,7 @@ def test_globalmap_fingerprint_is_unchanged() -> None:
         reference=None,
         segment=np.zeros(6, int),
     )
-    assert globalmap._fingerprint(MappingConfig(), syn.pairs, traj) == "7e7e09490fe98c40"
+    assert globalmap._fingerprint(MappingConfig(), syn.pairs, traj) == "f6c60ff46ecfa595"
 
 
 def test_poses_key_follows_the_gps_altitude() -> None:
