@@ -16,10 +16,11 @@ from typing import Protocol
 import cv2
 import numpy as np
 
-# bump when the dense matching or this fusion changes what a cell's height is: a resumed run
-# then matches again (the map stage's fingerprint holds it). 2: the overlap-edge windows
-# (5439d92), the visibility test and the valid-only sampling (session 24)
-DENSE_SURFACE_VERSION = 2
+# bump when the dense matching (reconstruction/dense: matching, warp, checks, parallax) or this
+# fusion changes what a cell's height is: a resumed run then matches again (the map stage's
+# fingerprint holds it). 2: the overlap-edge windows (5439d92), the visibility test and the
+# valid-only sampling; 3: the sweep's minimum samples per candidate (session 24)
+DENSE_SURFACE_VERSION = 3
 FIXED_POINT_STEPS = 3  # cell -> pixel projections at the sampled height (nadir: 2 suffice)
 MEDIAN_START_PX = 5  # the second pass starts from this median of the first (cells)
 

@@ -155,6 +155,13 @@ def sweep(
     idx = torch.zeros_like(ref, dtype=torch.long)
     prev = torch.full_like(ref, -2.0)
     just = torch.zeros_like(ref, dtype=torch.bool)  # best set at the previous step
+    if masked:
+        # a candidate whose window has mostly left image b correlates a few samples, and 2-5
+        # samples give a ZNCC near ±1 that beats the true match: it needs at least a corner
+        # window's samples ((win // 2 + 1)², 9 of 25; the match itself is held to
+        # ``checks.min_window_samples`` after refinement)
+        n_grid = window_count(H, W, win, dev).to(dt)
+        min_n = float((win // 2 + 1) ** 2)
     for k in range(len(values)):
         s = shift_of(values[k])
         smp = sample(tgt_stack, xs + s * wx, ys + s * wy)
@@ -167,11 +174,13 @@ def sweep(
                 ),
                 win,
             )
+            enough = m[:, :1] * n_grid >= min_n - 0.5
             m = m[:, 1:] / m[:, :1].clamp_min(1e-6)
             mu_rw, mu_j = m[:, :1], m[:, 2:3]
             sd_rw = (m[:, 1:2] - mu_rw * mu_rw).clamp_min(0).sqrt()
             sd_j = (m[:, 3:4] - mu_j * mu_j).clamp_min(0).sqrt()
             c = (m[:, 4:5] - mu_rw * mu_j) / (sd_rw * sd_j + 1e-3)
+            c = torch.where(enough, c, torch.full_like(c, -2.0))
         else:
             mu_j = box(J, win)
             cov = box(ref * J, win) - mu_r * mu_j
