@@ -1,7 +1,7 @@
 """Seam samples of the dense surface: where two pairs both measured a cell, each pair's own
 levelled height there (the sample ``DenseSurface`` fuses), kept on a sub-grid of cells and
 written to ``dense_seams.npz`` for the seam step of ``roadsurf evaluate``
-(``evaluation.surface.seam_report``).
+(``evaluation.seams.seam_report``).
 
 The sparse map's seam step compares a few hundred feature points per overlap, and each seam's
 median then has a standard error of 0.2-0.4 mm, at the size of the seams it should rank. The

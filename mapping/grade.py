@@ -40,6 +40,9 @@ HUBER_K = 2.0  # Huber weights beyond this many σ (the fixes' stated vertical �
 HUBER_STEPS = 4  # reweighted fits per frame
 # widen a frame's window while its standard error exceeds this share of the grade's prior σ:
 # at 0.5 the fit keeps >= 80 % of its slope (σ² / (σ² + (σ/2)²))
+# bump when the estimate changes for the same fixes and settings: the poses' key holds it, so
+# a resumed run does not keep poses from the earlier grade. 2: own prior, adaptive window
+GRADE_VERSION = 2
 SE_OVER_PRIOR = 0.5
 # the stated vertical σ (HDOP × gps_sigma_per_hdop_m × the vertical factor, a generic UERE
 # scale, uncertain by a factor ~2) weighs as this many residuals against the fixes' own scatter

@@ -67,7 +67,9 @@ class Mount:
             "estimated_deg": None
             if self.estimated_deg is None
             else [round(a, 3) for a in self.estimated_deg],
-            "normal_spread_deg": None if self.spread_deg is None else round(self.spread_deg, 3),
+            "normal_spread_deg": None
+            if self.spread_deg is None or not math.isfinite(self.spread_deg)
+            else round(self.spread_deg, 3),
             "n_pairs": self.n_pairs,
         }
 
@@ -107,7 +109,8 @@ def estimate_from_pairs(
     fwd = _unit_median(F)
     R = vehicle_from_up_forward(up, fwd)
     ang = np.degrees(np.arccos(np.clip(U @ up, -1.0, 1.0)))
-    spread = float(1.4826 * np.median(ang)) if len(ang) else float("nan")
+    # one pair agrees with itself: no spread to report
+    spread = float(1.4826 * np.median(ang)) if len(ang) >= 2 else float("nan")
     return R, spread, len(ups)
 
 
@@ -127,8 +130,8 @@ def resolve(
     grade_known: float = 0.0,
 ) -> Mount:
     """The mount for this run: camera.yaml's when given (checked against the drive's estimate),
-    else the estimate when ``estimate`` and enough pairs, else nadir with a warning when the
-    pairs say otherwise."""
+    else the estimate when ``estimate`` and at least one usable pair (a warning below
+    ``MIN_PAIRS``), else nadir with a warning when the pairs say otherwise."""
     est = estimate_from_pairs(pairs)
     est_R, spread, n = (None, None, 0) if est is None else est
     est_deg = None if est_R is None else mount_angles_deg(est_R)

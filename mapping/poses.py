@@ -43,7 +43,7 @@ from roadsurf.io.runfolder import RunFolder
 from roadsurf.mapping.config import NOT_IN_FINGERPRINT, MappingConfig
 from roadsurf.mapping.datum import vertical_datum
 from roadsurf.mapping.export import write_trajectory_csv, write_trajectory_geojson
-from roadsurf.mapping.grade import road_grade
+from roadsurf.mapping.grade import GRADE_VERSION, road_grade
 from roadsurf.mapping.mount import resolve
 from roadsurf.mapping.plausibility import CHECKS_VERSION, check, make_chains
 from roadsurf.mapping.pose_gps import gps_enu, interp_weights
@@ -126,6 +126,7 @@ def _fingerprint(
         fp.add_text(f"{p.index_a},{p.index_b},{p.status}")
         fp.add_array(p.cam_b_from_cam_a)
     fp.add_text(f"checks:{CHECKS_VERSION}")
+    fp.add_text(f"grade:{GRADE_VERSION}")
     return fp.hexdigest(16)
 
 

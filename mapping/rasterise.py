@@ -373,7 +373,9 @@ def rasterise(
     if write_tiles:
         prod.files["surface_vrt"] = rf.SURFACE_VRT
         prod.files["mosaic_vrt"] = rf.MOSAIC_VRT
-    if ds is not None:
+    if ds is None:  # a sparse map: an earlier dense run's seam samples would outrank its own
+        (prod.run_dir / DENSE_SEAMS).unlink(missing_ok=True)
+    else:
         for name in (NOBS, SIGMA):
             if write_full:
                 prod.files[name] = f"{name}.tif"
@@ -382,6 +384,8 @@ def rasterise(
         if ds.seams is not None:  # the pairs' samples where they overlap (evaluate's seams)
             ds.seams.write(prod.run_dir / DENSE_SEAMS)
             prod.files["dense_seams"] = DENSE_SEAMS
+        else:  # an earlier dense run's samples would outrank this run's sparse points
+            (prod.run_dir / DENSE_SEAMS).unlink(missing_ok=True)
         st = ds.stats
         prod.timings_s["dense_match"] = round(st["match_s"], 3)
         prod.residual_stats_m["dense_pairs"] = st["pairs"]

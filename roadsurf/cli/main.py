@@ -116,6 +116,13 @@ def simulate(
     if stereo_pair is not None:
         from roadsurf.simulation.stereo import simulate_stereo_pair
 
+        if scenario != "potholes" or config is not None or frames is not None:
+            raise typer.BadParameter(
+                "--stereo-pair renders its own two frames: drop --scenario, --config and --frames"
+            )
+        if "baseline_m" in overrides:
+            raise typer.BadParameter("give the baseline as --stereo-pair BASELINE_M, not --set")
+
         kw = {} if seed is None else {"seed": seed}
         res = simulate_stereo_pair(out, baseline_m=stereo_pair, **kw, **overrides)
         typer.echo(f"Wrote a stereo pair (baseline {stereo_pair} m) to {res}")

@@ -30,7 +30,6 @@ from scipy import ndimage
 from roadsurf.io import runfolder as rf
 from roadsurf.io.drive.camera_yaml import load_camera
 from roadsurf.io.formats import read_geotiff
-from roadsurf.mapping.dense_fuse import NOBS
 
 POTHOLE_M = 0.005  # truth residual below -5 mm counts as inside the pothole (m)
 SHIFT_M = 0.03  # horizontal registration search half-width (m): the tie's lever arm
@@ -97,7 +96,7 @@ def score_pair(run_dir: str | Path, drive_dir: str | Path) -> dict[str, Any]:
     s = np.asarray(s, float)
     if nodata is not None and np.isfinite(nodata):
         s[s == nodata] = np.nan
-    nobs, _, _ = read_geotiff(run_dir / f"{NOBS}.tif")
+    nobs, _, _ = read_geotiff(run_dir / f"{rf.SURFACE_NOBS}.tif")
     s[np.asarray(nobs) == 0] = np.nan  # the road model's cells are not measurements
     rows, cols = np.nonzero(np.isfinite(s))
     if len(rows) == 0:

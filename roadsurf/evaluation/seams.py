@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from roadsurf.core.fits import MAD_TO_SIGMA
 from roadsurf.io import runfolder as rf
 
 FLAT_M = 0.01  # |residual| below this on both sides: flat road (m)
@@ -33,7 +34,7 @@ MEDIAN_SE = math.sqrt(math.pi / 2)  # a median's standard error over the mean's 
 
 
 def _median_se(diff: np.ndarray) -> float:
-    mad = 1.4826 * float(np.median(np.abs(diff - np.median(diff))))
+    mad = MAD_TO_SIGMA * float(np.median(np.abs(diff - np.median(diff))))
     return MEDIAN_SE * mad / math.sqrt(len(diff))
 
 

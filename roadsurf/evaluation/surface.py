@@ -1,6 +1,6 @@
 """Surface figures of a run against simulator truth: height errors on flat road and inside
-defects (raw and aligned), coverage of the imaged corridor, and the seam steps between pair
-patches."""
+defects (raw and aligned) and coverage of the imaged corridor (the seam steps between pair
+patches: ``evaluation.seams``)."""
 
 from __future__ import annotations
 
@@ -15,7 +15,6 @@ from roadsurf.core.camera import RENDER_UNDISTORT_CRITERIA
 from roadsurf.io import runfolder as rf
 from roadsurf.io.drive.camera_yaml import load_camera
 from roadsurf.io.formats import read_geojson
-from roadsurf.mapping.dense_fuse import NOBS
 
 if TYPE_CHECKING:
     from shapely import Geometry
@@ -29,7 +28,7 @@ def _open_surface(run_dir: Path) -> Path | None:
 
 
 def _nobs_paths(run_dir: Path) -> list[Path]:
-    return [run_dir / f"{NOBS}.tif", run_dir / f"{NOBS}.vrt"]
+    return [run_dir / f"{rf.SURFACE_NOBS}.tif", run_dir / f"{rf.SURFACE_NOBS}.vrt"]
 
 
 # number of rays cast along each image edge: the raw border's curve (lens distortion) and the
@@ -385,10 +384,3 @@ def surface_metrics(
             # the ceiling of a two-view method: the drive's ends are seen by one frame only
             res["coverage_two_view_share"] = float(min(1.0, sarea / area))
     return res
-
-
-# --------------------------------------------------------------------------- seams
-# the seam steps moved to evaluation.seams (dense samples first, the sparse points as fallback)
-from roadsurf.evaluation.seams import seam_report, seam_steps  # noqa: E402
-
-__all__ = ["seam_report", "seam_steps", "surface_metrics"]

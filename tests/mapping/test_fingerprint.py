@@ -11,7 +11,8 @@ holds the bundle's version (issue 30); the map key also moved with DenseHeightCo
 (issue 29); bundle_refine_k1 and bundle_k1_sigma came (issue 30); dense_single_view came
 (issue 28); DenseHeightConfig.fallback_levels and step_max_sigma came (the map key);
 grade_window_m (both keys) and dense_single_view_relief_m came (issue 28), then grade_sigma_pct
-(both keys), dense_visible_k and the dense surface's code version (the map key).
+(both keys), dense_visible_k and the dense surface's code version (the map key), the
+grade's version (the poses key).
 A change of MappingConfig's fields changes them legitimately. The keys must also
 change with what the outputs depend on (below)."""
 
@@ -27,9 +28,9 @@ from tests.mapping.synth import make_synthetic
 
 def test_poses_fingerprint_is_unchanged() -> None:
     syn = make_synthetic(n=6, seed=3, failed=(2,))
-    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "d4fd5d50fbef8b98"
+    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "4ef61a4e5b30dc33"
     syn = make_synthetic(n=6, seed=3, with_gps=False)
-    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "3cbdd2d1ab6e74c8"
+    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "3707d381333aadfc"
 
 
 def test_globalmap_fingerprint_is_unchanged() -> None:
