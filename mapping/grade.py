@@ -40,9 +40,12 @@ HUBER_K = 2.0  # Huber weights beyond this many σ (the fixes' stated vertical �
 HUBER_STEPS = 4  # reweighted fits per frame
 # widen a frame's window while its standard error exceeds this share of the grade's prior σ:
 # at 0.5 the fit keeps >= 80 % of its slope (σ² / (σ² + (σ/2)²))
+STATION_M = 1.0  # the grade is fitted every this far along the track (m): 1/10 of the window
+MAX_STATIONS = 2000  # ... at most this many stations per drive (-): 60 km at 30 m
 # bump when the estimate changes for the same fixes and settings: the poses' key holds it, so
-# a resumed run does not keep poses from the earlier grade. 2: own prior, adaptive window
-GRADE_VERSION = 2
+# a resumed run does not keep poses from the earlier grade. 2: own prior, adaptive window;
+# 3: fitted at stations and interpolated
+GRADE_VERSION = 3
 SE_OVER_PRIOR = 0.5
 # the stated vertical σ (HDOP × gps_sigma_per_hdop_m × the vertical factor, a generic UERE
 # scale, uncertain by a factor ~2) weighs as this many residuals against the fixes' own scatter
@@ -119,18 +122,28 @@ def road_grade(
     w0 = 1.0 / np.maximum(sig[alt] * vertical_factor, 1e-6) ** 2
     dt = np.r_[0.0, np.diff(ta)]  # time between successive fixes (s)
     prior_var = math.tan(prior_sigma_rad) ** 2
-    grade = np.zeros(n)
-    se = np.full(n, np.inf)
+    # the grade is smooth along the track by design: it is fitted at stations every STATION_M
+    # (at most MAX_STATIONS over the drive) and interpolated to the frames, so a long drive
+    # costs stations x fixes, not frames x fixes
+    span = float(s_f.max() - s_f.min())
+    spacing = max(STATION_M, span / MAX_STATIONS)
+    if span / spacing + 1 < n:
+        at = np.linspace(float(s_f.min()), float(s_f.max()), int(math.ceil(span / spacing)) + 1)
+    else:
+        at = s_f
+    m = len(at)
+    grade = np.zeros(m)
+    se = np.full(m, np.inf)
     # the windows tried, narrowest first, doubling up to the whole track (a kernel twice the
     # track's length: each fix keeps >= 88 % of its weight)
     windows = [window_m]
     while windows[-1] < 2.0 * s[-1]:
         windows.append(min(2.0 * windows[-1], 2.0 * float(s[-1])))
     target = SE_OVER_PRIOR * math.sqrt(prior_var)
-    for i in range(n):
+    for i in range(m):
         prev: tuple[float, float] | None = None  # (window, se) of the last rung tried
         for win in windows:
-            got = _local_slope(sa - s_f[i], za, w0, dt, win)
+            got = _local_slope(sa - at[i], za, w0, dt, win)
             if got is None:
                 continue
             grade[i], se[i] = got
@@ -140,7 +153,7 @@ def road_grade(
                     # the two rungs: it moves smoothly along the track, so does the grade (the
                     # rungs alone switch neighbouring frames' windows 2× apart: 0.3° steps)
                     u = math.log(prev[1] / target) / math.log(prev[1] / se[i])
-                    got = _local_slope(sa - s_f[i], za, w0, dt, prev[0] * (win / prev[0]) ** u)
+                    got = _local_slope(sa - at[i], za, w0, dt, prev[0] * (win / prev[0]) ** u)
                     if got is not None:
                         grade[i], se[i] = got
                 break
@@ -148,6 +161,13 @@ def road_grade(
     keep = prior_var / (prior_var + se**2)  # 0 where no fit (se = inf)
     # a fit that keeps less than MIN_SHRINK of its slope even over the whole track: a level road
     keep[keep < MIN_SHRINK] = 0.0
+    if m != n or at is not s_f:
+        big = 1e6  # se beyond any grade (rad): np.interp cannot take inf
+        g_f = np.interp(s_f, at, grade * keep)
+        keep_f = np.interp(s_f, at, keep)
+        se_f = np.interp(s_f, at, np.minimum(se, big))
+        se_f[se_f >= big] = np.inf
+        return RoadGrade(np.arctan(g_f), np.arctan(se_f), keep_f)
     return RoadGrade(np.arctan(grade * keep), np.arctan(se), keep)
 
 

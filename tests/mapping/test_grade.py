@@ -161,3 +161,16 @@ def test_height_outliers_do_not_tilt_the_grade() -> None:
     gr = road_grade(t, g, window_m=10.0, vertical_factor=2.0, prior_sigma_rad=PRIOR)
     err = np.degrees(gr.grade_rad[mid - 20 : mid + 20]) - math.degrees(math.atan(0.01))
     assert np.max(np.abs(err)) < 0.2
+
+
+def test_stations_interpolated_to_many_frames_match_the_frames_own_fits() -> None:
+    """A drive with more frames than metres is fitted at 1 m stations and interpolated (the
+    cost of a long drive is stations x fixes): the same grade as fitting each frame."""
+    t, g = _fixes(0.01, 300.0, 0.05, seed=3, hz=5.0)
+    few = np.linspace(t[0], t[-1], 40)  # fewer frames than stations: each frame's own fit
+    many = np.linspace(t[0], t[-1], 6000)  # 20 frames a metre: stations
+    a = road_grade(few, g, window_m=10.0, vertical_factor=2.0, prior_sigma_rad=PRIOR)
+    b = road_grade(many, g, window_m=10.0, vertical_factor=2.0, prior_sigma_rad=PRIOR)
+    b_at_few = np.interp(few, many, b.grade_rad)
+    assert np.max(np.abs(np.degrees(b_at_few - a.grade_rad))) < 0.02
+    assert np.all(np.isfinite(b.grade_rad)) and np.all((b.shrink >= 0) & (b.shrink <= 1))
