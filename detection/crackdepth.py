@@ -69,7 +69,7 @@ class DenseCrack:
         return float(self.n_eff * self.noise_m**2 + self.n_eff**2 * self.ref_var_m2)
 
 
-def _ray_points(px: np.ndarray, K: np.ndarray, plane: np.ndarray, depth_m: float) -> np.ndarray:
+def ray_points(px: np.ndarray, K: np.ndarray, plane: np.ndarray, depth_m: float) -> np.ndarray:
     """(N, 3) camera-a points on the rays of ideal pixels ``px`` at ``depth_m`` below the road
     plane Z = p0 X + p1 Y + p2 (positive: farther from the camera)."""
     v = np.c_[(px[:, 0] - K[0, 2]) / K[0, 0], (px[:, 1] - K[1, 2]) / K[1, 1], np.ones(len(px))]
@@ -78,13 +78,13 @@ def _ray_points(px: np.ndarray, K: np.ndarray, plane: np.ndarray, depth_m: float
     return v * s[:, None]
 
 
-def _project(X: np.ndarray, view: PairView) -> np.ndarray:
+def project_px(X: np.ndarray, view: PairView) -> np.ndarray:
     Xb = X @ view.R_b_from_a.T + view.t_b_from_a_m
     q = Xb @ view.camera.K.T
     return q[:, :2] / q[:, 2:3]
 
 
-def _tangents(xy: np.ndarray, radius_px: float) -> np.ndarray:
+def tangents(xy: np.ndarray, radius_px: float) -> np.ndarray:
     """(N, 2) unit tangent of a centre line at each of its pixels: principal direction of the
     line's pixels within ``radius_px``."""
     from scipy.spatial import cKDTree
@@ -150,13 +150,13 @@ def dense_crack_depth(
     # Geometry at each pixel: road prediction in b, its parallax per metre of depth, the
     # crack's normal in b.
     pa = cam.undistort_px(raw)
-    X0 = _ray_points(pa, K, plane, 0.0)
+    X0 = ray_points(pa, K, plane, 0.0)
     if not np.all(X0[:, 2] > 0):
         return None
-    pb0 = _project(X0, view)
-    J = (_project(_ray_points(pa, K, plane, 1e-3), view) - pb0) / 1e-3  # px per m of depth
-    tan_a = _tangents(pa[:n_c], float(win))
-    ends = [_project(_ray_points(pa[:n_c] + s * tan_a, K, plane, 0.0), view) for s in (-1, 1)]
+    pb0 = project_px(X0, view)
+    J = (project_px(ray_points(pa, K, plane, 1e-3), view) - pb0) / 1e-3  # px per m of depth
+    tan_a = tangents(pa[:n_c], float(win))
+    ends = [project_px(ray_points(pa[:n_c] + s * tan_a, K, plane, 0.0), view) for s in (-1, 1)]
     tan_b = ends[1] - ends[0]
     tan_b /= np.maximum(np.linalg.norm(tan_b, axis=1, keepdims=True), 1e-12)
     nrm = np.c_[-tan_b[:, 1], tan_b[:, 0]][owner]

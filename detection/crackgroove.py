@@ -38,9 +38,9 @@ from roadsurf.detection.config import CrackConfig
 from roadsurf.detection.crackdepth import (
     DenseCrack,
     PairView,
-    _project,
-    _ray_points,
-    _tangents,
+    project_px,
+    ray_points,
+    tangents,
 )
 
 
@@ -81,7 +81,7 @@ def groove_crack_depth(
         return None
     raw = np.c_[xs, ys].astype(float)
     pa = cam.undistort_px(raw)
-    tan_a = _tangents(pa, 3.5)
+    tan_a = tangents(pa, 3.5)
     nrm_a = np.c_[-tan_a[:, 1], tan_a[:, 0]]
     w = max(float(width_px), 1.0)
     half = max(3.0, 1.5 * w + 2.0)  # the groove, its darkened rims and some road each side
@@ -103,14 +103,14 @@ def groove_crack_depth(
     g = np.clip(1.0 - (2.0 * (s[None, :] - c[:, None]) / w) ** 2, 0.0, None)
     # Road-level positions in b and the image motion per metre below the road there.
     flat = qa.reshape(-1, 2)
-    X0 = _ray_points(flat, K, plane, 0.0)
+    X0 = ray_points(flat, K, plane, 0.0)
     if not np.all(X0[:, 2] > 0):
         return None
-    p0 = _project(X0, view)
-    J = (_project(_ray_points(flat, K, plane, 1e-3), view) - p0) / 1e-3
+    p0 = project_px(X0, view)
+    J = (project_px(ray_points(flat, K, plane, 1e-3), view) - p0) / 1e-3
     p0, J = p0.reshape(qa.shape), J.reshape(qa.shape)
     # LK's aperture holds here too: only the motion across the crack is seen.
-    ends = [_project(_ray_points(pa + d * tan_a, K, plane, 0.0), view) for d in (-1, 1)]
+    ends = [project_px(ray_points(pa + d * tan_a, K, plane, 0.0), view) for d in (-1, 1)]
     tan_b = ends[1] - ends[0]
     tan_b /= np.maximum(np.linalg.norm(tan_b, axis=1, keepdims=True), 1e-12)
     nrm_b = np.c_[-tan_b[:, 1], tan_b[:, 0]]

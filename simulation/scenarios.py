@@ -221,7 +221,7 @@ def make_config(name: str, config: str | Path | None = None, **overrides: Any) -
     return cfg
 
 
-def _prepare_out(out: Path) -> None:
+def prepare_out(out: Path) -> None:
     known = {"frames", "truth", "camera.yaml", "frames.csv", "obd.csv"}
     known |= {"gps.csv", "gps.gpx", "gps.nmea"}
     if out.exists() and any(out.iterdir()):
@@ -261,7 +261,7 @@ def simulate(
     if n < 2:
         raise ConfigError(f"n_frames must be >= 2, got {n}")
     out = Path(out)
-    _prepare_out(out)
+    prepare_out(out)
     t0 = time.perf_counter()
     world = build_world(cfg, seed, n)
     renderer = Renderer(world)

@@ -28,7 +28,7 @@ from roadsurf.simulation.build import build_world
 from roadsurf.simulation.placement import footprint_offset_m
 from roadsurf.simulation.render import Renderer
 from roadsurf.simulation.route import Pose
-from roadsurf.simulation.scenarios import _prepare_out, make_config, write_camera_yaml
+from roadsurf.simulation.scenarios import make_config, prepare_out, write_camera_yaml
 from roadsurf.simulation.sensors import encode_image, form_image
 from roadsurf.simulation.truth import corridor_polygon, write_features, write_rasters
 
@@ -94,7 +94,7 @@ def simulate_stereo_pair(
     params = dict(PAIR_DEFAULTS, **overrides)
     cfg = make_config("potholes", None, **params)
     out = Path(out)
-    _prepare_out(out)
+    prepare_out(out)
     world = build_world(cfg, seed, SEARCH_FRAMES)
     p0 = _pose_viewing_a_pothole(world, cfg)
     renderer = Renderer(world)
