@@ -210,8 +210,8 @@ class MappingConfig:
     # left out of the cell's mean (−)
     dense_outlier_sigmas: float = 3.0
     # a pair's sample of a cell counts only where the point its pixel sees lies within this x
-    # max(the pixel's ground footprint, the cell) of the cell's centre (−; 0 = off; 2: inside
-    # the 5 px window that measured it): a tilted camera cannot see a pothole's near wall,
+    # max(the pixel's ground footprint, the cell) of the cell's centre (−; 0 = off; 2: about
+    # the default 5 px window's half-width): a tilted camera cannot see a pothole's near wall,
     # whose cells otherwise took the floor's height (benchmarks/stereo_pair.py)
     dense_visible_k: float = 2.0
     # what the dense heights are relative to: each pair's own robust plane (its road, ~1 m), or
