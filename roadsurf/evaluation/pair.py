@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
+from roadsurf.evaluation.surface import heights_from_xy
 from roadsurf.io import runfolder as rf
 from roadsurf.io.drive.camera_yaml import load_camera
 from roadsurf.io.formats import read_geotiff
@@ -57,6 +58,8 @@ def _measured_share(truth_tif: Path, e: np.ndarray, n: np.ndarray, measured: np.
 
 
 def _sampler(truth_tif: Path, median_px: int = 0):
+    """(e, n) -> the truth raster bilinear at those points (``surface.heights_from_xy``),
+    optionally after a ``median_px`` square median filter."""
     data, grid, nodata = read_geotiff(truth_tif)
     t = np.asarray(data, float)
     if nodata is not None and np.isfinite(nodata):
@@ -65,10 +68,7 @@ def _sampler(truth_tif: Path, median_px: int = 0):
         t = ndimage.median_filter(t, size=median_px)
 
     def sample(e: np.ndarray, n: np.ndarray) -> np.ndarray:
-        rc = grid.rowcol_from_xy(np.column_stack([e, n]))
-        return ndimage.map_coordinates(
-            t, [rc[:, 0], rc[:, 1]], order=1, mode="constant", cval=np.nan
-        )
+        return heights_from_xy(np.column_stack([e, n]), t, grid.transform)
 
     return sample
 
