@@ -50,6 +50,7 @@ PAIR_DEFAULTS: dict[str, Any] = {
     "fps": 2.0,
     "image_format": "png",
 }
+DEFAULT_SEED = 7  # the search drive's seed when none is given
 SEARCH_FRAMES = 30  # frames of the search drive: its route and potholes (-)
 
 
@@ -83,7 +84,7 @@ def simulate_stereo_pair(
     out: str | Path,
     *,
     baseline_m: float = 0.12,
-    seed: int = 7,
+    seed: int = DEFAULT_SEED,
     progress: bool = False,
     **overrides: Any,
 ) -> Path:

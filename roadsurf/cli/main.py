@@ -114,7 +114,7 @@ def simulate(
     }
     overrides |= {k: v for k, v in mount.items() if v is not None}  # given ones only
     if stereo_pair is not None:
-        from roadsurf.simulation.stereo import simulate_stereo_pair
+        from roadsurf.simulation.stereo import DEFAULT_SEED, simulate_stereo_pair
 
         if scenario != "potholes" or config is not None or frames is not None:
             raise typer.BadParameter(
@@ -123,8 +123,9 @@ def simulate(
         if "baseline_m" in overrides:
             raise typer.BadParameter("give the baseline as --stereo-pair BASELINE_M, not --set")
 
-        kw = {} if seed is None else {"seed": seed}
-        res = simulate_stereo_pair(out, baseline_m=stereo_pair, **kw, **overrides)
+        res = simulate_stereo_pair(
+            out, baseline_m=stereo_pair, seed=DEFAULT_SEED if seed is None else seed, **overrides
+        )
         typer.echo(f"Wrote a stereo pair (baseline {stereo_pair} m) to {res}")
         return
     res = scenarios.simulate(scenario, out, seed=seed, n_frames=frames, config=config, **overrides)
