@@ -161,7 +161,7 @@ def road_grade(
     keep = prior_var / (prior_var + se**2)  # 0 where no fit (se = inf)
     # a fit that keeps less than MIN_SHRINK of its slope even over the whole track: a level road
     keep[keep < MIN_SHRINK] = 0.0
-    if m != n or at is not s_f:
+    if at is not s_f:
         big = 1e6  # se beyond any grade (rad): np.interp cannot take inf
         g_f = np.interp(s_f, at, grade * keep)
         keep_f = np.interp(s_f, at, keep)

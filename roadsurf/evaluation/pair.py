@@ -30,20 +30,27 @@ from scipy import ndimage
 from roadsurf.evaluation.surface import heights_from_xy
 from roadsurf.io import runfolder as rf
 from roadsurf.io.drive.camera_yaml import load_camera
-from roadsurf.io.formats import read_geotiff
+from roadsurf.io.formats import GridSpec, read_geotiff
 
 POTHOLE_M = 0.005  # truth residual below -5 mm counts as inside the pothole (m)
 SHIFT_M = 0.03  # horizontal registration search half-width (m): the tie's lever arm
 SHIFT_STEP_M = 0.002  # search step (m); refined to 0.5 mm around the best
 
 
-def _measured_share(truth_tif: Path, e: np.ndarray, n: np.ndarray, measured: np.ndarray) -> float:
-    """Share of the truth's pothole cells (deeper than POTHOLE_M) inside the hull of the run's
-    cells that hold a measured run cell: hidden walls and holes count against it."""
-    import cv2
-
+def _read_truth(truth_tif: Path) -> tuple[np.ndarray, GridSpec]:
+    """(H, W) float truth raster (NaN where nodata) and its grid."""
     data, grid, nodata = read_geotiff(truth_tif)
     t = np.asarray(data, float)
+    if nodata is not None and np.isfinite(nodata):
+        t[t == nodata] = np.nan
+    return t, grid
+
+
+def _measured_share(t: np.ndarray, grid: GridSpec, e: np.ndarray, n: np.ndarray) -> float:
+    """Share of the truth's pothole cells (deeper than POTHOLE_M) inside the hull of the run's
+    measured cells (at e, n) that hold one of them: hidden walls and holes count against it."""
+    import cv2
+
     rc = np.round(grid.rowcol_from_xy(np.column_stack([e, n]))).astype(np.int64)
     inside = (rc[:, 0] >= 0) & (rc[:, 0] < t.shape[0]) & (rc[:, 1] >= 0) & (rc[:, 1] < t.shape[1])
     rc = rc[inside]
@@ -52,20 +59,12 @@ def _measured_share(truth_tif: Path, e: np.ndarray, n: np.ndarray, measured: np.
         cv2.fillConvexPoly(hull, cv2.convexHull(rc[:, ::-1].astype(np.int32)), 1)
     pit = (hull > 0) & (np.nan_to_num(t, nan=0.0) < -POTHOLE_M)
     seen = np.zeros(t.shape, bool)
-    m = measured[inside]
-    seen[rc[m, 0], rc[m, 1]] = True
+    seen[rc[:, 0], rc[:, 1]] = True
     return float((seen & pit).sum() / pit.sum()) if pit.any() else float("nan")
 
 
-def _sampler(truth_tif: Path, median_px: int = 0):
-    """(e, n) -> the truth raster bilinear at those points (``surface.heights_from_xy``),
-    optionally after a ``median_px`` square median filter."""
-    data, grid, nodata = read_geotiff(truth_tif)
-    t = np.asarray(data, float)
-    if nodata is not None and np.isfinite(nodata):
-        t[t == nodata] = np.nan
-    if median_px > 1:
-        t = ndimage.median_filter(t, size=median_px)
+def _sampler(t: np.ndarray, grid: GridSpec):
+    """(e, n) -> the raster ``t`` bilinear at those points (``surface.heights_from_xy``)."""
 
     def sample(e: np.ndarray, n: np.ndarray) -> np.ndarray:
         return heights_from_xy(np.column_stack([e, n]), t, grid.transform)
@@ -106,7 +105,8 @@ def score_pair(run_dir: str | Path, drive_dir: str | Path) -> dict[str, Any]:
     p = np.column_stack([xy, z]) @ R_wl.T + t_wl
     e0, n0 = p[:, 0] + meta["origin_e_m"], p[:, 1] + meta["origin_n_m"]
     ours = s[rows, cols]
-    sample = _sampler(drive_dir / "truth" / "residual.tif")
+    truth, tgrid = _read_truth(drive_dir / "truth" / "residual.tif")
+    sample = _sampler(truth, tgrid)
 
     def misfit(dx: float, dy: float, sub: slice) -> float:
         t = sample(e0[sub] + dx, n0[sub] + dy)
@@ -129,11 +129,9 @@ def score_pair(run_dir: str | Path, drive_dir: str | Path) -> dict[str, Any]:
     true_depth = float(-np.min(t[ok])) if ok.any() else float("nan")
     # the truth's deepest point with a support like ours (a 3 x 3 median of the truth grid):
     # the raw one holds the floor's roughness spikes, which no 4-9 mm matching window keeps
-    t3 = _sampler(drive_dir / "truth" / "residual.tif", 3)(e0 + dx, n0 + dy)
+    t3 = _sampler(ndimage.median_filter(truth, size=3), tgrid)(e0 + dx, n0 + dy)
     true_depth_3 = float(-np.nanmin(t3[ok])) if ok.any() else float("nan")
-    share = _measured_share(
-        drive_dir / "truth" / "residual.tif", e0 + dx, n0 + dy, np.ones(len(e0), bool)
-    )
+    share = _measured_share(truth, tgrid, e0 + dx, n0 + dy)
     return {
         "found": ours_depth is not None,
         "pothole_measured_share": share,
