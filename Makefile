@@ -25,13 +25,24 @@ browser-deps:
 	  else sudo apt-get update -qq && sudo apt-get install -y -qq chromium; fi; \
 	fi
 
+# Large wheels (open3d is 400 MB) can lose their connection half way: pip resumes a partial
+# download where it supports it (pip >= 25.1), and the whole install is tried 3 times.
+define PIP_INSTALL
+	@resume=$$($(BIN)/python -m pip install --help 2>/dev/null | grep -q -- '--resume-retries' && echo '--resume-retries=20'); \
+	for i in 1 2 3; do \
+	  $(BIN)/python -m pip install -q --retries 10 --timeout 60 $$resume $(1) && break; \
+	  if [ $$i = 3 ]; then echo "pip install $(1) failed 3 times: check the network (PyPI) and run make again" >&2; exit 1; fi; \
+	  echo "pip install $(1) failed (attempt $$i of 3); retrying in 15 s" >&2; sleep 15; \
+	done
+endef
+
 $(STAMP): pyproject.toml
 	@$(MAKE) --no-print-directory sysdeps
 	@test -x $(BIN)/python || $(PY) -m venv $(VENV)
-	$(BIN)/python -m pip install -q --upgrade pip
+	$(call PIP_INSTALL,--upgrade pip)
 	# torch first and exactly pinned, so no resolver step can pick a CUDA build.
-	$(BIN)/python -m pip install -q torch==2.13.0
-	$(BIN)/python -m pip install -q -e '.[dev]'
+	$(call PIP_INSTALL,torch==2.13.0)
+	$(call PIP_INSTALL,-e '.[dev]')
 	@touch $(STAMP)
 
 venv: $(STAMP)
