@@ -19,11 +19,12 @@ local road's residual parallax). Per profile, Gauss-Newton on I_b(p_0 + J (D g +
 (gain and offset: exposure) gives D. A dark line at road level gives D = 0 whatever its darkness
 profile (only its position is tested, not its shape), and the road texture moves with e, not D.
 It reads 1.2 mm of D007's 3.4 mm (z 8.9 in one pair; the rendered band, blur and JPEG spread
-the floor's displacement), a lower bound like every dense depth. The profiles' D are averaged
-in blocks of
-``groove_block_px`` along the crack (neighbouring profiles share pixels), and the blocks' mean
-over its standard error is turned into the normal z of the same one-sided level (Student's t,
-blocks - 1 degrees of freedom), which the pooled test (``crackmap``) reads. Tests:
+the floor's displacement), a lower bound like every dense depth. D, e, α and β are shared by
+the profiles of a block of ``groove_block_px`` along the crack (neighbouring profiles share
+pixels; one profile of a crack 1-2 px wide cannot separate its four unknowns), and the
+blocks' mean depth over its standard error is turned into the normal z of the same one-sided
+level (Student's t, blocks - 1 degrees of freedom), which the pooled test (``crackmap``)
+reads. Tests:
 ``tests/detection/test_crack_groove.py``.
 """
 
@@ -124,21 +125,35 @@ def groove_crack_depth(
     D = np.zeros(n)
     e = np.zeros(n)
     ok = inside.copy()
+    # Blocks of ``groove_block_px`` along the crack (image cells: any curve). Each block fits
+    # one depth, one road shift and one gain and offset to all its profiles together. A
+    # profile spans only a few pixels across a narrow crack, and there its own four unknowns
+    # are nearly collinear (the groove term G g sits on the dark band, where the gain's I_a
+    # varies most, and G g ≈ G there), so the depth of a crack 1.4 px wide (the far field of a
+    # tilted camera) drowned in noise. The exposure, the local road's residual parallax and
+    # the groove's depth all vary over centimetres, and the block is already the unit taken
+    # as independent.
+    cell = np.floor(raw / blk).astype(int)
+    blk_of = np.unique(cell[:, 0] * 100003 + cell[:, 1], return_inverse=True)[1].ravel()
+    n_blk = int(blk_of.max()) + 1
     for _ in range(cfg.groove_iterations):
         p = p0 + J * (D[:, None] * g + e[:, None])[..., None]
         pr = cam.distort_px(p.reshape(-1, 2)).reshape(p.shape)
         Ib = _sample(gb, pr)
         G = _sample(gx, pr) * J[..., 0] + _sample(gy, pr) * J[..., 1]  # intensity per metre
-        # I_b + G g dD + G de = α I_a + β, least squares per profile (batched normal equations)
+        # I_b + G g dD + G de = α I_a + β, least squares per block (its profiles' normal
+        # equations summed)
         A = np.stack([G * g, G, -Ia, -np.ones_like(Ia)], axis=-1)
         fin = np.all(np.isfinite(A), axis=-1) & np.isfinite(Ib)
         ok &= fin.sum(axis=1) >= 0.9 * len(s)
         A = np.where(fin[..., None], A, 0.0)
         y = np.where(fin, -Ib, 0.0)
-        N = np.einsum("nki,nkj->nij", A, A) + 1e-9 * np.eye(4)
-        b = np.einsum("nki,nk->ni", A, y)
+        N = np.zeros((n_blk, 4, 4))
+        b = np.zeros((n_blk, 4))
+        np.add.at(N, blk_of[ok], np.einsum("nki,nkj->nij", A[ok], A[ok]))
+        np.add.at(b, blk_of[ok], np.einsum("nki,nk->ni", A[ok], y[ok]))
         try:
-            x = np.linalg.solve(N, b[..., None])[..., 0]
+            x = np.linalg.solve(N + 1e-9 * np.eye(4), b[..., None])[..., 0][blk_of]
         except np.linalg.LinAlgError:
             return None
         lim = cfg.dense_max_depth_m
@@ -148,12 +163,12 @@ def groove_crack_depth(
     ok &= np.abs(D) < cfg.dense_max_depth_m
     if not ok.any():
         return None
-    # Blocks of ``groove_block_px`` along the crack (image cells: any curve), their medians.
-    cell = np.floor(raw / blk).astype(int)
-    key = cell[ok, 0] * 100003 + cell[ok, 1]
-    vals = D[ok]
-    uniq, inv, cnt = np.unique(key, return_inverse=True, return_counts=True)
-    blocks = np.array([np.median(vals[inv == i]) for i in range(len(uniq)) if cnt[i] >= 0.5 * blk])
+    # The blocks' depths (their profiles share it), where at least half a block's profiles
+    # were measured.
+    cnt = np.bincount(blk_of[ok], minlength=n_blk)
+    first = np.full(n_blk, -1)
+    first[blk_of[ok][::-1]] = np.nonzero(ok)[0][::-1]
+    blocks = D[first[cnt >= 0.5 * blk]]
     nb = len(blocks)
     if nb < cfg.groove_min_blocks:
         return None
