@@ -11,8 +11,9 @@ from roadsurf.reconstruction.dense.matching import (
     INSIDE_MIN,
     RefineResult,
     inside_weight,
-    sample,
+    sample_along,
     window_max,
+    window_min,
 )
 
 REJECT_OUTSIDE = 1  # the pixel, or too much of its window, outside image a or its match in b
@@ -78,15 +79,14 @@ def checks(
         torch.arange(ww, device=A_raw.device, dtype=torch.float32),
         indexing="ij",
     )
-    x2, y2 = xs[None, None] + fwd.shift * wx, ys[None, None] + fwd.shift * wy
-    Bm = sample(torch.cat([B_raw, mBt], 1), x2, y2)
+    Bm = sample_along(torch.cat([B_raw, mBt], 1), xs[None, None], ys[None, None], fwd.shift, wx, wy)
     # samples outside an image (not in the window's sums) read as mid-grey here
     grey = 0.5 * (cfg.dark_dn + cfg.saturated_dn)
     Bm = torch.where(inside_weight(Bm[:, 1:2], mAt) > 0.5, Bm[:, :1], grey)
     Am = torch.where(mAt >= INSIDE_MIN, A_raw, grey)
     for img in (Am, Bm):
         hi = window_max(img, win)
-        lo = -window_max(-img, win)
+        lo = window_min(img, win)
         f |= flag(~((hi < cfg.saturated_dn) & (lo > cfg.dark_dn)), REJECT_EXPOSURE)
     f |= flag(~(torch.isfinite(fwd.shift) & torch.isfinite(fwd.var)), REJECT_GEOMETRY)
     return f

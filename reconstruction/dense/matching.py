@@ -9,6 +9,7 @@ tensors on the same grid.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -25,16 +26,49 @@ def box(x: torch.Tensor, win: int) -> torch.Tensor:
     if x.device.type != "cpu":
         return F.avg_pool2d(x, win, stride=1, padding=win // 2, count_include_pad=False)
     a = x.detach().numpy()
-    out = np.empty_like(a)
-    k = (win, win)
-    cnt = cv2.boxFilter(
-        np.ones(a.shape[-2:], np.float32), -1, k, normalize=False, borderType=cv2.BORDER_CONSTANT
+    return _box_cpu([a[i, j] for i in range(a.shape[0]) for j in range(a.shape[1])], win).view(
+        x.shape
     )
-    for i in range(a.shape[0]):
-        for j in range(a.shape[1]):
-            s = cv2.boxFilter(a[i, j], -1, k, normalize=False, borderType=cv2.BORDER_CONSTANT)
-            out[i, j] = s / cnt
+
+
+def box_stack(
+    parts: list[torch.Tensor], win: int, over: torch.Tensor | None = None
+) -> torch.Tensor:
+    """``box(torch.cat(parts, 1), win)`` for (1, 1, H, W) parts, divided by ``over`` (1, 1, H,
+    W) when given, without the concatenation: on the CPU each part is filtered straight into its
+    channel of the (1, len(parts), H, W) result and the divisions are done in place (the same
+    numbers)."""
+    if parts[0].device.type != "cpu":
+        m = box(torch.cat(parts, 1), win)
+        return m if over is None else m / over
+    div = None if over is None else over.detach().numpy()[0]
+    return _box_cpu([p.detach().numpy()[0, 0] for p in parts], win, div)[None]
+
+
+def _box_cpu(planes: list[np.ndarray], win: int, div: np.ndarray | None = None) -> torch.Tensor:
+    """(len(planes), H, W) window means of the (H, W) float32 planes (OpenCV's unnormalised box
+    filter into each channel, then one division by the window's pixel count inside the grid),
+    divided by ``div`` (1, H, W) when given."""
+    h, w = planes[0].shape
+    out = np.empty((len(planes), h, w), np.float32)
+    k = (win, win)
+    for i, a in enumerate(planes):
+        cv2.boxFilter(a, -1, k, dst=out[i], normalize=False, borderType=cv2.BORDER_CONSTANT)
+    np.divide(out, _inside_count(h, w, win).numpy(), out=out)
+    if div is not None:
+        np.divide(out, div, out=out)
     return torch.from_numpy(out)
+
+
+@functools.lru_cache(maxsize=8)
+def _inside_count(h: int, w: int, win: int) -> torch.Tensor:
+    """(H, W) float32 number of pixels of the win x win window inside an H x W grid (exact
+    integers; cached for the next calls on the same grid: private, never handed out)."""
+    cnt = cv2.boxFilter(
+        np.ones((h, w), np.float32), -1, (win, win), normalize=False,
+        borderType=cv2.BORDER_CONSTANT,
+    )  # fmt: skip
+    return torch.from_numpy(cnt)
 
 
 def window_max(x: torch.Tensor, win: int) -> torch.Tensor:
@@ -50,12 +84,52 @@ def window_max(x: torch.Tensor, win: int) -> torch.Tensor:
     return torch.from_numpy(out)
 
 
+def window_min(x: torch.Tensor, win: int) -> torch.Tensor:
+    """Minimum over a win x win window: ``-window_max(-x, win)`` (OpenCV's erosion on the CPU)."""
+    if x.device.type != "cpu":
+        return -F.max_pool2d(-x, win, stride=1, padding=win // 2)
+    a = x.detach().numpy()
+    out = np.empty_like(a)
+    k = np.ones((win, win), np.uint8)
+    for i in range(a.shape[0]):
+        for j in range(a.shape[1]):
+            cv2.erode(a[i, j], k, dst=out[i, j], borderType=cv2.BORDER_REPLICATE)
+    return torch.from_numpy(out)
+
+
 def sample(img: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-    """Bilinear samples of img (1, C, H, W) at pixel coordinates x, y (1, 1, h, w); zeros
-    outside (callers track validity with a sampled mask)."""
+    """Bilinear samples of img (1, C, H, W) at pixel coordinates x, y (N, 1, h, w) -> (N, C, h,
+    w) (N = 1 but in the sweep's batches); zeros outside (callers track validity with a sampled
+    mask)."""
     H, W = img.shape[-2:]
-    grid = torch.stack([x[0, 0] * (2.0 / (W - 1)) - 1.0, y[0, 0] * (2.0 / (H - 1)) - 1.0], -1)
-    return F.grid_sample(img, grid[None], mode="bilinear", padding_mode="zeros", align_corners=True)
+    n = x.shape[0]
+    # normalised coordinates written straight into the interleaved grid (torch.stack along the
+    # last axis cost 10x these three operations)
+    grid = torch.empty((n, *x.shape[-2:], 2), dtype=x.dtype, device=x.device)
+    torch.mul(x[:, 0], 2.0 / (W - 1), out=grid[..., 0])
+    torch.mul(y[:, 0], 2.0 / (H - 1), out=grid[..., 1])
+    grid.sub_(1.0)
+    if img.shape[0] != n:
+        img = img.expand(n, -1, -1, -1)
+    return F.grid_sample(img, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
+
+
+def sample_along(
+    img: torch.Tensor,
+    xs: torch.Tensor,
+    ys: torch.Tensor,
+    s: torch.Tensor,
+    wx: torch.Tensor,
+    wy: torch.Tensor,
+) -> torch.Tensor:
+    """``sample(img, xs + s * wx, ys + s * wy)``: img (1, C, H, W) at the pixels xs, ys moved by
+    s along ŵ (all (1, 1, h, w); s may be a batch (N, 1, h, w)), the same numbers with fewer
+    temporaries."""
+    px = s * wx
+    px.add_(xs)
+    py = s * wy
+    py.add_(ys)
+    return sample(img, px, py)
 
 
 def gaussian(x: torch.Tensor, sigma: float) -> torch.Tensor:
@@ -107,9 +181,16 @@ def inside_weight(tgt_inside: torch.Tensor, ref_mask: torch.Tensor | None) -> to
 def window_count(h: int, w: int, win: int, device: torch.device) -> torch.Tensor:
     """(1, 1, h, w) number of pixels of the win x win window inside an h x w grid (``box``
     averages over these)."""
+    if device.type == "cpu":  # the same numbers as the pooling below (its mean, times win²)
+        return _inside_count(h, w, win)[None, None] / (win * win) * (win * win)
     r = win // 2
     ones = torch.ones((1, 1, h, w), device=device)
     return F.avg_pool2d(ones, win, stride=1, padding=r, count_include_pad=True) * (win * win)
+
+
+# candidates of the sweep evaluated together (count): a batch's operations run once for all of
+# them (the sweep grid is small, ~0.02 Mpx: per-call overhead dominated); memory K x the grid
+SWEEP_BATCH = 8
 
 
 @dataclass
@@ -131,9 +212,11 @@ def sweep(
     ref_mask: torch.Tensor | None = None,
 ) -> SweepResult:
     """ZNCC sweep: for each candidate ``values[k]`` (a height, m) the target is sampled at ref
-    pixel + shift_of(values[k]) ŵ (shift_of gives the (1, 1, H, W) parallax field in px) and
-    compared with ref in win x win windows. Memory O(H W): only the running best and its two
-    neighbours' scores are kept; the peak is refined by a parabola through them.
+    pixel + shift_of(values[k]) ŵ (shift_of gives the (1, 1, H, W) parallax field in px; it is
+    called with ``SWEEP_BATCH`` heights at a time, as a (K, 1, 1, 1) tensor, and must broadcast
+    them to (K, 1, H, W)) and compared with ref in win x win windows. Memory O(K H W): only the
+    batch's scores, the running best and its two neighbours' scores are kept; the peak is
+    refined by a parabola through them.
 
     With ``tgt_mask`` (1, 1, H, W), 1 where tgt holds image data, and ``ref_mask`` (the same for
     ref), a window's ZNCC uses only its samples inside both images (``inside_weight``): a window
@@ -162,38 +245,41 @@ def sweep(
         # ``checks.min_window_samples`` after refinement)
         n_grid = window_count(H, W, win, dev).to(dt)
         min_n = float((win // 2 + 1) ** 2)
-    for k in range(len(values)):
-        s = shift_of(values[k])
-        smp = sample(tgt_stack, xs + s * wx, ys + s * wy)
+        rw = None if ref_mask is None else (ref_mask >= INSIDE_MIN).to(dt)
+    n = len(values)
+    for k0 in range(0, n, SWEEP_BATCH):
+        # SWEEP_BATCH candidates at once (each one's numbers as if alone): shift_of receives
+        # their heights as a (K, 1, 1, 1) tensor and broadcasts them to (K, 1, H, W)
+        s = shift_of(values[k0 : k0 + SWEEP_BATCH].view(-1, 1, 1, 1))
+        smp = sample_along(tgt_stack, xs, ys, s, wx, wy)
         J = smp[:, :1]
         if masked:
-            wgt = inside_weight(smp[:, 1:2], ref_mask)
-            m = box(
-                torch.cat(
-                    [wgt, wgt * ref, wgt * ref * ref, wgt * J, wgt * J * J, wgt * ref * J], 1
-                ),
-                win,
-            )
+            wgt = (smp[:, 1:2] >= INSIDE_MIN).to(dt)  # ``inside_weight``
+            if rw is not None:
+                wgt.mul_(rw)
+            wr, wj = wgt * ref, wgt * J
+            m = box(torch.cat([wgt, wr, wr * ref, wj, wj * J, wr * J], 1), win)
             enough = m[:, :1] * n_grid >= min_n - 0.5
-            m = m[:, 1:] / m[:, :1].clamp_min(1e-6)
+            m = m[:, 1:].div_(m[:, :1].clamp_min(1e-6))
             mu_rw, mu_j = m[:, :1], m[:, 2:3]
-            sd_rw = (m[:, 1:2] - mu_rw * mu_rw).clamp_min(0).sqrt()
-            sd_j = (m[:, 3:4] - mu_j * mu_j).clamp_min(0).sqrt()
-            c = (m[:, 4:5] - mu_rw * mu_j) / (sd_rw * sd_j + 1e-3)
-            c = torch.where(enough, c, torch.full_like(c, -2.0))
+            sd_rw = torch.sub(m[:, 1:2], mu_rw * mu_rw).clamp_min_(0).sqrt_()
+            sd_j = torch.sub(m[:, 3:4], mu_j * mu_j).clamp_min_(0).sqrt_()
+            c = torch.sub(m[:, 4:5], mu_rw * mu_j).div_(sd_rw.mul_(sd_j).add_(1e-3))
+            c.masked_fill_(~enough, -2.0)
         else:
             mu_j = box(J, win)
             cov = box(ref * J, win) - mu_r * mu_j
             sd_j = (box(J * J, win) - mu_j * mu_j).clamp_min(0).sqrt()
             c = cov / (sd_r * sd_j + 1e-3)
-        right = torch.where(just, c, right)
-        up = c > best
-        best = torch.where(up, c, best)
-        left = torch.where(up, prev, left)
-        idx = torch.where(up, torch.full_like(idx, k), idx)
-        just = up
-        prev = c
-    n = len(values)
+        for j in range(c.shape[0]):  # the running best, candidate by candidate
+            cj = c[j : j + 1]
+            right = torch.where(just, cj, right)
+            up = cj > best
+            best = torch.where(up, cj, best)
+            left = torch.where(up, prev, left)
+            idx.masked_fill_(up, k0 + j)
+            just = up
+            prev = cj
     interior = (idx > 0) & (idx < n - 1)
     den = left - 2 * best + right
     off = torch.where(interior & (den < -1e-6), 0.5 * (left - right) / den, torch.zeros_like(den))
@@ -258,42 +344,53 @@ def refine(
     gx, gy = gradients(tgt)
     stack = torch.cat([tgt, gx * wx + gy * wy, tgt_mask.to(dt)], dim=1)
     r2 = ref * ref
+    rw = None if ref_mask is None else (ref_mask >= INSIDE_MIN).to(dt)  # ``inside_weight``'s
     s = shift.clone()
     last = torch.zeros_like(s)
     wgt = torch.ones_like(s)
+    # the window sums of the reference alone (the weights, ref and ref², and what follows from
+    # them) change only when a sample leaves the window: while the weights stay the same they
+    # are kept from the step before (the same numbers, a third fewer box channels)
+    w_prev: torch.Tensor | None = None
+    # in-place arithmetic below: each result the same as the plain expression in the comment
     for it in range(iters + 1):
-        px, py = xs + s * wx, ys + s * wy
-        smp = sample(stack, px, py)
+        smp = sample_along(stack, xs, ys, s, wx, wy)
         J, G = smp[:, :1], smp[:, 1:2]
-        w_now = inside_weight(smp[:, 2:3], ref_mask)
-        # while iterating, a sample that leaves the target stays out of the window's sums:
-        # re-admitting it when the parallax moves back made the windows at the edge oscillate
-        # between two sets of samples (45° pair: 3x the unconverged pixels 2-3 px from the
-        # edge); the final statistics use every sample inside at the final parallax
-        wgt = w_now if it == iters else wgt * w_now
+        w_now = (smp[:, 2:3] >= INSIDE_MIN).to(dt)
+        if rw is not None:
+            w_now.mul_(rw)
+        wgt = w_now if it == iters else w_now.mul_(wgt)  # wgt * w_now
         wJ, wG = wgt * J, wgt * G
-        m = box(
-            torch.cat([wgt, wgt * ref, wgt * r2, wJ, wG, wJ * J, wG * G, wG * ref, wJ * G], 1), win
-        )
-        share = m[:, :1]
-        m = m[:, 1:] / share.clamp_min(1e-6)
-        mu_r = m[:, :1]
-        var_r = (m[:, 1:2] - mu_r * mu_r).clamp_min(0)
-        mu_j, mu_g = m[:, 2:3], m[:, 3:4]
-        var_j = (m[:, 4:5] - mu_j * mu_j).clamp_min(1e-6)
-        var_g = (m[:, 5:6] - mu_g * mu_g).clamp_min(1e-9)
-        cov_rg = m[:, 6:7] - mu_r * mu_g
-        cov_jg = m[:, 7:8] - mu_j * mu_g
-        g = (var_r / var_j).sqrt().clamp(0.5, 2.0)
+        wGG = wG * G
+        if w_prev is None or not torch.equal(wgt, w_prev):
+            mr = box_stack([wgt, wgt * ref, wgt * r2], win)
+            share = mr[:, :1]
+            share_c = share.clamp_min(1e-6)
+            mu_r = mr[:, 1:2] / share_c
+            var_r = (mr[:, 2:3] / share_c).sub_(mu_r * mu_r).clamp_min_(0)
+            w_prev = wgt
+        m = box_stack([wJ, wG, wJ * J, wGG, wG * ref, wJ * G], win, over=share_c)
+        mu_j, mu_g = m[:, :1], m[:, 1:2]
+        mu_gg = mu_g * mu_g
+        var_j = torch.sub(m[:, 2:3], mu_j * mu_j).clamp_min_(1e-6)
+        var_g = torch.sub(m[:, 3:4], mu_gg).clamp_min_(1e-9)
+        cov_rg = torch.sub(m[:, 4:5], mu_r * mu_g)
+        cov_jg = torch.sub(m[:, 5:6], mu_j * mu_g)
+        g = torch.div(var_r, var_j).sqrt_().clamp_(0.5, 2.0)
         if it == iters:
             break
-        ms = box(torch.cat([wgt * s, wG * s, wG * G * s], dim=1), win) / share.clamp_min(1e-6)
-        ggs = ms[:, 2:3] - 2 * mu_g * ms[:, 1:2] + mu_g * mu_g * ms[:, :1]
-        s_new = ((cov_rg - g * cov_jg) / g + ggs) / var_g
-        d = (s_new - s).clamp(-1.0, 1.0)
+        ms = box_stack([wgt * s, wG * s, wGG * s], win, over=share_c)
+        # ggs = ms[:, 2:3] - 2 * mu_g * ms[:, 1:2] + mu_g * mu_g * ms[:, :1]
+        ggs = torch.mul(mu_g, 2).mul_(ms[:, 1:2])
+        torch.sub(ms[:, 2:3], ggs, out=ggs)
+        ggs.add_(mu_gg.mul_(ms[:, :1]))
+        # d = (((cov_rg - g * cov_jg) / g + ggs) / var_g - s).clamp(-1, 1)
+        d = torch.mul(g, cov_jg)
+        torch.sub(cov_rg, d, out=d)
+        d.div_(g).add_(ggs).div_(var_g).sub_(s).clamp_(-1.0, 1.0)
         last = d.abs()
         s = s + d
-    cov_rj = box(wgt * ref * J, win) / share.clamp_min(1e-6) - mu_r * mu_j
+    cov_rj = box(wgt * ref * J, win) / share_c - mu_r * mu_j
     ncc = cov_rj / (var_r.sqrt() * var_j.sqrt() + 1e-3)
     n = share * window_count(H, W, win, dev)
     res = (2.0 * var_r * (1.0 - ncc)).clamp_min(2.0 * noise_dn * noise_dn)
