@@ -42,6 +42,12 @@ class DenseHeightConfig:
     # most +25 %). On spd2 a median 13 % of the labelled pothole pixels failed the 0.05 px test
     # alone (last step median 0.1 px, their σ 0.2 px)
     step_max_sigma: float = 0.5
+    # slanted second pass (``dense.slanted``): pixels whose parallax gradient, a plane fitted
+    # to the first pass over (window_px + 4)² px, is significant at this many σ of its own
+    # noise (Wald z, −; 0 = off) are matched again in windows slanted by it. The plane-warped
+    # road has no parallax, so a = 0 there and it keeps its first match; a steep defect wall
+    # (parallax changing along the window) is matched without the fronto-parallel bias
+    slant_sigmas: float = 3.0
     lr_check: bool = True  # match b -> a as well and keep pixels where both agree
     lr_max_px: float = 0.5  # largest left-right disagreement kept (px at the work grid)
     # Lucas-Kanade steps of the b -> a match, which only has to land within lr_max_px of the
@@ -107,6 +113,7 @@ class DenseHeightConfig:
         "blur_px": "[0, 5]",
         "refine_iters": "[0, 50]",
         "step_max_sigma": "[0, 2]",
+        "slant_sigmas": "[0, inf); 0 = off",
         "lr_max_px": "(0, inf)",
         "lr_refine_iters": "[-1, 50]; -1 = refine_iters",
         "min_ncc": "[-1, 1]",

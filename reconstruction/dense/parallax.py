@@ -14,6 +14,9 @@
    ``checks.min_window_samples`` samples inside both images: a window that crosses the edge of
    the overlap is matched on its part inside (``matching``), and image b is resampled beyond
    image a's grid by the matches' reach (``warp``).
+   Accepted pixels whose parallax gradient (a plane fitted to the pass's parallaxes around
+   them) is significant are matched again in windows slanted by it (a steep defect wall;
+   ``slanted``, ``DenseHeightConfig.slant_sigmas``).
 5. s -> η by the exact plane + parallax relation; var(η) = (dη/ds)² var(s) + (η σ_scale)².
 6. Pixels left invalid are matched again, steps 1-5, on a grid coarser by 2 (started from the
    first sweep's heights) and take its heights where it passes, with its variance widened by
@@ -47,6 +50,7 @@ from roadsurf.reconstruction.dense.matching import (
 )
 from roadsurf.reconstruction.dense.pyramid import LevelMatch, fill_from_coarse, prior_on_grid
 from roadsurf.reconstruction.dense.runtime import cpu_threads, heap_blocks, torch_device
+from roadsurf.reconstruction.dense.slanted import slanted_refine
 from roadsurf.reconstruction.dense.warp import overlap_crop, reach_px, resample_pair
 
 log = logging.getLogger(__name__)
@@ -237,6 +241,9 @@ def _match_level(
         back = sample(rev.shift, x2, y2)
         flags |= ((fwd.shift + back).abs() > cfg.lr_max_px).to(torch.uint8) * REJECT_LR
     t3 = time.perf_counter()
+    if cfg.slant_sigmas > 0 and cfg.refine_iters > 0:  # walls: windows slanted by ∇s
+        fwd, _ = slanted_refine(At, Bt, mBt, mAt, wx, wy, fwd, flags == 0, win, cfg)
+    t4 = time.perf_counter()
     shift = fwd.shift[0, 0].double().cpu().numpy()
     var_s = fwd.var[0, 0].double().cpu().numpy()
     if cfg.refine_iters > 0:  # what the iteration has left: about its last step
@@ -264,7 +271,7 @@ def _match_level(
             full = np.full((hf, wf), np.nan, np.float32)
             full[sl] = e[0, 0].cpu().numpy()[sub]
             setattr(out, name, full)
-    timings.update(init=t2 - t1, refine=t3 - t2)
+    timings.update(init=t2 - t1, refine=t3 - t2, slant=t4 - t3)
     return out
 
 

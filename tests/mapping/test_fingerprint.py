@@ -12,7 +12,8 @@ holds the bundle's version (issue 30); the map key also moved with DenseHeightCo
 (issue 28); DenseHeightConfig.fallback_levels and step_max_sigma came (the map key);
 grade_window_m (both keys) and dense_single_view_relief_m came (issue 28), then grade_sigma_pct
 (both keys), dense_visible_k and the dense surface's code version (the map key), the
-grade's version (the poses key).
+grade's version (the poses key); DenseHeightConfig.slant_sigmas and the dense surface's code
+version 4 (the map key).
 A change of MappingConfig's fields changes them legitimately. The keys must also
 change with what the outputs depend on (below)."""
 
@@ -44,7 +45,7 @@ def test_globalmap_fingerprint_is_unchanged() -> None:
         reference=None,
         segment=np.zeros(6, int),
     )
-    assert globalmap._fingerprint(MappingConfig(), syn.pairs, traj) == "a8ed0c2b8c008fad"
+    assert globalmap._fingerprint(MappingConfig(), syn.pairs, traj) == "570f3503d361e5fa"
 
 
 def test_poses_key_follows_the_gps_altitude() -> None:
