@@ -290,15 +290,11 @@ def segment(
 def measure(region: Region, grid: GridSpec, frame_depth_m: float) -> Measured:
     """Outline, centroid, depths, area, volume (fill), min-area-rectangle length and width."""
     gsd = grid.gsd_m
-    depth = np.where(np.isfinite(region.depth_m), region.depth_m, region.depth_smooth_m)
-    depth = np.clip(np.nan_to_num(depth, nan=0.0), 0.0, None)
+    depth = _raw_depth(region)
     xy = grid.xy_from_rowcol(region.rows, region.cols)
     area = float(len(region.rows) * gsd * gsd)
     volume = float(depth.sum() * gsd * gsd)
-    # Deepest depth CELL_SUPPORT cells of the (hole-filled, unsmoothed) surface reach: the
-    # smoothing used for the thresholds would shave a few millimetres off the bottom of a small
-    # pothole, and one outlier point mapped into a few cells must not set it.
-    max_depth = float(supported_max(depth, CELL_SUPPORT) or 0.0)
+    max_depth = raster_max_depth(region)
     mean_depth = float(depth.mean()) if len(depth) else 0.0
     # Outline: external contour(s) of the cell mask, pushed out by half a cell.
     r0, c0 = region.rows.min(), region.cols.min()
@@ -324,6 +320,21 @@ def measure(region: Region, grid: GridSpec, frame_depth_m: float) -> Measured:
         width_m=float(width),
         deep_xy_m=xy[deep],
     )
+
+
+def _raw_depth(region: Region) -> np.ndarray:
+    """(K,) depth (m, >= 0) of the region's cells on the hole-filled, unsmoothed raster (the
+    smoothed depth where the raster has none)."""
+    depth = np.where(np.isfinite(region.depth_m), region.depth_m, region.depth_smooth_m)
+    return np.clip(np.nan_to_num(depth, nan=0.0), 0.0, None)
+
+
+def raster_max_depth(region: Region) -> float:
+    """The region's max depth on the raster (m): the deepest depth ``CELL_SUPPORT`` cells of
+    the hole-filled, unsmoothed surface reach. The smoothing used for the thresholds would shave
+    a few millimetres off the bottom of a small pothole, and one outlier point mapped into a few
+    cells must not set it."""
+    return float(supported_max(_raw_depth(region), CELL_SUPPORT) or 0.0)
 
 
 def _outline(contours: tuple, row_off: int, col_off: int, grid: GridSpec) -> np.ndarray:

@@ -5,8 +5,11 @@ The raster interpolates between the 3D points and smooths, which shaves pothole 
 defect's max depth comes from the dense tracks when they cover it, else from the deepest 3D
 points inside its outline (the map's and each pair's own, ``point_max_depth`` and
 ``pair_max_depth``; the map's only as far as the pairs support it), the raster's depths scaled
-to match. Every one of these maxima is a
-supported maximum (``roadsurf.detection.robust``): one outlier point or cell cannot set it.
+to match. Where the raster is the fused dense surface, its own reading also counts, with or
+without a full track reading (the deeper wins), and the tracks count only as far as it supports
+them. Every one of these maxima is a supported maximum (``roadsurf.detection.robust``): one
+outlier point or cell cannot set it. A region is judged shallow by the raster's supported max
+(``mapseg.raster_max_depth``), the statistic it is measured by, not by the smoothed raster.
 """
 
 from __future__ import annotations
@@ -21,7 +24,14 @@ from roadsurf.core.fits import plane_signed_distance, robust_plane_z
 from roadsurf.detection.config import DetectionConfig, MapSegmentConfig
 from roadsurf.detection.dense import DenseContext, measure_defect_dense
 from roadsurf.detection.framemasks import DefectCells
-from roadsurf.detection.mapseg import Region, Segmentation, classify, measure, severity
+from roadsurf.detection.mapseg import (
+    Region,
+    Segmentation,
+    classify,
+    measure,
+    raster_max_depth,
+    severity,
+)
 from roadsurf.detection.robust import POINT_SUPPORT, supported_by, supported_max
 from roadsurf.detection.types import Defect
 
@@ -66,7 +76,12 @@ def measure_regions(
         seed_m = reg.seed_m if math.isfinite(reg.seed_m) else seg.seed_m
         noise_m = reg.noise_m if math.isfinite(reg.noise_m) else seg.noise_m
         deep_area = float((reg.depth_smooth_m >= seed_m).sum() * gsd2)
-        max_depth = float(np.nanmax(reg.depth_smooth_m))
+        # Judged by the statistic it is measured by (``raster_max_depth``: unsmoothed, supported
+        # by CELL_SUPPORT cells) as well as the smoothed one: the smoothing of the thresholds
+        # shaves the bottom of a pothole only a few times its σ wide (real photographs: an
+        # 11 x 7 cm pothole read 8.6 mm smoothed and was dropped as shallow before the dense
+        # tracks could measure it).
+        max_depth = max(float(np.nanmax(reg.depth_smooth_m)), raster_max_depth(reg))
         rut = reg.rut
         if rut is not None:  # traced on straightedge profiles: its own depth and floor
             max_depth, deep_area = rut.max_depth_m, float(len(reg.rows) * gsd2)
@@ -125,7 +140,18 @@ def measure_regions(
                 # The fused dense surface saw the floor from every pair (the nearest, least
                 # oblique views too); one pair's tracks of a tilted camera read it shallower
                 # (tilted 45° drive, potholes: 6.8 mm vs 4.2 mm MAE). The deeper wins, as for
-                # the points below.
+                # the points below - and as there, only as far as the other reading supports
+                # it: the tracks and the fused surface are two matchers of the same images, so
+                # tracks deeper than the surface supports come from a pair whose tracks failed
+                # over the floor (real photographs turned by 60°: a pair with 3x the others'
+                # dense σ read 65 mm where the surface read 40 mm).
+                if not supported_by(dm.max_depth_m, raster_max):
+                    log.debug(
+                        "detection: %s dense tracks read %.1f mm, unsupported by the dense "
+                        "surface's %.1f mm", m.centroid_xy_m, 1000 * dm.max_depth_m,
+                        1000 * raster_max,
+                    )  # fmt: skip
+                    m.max_depth_m = raster_max
                 m.max_depth_m = max(m.max_depth_m, raster_max)
             m.mean_depth_m = dm.mean_depth_m
             m.volume_m3 = dm.volume_m3
@@ -156,18 +182,31 @@ def measure_regions(
                         pt_max = pr_max
                     pt_max = max(pr_max, pt_max or 0.0)
             if part is not None:
-                # A partial dense reading still measured the part it saw: the same rule.
-                pt_max = max(part.max_depth_m, pt_max or 0.0)
+                # A partial dense reading still measured the part it saw: the same rules.
+                part_max = part.max_depth_m
+                if dense_raster and not supported_by(part_max, raster_max):
+                    part_max = raster_max
+                pt_max = max(part_max, pt_max or 0.0)
+            if dense_raster:
+                # The fused dense surface measured the floor the tracks did not cover (LK
+                # tracks on a smooth floor do not come back: real photographs, 44-59 % of the
+                # outline tracked, the points and partial tracks on its rim 12-20 mm): the
+                # deeper wins, as with a full dense reading.
+                pt_max = max(pt_max or 0.0, raster_max)
             log.debug(
-                "detection: %s no full dense reading: map points %s, pairs %s, partial dense %s",
-                m.centroid_xy_m, pt_max, pr_max if pair_pts else None,
-                None if part is None else part.max_depth_m,
+                "detection: %s no full dense reading: map points %s, pairs %s, partial dense "
+                "%s, dense surface %s", m.centroid_xy_m, pt_max, pr_max if pair_pts else None,
+                None if part is None else part.max_depth_m, raster_max if dense_raster else None,
             )  # fmt: skip
             if pt_max is not None and pt_max > 0:
                 # The raster's bottom is shaved by interpolation: scale its depths to the
-                # points' before measuring the area deeper than the frame-label depth.
+                # points' before measuring the area deeper than the frame-label depth. The
+                # smoothed depths by their own max (as with a dense reading): the smoothing
+                # shaves a narrow pothole further (real photographs, a pothole 4.5 cm wide read
+                # 19 mm: 17 cm² deeper than 10 mm scaled by the raw max, 26 cm² by its own).
                 k = max(1.0, pt_max / max(m.max_depth_m, 1e-6))
-                deep = reg.depth_smooth_m * k >= mc.frame_depth_m
+                ks = max(1.0, pt_max / max(float(np.nanmax(reg.depth_smooth_m)), 1e-6))
+                deep = reg.depth_smooth_m * ks >= mc.frame_depth_m
                 m.deep_xy_m = seg.grid.xy_from_rowcol(reg.rows[deep], reg.cols[deep])
                 m.max_depth_m = pt_max
                 m.mean_depth_m *= k

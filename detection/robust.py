@@ -32,7 +32,10 @@ When the fused map's points read a defect deeper than every pair that measured i
 frame, the map's reading must be supported by the pairs' (``supported_by``, the same
 tolerance): the map's points ARE the pairs' points, placed by the trajectory, so a depth the
 pairs themselves do not see comes from the placement (a pose error, two stretches of road fused
-into one place), not from the road.
+into one place), not from the road. Likewise a dense-track reading deeper than the fused dense
+surface supports (``measurement``): the two are matchers of the same images, and tracks that
+failed over a pothole floor read it deep together (a supported maximum cannot catch a whole
+floor of them).
 
 Cracks keep the median over their pieces of each piece's second-deepest point (at least two
 points per piece); ruts the largest running median of the stations' depths.

@@ -268,3 +268,44 @@ def test_a_dense_surface_reading_deeper_than_the_tracks_wins(tmp_path):
     res = stage.run(DetectionConfig(overwrite=True), drive, pairs, traj, run)
     assert len(res.defects) == 1
     assert res.defects[0].max_depth_m == pytest.approx(0.048, abs=0.003)  # the surface
+
+
+def test_tracks_deeper_than_the_dense_surface_supports_do_not_set_the_depth(tmp_path):
+    """The tracks and the fused dense surface are two matchers of the same images: tracks
+    deeper than the surface supports (by more than max(5 mm, 20 %)) come from failed tracks
+    (real photographs: one pair's tracks read 65 mm where the surface read 40 mm), and the
+    surface's reading stands; within that tolerance the deeper wins."""
+    import rasterio
+
+    drive, pairs, traj = _two_view_with_raster(
+        tmp_path, Pothole(0.05, 0.12, RADIUS_M, DEPTH_M), Pothole(0.05, 0.12, RADIUS_M, 0.026)
+    )
+    run = tmp_path / "run"
+    res = stage.run(DetectionConfig(), drive, pairs, traj, run)
+    assert res.defects[0].max_depth_m == pytest.approx(DEPTH_M, abs=0.003)  # the tracks
+    with rasterio.open(run / "surface.tif", "r+") as s:
+        s.update_tags(DENSE_FOOTPRINT_M="0.009")
+    res = stage.run(DetectionConfig(overwrite=True), drive, pairs, traj, run)
+    assert len(res.defects) == 1
+    assert res.defects[0].max_depth_m == pytest.approx(0.026, abs=0.002)  # the surface
+
+
+def test_dense_surface_counts_when_the_tracks_cover_too_little_of_the_defect(tmp_path):
+    """Tracks that cover too little of the outline (a smooth floor they do not come back
+    from) leave the depth to the points and the partial reading; the fused dense surface
+    measured the floor, and, as with a full reading, the deeper wins."""
+    import rasterio
+
+    drive, pairs, traj = _two_view_with_raster(
+        tmp_path, Pothole(0.05, 0.12, RADIUS_M, DEPTH_M), Pothole(0.05, 0.12, RADIUS_M, 0.048)
+    )
+    run = tmp_path / "run"
+    partial = DetectionConfig(dense=DenseConfig(min_coverage=1.0))  # no reading is full
+    res = stage.run(partial, drive, pairs, traj, run)
+    assert res.defects[0].max_depth_m < 0.046  # the points and the partial tracks
+    with rasterio.open(run / "surface.tif", "r+") as s:
+        s.update_tags(DENSE_FOOTPRINT_M="0.009")
+    partial = dataclasses.replace(partial, overwrite=True)
+    res = stage.run(partial, drive, pairs, traj, run)
+    assert len(res.defects) == 1
+    assert res.defects[0].max_depth_m == pytest.approx(0.048, abs=0.003)  # the surface

@@ -142,3 +142,29 @@ def test_dense_band_of_failed_tracks_in_one_of_two_pairs_does_not_set_the_max():
     )  # fmt: skip
     assert got is not None
     assert abs(got.max_depth_m - depth) < 0.0015
+
+
+def test_region_is_judged_by_its_unsmoothed_supported_max_not_the_smoothed_one():
+    """The thresholds' smoothing shaves the bottom of a pothole a few times its σ wide: a real
+    11 x 7 cm pothole read 8.6 mm smoothed (< min_depth_m, 10 mm) and was dropped as shallow
+    before it was measured. It is judged by the statistic it is measured by: the unsmoothed
+    raster's supported max (12 mm here)."""
+    from roadsurf.detection.config import DetectionConfig
+    from roadsurf.detection.mapseg import Segmentation, raster_max_depth
+    from roadsurf.detection.measurement import measure_regions
+
+    gsd = 0.005
+    grid = GridSpec("EPSG:32617", -0.5, 0.5, gsd, 200, 200)
+    rr, cc = np.meshgrid(np.arange(200), np.arange(200), indexing="ij")
+    xy = grid.xy_from_rowcol(rr.ravel(), cc.ravel())
+    r = np.linalg.norm(xy, axis=1)
+    raw = 0.012 * np.clip((0.06 - r) / 0.02, 0.0, 1.0)  # flat 12 mm floor, 2 cm walls
+    ins = raw > 0
+    smooth = np.minimum(raw[ins], 0.009)  # the smoothing shaved the floor to 9 mm
+    reg = Region(rows=rr.ravel()[ins], cols=cc.ravel()[ins], depth_m=raw[ins],
+                 depth_smooth_m=smooth, noise_m=0.001, seed_m=0.008)  # fmt: skip
+    assert raster_max_depth(reg) == pytest.approx(0.012)
+    seg = Segmentation(0.001, 0.008, 0.0015, [reg], np.zeros((200, 200)), grid)
+    defects, _ = measure_regions(DetectionConfig(), seg, {}, have_pairs=False)
+    assert len(defects) == 1
+    assert defects[0].max_depth_m == pytest.approx(0.012)
