@@ -166,8 +166,10 @@ def slanted_refine(
     wq_x, wq_y = wx.reshape(-1)[qi], wy.reshape(-1)[qi]
     ref_in = inside & (ref_mask.reshape(-1)[qi] >= INSIDE_MIN)
     slope = au[:, None] * du + av[:, None] * dv  # (N, K) px
+    # the target's gradient along ŵ on its own grid, as ``matching.refine`` takes it (ŵ turns
+    # by well under 1 % between a pixel and its match)
     gx, gy = gradients(tgt)
-    stack = torch.cat([tgt, gx, gy, tgt_mask.to(dt)], 1)
+    stack = torch.cat([tgt, gx * wx + gy * wy, tgt_mask.to(dt)], 1)
     s = first.shift.reshape(-1)[idx].clone()  # (N,)
     last = torch.zeros_like(s)
 
@@ -176,8 +178,8 @@ def slanted_refine(
         px, py = xq + sq * wq_x, yq + sq * wq_y
         grid = torch.stack([px * (2.0 / (W - 1)) - 1.0, py * (2.0 / (H - 1)) - 1.0], -1)
         smp = F.grid_sample(stack, grid[None], mode="bilinear", align_corners=True)[0]
-        J, G = smp[0], smp[1] * wq_x + smp[2] * wq_y
-        w = (ref_in & (smp[3] >= INSIDE_MIN)).to(dt)
+        J, G = smp[0], smp[1]
+        w = (ref_in & (smp[2] >= INSIDE_MIN)).to(dt)
         n = w.sum(1).clamp_min(1.0)
 
         def mean(x: torch.Tensor) -> torch.Tensor:
