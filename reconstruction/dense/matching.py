@@ -289,6 +289,24 @@ def sweep(
     return SweepResult(value, best, interior)
 
 
+def fill_unswept(value: torch.Tensor, ncc: torch.Tensor, steps: int) -> torch.Tensor:
+    """``value`` (1, 1, H, W) where the sweep had no candidate with enough samples (``ncc`` -2,
+    a band along the edge of the overlap) replaced by the mean of its swept neighbours, grown
+    outwards by one pixel a step for ``steps`` steps: a start for the refinement there, which
+    keeps only matches that pass its own checks (samples, ZNCC, left-right). Such pixels
+    otherwise started at the sweep's first value (the deepest height) and never converged."""
+    ok = (ncc > -1.5).to(value.dtype)
+    v = torch.where(ok > 0, value, torch.zeros_like(value))
+    for _ in range(max(int(steps), 0)):
+        if bool(ok.min() > 0):
+            break
+        m = box(torch.cat([ok, v * ok], 1), 3)
+        grow = (ok == 0) & (m[:, :1] > 0)
+        v = torch.where(grow, m[:, 1:2] / m[:, :1].clamp_min(1e-6), v)
+        ok = torch.where(grow, torch.ones_like(ok), ok)
+    return torch.where(ok > 0, v, value)
+
+
 @dataclass
 class RefineResult:
     shift: torch.Tensor  # (1, 1, H, W) parallax along ŵ (px)

@@ -43,6 +43,7 @@ from roadsurf.reconstruction.dense.checks import REJECT_GEOMETRY, REJECT_LR, che
 from roadsurf.reconstruction.dense.config import DenseHeightConfig
 from roadsurf.reconstruction.dense.geometry import PlaneParallax
 from roadsurf.reconstruction.dense.matching import (
+    fill_unswept,
     gaussian,
     refine,
     sample,
@@ -366,8 +367,11 @@ def _init(
         k = eta * nrs / (hb * (ha - eta))
         return sign * k * nws / (1.0 - k * e2)
 
-    res = sweep(r_s, t_s, wxs, wys, values, shift_of, int(cfg.window_px) | 1, tm_s, rm_s)
-    eta_s = res.value
+    win = int(cfg.window_px) | 1
+    res = sweep(r_s, t_s, wxs, wys, values, shift_of, win, tm_s, rm_s)
+    # the band next to the overlap's edge that no candidate saw with enough samples starts
+    # from its swept neighbours (a window's reach, win pixels of the sweep grid)
+    eta_s = fill_unswept(res.value, res.ncc, win)
     if ss != 1.0:  # back on the work grid (sweep coordinates of work pixels, clamped)
         ys, xs = torch.meshgrid(
             torch.arange(h, device=ref.device, dtype=torch.float32),
