@@ -1,5 +1,6 @@
-"""Guards of ``roadsurf run`` around the stages: which drive a run folder belongs to, and a run
-in which no pair reconstructs (no 3D result: refused, never reported as "no defect").
+"""Guards of ``roadsurf run`` around the stages: which drive a run folder belongs to, a run
+in which no pair reconstructs (no 3D result: refused, never reported as "no defect"), and a
+warning when many pairs fail (the map has gaps there).
 
 ``RUN/run.json`` records the drive a run folder was made from: its resolved path and a digest of
 its small top-level files (camera.yaml, frames.csv, gps.*, obd.csv). A run of another drive into
@@ -28,6 +29,12 @@ log = logging.getLogger(__name__)
 
 RUN_JSON = rf.RUN_JSON
 _HASH_MAX_BYTES = 16 * 1024 * 1024  # larger top-level files are identified by size and mtime
+
+
+# a warning when more than this share of the pairs failed (−): an occasional failure (a stop,
+# a blurred frame) leaves a gap GPS bridges; beyond a tenth the map and the defect list have
+# holes the user must know of
+FAILED_PAIRS_WARN_SHARE = 0.1
 
 
 class NoReconstructionError(RoadsurfError):
@@ -152,3 +159,30 @@ def check_reconstruction(
         + (f" E.g. {example}." if example else "")
         + f" Details per pair: {out / rf.PAIRS_DIR}"
     )
+
+
+def pair_failures_warning(pairs: list[PairResult], out: Path) -> str | None:
+    """A warning when more than ``FAILED_PAIRS_WARN_SHARE`` of the pairs failed: how many, per
+    reason, the frames of the longest run of failures and one reason in full; else None."""
+    failed = [i for i, p in enumerate(pairs) if not p.ok]
+    if not pairs or len(failed) <= FAILED_PAIRS_WARN_SHARE * len(pairs):
+        return None
+    counts = Counter(pairs[i].status for i in failed)
+    # the longest run of consecutive failed pairs: where the map's largest hole is
+    best, start = (0, 0), None
+    for k, i in enumerate(failed):
+        if k == 0 or i != failed[k - 1] + 1:
+            start = i
+        if start is not None and i - start + 1 > best[1] - best[0]:
+            best = (start, i + 1)
+    a, b = pairs[best[0]], pairs[best[1] - 1]
+    first = pairs[failed[0]]
+    msg = (
+        f"{len(failed)} of {len(pairs)} pairs failed "
+        f"({', '.join(f'{s}: {n}' for s, n in counts.most_common())}); their frames have no 3D "
+        f"surface and no defect can be found there. Longest run: {best[1] - best[0]} pairs, "
+        f"{a.frame_a} -> {b.frame_b}. E.g. {first.frame_a} -> {first.frame_b}: {first.reason}. "
+        f"Details per pair: {out / rf.PAIRS_DIR}"
+    )
+    log.warning(msg)
+    return msg
