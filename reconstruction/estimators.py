@@ -198,10 +198,14 @@ def _estimate(
                     )
                 log.debug(
                     "homography outlier ratio %.2f: %.0f%% of the outliers fit the pair's "
-                    "epipolar geometry, the rest are mismatches; the pair is near-planar",
+                    "epipolar geometry, the rest are mismatches; the pair is near-planar and "
+                    "goes on with the homography's inliers",
                     out_ratio,
                     100 * fit,
                 )
+                # the mismatches that fall near their epipolar lines by chance would be
+                # triangulated at wrong depths and outnumber the real parallax points
+                pa, pb, idx, h_inl = pa[h_inl], pb[h_inl], idx[h_inl], h_inl[h_inl]
             if h_inl.sum() < cfg.min_matches:
                 raise PairFailure("too_few_matches", f"{int(h_inl.sum())} homography inliers")
             if method == "proposed":
