@@ -39,11 +39,8 @@ from roadsurf.io import runfolder as rf
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.datum import vertical_datum
 from roadsurf.mapping.loops import frame_matcher
-from roadsurf.pipeline.run_checks import (
-    check_reconstruction,
-    claim_run_folder,
-    pair_failures_warning,
-)
+from roadsurf.pipeline.run_checks import check_reconstruction, claim_run_folder
+from roadsurf.pipeline.run_checks import pair_failures_warning as failures_warning
 from roadsurf.reconstruction.config import ReconstructionConfig
 
 if TYPE_CHECKING:
@@ -482,8 +479,7 @@ def _build_report(
         },
         "skipped_frames": [dataclasses.asdict(s) for s in drive.skipped],
         "failed_pairs": failed,
-        "warnings": list(drive.warnings)
-        + [w for w in [pair_failures_warning(pairs, out)] if w is not None],
+        "warnings": [*drive.warnings, *filter(None, [failures_warning(pairs, out)])],
         "timings_s": timings,
         "versions": _versions(),
         "config": {f.name: to_dict(getattr(cfg, f.name)) for f in dataclasses.fields(cfg)},
