@@ -19,7 +19,6 @@ are combined on one cell grid and the defect is measured on it.
 from __future__ import annotations
 
 import logging
-import warnings
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -108,9 +107,7 @@ def combine_dense(
         with np.errstate(invalid="ignore", divide="ignore"):
             vals.append(np.where(n > 0, s / n, np.nan))
     V = _drop_unsupported(np.vstack(vals), np.array([p.noise_m for p in got]))
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        D = np.nanmedian(V, axis=0).reshape(ny, nx)
+    D = nanmedian_last(V.T).reshape(ny, nx)
     cx = x0 + (np.arange(nx) + 0.5) * c
     cy = y0 + (np.arange(ny) + 0.5) * c
     CX, CY = np.meshgrid(cx, cy)
@@ -165,11 +162,10 @@ def _drop_unsupported(V: np.ndarray, noise_m: np.ndarray) -> np.ndarray:
     if len(V) < 2:
         return V
     out = V.copy()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        for i in range(len(V)):
-            others = np.nanmedian(np.delete(V, i, axis=0), axis=0)
-            tol = np.maximum(np.maximum(SUPPORT_TOL_M, 6.0 * noise_m[i]), 0.25 * np.abs(others))
+    for i in range(len(V)):
+        others = nanmedian_last(np.delete(V, i, axis=0).T)
+        tol = np.maximum(np.maximum(SUPPORT_TOL_M, 6.0 * noise_m[i]), 0.25 * np.abs(others))
+        with np.errstate(invalid="ignore"):
             out[i, V[i] - others > tol] = np.nan  # NaN compares False: unshared cells stay
     return out
 

@@ -155,11 +155,14 @@ def match(fa: Features, fb: Features, cfg: FeatureConfig) -> tuple[np.ndarray, n
     arr = np.array(pairs, dtype=np.float64)
     ia_a, ib_a = arr[:, 0].astype(int), arr[:, 1].astype(int)
     keep = arr[:, 2] < cfg.ratio * arr[:, 3]
-    if cfg.mutual and len(ia_a):
-        back = bf.match(db, da)
+    if cfg.mutual and keep.any():
+        # the way back only for b's features that a kept match ends on (a fifth to a third of
+        # b's): each query's nearest neighbour is the same as in a search of all of b's
+        jb = np.unique(ib_a[keep])
+        back = bf.match(np.ascontiguousarray(db[jb]), da)
         best_a = np.full(len(db), -1, int)
         for m in back:
-            best_a[m.queryIdx] = m.trainIdx
+            best_a[jb[m.queryIdx]] = m.trainIdx
         keep &= best_a[ib_a] == ia_a
     return ia_a[keep], ib_a[keep]
 
