@@ -254,20 +254,32 @@ def test_a_dense_surface_reading_deeper_than_the_tracks_wins(tmp_path):
     """Where surface.tif is the fused dense surface (its DENSE_FOOTPRINT_M tag), its
     supported max also bounds the dense-track reading and the deeper wins (a tilted camera's
     tracks read a floor shallower than the fused views); an interpolated raster's does not."""
+    tracks, surface = _depths_before_and_after_the_dense_tag(tmp_path, 0.048)
+    assert tracks == pytest.approx(DEPTH_M, abs=0.003)
+    assert surface == pytest.approx(0.048, abs=0.003)
+
+
+def _depths_before_and_after_the_dense_tag(tmp_path, raster_depth_m: float) -> tuple[float, ...]:
+    """The one defect's max depth of a two-view run whose tracks read DEPTH_M and whose
+    surface.tif reads ``raster_depth_m``: as an interpolated raster, then tagged as the fused
+    dense surface (DENSE_FOOTPRINT_M)."""
     import rasterio
 
     drive, pairs, traj = _two_view_with_raster(
-        tmp_path, Pothole(0.05, 0.12, RADIUS_M, DEPTH_M), Pothole(0.05, 0.12, RADIUS_M, 0.048)
+        tmp_path,
+        Pothole(0.05, 0.12, RADIUS_M, DEPTH_M),
+        Pothole(0.05, 0.12, RADIUS_M, raster_depth_m),
     )
     run = tmp_path / "run"
-    res = stage.run(DetectionConfig(), drive, pairs, traj, run)
-    assert len(res.defects) == 1
-    assert res.defects[0].max_depth_m == pytest.approx(DEPTH_M, abs=0.003)  # the tracks
-    with rasterio.open(run / "surface.tif", "r+") as s:
-        s.update_tags(DENSE_FOOTPRINT_M="0.009")
-    res = stage.run(DetectionConfig(overwrite=True), drive, pairs, traj, run)
-    assert len(res.defects) == 1
-    assert res.defects[0].max_depth_m == pytest.approx(0.048, abs=0.003)  # the surface
+    depths = []
+    for overwrite in (False, True):
+        if overwrite:
+            with rasterio.open(run / "surface.tif", "r+") as s:
+                s.update_tags(DENSE_FOOTPRINT_M="0.009")
+        res = stage.run(DetectionConfig(overwrite=overwrite), drive, pairs, traj, run)
+        assert len(res.defects) == 1
+        depths.append(res.defects[0].max_depth_m)
+    return tuple(depths)
 
 
 def test_tracks_deeper_than_the_dense_surface_supports_do_not_set_the_depth(tmp_path):
@@ -275,19 +287,9 @@ def test_tracks_deeper_than_the_dense_surface_supports_do_not_set_the_depth(tmp_
     deeper than the surface supports (by more than max(5 mm, 20 %)) come from failed tracks
     (real photographs: one pair's tracks read 65 mm where the surface read 40 mm), and the
     surface's reading stands; within that tolerance the deeper wins."""
-    import rasterio
-
-    drive, pairs, traj = _two_view_with_raster(
-        tmp_path, Pothole(0.05, 0.12, RADIUS_M, DEPTH_M), Pothole(0.05, 0.12, RADIUS_M, 0.026)
-    )
-    run = tmp_path / "run"
-    res = stage.run(DetectionConfig(), drive, pairs, traj, run)
-    assert res.defects[0].max_depth_m == pytest.approx(DEPTH_M, abs=0.003)  # the tracks
-    with rasterio.open(run / "surface.tif", "r+") as s:
-        s.update_tags(DENSE_FOOTPRINT_M="0.009")
-    res = stage.run(DetectionConfig(overwrite=True), drive, pairs, traj, run)
-    assert len(res.defects) == 1
-    assert res.defects[0].max_depth_m == pytest.approx(0.026, abs=0.002)  # the surface
+    tracks, surface = _depths_before_and_after_the_dense_tag(tmp_path, 0.026)
+    assert tracks == pytest.approx(DEPTH_M, abs=0.003)
+    assert surface == pytest.approx(0.026, abs=0.002)
 
 
 def test_dense_surface_counts_when_the_tracks_cover_too_little_of_the_defect(tmp_path):
