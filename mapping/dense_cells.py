@@ -105,7 +105,7 @@ def cell_samples(
             def rows(x: np.ndarray) -> np.ndarray:
                 return np.pad(x, (0, pad), mode="edge").reshape(-1, REMAP_COLS)
 
-            zz, x0, x1, x2 = (rows(a.reshape(-1)[sel]) for a in (z, X0, X1, X2))
+            zz, x0, x1, x2 = (rows(q.reshape(-1)[sel]) for q in (z, X0, X1, X2))
             r = rows(r)
         dz = zz + r - C[2]
         Z = x2 + dz * R[2, 2]

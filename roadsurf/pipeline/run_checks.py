@@ -169,11 +169,11 @@ def pair_failures_warning(pairs: list[PairResult], out: Path) -> str | None:
         return None
     counts = Counter(pairs[i].status for i in failed)
     # the longest run of consecutive failed pairs: where the map's largest hole is
-    best, start = (0, 0), None
-    for k, i in enumerate(failed):
-        if k == 0 or i != failed[k - 1] + 1:
+    best, start = (0, 0), failed[0]
+    for prev, i in zip([failed[0] - 1, *failed[:-1]], failed, strict=True):
+        if i != prev + 1:
             start = i
-        if start is not None and i - start + 1 > best[1] - best[0]:
+        if i + 1 - start > best[1] - best[0]:
             best = (start, i + 1)
     a, b = pairs[best[0]], pairs[best[1] - 1]
     first = pairs[failed[0]]

@@ -47,3 +47,18 @@ def test_structure_off_the_plane_is_not_near_planar() -> None:
         res = estimate_matches(px_a, px_b, K, h, CFG)
         assert res.status == "not_near_planar", res.reason
         assert "lie off the plane" in res.reason
+
+
+def test_the_epipolar_share_tells_mismatches_from_structure() -> None:
+    """The share of the homography's outliers on their epipolar lines: mismatches well below
+    OFF_PLANE_SHARE, points off the plane well above it (docs/reconstruction.md quotes it)."""
+    from roadsurf.reconstruction.estimators import OFF_PLANE_SHARE, _outliers_on_epipolar_lines
+    from roadsurf.reconstruction.pose_planar import estimate_homography
+
+    for kind, lo, hi in (("mismatch", 0.0, 0.3), ("structure", 0.9, 1.0)):
+        for seed in range(3):
+            px_a, px_b, K, _ = _with_outliers(kind, 0.6, seed)
+            H, inl, _ = estimate_homography(px_a, px_b, CFG)
+            share = _outliers_on_epipolar_lines(px_a, px_b, H, inl, K, CFG, None)
+            assert share is not None and lo <= share <= hi, (kind, seed, share)
+    assert 0.3 < OFF_PLANE_SHARE < 0.9
