@@ -74,8 +74,13 @@ def redetect(run_dir: Path, drive_dir: Path, variant: str) -> Path:
             os.symlink(src.resolve(), out / name)
     cfg = dataclasses.replace(_cfg(variant), overwrite=True)
     drive = load_drive(drive_dir)
+    traj = load_trajectory(run_dir)
+    if traj.mount_deg is not None:  # the mount the run's poses used (given or estimated)
+        drive = dataclasses.replace(
+            drive, camera=dataclasses.replace(drive.camera, mount_deg=traj.mount_deg)
+        )
     pairs = [load_pair(p) for p in sorted((run_dir / "pairs").glob("*.npz"))]
-    stage.run(cfg, drive, pairs, load_trajectory(run_dir), out)
+    stage.run(cfg, drive, pairs, traj, out)
     return out
 
 
