@@ -20,6 +20,10 @@ error at least the bound the fixes' velocity changes allow). Finally the pose gr
 (position and heading) is kept at scales beyond ``bundle_placement_length_m`` (a window sees only
 its own fixes). Each pair's own motion stays in the problem as the pose graph's factor (same σ).
 Revisits: ``mapping.loops`` (loop pairs go to the pose graph, before and after the windows).
+A rolling shutter (camera.yaml ``readout_s``): each observation is projected from the pose of its
+raw row's time, the frame's pose moved on by its motion over the readout (from its neighbours'
+current poses, ``core.rolling.frame_motion``, held in a window). The refined focal and k1 reach
+the later stages through ``mapping.bundle_camera``.
 """
 
 from __future__ import annotations
@@ -31,9 +35,10 @@ import time
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
-from roadsurf.core.camera import Camera
 from roadsurf.core.geometry import invert_pose, up_in_cam
+from roadsurf.core.rolling import frame_motion
 from roadsurf.io.drive import Drive
 from roadsurf.mapping.bundle_gps import (
     fit_time_offset,
@@ -47,6 +52,7 @@ from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.grade import up_axes_in_cam
 from roadsurf.mapping.pose_gps import GpsFixes
 from roadsurf.mapping.tracks import Tracks, build_tracks, thin_tracks, triangulate_w
+from roadsurf.reconstruction.rolling_shutter import row_times_s
 
 if TYPE_CHECKING:
     from roadsurf.reconstruction.types import PairResult
@@ -54,8 +60,9 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 # the algorithm's version, in the poses stage's fingerprint: a run resumed after a change
-# recomputes its poses (2: relief weight per frame, the pairs' motions, heading placement)
-BUNDLE_VERSION = 3
+# recomputes its poses (2: relief weight per frame, the pairs' motions, heading placement; 4: a
+# rolling shutter's rows each from their own pose, the pairs' translations follow the focal)
+BUNDLE_VERSION = 4
 N_ANCHOR = 2  # frames before a window held at their refined poses
 MIN_OBS = 8  # a frame seeing fewer 3+-view track points keeps its pose graph pose
 MIN_OFFSET_S = 0.005  # a smaller GPS time offset is not applied (s)
@@ -87,6 +94,9 @@ def refine_poses(
     tracks = build_tracks(pairs, pos_of, world, tol_m=cfg.bundle_track_tol_m)
     cam = drive.camera
     tracks = thin_tracks(tracks, cfg.bundle_max_two_view, (cam.width, cam.height))
+    if cam.readout_s > 0:  # a rolling shutter: each observation at its raw row's time
+        raw_v = cam.distort_px(tracks.obs_px)[:, 1]
+        tracks.obs_time_s = row_times_s(raw_v, cam.height, cam.readout_s)
     report: dict[str, Any] = {
         "n_tracks": tracks.n_tracks,
         "n_tracks_3plus": int(np.sum(tracks.length >= 3)),
@@ -123,6 +133,7 @@ def refine_poses(
         (pos_of[p.index_a], pos_of[p.index_b]): (
             np.asarray(p.R_b_from_a, float),
             np.asarray(p.t_b_from_a_m, float),
+            _unit_normal(p.plane, d_down),
         )
         for p in pairs
         if p.index_a in pos_of and p.index_b in pos_of
@@ -180,16 +191,6 @@ def refine_poses(
     return cur, report
 
 
-def refined_camera(camera: Camera, bundle_report: dict[str, Any]) -> Camera:
-    """The camera the later stages use: camera.yaml's with the bundle's refined k1 (``dist[0]``)
-    when ``bundle_refine_k1`` estimated one (a report without "k1": the camera unchanged). The
-    focal scale is reported only (the map and the dense surface keep camera.yaml's focal)."""
-    if "k1" not in bundle_report:
-        return camera
-    dist = (float(bundle_report["k1"]), *camera.dist[1:])
-    return dataclasses.replace(camera, dist=dist)
-
-
 def _px(v: float | None) -> str:
     return "-" if v is None else f"{v:.2f}"
 
@@ -207,7 +208,7 @@ def _sweep(
     plane_nominal: np.ndarray,
     report: dict[str, Any],
     used: np.ndarray,
-    rel_rot: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]],
+    rel_rot: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, np.ndarray]],
     tau: float,
     focal: tuple[float, float] = (0.0, 0.0),
     k1: tuple[float, float] = (0.0, 0.0),
@@ -285,7 +286,7 @@ def _solve_window(
     n_up: np.ndarray,
     plane_nominal: np.ndarray,
     report: dict[str, Any],
-    rel_rot: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]],
+    rel_rot: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, np.ndarray]],
     focal: tuple[float, float] = (0.0, 0.0),
     k1: tuple[float, float] = (0.0, 0.0),
 ) -> dict[str, float] | None:
@@ -317,7 +318,18 @@ def _solve_window(
     Kf[:2, :2] *= math.exp(focal[0])
     # ... and the k1 correction it starts from
     px_tri = true_px_from_observed_px(tracks.obs_px[o], Kf, k1[0])
-    X0, tri_ok = triangulate_w(obs_p, px_tri, R0[obs_f], C0[obs_f], Kf, len(tr_ids))
+    Ro, Co = R0[obs_f], C0[obs_f]
+    vel = omega = obs_time = None
+    if tracks.obs_time_s is not None:
+        # a rolling shutter: each frame's motion over its readout from its neighbours' current
+        # poses (held in the window), each observation seen from its row's pose
+        mot = [frame_motion(cur, t, i) for i in range(s, e)]
+        vel, omega = np.array([m_[0] for m_ in mot]), np.array([m_[1] for m_ in mot])
+        obs_time = tracks.obs_time_s[o]
+        a = omega[obs_f] * obs_time[:, None]
+        Ro = Rotation.from_rotvec(a).as_matrix() @ Ro
+        Co = Co + vel[obs_f] * obs_time[:, None]
+    X0, tri_ok = triangulate_w(obs_p, px_tri, Ro, Co, Kf, len(tr_ids))
     X0[~tri_ok] = pts[tr_ids][~tri_ok]
     planes0 = _initial_planes(R0, C0, X0, obs_f, obs_p, plane_nominal)
     # consecutive frames tied by too few tracks: the current relative motion as a prior
@@ -342,6 +354,7 @@ def _solve_window(
     rel_i = np.array([i for i in range(F - 1) if (s + i, s + i + 1) in rel_rot], int)
     rel_R = np.array([rel_rot[(s + i, s + i + 1)][0] for i in rel_i]).reshape(-1, 3, 3)
     rel_t = np.array([rel_rot[(s + i, s + i + 1)][1] for i in rel_i]).reshape(-1, 3)
+    rel_n = np.array([rel_rot[(s + i, s + i + 1)][2] for i in rel_i]).reshape(-1, 3)
     sig_t = cfg.visual_sigma_trans_m + cfg.visual_sigma_trans_rel * np.linalg.norm(rel_t, axis=1)
     obd_i, obd_v = np.zeros(0, int), np.zeros(0)
     if cfg.use_obd and drive.obd is not None and len(drive.obd.timestamp_s) > 1 and F > 1:
@@ -386,11 +399,15 @@ def _solve_window(
         rel_R=rel_R,
         sigma_rel_rad=math.radians(cfg.visual_sigma_rot_deg),
         rel_t=rel_t,
+        rel_n=rel_n,
         sigma_rel_m=sig_t,
         focal0=focal[0],
         sigma_focal=focal[1],
         k1_0=k1[0],
         sigma_k1=k1[1],
+        obs_time_s=obs_time,
+        vel=vel,
+        omega=omega,
     )
     prob = WindowProblem(data)
     prob.gps_used = g_used.copy()
@@ -432,6 +449,13 @@ def _solve_window(
         "rms0": rms0,
         "rms1": float(np.sqrt(np.mean(r[: 2 * m] ** 2)) * cfg.bundle_pixel_sigma_px),
     }
+
+
+def _unit_normal(plane: np.ndarray, fallback: np.ndarray) -> np.ndarray:
+    """(3,) unit normal of a pair's road plane z = p0 x + p1 y + p2 in camera a (``fallback``
+    where the plane is not finite)."""
+    n = np.array([-plane[0], -plane[1], 1.0]) if np.all(np.isfinite(plane)) else fallback
+    return n / np.linalg.norm(n)
 
 
 def _initial_planes(

@@ -10,8 +10,11 @@ without GPS), the tilt prior, the pairs' relative motions (the pose graph's fact
 motion across frames no track ties, OBD speed and a prior on τ. Optionally the focal length
 (log scale ψ) and a radial distortion correction κ (k1's error: the observations are pixels
 undistorted with camera.yaml's k1, so they sit at x (1 + κ r²) of the true ideal ones, r the
-normalised radius; first order in κ times camera.yaml's own distortion), each with a prior. The Jacobian is analytic
-(small-angle rotation derivatives; the solver re-linearises every step)."""
+normalised radius; first order in κ times camera.yaml's own distortion), each with a prior; the
+pairs' translations, solved with camera.yaml's focal, follow the focal scale
+(``pair_translation``). With a rolling shutter each observation is projected from its row's pose
+(``row_offset``). The Jacobian is analytic (small-angle rotation derivatives; the solver
+re-linearises every step)."""
 
 from __future__ import annotations
 
@@ -65,6 +68,9 @@ class WindowData:
     sigma_rel_rad: float = 0.0
     rel_t: np.ndarray | None = None  # None: rotations only
     sigma_rel_m: np.ndarray | None = None
+    # (K, 3) unit road normal of each pair in its camera a: with a focal scale the pairs' metric
+    # translations (solved with camera.yaml's focal) are rescaled (``pair_translation``)
+    rel_n: np.ndarray | None = None
     # focal length: K's fx, fy scaled by exp(ψ); ψ starts at focal0 with a prior σ (0: held)
     focal0: float = 0.0
     sigma_focal: float = 0.0
@@ -72,6 +78,12 @@ class WindowData:
     # times (1 + κ r²); κ (= true k1 - camera.yaml's k1) starts at k1_0 with a prior σ (0: held)
     k1_0: float = 0.0
     sigma_k1: float = 0.0
+    # rolling shutter: each observation's exposure time after its frame's (M,) s and each
+    # frame's linear (F, 3) m/s and angular (F, 3) rad/s velocity in the world (held): an
+    # observation is projected from its row's pose; None = a global shutter
+    obs_time_s: np.ndarray | None = None
+    vel: np.ndarray | None = None
+    omega: np.ndarray | None = None
 
 
 def true_px_from_observed_px(px: np.ndarray, K: np.ndarray, kappa: float) -> np.ndarray:
@@ -87,6 +99,36 @@ def true_px_from_observed_px(px: np.ndarray, K: np.ndarray, kappa: float) -> np.
     for _ in range(8):
         x = xo / (1.0 + kappa * np.sum(x**2, axis=1, keepdims=True))
     return x * f + c
+
+
+def pair_translation(t: np.ndarray, n: np.ndarray, psi: float) -> tuple[np.ndarray, np.ndarray]:
+    """(K, 3) the pairs' translations t (m, solved with camera.yaml's focal, scaled by the
+    camera height) under the focal scale exp(ψ), and their derivative d/dψ (K, 3). A focal
+    error maps each pair's scene by A = diag(e^ψ, e^ψ, 1) in its camera (the rays' x/z, y/z
+    scale by e^ψ: exact for the points, first order in the inter-frame rotation for the motion)
+    and the height scaling then multiplies it by 1 / |A n̂|, n̂ the true road normal; with n the
+    pair's own unit normal (K, 3) the true translation is A⁻¹ t |A n|."""
+    e = np.exp(psi)
+    Ai = np.array([1.0 / e, 1.0 / e, 1.0])
+    nxy = n[:, 0] ** 2 + n[:, 1] ** 2
+    L = np.sqrt(e * e * nxy + n[:, 2] ** 2)  # |A n|
+    g = t * Ai * L[:, None]
+    dL = e * e * nxy / L
+    dg = t * np.array([-1.0 / e, -1.0 / e, 0.0]) * L[:, None] + t * Ai * dL[:, None]
+    return g, dg
+
+
+def row_offset(
+    v: np.ndarray, tau_s: np.ndarray, vel: np.ndarray, omega: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """A rolling shutter's row pose (as ``core.rolling.raw_px_from_world``): the camera at τ
+    after the frame's time has moved by vel τ and turned by a = ω τ (small angle, world frame),
+    so a point seen from it is Rᵀ (I - [a]x)(X - C - vel τ) with the frame's R, C. v: (M, 3)
+    world vectors X - C (m); tau_s (M,) s; vel, omega (M, 3) m/s, rad/s (constant over the
+    readout, ``core.rolling.frame_motion``). Returns (I - [a]x)(v - vel τ) (M, 3) and a."""
+    a = omega * tau_s[:, None]
+    w = v - vel * tau_s[:, None]
+    return w - np.cross(a, w), a
 
 
 def _skew_cross(a: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -186,6 +228,9 @@ class WindowProblem:
         m = len(f)
         if m:
             v = pts[p] - C[f]
+            a_rs = None
+            if d.obs_time_s is not None and d.vel is not None and d.omega is not None:
+                v, a_rs = row_offset(v, d.obs_time_s, d.vel[f], d.omega[f])
             Xc = np.einsum("mji,mj->mi", R[f], v)  # R^T v
             z = np.maximum(Xc[:, 2], 1e-3)
             fs = np.exp(self.focal_log_scale(x))
@@ -220,9 +265,11 @@ class WindowProblem:
             pcol = self.point_col0 + 3 * p
             for k, Jx in enumerate((Ju, Jv, Jp)):
                 row = r0 + k * m + np.arange(m)
-                A = np.einsum("mi,mji->mj", Jx, R[f])  # d/dX of the residual
-                put_block(row, pcol, A)
-                put_block(row, np.where(pose0 >= 0, pose0 + 3, -1), -A)
+                A = np.einsum("mi,mji->mj", Jx, R[f])  # d/d(R^T v) rotated to the world
+                # v = (I - [a]x)(X - C - vel τ): d/dX = A (I - [a]x) = A + a x A
+                Ax = A if a_rs is None else A + np.cross(a_rs, A)
+                put_block(row, pcol, Ax)
+                put_block(row, np.where(pose0 >= 0, pose0 + 3, -1), -Ax)
                 put_block(row, pose0, _skew_cross(A, v))
             if self.focal_col >= 0:  # du/dψ = u - cx
                 fc = np.full(m, self.focal_col)
@@ -347,7 +394,17 @@ class WindowProblem:
                 vab = C[a] - C[b]
                 tp = np.einsum("mji,mj->mi", R[b], vab)
                 sg = d.sigma_rel_m[:, None]
-                res.append(((tp - d.rel_t) / sg).ravel())
+                rel_t, drel_t = d.rel_t, None
+                psi = self.focal_log_scale(x)
+                if d.rel_n is not None and (psi != 0.0 or self.focal_col >= 0):
+                    rel_t, drel_t = pair_translation(d.rel_t, d.rel_n, psi)
+                res.append(((tp - rel_t) / sg).ravel())
+                if drel_t is not None and self.focal_col >= 0:
+                    put(
+                        r0 + np.arange(3 * len(a)),
+                        np.full(3 * len(a), self.focal_col),
+                        (-drel_t / sg).ravel(),
+                    )
                 for ax in range(3):
                     row = r0 + 3 * np.arange(len(a)) + ax
                     Rb_t = R[b][:, :, ax] / sg

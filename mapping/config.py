@@ -119,14 +119,16 @@ class MappingConfig:
     # refine the focal length (one scale on fx and fy for the drive; real calibrations are off by
     # a fraction of a percent to a few percent): every window estimates it with a prior of
     # bundle_focal_sigma around the calibration, the windows' median is held in a second pass
-    # (twice the bundle's time). The map and the dense surface keep camera.yaml's focal
+    # (twice the bundle's time). With it on, the later stages (map, dense surface, mosaic,
+    # detection) use the refined focal, and the pairs re-derived with it (mapping.bundle_camera)
     bundle_refine_focal: bool = False
     bundle_focal_sigma: float = 0.05  # prior σ of the focal scale around the calibration (−)
     # refine the radial distortion k1 (dist[0]; one value for the drive, as the focal length: a
     # per-window estimate with a prior of bundle_k1_sigma around camera.yaml's k1, the windows'
     # median held in a second pass). With it on, the later stages (map, dense surface,
-    # detection) use the refined k1. k1 is the coefficient of r² with r the normalised radius
-    # (a point's distance from the principal point in units of the focal length)
+    # detection) use the refined k1, and the pairs re-derived with it (mapping.bundle_camera).
+    # k1 is the coefficient of r² with r the normalised radius (a point's distance from the
+    # principal point in units of the focal length)
     bundle_refine_k1: bool = False
     # prior σ of k1 around camera.yaml's (−, per unit r²): a weak prior, wider than the spread
     # of a real lens's k1 against a nominal 0 (consumer lenses |k1| ≲ 0.3)

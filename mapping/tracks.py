@@ -41,6 +41,9 @@ class Tracks:
     # (T,) bool: every pair that saw the track put it on its road plane (within ROAD_SIGMAS of
     # the pair's own relief scatter); None = all road. Defects and kerbs are not.
     road: np.ndarray | None = None
+    # (M,) s: each observation's exposure time after its frame's (a rolling shutter's row time,
+    # ``reconstruction.rolling_shutter.row_times_s``); None = a global shutter
+    obs_time_s: np.ndarray | None = None
 
     @property
     def n_tracks(self) -> int:
@@ -59,6 +62,7 @@ class Tracks:
             self.length[keep],
             self.n_inconsistent,
             None if self.road is None else self.road[keep],
+            None if self.obs_time_s is None else self.obs_time_s[o],
         )
 
 

@@ -277,12 +277,11 @@ def _run_drive(
         # the later stages see the camera on the mount the poses used (given or estimated)
         camera = dataclasses.replace(drive.camera, mount_deg=traj.mount_deg)
         drive = dataclasses.replace(drive, camera=camera)
-    if cfg.mapping.bundle_refine_k1 and (out / rf.POSES_REPORT).is_file():
-        # ... and with the bundle's refined k1 (issue 30; off by default)
-        from roadsurf.mapping.bundle import refined_camera
+    if cfg.mapping.bundle_refine_k1 or cfg.mapping.bundle_refine_focal:
+        # ... and with the bundle's refined focal and k1, the pairs re-derived with them (issue 30)
+        from roadsurf.mapping.bundle_camera import refined_inputs
 
-        bundle_rep = read_json(out / rf.POSES_REPORT).get("bundle", {})
-        drive = dataclasses.replace(drive, camera=refined_camera(drive.camera, bundle_rep))
+        drive, pairs = refined_inputs(drive, pairs, traj, out, rec_cfg.plane_trim_k)
     products = timed("globalmap", lambda: globalmap.run(cfg.mapping, drive, pairs, traj, out))
     detections = timed(
         "detection",

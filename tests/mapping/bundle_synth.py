@@ -9,14 +9,18 @@ observable), and the GPS fixes can lag the camera by a latency.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from roadsurf.core.camera import normalised_from_px
+from roadsurf.core.fits import camera_plane_distance
 from roadsurf.core.geometry import invert_pose, lla_from_enu, world_from_cam
 from roadsurf.io.drive import Drive, Frame, GpsTrack
+from roadsurf.reconstruction.geometry import triangulate
 from roadsurf.reconstruction.types import PairResult
 from tests.mapping.synth import REF, camera
 
@@ -43,8 +47,12 @@ def _poses(
     rng: np.random.Generator,
     speed_variation: float = 0.3,
     undulation: tuple[float, float] = (0.0, 1.0),
+    smooth_attitude: bool = False,
 ) -> tuple[np.ndarray, ...]:
-    """Times, (N, 4, 4) poses and a dense (time, centre) path for interpolating GPS truth."""
+    """Times, (N, 4, 4) poses, a dense (time, centre) path for interpolating GPS truth, the
+    dense path's heading (deg) and (roll, pitch) (rad, on the dense times; NaN: drawn per frame).
+    smooth_attitude: roll and pitch sway as the vehicle body does (one sinusoid each, 0.7-1.5 Hz,
+    0.3° RMS), not independently per frame (a rolling shutter's rows then have a pose)."""
     dt = 1.0 / fps
     tt = np.arange(0.0, n / fps + 2.0, dt / 20)  # dense, from 0 (the first frame)
     v = speed * (1.0 + speed_variation * np.sin(2 * np.pi * tt / 2.5))  # ±30 % speed
@@ -57,12 +65,16 @@ def _poses(
     )
     pos[:, 2] = 1.0 + road_height(pos[:, :2], *undulation)  # 1 m above the road
     t = np.arange(n) * dt
+    att = np.full((len(tt), 2), np.nan)
+    if smooth_attitude:
+        f, ph = rng.uniform(0.7, 1.5, 2), rng.uniform(0, 2 * np.pi, 2)
+        att = np.radians(0.3 * np.sqrt(2) * np.sin(2 * np.pi * f * tt[:, None] + ph))
     W = np.empty((n, 4, 4))
     for i in range(n):
         j = int(round(t[i] / (dt / 20)))
-        roll, pitch = np.radians(rng.normal(0, 0.3, 2))
+        roll, pitch = att[j] if smooth_attitude else np.radians(rng.normal(0, 0.3, 2))
         W[i] = world_from_cam(heading[j], roll, pitch, pos[j])
-    return t, W, tt, pos
+    return t, W, tt, pos, heading, att
 
 
 def make_track_drive(
@@ -84,14 +96,27 @@ def make_track_drive(
     undulation_m: float = 0.0,
     undulation_wavelength_m: float = 3.0,
     k1: float = 0.0,
+    readout_s: float = 0.0,
+    focal_error: float = 0.0,
 ) -> TrackDrive:
     """undulation_m: amplitude of the road's smooth relief (m, 0 = the flat road z = 0); k1: the
     lens's radial distortion (−, OpenCV's k1): the keypoints are the true lens's (normalised x
-    times 1 + k1 r²), the drive's camera has none (camera.yaml's k1 = 0)."""
+    times 1 + k1 r²), the drive's camera has none (camera.yaml's k1 = 0). readout_s: a rolling
+    shutter (s, first to last row; the drive's camera has it): a keypoint on row v is where the
+    camera was readout_s v / height after the frame's time on the true path (position and
+    heading; the frame's roll and pitch), the pairs' points and motions stay at the frames'
+    times. focal_error: the drive's camera (camera.yaml) has a focal length 1 + focal_error
+    times the lens's, and each pair was solved with it, as the reconstruction does: its
+    points triangulated from its pixels with that K and its (noisy) motion, then scaled so
+    that its road plane lies the camera height below (α = h / d_c)."""
     rng = np.random.default_rng(seed)
     cam = camera(width=width_px, height=width_px * 3 // 4, fps=fps)
     und = (undulation_m, undulation_wavelength_m)
-    t, W, tt, path = _poses(n, fps, speed_mps, rng, speed_variation, und)
+    t, W, tt, path, heading, att = _poses(
+        n, fps, speed_mps, rng, speed_variation, und, smooth_attitude=readout_s > 0
+    )
+    if readout_s > 0:
+        cam = dataclasses.replace(cam, readout_s=readout_s)
     # road points around the path
     lo = path[:, :2].min(0) - 1.0
     hi = path[:, :2].max(0) + 1.0
@@ -104,13 +129,7 @@ def make_track_drive(
     kp: list[dict[int, np.ndarray]] = []
     m = 3.0
     for i in range(n):
-        Xc = (pts - W[i][:3, 3]) @ W[i][:3, :3]
-        xn = Xc[:, :2] / Xc[:, 2:3]
-        r2 = np.sum(xn**2, axis=1)
-        xn = xn * (1.0 + k1 * r2)[:, None]
-        uv = xn * [cam.fx, cam.fy] + [cam.cx, cam.cy]
-        # beyond the radius where r (1 + k1 r²) turns back (k1 < 0), far points fold into view
-        uv[1.0 + 3.0 * k1 * r2 <= 0.0] = -1.0
+        uv, Xc = _keypoints(cam, pts, W[i], t[i], tt, np.c_[path, heading, att], k1)
         vis = (
             (Xc[:, 2] > 0.1)
             & (uv[:, 0] > m)
@@ -131,8 +150,16 @@ def make_track_drive(
         Rn = Rotation.from_rotvec(w).as_matrix() @ T[:3, :3]
         tn = k * T[:3, 3] + rng.normal(0, trans_noise_m, 3)
         Xa = k * ((pts[ids] - W[i][:3, 3]) @ W[i][:3, :3])
+        pa = np.array([kp[i][j] for j in ids]).reshape(-1, 2)
+        pb = np.array([kp[i + 1][j] for j in ids]).reshape(-1, 2)
+        if focal_error:
+            Kc = cam.K * [[1 + focal_error], [1 + focal_error], [1]]
+            Xa = triangulate(normalised_from_px(pa, Kc), normalised_from_px(pb, Kc), Rn, tn)
         A = np.column_stack([Xa[:, 0], Xa[:, 1], np.ones(len(ids))])
         plane, *_ = np.linalg.lstsq(A, Xa[:, 2], rcond=None)
+        if focal_error:
+            alpha = cam.height_m / camera_plane_distance(plane)
+            Xa, tn, plane = alpha * Xa, alpha * tn, plane * [1, 1, alpha]
         pairs.append(
             PairResult(
                 frame_a=f"{i:06d}.png",
@@ -142,8 +169,8 @@ def make_track_drive(
                 method="proposed",
                 status="ok",
                 points_cam_a_m=Xa,
-                px_a=np.array([kp[i][j] for j in ids]).reshape(-1, 2),
-                px_b=np.array([kp[i + 1][j] for j in ids]).reshape(-1, 2),
+                px_a=pa,
+                px_b=pb,
                 cov_m2=np.tile(np.eye(3) * 1e-8, (len(ids), 1, 1)),
                 plane_dist_m=np.zeros(len(ids)),
                 plane=plane,
@@ -161,8 +188,47 @@ def make_track_drive(
     meas = true_g + rng.normal(0, gps_sigma_m, true_g.shape)
     for j, (de, dn) in (gps_outliers or {}).items():
         meas[j, :2] += [de, dn]
+    if focal_error:
+        cam = dataclasses.replace(cam, fx=cam.fx * (1 + focal_error), fy=cam.fy * (1 + focal_error))
     drive = synthetic_drive(cam, t, gps_from_enu(tg, meas))
     return TrackDrive(drive, pairs, W, pts, pair_ids)
+
+
+def _keypoints(
+    cam,  # type: ignore[no-untyped-def]
+    pts: np.ndarray,
+    W: np.ndarray,
+    t: float,
+    tt: np.ndarray,
+    path: np.ndarray,
+    k1: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(P, 2) true pixels and (P, 3) camera points of the road points in the frame at time t
+    with pose W. With a rolling shutter each point is seen from the true path (dense times tt,
+    rows east, north, up, heading deg, roll, pitch rad) at its row's time: the row's fixed
+    point, a few plain iterations (the readout's motion is a fraction of the footprint)."""
+    v = np.zeros(len(pts))
+    for _ in range(6 if cam.readout_s > 0 else 1):
+        if cam.readout_s > 0:
+            tq = t + cam.readout_s * v / cam.height
+            q = np.column_stack([np.interp(tq, tt, path[:, k]) for k in range(6)])
+            # world_from_cam: heading (compass, clockwise) about world up, then pitch, roll
+            Rq = (
+                Rotation.from_rotvec(np.outer(-np.radians(q[:, 3]), [0, 0, 1.0]))
+                * Rotation.from_matrix(world_from_cam(0.0)[:3, :3])
+                * Rotation.from_euler("xyz", np.column_stack([q[:, 5], q[:, 4], 0 * tq]))
+            ).as_matrix()
+            Xc = np.einsum("pji,pj->pi", Rq, pts - q[:, :3])
+        else:
+            Xc = (pts - W[:3, 3]) @ W[:3, :3]
+        xn = Xc[:, :2] / Xc[:, 2:3]
+        r2 = np.sum(xn**2, axis=1)
+        xn = xn * (1.0 + k1 * r2)[:, None]
+        uv = xn * [cam.fx, cam.fy] + [cam.cx, cam.cy]
+        # beyond the radius where r (1 + k1 r²) turns back (k1 < 0), far points fold into view
+        uv[1.0 + 3.0 * k1 * r2 <= 0.0] = -1.0
+        v = np.clip(uv[:, 1], 0, cam.height)
+    return uv, Xc
 
 
 def gps_from_enu(tg: np.ndarray, meas_enu: np.ndarray) -> GpsTrack:

@@ -1,6 +1,7 @@
 """The bundle window's analytic Jacobian (mapping.bundle_problem.WindowProblem) against central
 finite differences, on a window of a seeded synthetic drive with every factor on (reprojection,
-road plane, camera height, GPS, the pairs' motions, focal and k1)."""
+road plane, camera height, GPS, the pairs' motions, focal and k1), with a global and a rolling
+shutter."""
 
 from __future__ import annotations
 
@@ -13,8 +14,10 @@ from roadsurf.mapping.config import MappingConfig
 from tests.mapping.bundle_synth import make_track_drive
 
 
-@pytest.fixture(scope="module")
-def problem(monkeypatch_module: pytest.MonkeyPatch) -> WindowProblem:
+@pytest.fixture(scope="module", params=[0.0, 0.03], ids=["global", "rolling"])
+def problem(
+    monkeypatch_module: pytest.MonkeyPatch, request: pytest.FixtureRequest
+) -> WindowProblem:
     seen: list[WindowProblem] = []
 
     class Recording(WindowProblem):
@@ -23,7 +26,8 @@ def problem(monkeypatch_module: pytest.MonkeyPatch) -> WindowProblem:
             seen.append(self)
 
     monkeypatch_module.setattr(bundle, "WindowProblem", Recording)
-    syn = make_track_drive(n=12, seed=4, density_per_m2=30)
+    # a global shutter, and a 30 ms readout (each observation from its row's pose)
+    syn = make_track_drive(n=12, seed=4, density_per_m2=30, readout_s=request.param)
     cfg = MappingConfig(
         gps_sigma_m=0.02,
         bundle_max_time_offset_s=0.0,
@@ -33,6 +37,7 @@ def problem(monkeypatch_module: pytest.MonkeyPatch) -> WindowProblem:
     )
     poses.estimate_trajectory(cfg, syn.drive, syn.pairs)
     assert seen, "no bundle window was built"
+    assert (seen[-1].d.obs_time_s is not None) == (request.param > 0)
     return seen[-1]
 
 
