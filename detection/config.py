@@ -174,6 +174,18 @@ class CrackConfig:
     # 8 footprints: 4 / 1,537 and 5 / 1,476) (unitless)
     raster_block_footprints: float = 4.0
     raster_min_blocks: int = 5  # at least this many blocks (count; ~18 cm of crack at 9 mm)
+    # A candidate both 3D tests leave unconfirmed where they are blind (``crackimage``: it runs
+    # within the aperture angle of the epipolar direction, ``dense_min_across``, or its pairs'
+    # depth readings disagree beyond their errors, Cochran's Q at the level of ``z_k``) is kept
+    # on 2D evidence, its depth not measured (NaN, ``measured_on: image``)
+    image_confirm: bool = True
+    image_disagree: bool = True  # ... count disagreeing readings as blind (else the aperture only)
+    # ... when the dark line was extracted in at least this many pairs at the same place (within
+    # link_m on the map; count: two images a seen from two viewpoints, each mapped by its own
+    # pair; a filter artefact of one image, noise or a moving shadow, does not repeat there) ...
+    image_min_pairs: int = 2
+    # ... and in at least this share of the pairs whose image a covers it (0-1)
+    image_min_share: float = 0.5
 
     ORDER: ClassVar[tuple[tuple[str, str], ...]] = (("line_m", "line_long_m"),)
     RANGES: ClassVar[dict[str, str]] = {
@@ -212,6 +224,8 @@ class CrackConfig:
         "raster_resolved_k": "[0, inf)",
         "raster_block_footprints": "(0, inf)",
         "raster_min_blocks": "[2, inf); a spread needs 2 blocks",
+        "image_min_pairs": "[2, inf); one pair's line is no consistency",
+        "image_min_share": "[0, 1]",
     }
 
 

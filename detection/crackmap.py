@@ -3,6 +3,10 @@ placed in the map with the trajectory, pooled and clustered, so that one crack s
 pairs is one defect and its 3D evidence is tested over all of them (``crack_evidence``).
 
 Pieces inside a map defect's outline belong to that defect (a pothole's rim gives many).
+A candidate the 3D tests leave unconfirmed where they are blind (``crackimage``: along the
+epipolar direction, or its pairs' readings contradicting each other) is decided by the images:
+kept when its dark line was extracted by enough pairs there, with its depth not measured (NaN,
+``measured_on`` "image").
 """
 
 from __future__ import annotations
@@ -15,6 +19,7 @@ import cv2
 import numpy as np
 
 from roadsurf.detection.config import CrackConfig, DetectionConfig
+from roadsurf.detection.crackimage import aperture_blind, image_consistent, readings_disagree
 from roadsurf.detection.crackraster import measure_crack_on_raster, raster_crack_evidence
 from roadsurf.detection.mapframe import MapFrame
 from roadsurf.detection.mapseg import Measured, severity
@@ -42,6 +47,14 @@ def crack_evidence(
     z = float(sum_depth_m / math.sqrt(var_m2))
     ok = z >= cfg.z_k and n_points >= cfg.min_points and n_below >= cfg.min_below_share * n_points
     return bool(ok), z
+
+
+def _reading(sum_m: float, n: float, var_m2: float) -> tuple[float, float]:
+    """(mean depth, its standard error) of one source of a piece (sum of n samples with
+    variance var_m2); (nan, nan) when it holds no sample."""
+    if n <= 0 or var_m2 <= 0:
+        return math.nan, math.nan
+    return float(sum_m / n), float(math.sqrt(var_m2) / n)
 
 
 def cluster_cracks(xy_m: np.ndarray, link_m: float) -> np.ndarray:
@@ -97,7 +110,9 @@ def crack_defects(
                     wd, wsum = wd + S * n / V, wsum + n * n / V
             pieces.append(
                 (c.width_m[j], wd, c.n_points[j] + c.dense_n[j], c.n_below[j] + c.dense_below[j],
-                 wsum, c.max_depth_m[j])
+                 wsum, c.max_depth_m[j], c.across_share[j], c.across_px_per_m[j],
+                 *_reading(c.sum_depth_m[j], c.n_points[j], c.var_m2[j]),
+                 *_reading(c.dense_sum_m[j], c.dense_n[j], c.dense_var_m2[j]))
             )  # fmt: skip
     if not xy_l:
         return []
@@ -138,29 +153,67 @@ def crack_defects(
             if ev.confirmed:
                 by_raster[int(c)] = ev.z
         confirmed = sorted(confirmed + list(by_raster))
+    # A candidate the 3D tests cannot judge (``crackimage``) is decided by the images.
+    by_image: set[int] = set()
+    if cfg.crack.image_confirm:
+        from shapely.geometry import Point
+
+        frame_of = {int(k): pd.frame_a for k, pd in per_pair.items()}
+        for c in np.unique(lab):
+            sel = lab == c
+            if c in confirmed or sel.sum() < 3:
+                continue
+            ids = np.unique(piece[sel])
+            reads = np.r_[pc[ids][:, [8, 9]], pc[ids][:, [10, 11]]]
+            blind_ap = aperture_blind(pc[ids, 6], cfg.crack)
+            dis, birge = readings_disagree(reads[:, 0], reads[:, 1], cfg.crack)
+            blind = blind_ap or (cfg.crack.image_disagree and dis)
+            cen = Point(*xy[sel].mean(axis=0))
+            n_pairs = len({frame_of[int(k)] for k in np.unique(pair[sel])})
+            n_cov = sum(
+                1 for f in set(frame_of.values()) if f in footprints and footprints[f].contains(cen)
+            )
+            log.debug(
+                "crack candidate at %s: aperture blind %s, readings Q/(k-1) %.1f, %d of %d pairs",
+                np.round(xy[sel].mean(axis=0), 2), blind_ap, birge, n_pairs, n_cov,
+            )  # fmt: skip
+            if blind and image_consistent(n_pairs, n_cov, cfg.crack):
+                by_image.add(int(c))
+        confirmed = sorted(confirmed + sorted(by_image))
     if len(confirmed) > 1:
         keep = np.isin(lab, confirmed)
         joined = cluster_cracks(xy[keep], cfg.crack.join_m)
         first: dict[int, int] = {}
         # a joined crack holding raster-confirmed parts keeps their largest raster z
         z_of: dict[int, float] = {}
+        img_of: set[int] = set()
         for c, j in zip(lab[keep].tolist(), joined.tolist(), strict=True):
             first.setdefault(j, c)
             if c in by_raster:
                 z_of[first[j]] = max(z_of.get(first[j], -math.inf), by_raster[c])
+            if c in by_image:
+                img_of.add(first[j])
         lab = lab.copy()
         lab[keep] = [first[j] for j in joined.tolist()]
         confirmed = sorted(set(first.values()))
         by_raster = z_of
+        by_image = img_of
     close = cfg.crack.join_m / 2
     for c in confirmed:
         sel = lab == c
         p = xy[sel]
         ids = np.unique(piece[sel])
         ok, z = evidence(sel)
+        on_image = False
         if not ok and c in by_raster:
             ok, z = True, by_raster[c]
             log.info("crack at %s confirmed on the raster (z %.1f)", np.round(p.mean(axis=0), 2), z)
+        elif not ok and c in by_image:
+            ok, on_image, z = True, True, 0.0
+            log.info(
+                "crack at %s: the 3D tests are blind there; kept on the images, depth not measured",
+                np.round(p.mean(axis=0), 2),
+            )
         if not ok:
             continue
         # A crack sample inside a map defect's outline: the piece belongs to that defect.
@@ -180,12 +233,12 @@ def crack_defects(
         (_, _), (a, b), _ = cv2.minAreaRect((p - p.mean(axis=0)).astype(np.float32))
         length = float(max(a, b)) + w
         # Robust max: the median over the pieces of each piece's second-deepest point.
-        dmax = float(np.median(pc[ids, 5]))
+        dmax = math.nan if on_image else float(np.median(pc[ids, 5]))
         if dmax > cfg.plane.max_depth_m:
             # Deeper than any defect the plane fit accepts: the pooled "evidence" comes from a
             # failed reconstruction (decimetre noise), not from a crack.
             continue
-        src, n_prof = "points", 0
+        src, n_prof = ("image" if on_image else "points"), 0
         if raster is not None and cfg.crack.raster:
             rc = measure_crack_on_raster(raster, p, w, cfg.crack)
             n_prof = rc.profiles
@@ -197,7 +250,8 @@ def crack_defects(
         dmean = dmax * 2.0 / 3.0
         area = length * w
         n_pairs = len(np.unique(pair[sel]))
-        conf = (1.0 - math.exp(-z / 6.0)) * (1.0 - 0.5 ** (n_pairs + 1))
+        # kept on the images alone: confidence from the pairs that extracted it, at most 1/2
+        conf = (0.5 if on_image else 1.0 - math.exp(-z / 6.0)) * (1.0 - 0.5 ** (n_pairs + 1))
         seen = sorted(fn for fn, fp in footprints.items() if fp.intersects(geom))
         m = Measured(
             outline_xy_m=np.asarray(geom.exterior.coords)[:-1],

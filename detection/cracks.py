@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -38,6 +39,7 @@ import numpy as np
 
 from roadsurf.core.camera import Camera
 from roadsurf.detection.config import CrackConfig
+from roadsurf.detection.crackaperture import across_parallax
 from roadsurf.detection.crackdepth import DenseCrack, PairView, dense_crack_depth
 from roadsurf.detection.crackfilter import centre_line, thin_dark_components
 from roadsurf.detection.crackgroove import groove_crack_depth
@@ -63,12 +65,20 @@ class PairCracks:
     dense_n: np.ndarray | None = None  # (C,) independent samples (float)
     dense_below: np.ndarray | None = None  # (C,) ... of which below the road
     dense_var_m2: np.ndarray | None = None  # (C,) variance of dense_sum_m (m²)
+    # The pair's geometry at each piece (``crackaperture.across_parallax``); NaN without image
+    # b: share of the depth parallax across the crack (sine of its angle to the epipolar
+    # direction) and that parallax in pixels per metre of depth
+    across_share: np.ndarray | None = None  # (C,) (0-1)
+    across_px_per_m: np.ndarray | None = None  # (C,) (px/m)
 
     def __post_init__(self) -> None:
         c = len(self.width_m)
         for f in ("dense_sum_m", "dense_n", "dense_below", "dense_var_m2"):
             if getattr(self, f) is None:
                 setattr(self, f, np.zeros(c))
+        for f in ("across_share", "across_px_per_m"):
+            if getattr(self, f) is None:
+                setattr(self, f, np.full(c, np.nan))
 
 
 def empty() -> PairCracks:
@@ -124,6 +134,7 @@ def detect_pair_cracks(
     zcoef = np.linalg.lstsq(A, P[road, 2], rcond=None)[0]
     xyz, labels, wd, sd, nn, nb, vv, mx = [], [], [], [], [], [], [], []
     dense: list[DenseCrack | None] = []
+    across: list[tuple[float, float]] = []
     for i, wpx, gsd in zip(keep, widths, gsds, strict=True):
         line = centre_line(lab == i)
         if not line.any():
@@ -167,6 +178,16 @@ def detect_pair_cracks(
         elif n == 1:
             mx.append(float(d[0]))
         dense.append(dn)
+        across.append(
+            (math.nan, math.nan)
+            if view is None
+            else across_parallax(
+                np.c_[xs, ys].astype(float),
+                view,
+                np.asarray(zcoef, float),
+                float(cfg.dense_window_px),  # the direction the dense tracks' aperture sees
+            )  # fmt: skip
+        )
     if not wd:
         return empty()
     dd = [(0.0, 0.0, 0.0, 0.0) if m is None else m.summary() for m in dense]
@@ -175,6 +196,7 @@ def detect_pair_cracks(
         np.concatenate(labels),
         *(np.asarray(a, float) for a in (wd, sd, nn, nb, vv, mx)),
         *(np.asarray(a, float) for a in zip(*dd, strict=True)),
+        *(np.asarray(a, float) for a in zip(*across, strict=True)),
     )
 
 

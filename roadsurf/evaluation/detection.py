@@ -211,10 +211,12 @@ def _defect_metrics(
     for i, j in matches:
         pp, tp = preds[i][1], truths[j][1]
         dt = float(tp["max_depth_m"])
-        err = float(pp["max_depth_m"]) - dt
-        depth_err.append(err)
-        if dt > 0:
-            rel_depth.append(abs(err) / dt)
+        # a crack kept on the images has no measured depth (null): no depth error
+        err = _num(pp.get("max_depth_m")) - dt
+        if math.isfinite(err):
+            depth_err.append(err)
+            if dt > 0:
+                rel_depth.append(abs(err) / dt)
         at = float(tp["area_m2"])
         if at > 0:
             area_err.append(abs(float(pp["area_m2"]) - at) / at)
