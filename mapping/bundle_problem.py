@@ -303,11 +303,11 @@ class WindowProblem:
         gi = np.flatnonzero(self.gps_used)
         if len(gi):
             tq = d.gps_t[gi] - tau
-            k = np.clip(np.searchsorted(d.t, tq, side="right") - 1, 0, self.F - 2)
-            dt = np.maximum(d.t[k + 1] - d.t[k], 1e-9)
-            wgt = (tq - d.t[k]) / dt
-            pred = (1 - wgt)[:, None] * C[k] + wgt[:, None] * C[k + 1]
-            vel = (C[k + 1] - C[k]) / dt[:, None]
+            kg = np.clip(np.searchsorted(d.t, tq, side="right") - 1, 0, self.F - 2)
+            dt = np.maximum(d.t[kg + 1] - d.t[kg], 1e-9)
+            wgt = (tq - d.t[kg]) / dt
+            pred = (1 - wgt)[:, None] * C[kg] + wgt[:, None] * C[kg + 1]
+            vel = (C[kg + 1] - C[kg]) / dt[:, None]
             sg = d.gps_sigma[gi] * self.gps_scale
             alt = d.gps_has_alt[gi]
             for ax in range(3):
@@ -317,7 +317,7 @@ class WindowProblem:
                 sig = sg[sel] * (1.0 if ax < 2 else d.vertical_factor)
                 res.append((pred[sel, ax] - d.gps_enu[gi[sel], ax]) / sig)
                 row = r0 + np.arange(len(sel))
-                for kk, ww in ((k[sel], 1 - wgt[sel]), (k[sel] + 1, wgt[sel])):
+                for kk, ww in ((kg[sel], 1 - wgt[sel]), (kg[sel] + 1, wgt[sel])):
                     c = self.pose_col[kk]
                     put(row, np.where(c >= 0, c + 3 + ax, -1), ww / sig)
                 if self.tau_col >= 0:
