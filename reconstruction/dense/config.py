@@ -48,6 +48,24 @@ class DenseHeightConfig:
     # road has no parallax, so a = 0 there and it keeps its first match; a steep defect wall
     # (parallax changing along the window) is matched without the fronto-parallel bias
     slant_sigmas: float = 3.0
+    # a pixel whose window's accepted parallaxes (after the slanted pass) deviate from their
+    # best plane by this RMS or more straddles a step (a pothole's rim in front of its floor, a
+    # ridge of a rough floor): no slanted window describes it, its match is a mix of the two
+    # surfaces, and it is refused (REJECT_GEOMETRY; px at the work grid, 0 = off). 0.5 px is
+    # slanted.MIN_SPAN_PX: window samples that far off any one plane of parallax leave the
+    # Lucas-Kanade's linear image model; about a 2 px step across a 5 px window. Seed-7 45°
+    # stereo pair after the shifted windows (benchmarks.dense_pair_truth): 2.7 % of the
+    # pothole's work-grid pixels, 31 % of its squared error (RMS 11 mm, +3.4 mm shallow); 0.1 %
+    # of the road's. Without the shifted windows a fattened step looks like a ramp and few
+    # pixels are refused. Pixels refused here or by the left-right check are not filled from
+    # the coarser grid (``dense.pyramid``: a wider window straddles the step more)
+    step_plane_px: float = 0.5
+    # shifted windows (``dense.shifted``): accepted pixels next to an occlusion (a left-right
+    # refusal) or whose window's parallaxes span >= 2 px take the match of the window that
+    # holds them at an edge or corner, on their own side of a step (a pothole's rim in front of
+    # its floor), where their own 3 x 3 neighbourhood correlates better at it. A centred window
+    # straddling the step reads a mix of both sides. False = off
+    shifted_windows: bool = True
     lr_check: bool = True  # match b -> a as well and keep pixels where both agree
     lr_max_px: float = 0.5  # largest left-right disagreement kept (px at the work grid)
     # Lucas-Kanade steps of the b -> a match, which only has to land within lr_max_px of the
@@ -114,6 +132,7 @@ class DenseHeightConfig:
         "refine_iters": "[0, 50]",
         "step_max_sigma": "[0, 2]",
         "slant_sigmas": "[0, inf); 0 = off",
+        "step_plane_px": "[0, inf); 0 = off",
         "lr_max_px": "(0, inf)",
         "lr_refine_iters": "[-1, 50]; -1 = refine_iters",
         "min_ncc": "[-1, 1]",

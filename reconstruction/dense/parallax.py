@@ -14,12 +14,16 @@
    ``checks.min_window_samples`` samples inside both images: a window that crosses the edge of
    the overlap is matched on its part inside (``matching``), and image b is resampled beyond
    image a's grid by the matches' reach (``warp``).
-   Accepted pixels whose parallax gradient (a plane fitted to the pass's parallaxes around
-   them) is significant are matched again in windows slanted by it (a steep defect wall;
-   ``slanted``, ``DenseHeightConfig.slant_sigmas``).
+   Accepted pixels next to an occlusion or a step take the match of a window beside them on
+   their own side (``shifted``, ``DenseHeightConfig.shifted_windows``); those whose parallax
+   gradient (a plane fitted to the pass's parallaxes around them) is significant are matched
+   again in windows slanted by it (a steep defect wall; ``slanted``,
+   ``DenseHeightConfig.slant_sigmas``); pixels whose window's parallaxes no plane describes (a
+   step) are refused (``DenseHeightConfig.step_plane_px``).
 5. s -> η by the exact plane + parallax relation; var(η) = (dη/ds)² var(s) + (η σ_scale)².
-6. Pixels left invalid are matched again, steps 1-5, on a grid coarser by 2 (started from the
-   first sweep's heights) and take its heights where it passes, with its variance widened by
+6. Pixels left invalid (but not by the left-right or step tests) are matched again, steps 1-5,
+   on a grid coarser by 2 (started from the first sweep's heights) and take its heights where
+   it passes, with its variance widened by
    the relief in its window (``pyramid``, ``DenseHeightConfig.fallback_levels``); then the
    optional bilateral mean. Which check refused a pixel: ``DenseHeight.reject`` (``checks``).
 
@@ -51,7 +55,8 @@ from roadsurf.reconstruction.dense.matching import (
 )
 from roadsurf.reconstruction.dense.pyramid import LevelMatch, fill_from_coarse, prior_on_grid
 from roadsurf.reconstruction.dense.runtime import cpu_threads, heap_blocks, torch_device
-from roadsurf.reconstruction.dense.slanted import slanted_refine
+from roadsurf.reconstruction.dense.shifted import shifted_refine
+from roadsurf.reconstruction.dense.slanted import plane_fit, slanted_refine
 from roadsurf.reconstruction.dense.warp import overlap_crop, reach_px, resample_pair
 
 log = logging.getLogger(__name__)
@@ -241,9 +246,14 @@ def _match_level(
         y2 = ys[None, None] + fwd.shift * wy
         back = sample(rev.shift, x2, y2)
         flags |= ((fwd.shift + back).abs() > cfg.lr_max_px).to(torch.uint8) * REJECT_LR
+    if cfg.shifted_windows and cfg.refine_iters > 0 and prior is None:  # steps: windows aside
+        fwd, _ = shifted_refine(At, Bt, mBt, mAt, wx, wy, fwd, flags, win, cfg)
     t3 = time.perf_counter()
     if cfg.slant_sigmas > 0 and cfg.refine_iters > 0:  # walls: windows slanted by ∇s
         fwd, _ = slanted_refine(At, Bt, mBt, mAt, wx, wy, fwd, flags == 0, win, cfg)
+    if cfg.step_plane_px > 0:  # steps: a window no plane of parallax describes
+        rms = plane_fit(fwd.shift, flags == 0, win)[3]
+        flags |= (rms >= cfg.step_plane_px).to(torch.uint8) * REJECT_GEOMETRY
     t4 = time.perf_counter()
     shift = fwd.shift[0, 0].double().cpu().numpy()
     var_s = fwd.var[0, 0].double().cpu().numpy()

@@ -92,6 +92,15 @@ def parallax_gradient(
     neighbourhood is valid), all (1, 1, H, W). Centred moments are translation-invariant, so
     they come from window means (``matching.box``) of the coordinates from the grid's centre
     and of the parallax minus its median: small numbers, float32 is enough."""
+    au, av, z2, _ = plane_fit(shift, valid, side)
+    return au, av, z2
+
+
+def plane_fit(
+    shift: torch.Tensor, valid: torch.Tensor, side: int
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``parallax_gradient``'s a_u, a_v and z², and the RMS residual of the plane over the
+    neighbourhood's valid pixels (px; 0 where there is no fit), all (1, 1, H, W)."""
     dev, dt = shift.device, shift.dtype
     H, W = shift.shape[-2:]
     v, u = torch.meshgrid(
@@ -121,7 +130,13 @@ def parallax_gradient(
     sigma2 = ((css - explained).clamp_min(0.0) * n / (n - 3.0).clamp_min(1.0)).clamp_min(1e-8)
     z2 = torch.where(ok, explained * n / sigma2, torch.zeros_like(explained))
     zero = torch.zeros_like(au)
-    return torch.where(ok, au, zero)[:, None], torch.where(ok, av, zero)[:, None], z2[:, None]
+    rms = torch.where(ok, (css - explained).clamp_min(0.0).sqrt(), zero)
+    return (
+        torch.where(ok, au, zero)[:, None],
+        torch.where(ok, av, zero)[:, None],
+        z2[:, None],
+        rms[:, None],
+    )
 
 
 def slanted_refine(
