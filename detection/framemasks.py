@@ -172,7 +172,7 @@ class FrameProjector:
         else:  # each row has its own pose (the frame's is its first row's)
             u, v = raw_px_from_world(self.camera, np.c_[xy, z], self.T, *self.motion)
         uv = np.c_[u, v]
-        ok &= np.all(np.isfinite(uv), axis=1)
+        ok &= np.isfinite(uv[:, 0]) & np.isfinite(uv[:, 1])
         return uv, ok
 
     def inside(self, xy_grid: np.ndarray) -> np.ndarray:
@@ -193,14 +193,20 @@ class FrameProjector:
         offs = np.array([[-h, -h], [h, -h], [h, h], [-h, h]])
         corners = (np.asarray(xy_grid, float)[:, None, :] + offs[None]).reshape(-1, 2)
         uv, ok = self.project(corners)
-        uv, ok = uv.reshape(-1, 4, 2), ok.reshape(-1, 4).all(axis=1)
+        uv, ok4 = uv.reshape(-1, 4, 2), ok.reshape(-1, 4)
         H, W = mask.shape
-        # cells entirely off the image are skipped (cheap bounds test on the corners)
-        ok &= (uv[:, :, 0].max(axis=1) >= -1) & (uv[:, :, 0].min(axis=1) <= W)
-        ok &= (uv[:, :, 1].max(axis=1) >= -1) & (uv[:, :, 1].min(axis=1) <= H)
+        # cells entirely off the image are skipped (cheap bounds test on the corners; the
+        # four corners pairwise: numpy's reductions over an axis of 4 cost ~5x more)
+        u, v = uv[:, :, 0], uv[:, :, 1]
+        ok = (ok4[:, 0] & ok4[:, 1]) & (ok4[:, 2] & ok4[:, 3])
+        ok &= np.maximum(np.maximum(u[:, 0], u[:, 1]), np.maximum(u[:, 2], u[:, 3])) >= -1
+        ok &= np.minimum(np.minimum(u[:, 0], u[:, 1]), np.minimum(u[:, 2], u[:, 3])) <= W
+        ok &= np.maximum(np.maximum(v[:, 0], v[:, 1]), np.maximum(v[:, 2], v[:, 3])) >= -1
+        ok &= np.minimum(np.minimum(v[:, 0], v[:, 1]), np.minimum(v[:, 2], v[:, 3])) <= H
         quads = np.round(uv[ok] * 4.0).astype(np.int32)  # 2 fractional bits (shift=2)
+        fill, line8 = cv2.fillConvexPoly, cv2.LINE_8  # ~2 us a cell: no keyword parsing
         for q in quads:
-            cv2.fillConvexPoly(mask, q, 1, lineType=cv2.LINE_8, shift=2)
+            fill(mask, q, 1, line8, 2)  # lineType, shift
 
 
 def _enu_from_grid(mframe: MapFrame, xy: np.ndarray) -> np.ndarray:
@@ -211,7 +217,8 @@ def _enu_from_grid(mframe: MapFrame, xy: np.ndarray) -> np.ndarray:
     drive on a 2 mm raster."""
     if len(xy) < 64:
         return mframe.enu_from_grid(xy)
-    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    x, y = xy[:, 0], xy[:, 1]  # per column: numpy's reductions over an axis of 2 are slow
+    lo, hi = np.array([x.min(), y.min()]), np.array([x.max(), y.max()])
     t = np.array([0.0, 0.5, 1.0])
     ctrl = np.array(
         [[lo[0] + a * (hi[0] - lo[0]), lo[1] + b * (hi[1] - lo[1])] for a in t for b in t]
@@ -289,8 +296,20 @@ def frame_mask(
     mask = np.zeros((camera.height, camera.width), np.uint8)
     proj = FrameProjector(camera, world_from_cam, plane, mframe, motion)
     for c in cells:
-        proj.draw(mask, np.vstack([c.mask_xy_m, c.deep_xy_m]), c.gsd_m)
+        proj.draw(mask, _distinct_rows(np.vstack([c.mask_xy_m, c.deep_xy_m])), c.gsd_m)
     return mask.astype(bool)
+
+
+def _distinct_rows(xy: np.ndarray) -> np.ndarray:
+    """(N, 2) -> its distinct rows, in their first order. A defect's deep cells are mostly
+    also mask cells (the same lattice centres, bit for bit): drawing a cell twice changes no
+    pixel, but costs a fillConvexPoly call."""
+    if len(xy) < 2:
+        return xy
+    # each row as one complex number: a plain sort, ~10x faster than np.unique(axis=0)'s rows
+    z = np.ascontiguousarray(xy, dtype=np.float64).view(np.complex128).ravel()
+    _, first = np.unique(z, return_index=True)
+    return xy if len(first) == len(xy) else xy[np.sort(first)]
 
 
 def write_frame_masks(

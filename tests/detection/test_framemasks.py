@@ -169,3 +169,48 @@ def test_enu_from_grid_inverts_grid_from_enu():
     enu = np.array([[0.0, 0.0, 0.0], [12.3, -40.0, 0.0], [-250.0, 310.0, 0.0]])
     back = mf.enu_from_grid(mf.grid_from_enu(enu))
     assert back == pytest.approx(enu[:, :2], abs=1e-4)
+
+
+def _reference_mask(cam: Camera, T: np.ndarray, cells: list[DefectCells]) -> np.ndarray:
+    """frame_mask as first written: every listed cell (repeats too) projected and drawn."""
+    mask = np.zeros((cam.height, cam.width), np.uint8)
+    proj = FrameProjector(cam, T, np.array([0.0, 0.0, 0.0]), MapFrame.create(None))
+    for c in cells:
+        xy = np.vstack([c.mask_xy_m, c.deep_xy_m])
+        h = 0.5 * c.gsd_m
+        offs = np.array([[-h, -h], [h, -h], [h, h], [-h, h]])
+        uv, ok = proj.project((xy[:, None, :] + offs[None]).reshape(-1, 2))
+        uv, ok = uv.reshape(-1, 4, 2), ok.reshape(-1, 4).all(axis=1)
+        ok &= (uv[:, :, 0].max(axis=1) >= -1) & (uv[:, :, 0].min(axis=1) <= cam.width)
+        ok &= (uv[:, :, 1].max(axis=1) >= -1) & (uv[:, :, 1].min(axis=1) <= cam.height)
+        for q in np.round(uv[ok] * 4.0).astype(np.int32):
+            cv2.fillConvexPoly(mask, q, 1, lineType=cv2.LINE_8, shift=2)
+    return mask.astype(bool)
+
+
+def test_mask_draws_each_cell_once_and_matches_drawing_every_listed_cell():
+    """A defect's deep cells repeat its mask cells: frame_mask draws each distinct cell once,
+    and the mask is pixel for pixel the one drawing every listed cell gives (45° camera with
+    a lens distortion, cells partly off the image)."""
+    from roadsurf.detection.framemasks import _distinct_rows
+
+    cam = Camera(
+        width=320, height=240, fx=300.0, fy=300.0, cx=159.5, cy=119.5, height_m=0.5, fps=10.0,
+        dist=(-0.2, 0.05, 0.0, 0.0, 0.0), mount_deg=(45.0, 0.0, 0.0),
+    )  # fmt: skip
+    T = world_from_cam(0.0, position_enu_m=np.array([0.0, 0.0, 0.5]))
+    T[:3, :3] = T[:3, :3] @ vehicle_from_cam_rotation(45.0, 0.0, 0.0)
+    rng = np.random.default_rng(4)
+    cells = []
+    for cx, cy in [(0.05, 0.5), (0.6, 0.9), (-0.9, 0.3)]:  # the last one mostly off the image
+        xy = _disc_cells(cx, cy, 0.15, 0.005)
+        deep = xy[rng.random(len(xy)) < 0.6]  # deeper cells: the same lattice centres
+        cells.append(DefectCells(xy, deep, 0.005))
+    stacked = np.vstack([cells[0].mask_xy_m, cells[0].deep_xy_m])
+    distinct = _distinct_rows(stacked)
+    assert len(distinct) == len(cells[0].mask_xy_m)
+    np.testing.assert_array_equal(distinct, cells[0].mask_xy_m)  # first order kept
+    mask = frame_mask(cam, T, np.array([0.0, 0.0, 0.0]), MapFrame.create(None), cells)
+    ref = _reference_mask(cam, T, cells)
+    assert ref.sum() > 1000 and not ref.all()
+    np.testing.assert_array_equal(mask, ref)
