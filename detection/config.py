@@ -181,9 +181,10 @@ class CrackConfig:
     image_confirm: bool = True
     image_disagree: bool = True  # ... count disagreeing readings as blind (else the aperture only)
     # ... when the dark line was extracted in at least this many pairs at the same place (within
-    # link_m on the map; count: two images a seen from two viewpoints, each mapped by its own
-    # pair; a filter artefact of one image, noise or a moving shadow, does not repeat there) ...
-    image_min_pairs: int = 2
+    # link_m on the map; count: a filter artefact of one image, noise or a moving shadow, does
+    # not repeat there; 2 admitted a brick joint along the travel at the edge of the coverage
+    # (2 of 2 pairs, brick25), which a static road-level line is, docs) ...
+    image_min_pairs: int = 3
     # ... and in at least this share of the pairs whose image a covers it (0-1)
     image_min_share: float = 0.5
 

@@ -185,7 +185,10 @@ def detect_pair_cracks(
                 np.c_[xs, ys].astype(float),
                 view,
                 np.asarray(zcoef, float),
-                float(cfg.dense_window_px),  # the direction the dense tracks' aperture sees
+                # the crack's direction over the sparse points' matching window (the
+                # reconstruction's 21 px LK window): what their aperture sees; a 7 px tangent
+                # follows the centre line's pixel steps
+                max(float(cfg.local_road_gap_px), float(cfg.dense_window_px)),
             )  # fmt: skip
         )
     if not wd:

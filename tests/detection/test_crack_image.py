@@ -44,7 +44,7 @@ def test_aperture_and_image_consistency():
     assert aperture_blind(np.array([0.1, 0.2, 0.6]), CFG)
     assert not aperture_blind(np.array([0.4, 0.5, np.nan]), CFG)
     assert not aperture_blind(np.array([np.nan]), CFG)
-    assert image_consistent(2, 3, CFG) and not image_consistent(1, 1, CFG)
+    assert image_consistent(3, 4, CFG) and not image_consistent(2, 2, CFG)
     assert not image_consistent(3, 8, CFG)  # seen in 3 of 8 pairs covering it
 
 
@@ -138,16 +138,16 @@ def test_road_level_line_across_the_travel_is_not_kept():
 
 
 def test_line_seen_by_too_few_pairs_is_not_kept():
-    """Along the travel (blind), but extracted by one pair only."""
-    assert _defects([_pair(0, 0.0, 0.1)]) == []
+    """Along the travel (blind), but extracted by two pairs only."""
+    assert _defects([_pair(k, 0.0, 0.1) for k in range(2)]) == []
     # two pairs whose readings contradict: too few readings to call them inconsistent
     assert _defects([_pair(k, m, 0.5) for k, m in enumerate([2e-3, -2e-3])]) == []
 
 
 def test_line_along_the_travel_is_decided_by_the_images():
-    """Along the travel (aperture-blind) two consistent pairs' line is kept: there a road-level
+    """Along the travel (aperture-blind) three consistent pairs' line is kept: there a road-level
     line cannot be told from a crack by the 3D test (the documented limit)."""
-    pairs = [_pair(k, 0.0, 0.1) for k in range(2)]
+    pairs = [_pair(k, 0.0, 0.1) for k in range(3)]
     out = _defects(pairs)
     assert len(out) == 1 and out[0].measured_on == "image"
     off = DetectionConfig(crack=CrackConfig(image_confirm=False))
