@@ -67,29 +67,22 @@ def heap_blocks(dev: torch.device) -> Iterator[None]:
                     _heap_released_at = now
 
 
-_THREADS_LOCK = threading.Lock()
-_threads_users = 0
-_threads_saved = 0
-
-
 @contextlib.contextmanager
 def cpu_threads(dev: torch.device, n: int) -> Iterator[None]:
-    """torch's CPU threads set to ``n`` inside (restored when the last concurrent user
-    leaves). Several pairs matched in parallel with one thread each beat one pair on all cores
-    (the images are small), and on a busy machine torch's spinning threads cost 10x."""
-    global _threads_users, _threads_saved
+    """torch's CPU threads set to ``n`` for the calling thread inside (its own count restored
+    on exit). Several pairs matched in parallel with one thread each beat one pair on all cores
+    (the images are small), and on a busy machine torch's spinning threads cost 10x.
+
+    The count is each thread's own (OpenMP's nthreads is per thread; a new thread starts from
+    the last count set anywhere), so every thread that matches sets it: a process-wide count
+    set only by the first of several concurrent users left the others at whatever they had
+    started with, and the dense surface's bits changed with the threads' timing."""
     if dev.type != "cpu" or n <= 0:
         yield
         return
-    with _THREADS_LOCK:
-        if _threads_users == 0:
-            _threads_saved = torch.get_num_threads()
-            torch.set_num_threads(n)
-        _threads_users += 1
+    own = torch.get_num_threads()
+    torch.set_num_threads(n)
     try:
         yield
     finally:
-        with _THREADS_LOCK:
-            _threads_users -= 1
-            if _threads_users == 0:
-                torch.set_num_threads(_threads_saved)
+        torch.set_num_threads(own)

@@ -1,7 +1,10 @@
-"""The dense matcher's heap: the freed heap goes back to the system at most every
-``HEAP_RELEASE_EVERY_S`` (``reconstruction.dense.runtime.heap_blocks``)."""
+"""The dense matcher's runtime: the freed heap goes back to the system at most every
+``HEAP_RELEASE_EVERY_S`` (``heap_blocks``); every matching thread runs with the configured torch
+thread count, whatever the other threads do (``cpu_threads``)."""
 
 from __future__ import annotations
+
+import threading
 
 import torch
 
@@ -28,3 +31,39 @@ def test_the_heap_is_released_at_most_every_interval(monkeypatch) -> None:
             pass
         assert len(calls) == 1
     assert len(calls) == 2
+
+
+def test_every_matching_thread_runs_with_the_configured_thread_count() -> None:
+    # a thread whose torch count was set before another matcher entered (the old refcounted
+    # setting left it there: its ops ran with 2 threads or 1 depending on the timing)
+    cpu = torch.device("cpu")
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    seen: dict[str, int] = {}
+    b_ready, a_inside, b_done = threading.Event(), threading.Event(), threading.Event()
+
+    def a() -> None:
+        with runtime.cpu_threads(cpu, 1):
+            a_inside.set()
+            b_done.wait(10)
+
+    def b() -> None:
+        seen["b_before"] = torch.get_num_threads()  # starts from the count set last
+        b_ready.set()
+        a_inside.wait(10)
+        with runtime.cpu_threads(cpu, 1):
+            seen["b_inside"] = torch.get_num_threads()
+        seen["b_after"] = torch.get_num_threads()
+        b_done.set()
+
+    try:
+        tb = threading.Thread(target=b)
+        tb.start()
+        b_ready.wait(10)
+        ta = threading.Thread(target=a)
+        ta.start()
+        tb.join(20)
+        ta.join(20)
+    finally:
+        torch.set_num_threads(before)
+    assert seen == {"b_before": 2, "b_inside": 1, "b_after": 2}
