@@ -66,8 +66,9 @@ class Defect:
     confidence: float  # 0-1
     frames: list[str] = field(default_factory=list)  # filenames whose footprint saw it
     # where a crack's width and depth come from (``crackraster``): "raster" (profiles across it
-    # on surface.tif, where the raster resolves it) or "points" (the pairs' points and dense
-    # tracks); "" for other types
+    # on surface.tif, where the raster resolves it), "points" (the pairs' points and dense
+    # tracks) or "image" (kept on the images where the 3D tests are blind, ``crackimage``: no
+    # depth, max_depth_m NaN); "" for other types
     measured_on: str = ""
     profiles: int = 0  # raster profiles across the crack that were read (count; 0: none)
 
@@ -168,7 +169,7 @@ class DetectionResult:
         lines = [head]
         for d in self.defects:
             lines.append(
-                f"{d.id:>3} {d.type:8} {d.severity:6} {1000 * d.max_depth_m:9.1f} "
+                f"{d.id:>3} {d.type:8} {d.severity:6} {_mm(d.max_depth_m):>9} "
                 f"{d.area_m2:8.3f} {1000 * d.length_m:5.0f}x{1000 * d.width_m:<5.0f} {d.confidence:5.2f}"
             )
         n_def = sum(f.defect for f in self.frames)
@@ -178,3 +179,8 @@ class DetectionResult:
             + ("" if self.georeferenced else "; NO GPS: local coordinates only")
         )
         return "\n".join(lines)
+
+
+def _mm(v_m: float) -> str:
+    """A depth in mm for the text table; "-" where it was not measured (NaN)."""
+    return f"{1000 * v_m:.1f}" if math.isfinite(v_m) else "-"

@@ -24,7 +24,7 @@ from __future__ import annotations
 import rerun as rr
 
 from roadsurf.viewer.config import ViewerConfig
-from roadsurf.viewer.rundata import RunData
+from roadsurf.viewer.rundata import RunData, depth_text
 from roadsurf.viewer.scene import log_cloud, log_defects, log_mosaic, log_trajectory
 from roadsurf.viewer.timeline import log_frames
 
@@ -55,7 +55,7 @@ def summary_markdown(data: RunData, counts: dict[str, int]) -> str:
         lines += ["", "| id | type | depth mm | area m² | severity |", "|---|---|---|---|---|"]
         for d in data.defects[:50]:
             lines.append(
-                f"| {d.id} | {d.type} | {1000 * d.max_depth_m:.1f} | "
+                f"| {d.id} | {d.type} | {depth_text(d.max_depth_m).removesuffix(' mm')} | "
                 f"{d.area_m2:.3f} | {d.severity} |"
             )
     if data.missing:

@@ -102,11 +102,13 @@ def _depth_histogram(data: RunData) -> str:
 
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.2))
     ax = axes[0]
-    depths = np.array([1000 * d.max_depth_m for d in data.defects if math.isfinite(d.max_depth_m)])
+    # cracks kept on the images alone have no depth (NaN): not in the histogram
+    measured = [d for d in data.defects if math.isfinite(d.max_depth_m)]
+    depths = np.array([1000 * d.max_depth_m for d in measured])
     if depths.size:
-        sevs = sorted({d.severity for d in data.defects}, key=severity_rank)
+        sevs = sorted({d.severity for d in measured}, key=severity_rank)
         bins = np.histogram_bin_edges(depths, bins=min(20, max(5, depths.size)))
-        stack = [[1000 * d.max_depth_m for d in data.defects if d.severity == s] for s in sevs]
+        stack = [[1000 * d.max_depth_m for d in measured if d.severity == s] for s in sevs]
         ax.hist(
             stack,
             bins=bins,

@@ -32,6 +32,14 @@ SEVERITY_RGB = {
 UNKNOWN_RGB = (150, 150, 150)
 
 
+def depth_text(depth_m: float | None, decimals: int = 1) -> str:
+    """A defect's depth for people: "12.3 mm", or "depth not measured" (a crack kept on the
+    images alone, whose depth is NaN / null)."""
+    if depth_m is None or not math.isfinite(depth_m):
+        return "depth not measured"
+    return f"{1000 * depth_m:.{decimals}f} mm"
+
+
 def severity_rank(sev: object) -> int:
     """Sort key of a severity label (high > medium > low > anything else)."""
     s = str(sev).strip().lower()
@@ -66,7 +74,7 @@ class DefectView(Defect):
     @property
     def label(self) -> str:
         return (
-            f"#{self.id} {self.type} {1000 * self.max_depth_m:.0f} mm "
+            f"#{self.id} {self.type} {depth_text(self.max_depth_m, 0)} "
             f"{self.area_m2:.3f} m² {self.severity}"
         )
 

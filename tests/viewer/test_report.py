@@ -67,3 +67,26 @@ def test_screenshot_without_chromium_says_how_to_install(
     assert browser.find_chromium() is None
     with pytest.raises(RoadsurfError, match="apt-get install chromium"):
         browser.screenshot("file:///nonexistent.html", tmp_path / "x.png")
+
+
+def test_a_crack_without_depth_reads_not_measured(tmp_path: Path) -> None:
+    # a crack kept on the images alone (detection.crackimage) has a null depth in the GeoJSON
+    import json
+
+    from roadsurf.viewer.recording import summary_markdown
+    from roadsurf.viewer.runfolder import load_run
+
+    syn = make_synthetic_run(tmp_path, n_frames=4)
+    gj = syn.run / "defects.geojson"
+    fc = json.loads(gj.read_text())
+    crack = next(f for f in fc["features"] if f["properties"]["type"] == "crack")
+    for k in ("max_depth_m", "mean_depth_m", "volume_m3"):
+        crack["properties"][k] = None
+    crack["properties"]["measured_on"] = "image"
+    gj.write_text(json.dumps(fc))
+    text = write_report(syn.run).read_text()
+    assert not re.search(r"\bnan\b", text, re.IGNORECASE)
+    data = load_run(syn.run)
+    labels = [d.label for d in data.defects if d.type == "crack"]
+    assert labels and all("depth not measured" in s for s in labels)
+    assert not re.search(r"\bnan\b", summary_markdown(data, {}), re.IGNORECASE)
