@@ -18,11 +18,18 @@ re-linearises every step)."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
 from scipy.spatial.transform import Rotation
+
+# σ of the change of the window's mean camera tilt from the pose graph's with a rolling shutter
+# (deg): a roll of every camera about a straight track, the points turning with them, is a gauge
+# (GPS and the images do not see it), so the bundle keeps the pose graph's; 0.1° moves the map
+# 2 mm sideways at 1.1 m. The per-frame tilt prior (σ_tilt) keeps each frame's own tilt free
+TILT_MEAN_SIGMA_DEG = 0.1
 
 
 @dataclass
@@ -350,6 +357,19 @@ class WindowProblem:
                     rows_g[ax] / d.sigma_tilt_rad,
                 )
             r0 += 2 * len(fr)
+            if d.obs_time_s is not None:
+                # a rolling shutter: the window's mean tilt stays the pose graph's (a gauge the
+                # per-frame prior holds only to σ_tilt/√F: the row-pose terms tipped it by 1.0°,
+                # the map 19 mm sideways, for 0.0002 px less reprojection RMS; 30 fps, 20 ms
+                # readout, 24 frames)
+                sc = math.radians(TILT_MEAN_SIGMA_DEG)
+                up0 = np.einsum("mij,mj->mi", d.R0[fr], d.n_up[fr])
+                res.append((up[:, :2].mean(0) - up0[:, :2].mean(0)) / sc)
+                for ax in range(2):
+                    put_block(
+                        np.full(len(fr), r0 + ax), self.pose_col[fr], rows_g[ax] / (sc * len(fr))
+                    )
+                r0 += 2
 
         # ------------------------------------------------ constant motion across untied frames
         if len(d.gap_i):

@@ -191,7 +191,8 @@ def _match_level(
     # the grid is padded by the matches' reach: image b's samples of image a's edge pixels may
     # lie beyond image a's own grid (``dense.warp``); padded pixel (P, P) = work pixel (0, 0)
     P = reach_px(ppw, cfg, hf, wf)
-    A, B, mA, mB = resample_pair(img_a, img_b, camera, pp.H, s, rs, P)
+    share: list[np.ndarray] = []  # a rolling shutter's baseline share s_b - s_a per pixel
+    A, B, mA, mB = resample_pair(img_a, img_b, camera, pp.H, s, rs, P, share)
     timings["resample"] = time.perf_counter() - t0
     crop = overlap_crop(mA & mB, P, cfg)
     if crop is None:  # image b sees none of image a's road
@@ -201,6 +202,7 @@ def _match_level(
     # own sub-grid and model (u' = u - c0 + P, v' = v - r0 + P); the sub-grid's pixels within
     # image a's grid are written back (sl of the output, sub of the sub-grid)
     A, B, mA, mB = (x[r0:r1, c0:c1] for x in (A, B, mA, mB))
+    f_rs = share[0][r0:r1, c0:c1] if share else None
     r0, r1, c0, c1 = r0 - P, r1 - P, c0 - P, c1 - P
     ppc = ppw.cropped(c0, r0) if (r0, c0) != (0, 0) else ppw
     o0, o1, q0, q1 = max(r0, 0), min(r1, hf), max(c0, 0), min(c1, wf)
@@ -261,8 +263,13 @@ def _match_level(
         var_s = var_s + fwd.last_step[0, 0].double().cpu().numpy() ** 2
     ncc = fwd.ncc[0, 0].cpu().numpy()
     reject = flags[0, 0].cpu().numpy()
-    eta = ppc.height_from_shift(shift, u_np, v_np, nw_np)
-    deta = ppc.dheight_dshift(shift, u_np, v_np, nw_np)
+    if f_rs is not None:  # the resampled pair's parallax is that of s_b - s_a of the motion
+        shift_m = shift / f_rs  # (dense.rolling): as the pair's own baseline would show it
+        eta = ppc.height_from_shift(shift_m, u_np, v_np, nw_np)
+        deta = ppc.dheight_dshift(shift_m, u_np, v_np, nw_np) / f_rs
+    else:
+        eta = ppc.height_from_shift(shift, u_np, v_np, nw_np)
+        deta = ppc.dheight_dshift(shift, u_np, v_np, nw_np)
     var = deta * deta * var_s + (cfg.scale_rel_sigma * eta) ** 2
     with np.errstate(invalid="ignore", divide="ignore"):
         near = nw_np / max(abs(float(ppc.E[2])), 1e-12) < cfg.min_epipole_px * s

@@ -17,7 +17,7 @@ import numpy as np
 from roadsurf.core.camera import Camera
 from roadsurf.reconstruction.dense.config import DenseHeightConfig
 from roadsurf.reconstruction.dense.geometry import PlaneParallax
-from roadsurf.reconstruction.dense.rolling import raw_px_from_plane_px
+from roadsurf.reconstruction.dense.rolling import baseline_share, raw_px_from_plane_px
 
 
 def resample_pair(
@@ -28,13 +28,16 @@ def resample_pair(
     s: float,
     rs: tuple[np.ndarray, np.ndarray, np.ndarray, float] | None = None,
     pad: int = 0,
+    share: list[np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Image a on its ideal pixel grid resized by ``s``, image b through H onto the same grid
     (float32 DN), and where each sample lies inside its image (bool). ``rs`` = (R, t, plane,
     frame_dt_s): a rolling shutter, each grid pixel read from the rows that saw its road
     point (``dense.rolling``) instead of through H at the timestamps. ``pad`` (px): the grid
     reaches that far beyond the work grid on every side (its pixel (pad, pad) is the work
-    grid's (0, 0); (h + 2 pad, w + 2 pad) arrays)."""
+    grid's (0, 0); (h + 2 pad, w + 2 pad) arrays). ``share``: with ``rs``, a list that gets
+    each grid pixel's baseline share s_b - s_a (``dense.rolling.baseline_share``, NaN where
+    a frame's row is unknown) appended."""
     W, Hh = camera.width, camera.height
     w, h = int(round(W * s)), int(round(Hh * s))
     if s < 1.0:  # anti-aliasing before the resampling
@@ -50,6 +53,8 @@ def resample_pair(
         R, t, plane, dt = rs
         ua, va = raw_px_from_plane_px(u, v, camera, R, t, plane, dt, 0)
         ub, vb = raw_px_from_plane_px(u, v, camera, R, t, plane, dt, 1)
+        if share is not None:
+            share.append(baseline_share(va, vb, camera, dt))
         ua, va, ub, vb = (np.nan_to_num(x, nan=-10.0) for x in (ua, va, ub, vb))
     elif camera.has_distortion:
         ra = camera.distort_px(np.column_stack([u.ravel(), v.ravel()])).reshape(h, w, 2)
