@@ -47,8 +47,10 @@ from roadsurf.io.runfolder import (
     SURFACE_VRT,
     TILES_DIR,
 )
+from roadsurf.mapping.bundle_camera import later_stage_inputs
 from roadsurf.mapping.types import load_trajectory
 from roadsurf.pipeline import run_drive
+from roadsurf.reconstruction.config import ReconstructionConfig
 from roadsurf.reconstruction.types import load_pair
 from roadsurf.simulation.scenarios import simulate
 
@@ -65,6 +67,9 @@ DRIVES: tuple[tuple[str, int, int], ...] = (
 QUICK_DRIVES: tuple[tuple[str, int, int], ...] = (("flat", 101, 12), ("potholes", 202, 20))
 # The product's method first (rotation-aware variant of the proposed method), then baselines.
 METHODS: tuple[str, ...] = ("rotation_aware", "proposed", "classic", "colmap")
+
+# the pairs' plane trim when the bundle's refined intrinsics re-derive them (the run's default)
+TRIM_K = ReconstructionConfig().plane_trim_k
 
 
 def _drive(out: Path, scenario: str, seed: int, n: int) -> Path:
@@ -91,7 +96,9 @@ def _variant(run_dir: Path, drive_dir: Path, name: str, **cfg_changes: Any) -> P
     cfg = dataclasses.replace(DetectionConfig(), refine=refine, **cfg_changes)
     drive = load_drive(drive_dir)
     pairs = [load_pair(p) for p in sorted((run_dir / PAIRS_DIR).glob("*.npz"))]
-    stage.run(cfg, drive, pairs, load_trajectory(run_dir), out)
+    traj = load_trajectory(run_dir)
+    drive, pairs = later_stage_inputs(drive, pairs, traj, run_dir, TRIM_K)
+    stage.run(cfg, drive, pairs, traj, out)
     return out
 
 
@@ -105,7 +112,9 @@ def redetect(run_dir: Path, drive_dir: Path) -> Path:
         )
     drive = load_drive(drive_dir)
     pairs = [load_pair(p) for p in sorted((run_dir / PAIRS_DIR).glob("*.npz"))]
-    stage.run(DetectionConfig(overwrite=True), drive, pairs, load_trajectory(run_dir), run_dir)
+    traj = load_trajectory(run_dir)
+    drive, pairs = later_stage_inputs(drive, pairs, traj, run_dir, TRIM_K)
+    stage.run(DetectionConfig(overwrite=True), drive, pairs, traj, run_dir)
     return run_dir
 
 

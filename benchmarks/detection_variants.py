@@ -29,7 +29,9 @@ from roadsurf.detection import stage
 from roadsurf.detection.config import DetectionConfig
 from roadsurf.evaluation.detection import evaluate_detection
 from roadsurf.io.drive import load_drive
+from roadsurf.mapping.bundle_camera import later_stage_inputs
 from roadsurf.mapping.types import load_trajectory
+from roadsurf.reconstruction.config import ReconstructionConfig
 from roadsurf.reconstruction.types import load_pair
 
 # what a re-detection reads from the finished run (linked into the variant's folder)
@@ -75,11 +77,11 @@ def redetect(run_dir: Path, drive_dir: Path, variant: str) -> Path:
     cfg = dataclasses.replace(_cfg(variant), overwrite=True)
     drive = load_drive(drive_dir)
     traj = load_trajectory(run_dir)
-    if traj.mount_deg is not None:  # the mount the run's poses used (given or estimated)
-        drive = dataclasses.replace(
-            drive, camera=dataclasses.replace(drive.camera, mount_deg=traj.mount_deg)
-        )
     pairs = [load_pair(p) for p in sorted((run_dir / "pairs").glob("*.npz"))]
+    # the camera on the mount the run's poses used, with the bundle's refined intrinsics
+    drive, pairs = later_stage_inputs(
+        drive, pairs, traj, run_dir, ReconstructionConfig().plane_trim_k
+    )
     stage.run(cfg, drive, pairs, traj, out)
     return out
 

@@ -90,6 +90,20 @@ def refined_inputs(
     return dataclasses.replace(drive, camera=cam), new
 
 
+def later_stage_inputs(
+    drive: Drive, pairs: list[PairResult], traj: Trajectory, run_dir: Path, plane_trim_k: float
+) -> tuple[Drive, list[PairResult]]:
+    """The drive and pairs the stages after the poses (map, dense surface, detection) use: the
+    camera on the mount the poses used (given or estimated: ``traj.mount_deg``) and with the
+    bundle's refined intrinsics where it estimated them, the pairs re-derived with them
+    (``refined_inputs``). ``pipeline.run`` and the benchmarks that re-run a stage on a finished
+    run folder call this one function."""
+    if traj.mount_deg is not None and traj.mount_deg != drive.camera.mount_deg:
+        camera = dataclasses.replace(drive.camera, mount_deg=traj.mount_deg)
+        drive = dataclasses.replace(drive, camera=camera)
+    return refined_inputs(drive, pairs, traj, run_dir, plane_trim_k)
+
+
 def refined_pairs(
     pairs: list[PairResult],
     calibrated: Camera,

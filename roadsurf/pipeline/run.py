@@ -36,6 +36,7 @@ from roadsurf.core.memory import fix_mmap_threshold, limit_malloc_arenas, releas
 from roadsurf.detection.classifier.config import ClassifierConfig
 from roadsurf.detection.config import DetectionConfig
 from roadsurf.io import runfolder as rf
+from roadsurf.mapping.bundle_camera import later_stage_inputs
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.datum import vertical_datum
 from roadsurf.mapping.loops import frame_matcher
@@ -273,15 +274,9 @@ def _run_drive(
     # revisits (issue 30): frames of two passes are matched with the pair API and close the loop
     loop_match = frame_matcher(drive, rec_cfg, out)
     traj = timed("poses", lambda: poses.run(cfg.mapping, drive, pairs, out, loop_match=loop_match))
-    if traj.mount_deg is not None and traj.mount_deg != drive.camera.mount_deg:
-        # the later stages see the camera on the mount the poses used (given or estimated)
-        camera = dataclasses.replace(drive.camera, mount_deg=traj.mount_deg)
-        drive = dataclasses.replace(drive, camera=camera)
-    if cfg.mapping.bundle_refine_k1 or cfg.mapping.bundle_refine_focal:
-        # ... and with the bundle's refined focal and k1, the pairs re-derived with them (issue 30)
-        from roadsurf.mapping.bundle_camera import refined_inputs
-
-        drive, pairs = refined_inputs(drive, pairs, traj, out, rec_cfg.plane_trim_k)
+    # the later stages see the camera on the mount the poses used (given or estimated) and with
+    # the bundle's refined focal and k1, the pairs re-derived with them (issue 30)
+    drive, pairs = later_stage_inputs(drive, pairs, traj, out, rec_cfg.plane_trim_k)
     products = timed("globalmap", lambda: globalmap.run(cfg.mapping, drive, pairs, traj, out))
     detections = timed(
         "detection",
