@@ -50,7 +50,7 @@ from roadsurf.reconstruction.dense.matching import (
     window_max,
     window_min,
 )
-from roadsurf.reconstruction.dense.slanted import MIN_SPAN_PX, window_offsets
+from roadsurf.reconstruction.dense.slanted import MIN_SPAN_PX, window_lk, window_offsets
 
 log = logging.getLogger(__name__)
 
@@ -106,47 +106,15 @@ def _window_lk(
     R = ref.reshape(-1)[qi]
     ref_in = inside & (ref_mask.reshape(-1)[qi] >= INSIDE_MIN)
     xq, yq = xi.to(dt), yi.to(dt)
-    wq_x, wq_y = wx.reshape(-1)[qi], wy.reshape(-1)[qi]
-    s = s0.clone()
-    last = torch.full_like(s, float("inf"))
-
-    def stats(sv: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        px, py = xq + sv[:, None] * wq_x, yq + sv[:, None] * wq_y
-        grid = torch.stack([px * (2.0 / (W - 1)) - 1.0, py * (2.0 / (H - 1)) - 1.0], -1)
-        smp = F.grid_sample(stack, grid[None], mode="bilinear", align_corners=True)[0]
-        w = (ref_in & (smp[2] >= INSIDE_MIN)).to(dt)
-        n = w.sum(1).clamp_min(1.0)
-
-        def mean(x: torch.Tensor) -> torch.Tensor:
-            return (w * x).sum(1) / n
-
-        Rt, Jt, Gt = (
-            R - mean(R)[:, None],
-            smp[0] - mean(smp[0])[:, None],
-            smp[1] - mean(smp[1])[:, None],
-        )
-        var_r = mean(Rt * Rt).clamp_min(0)
-        var_j = mean(Jt * Jt).clamp_min(1e-6)
-        var_g = mean(Gt * Gt).clamp_min(1e-9)
-        return Rt, Jt, Gt, w, n, var_r, var_j, var_g
-
-    for it in range(SHIFT_ITERS + 1):
-        Rt, Jt, Gt, w, n, var_r, var_j, var_g = stats(s)
-        g = (var_r / var_j).sqrt().clamp(0.5, 2.0)
-        if it == SHIFT_ITERS:
-            break
-        step = ((w * Gt * (Rt - g[:, None] * Jt)).sum(1) / n) / (g * var_g)
-        step = step.clamp(-1.0, 1.0)
-        last = step.abs()
-        s = s + step
-    ncc = ((w * Rt * Jt).sum(1) / n) / (var_r.sqrt() * var_j.sqrt() + 1e-3)
-    resid = (2.0 * var_r * (1.0 - ncc)).clamp_min(2.0 * cfg.noise_dn * cfg.noise_dn)
-    var = resid / (n * g * g * var_g)
+    wq = (wx.reshape(-1)[qi], wy.reshape(-1)[qi])
+    s, var, ncc, grad, last, n, w = window_lk(
+        R, ref_in, xq, yq, wq, None, stack, s0, SHIFT_ITERS, cfg
+    )
     tol = (cfg.step_max_sigma * var.sqrt()).clamp_min(STEP_MAX_PX)
     full = n >= w.shape[1] - 0.5  # the window wholly inside both images
-    ok = full & (last <= tol) & (ncc >= cfg.min_ncc) & (var_g.sqrt() >= cfg.min_grad_dn)
+    ok = full & (last <= tol) & (ncc >= cfg.min_ncc) & (grad >= cfg.min_grad_dn)
     ok &= torch.isfinite(s) & torch.isfinite(var)
-    return _Match(s, var, ncc, var_g.sqrt(), last, ok)
+    return _Match(s, var, ncc, grad, last, ok)
 
 
 def _own_ncc(

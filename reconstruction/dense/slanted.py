@@ -139,6 +139,68 @@ def plane_fit(
     )
 
 
+def window_lk(
+    R: torch.Tensor,
+    ref_in: torch.Tensor,
+    xq: torch.Tensor,
+    yq: torch.Tensor,
+    wq: tuple[torch.Tensor, torch.Tensor],
+    slope: torch.Tensor | None,
+    stack: torch.Tensor,
+    s0: torch.Tensor,
+    iters: int,
+    cfg: DenseHeightConfig,
+) -> tuple[torch.Tensor, ...]:
+    """One parallax per window by Lucas-Kanade along ŵ with a local gain and offset
+    (``matching.refine``'s model), shared by the slanted and the shifted passes. R, ref_in (N,
+    K): the reference window's samples and where they count; xq, yq (N, K) px: their positions;
+    wq (N, K) each: ŵ there; ``slope`` (N, K) px: the window's parallax plane relative to its
+    centre (None: fronto-parallel); ``stack`` (1, 3, H, W): target, its gradient along ŵ, its
+    inside mask; s0 (N,) px: the start. Returns (s, var, ncc, grad, last, n, w): parallax,
+    its variance (px²), ZNCC, RMS target gradient (DN/px), last step (px), samples counted and
+    their weights (N, K)."""
+    H, W = stack.shape[-2:]
+    dt = R.dtype
+    wq_x, wq_y = wq
+
+    def window_stats(sv: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        sq = sv[:, None] if slope is None else sv[:, None] + slope
+        px, py = xq + sq * wq_x, yq + sq * wq_y
+        grid = torch.stack([px * (2.0 / (W - 1)) - 1.0, py * (2.0 / (H - 1)) - 1.0], -1)
+        smp = F.grid_sample(stack, grid[None], mode="bilinear", align_corners=True)[0]
+        J, G = smp[0], smp[1]
+        w = (ref_in & (smp[2] >= INSIDE_MIN)).to(dt)
+        n = w.sum(1).clamp_min(1.0)
+
+        def mean(x: torch.Tensor) -> torch.Tensor:
+            return (w * x).sum(1) / n
+
+        mu_r, mu_j, mu_g = mean(R), mean(J), mean(G)
+        Rt, Jt, Gt = R - mu_r[:, None], J - mu_j[:, None], G - mu_g[:, None]
+        var_r = mean(Rt * Rt).clamp_min(0)
+        var_j = mean(Jt * Jt).clamp_min(1e-6)
+        var_g = mean(Gt * Gt).clamp_min(1e-9)
+        return Rt, Jt, Gt, w, n, var_r, var_j, var_g
+
+    s = s0.clone()
+    last = torch.full_like(s, float("inf"))
+    for it in range(iters + 1):
+        Rt, Jt, Gt, w, n, var_r, var_j, var_g = window_stats(s)
+        g = (var_r / var_j).sqrt().clamp(0.5, 2.0)
+        if it == iters:
+            break
+        res = Rt - g[:, None] * Jt
+        step = ((w * Gt * res).sum(1) / n) / (g * var_g)
+        step = step.clamp(-1.0, 1.0)
+        last = step.abs()
+        s = s + step
+    cov_rj = (w * Rt * Jt).sum(1) / n
+    ncc = cov_rj / (var_r.sqrt() * var_j.sqrt() + 1e-3)
+    resid = (2.0 * var_r * (1.0 - ncc)).clamp_min(2.0 * cfg.noise_dn * cfg.noise_dn)
+    var = resid / (n * g * g * var_g)
+    return s, var, ncc, var_g.sqrt(), last, n, w
+
+
 def slanted_refine(
     ref: torch.Tensor,
     tgt: torch.Tensor,
@@ -185,42 +247,10 @@ def slanted_refine(
     # by well under 1 % between a pixel and its match)
     gx, gy = gradients(tgt)
     stack = torch.cat([tgt, gx * wx + gy * wy, tgt_mask.to(dt)], 1)
-    s = first.shift.reshape(-1)[idx].clone()  # (N,)
-    last = torch.zeros_like(s)
-
-    def window_stats(sv: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        sq = sv[:, None] + slope
-        px, py = xq + sq * wq_x, yq + sq * wq_y
-        grid = torch.stack([px * (2.0 / (W - 1)) - 1.0, py * (2.0 / (H - 1)) - 1.0], -1)
-        smp = F.grid_sample(stack, grid[None], mode="bilinear", align_corners=True)[0]
-        J, G = smp[0], smp[1]
-        w = (ref_in & (smp[2] >= INSIDE_MIN)).to(dt)
-        n = w.sum(1).clamp_min(1.0)
-
-        def mean(x: torch.Tensor) -> torch.Tensor:
-            return (w * x).sum(1) / n
-
-        mu_r, mu_j, mu_g = mean(R), mean(J), mean(G)
-        Rt, Jt, Gt = R - mu_r[:, None], J - mu_j[:, None], G - mu_g[:, None]
-        var_r = mean(Rt * Rt).clamp_min(0)
-        var_j = mean(Jt * Jt).clamp_min(1e-6)
-        var_g = mean(Gt * Gt).clamp_min(1e-9)
-        return Rt, Jt, Gt, w, n, var_r, var_j, var_g
-
-    for it in range(SLANT_ITERS + 1):
-        Rt, Jt, Gt, w, n, var_r, var_j, var_g = window_stats(s)
-        g = (var_r / var_j).sqrt().clamp(0.5, 2.0)
-        if it == SLANT_ITERS:
-            break
-        res = Rt - g[:, None] * Jt
-        step = ((w * Gt * res).sum(1) / n) / (g * var_g)
-        step = step.clamp(-1.0, 1.0)
-        last = step.abs()
-        s = s + step
-    cov_rj = (w * Rt * Jt).sum(1) / n
-    ncc = cov_rj / (var_r.sqrt() * var_j.sqrt() + 1e-3)
-    resid = (2.0 * var_r * (1.0 - ncc)).clamp_min(2.0 * cfg.noise_dn * cfg.noise_dn)
-    var = resid / (n * g * g * var_g)
+    s, var, ncc, grad_w, last, n, w = window_lk(
+        R, ref_in, xq, yq, (wq_x, wq_y), slope, stack, first.shift.reshape(-1)[idx], SLANT_ITERS,
+        cfg,
+    )  # fmt: skip
     tol = (cfg.step_max_sigma * var.sqrt()).clamp_min(STEP_MAX_PX)
     full = n >= w.shape[1] * INSIDE_MIN - 0.5  # the slanted window wholly inside both images
     better = (ncc >= first.ncc.reshape(-1)[idx]) & (last <= tol) & full
@@ -237,7 +267,7 @@ def slanted_refine(
         shift=put(first.shift, s),
         var=put(first.var, var),
         ncc=put(first.ncc, ncc),
-        grad=put(first.grad, var_g.sqrt()),
+        grad=put(first.grad, grad_w),
         last_step=put(first.last_step, last),
     )
     log.debug("dense: slanted pass on %d px, %d replaced", int(better.numel()), int(idx.numel()))
