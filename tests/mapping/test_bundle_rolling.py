@@ -15,16 +15,22 @@ from tests.mapping.bundle_synth import make_track_drive
 from tests.mapping.test_bundle import _relative_errors
 
 
+def _rolling_drive():
+    """A seeded 30-frame drive with a 30 ms readout at 4 m/s and 1 Hz consumer GPS, and the
+    mapping config its tests run with."""
+    syn = make_track_drive(
+        n=30, seed=2, width_px=640, density_per_m2=60, readout_s=0.03, gps_hz=1.0,
+        gps_sigma_m=0.3,
+    )  # fmt: skip
+    return syn, MappingConfig(gps_sigma_m=0.3, bundle_max_time_offset_s=0.0)
+
+
 def test_the_row_time_model_lowers_the_pose_error_of_a_rolling_shutter_drive() -> None:
     # 30 ms readout at 4 m/s: the camera moves 12 cm between the first and the last row (the
     # frames are 20 cm apart). Projected as if every row were taken at the frame's time the
     # tracks bend the poses: 5-frame error 39 mm / 0.51° against the pose graph's 8.8 mm /
     # 0.25° (measured, seed 2); with the rows' poses 4.6 mm / 0.16°
-    syn = make_track_drive(
-        n=30, seed=2, width_px=640, density_per_m2=60, readout_s=0.03, gps_hz=1.0,
-        gps_sigma_m=0.3,
-    )  # fmt: skip
-    cfg = MappingConfig(gps_sigma_m=0.3, bundle_max_time_offset_s=0.0)
+    syn, cfg = _rolling_drive()
     glob = dataclasses.replace(syn.drive.camera, readout_s=0.0)
     errs = {}
     for name, cam, ba in (
@@ -61,11 +67,7 @@ def test_a_rolling_shutter_bundle_keeps_the_pose_graphs_mean_tilt() -> None:
     # drive's mean tilt moves 0.06° from it (seed 2, measured)
     from scipy.spatial.transform import Rotation
 
-    syn = make_track_drive(
-        n=30, seed=2, width_px=640, density_per_m2=60, readout_s=0.03, gps_hz=1.0,
-        gps_sigma_m=0.3,
-    )  # fmt: skip
-    cfg = MappingConfig(gps_sigma_m=0.3, bundle_max_time_offset_s=0.0)
+    syn, cfg = _rolling_drive()
     tilt = {}
     for ba in (False, True):
         tr, _ = poses.estimate_trajectory(
