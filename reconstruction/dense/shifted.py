@@ -50,7 +50,12 @@ from roadsurf.reconstruction.dense.matching import (
     window_max,
     window_min,
 )
-from roadsurf.reconstruction.dense.slanted import MIN_SPAN_PX, window_lk, window_offsets
+from roadsurf.reconstruction.dense.slanted import (
+    MIN_SPAN_PX,
+    gather_windows,
+    window_lk,
+    window_offsets,
+)
 
 log = logging.getLogger(__name__)
 
@@ -64,7 +69,6 @@ NEAR = REJECT_LR
 # pothole's pixels spanning 2 px or more are 8 % of them and carry 42 % of its squared error
 # (RMS 7.9 mm); MIN_SPAN_PX (0.5 px) selected half the image with the road's own relief, at 5x
 # the matching's time, for no better surface
-STEP_SPAN_PX = 4 * MIN_SPAN_PX
 STEP_SPAN_PX = 4 * MIN_SPAN_PX
 OWN_PX = 3  # the pixel's own neighbourhood that picks among the windows (px)
 # Lucas-Kanade steps of the chosen window (count): it starts from its centre's first-pass
@@ -88,24 +92,21 @@ def _window_lk(
     ref_mask: torch.Tensor,
     wx: torch.Tensor,
     wy: torch.Tensor,
-    cx: torch.Tensor,
-    cy: torch.Tensor,
+    src: torch.Tensor,
     s0: torch.Tensor,
     win: int,
     cfg: DenseHeightConfig,
 ) -> _Match:
-    """One parallax for each win x win window centred at the integer pixels cx, cy (N,) of
-    ``ref`` (1, 1, H, W), from s0 (N,): Lucas-Kanade along ŵ with a local gain and offset
-    against ``stack`` (1, 3, H, W: target, its gradient along ŵ, its inside mask)."""
-    H, W = ref.shape[-2:]
-    dev, dt = ref.device, ref.dtype
-    du, dv = window_offsets(win, dev)
-    xi, yi = cx.long()[:, None] + du.long(), cy.long()[:, None] + dv.long()
-    inside = (xi >= 0) & (xi < W) & (yi >= 0) & (yi < H)
-    qi = yi.clamp(0, H - 1) * W + xi.clamp(0, W - 1)
-    R = ref.reshape(-1)[qi]
+    """One parallax for each win x win window centred at the pixels ``src`` (N,) (flat
+    indices) of ``ref`` (1, 1, H, W), from s0 (N,): Lucas-Kanade along ŵ with a local gain and
+    offset against ``stack`` (1, 3, H, W: target, its gradient along ŵ, its inside mask)."""
+    W = ref.shape[-1]
+    dt = ref.dtype
+    du, dv = window_offsets(win, ref.device)
+    R, qi, inside = gather_windows(ref, src, win)
     ref_in = inside & (ref_mask.reshape(-1)[qi] >= INSIDE_MIN)
-    xq, yq = xi.to(dt), yi.to(dt)
+    xq = (src % W).to(dt)[:, None] + du
+    yq = (src // W).to(dt)[:, None] + dv
     wq = (wx.reshape(-1)[qi], wy.reshape(-1)[qi])
     s, var, ncc, grad, last, n, w = window_lk(
         R, ref_in, xq, yq, wq, None, stack, s0, SHIFT_ITERS, cfg
@@ -177,7 +178,6 @@ def shifted_refine(
     own_first = _own_ncc(ref, tgt, wx, wy, x, y, s_first)
     best_own = own_first.clone()
     best_src = torch.full_like(idx, -1)
-    best_s = s_first.clone()
     r = win // 2
     okf = ok0.reshape(-1)
     for dv in (-r, 0, r):
@@ -191,15 +191,13 @@ def shifted_refine(
             own = _own_ncc(ref, tgt, wx, wy, x, y, s)
             take = inside & okf[c] & torch.isfinite(s) & (own > best_own)
             best_own = torch.where(take, own, best_own)
-            best_s = torch.where(take, s, best_s)
             best_src = torch.where(take, c, best_src)
     take = best_src >= 0
     jj, src = idx[take], best_src[take]
     # the chosen window matched on its own (one parallax, Lucas-Kanade from its centre's)
     gx, gy = gradients(tgt)
     stack = torch.cat([tgt, gx * wx + gy * wy, tgt_mask.to(dt)], 1)
-    cx, cy = src % W, src // W
-    m = _window_lk(ref, stack, ref_mask, wx, wy, cx, cy, first.shift.reshape(-1)[src], win, cfg)
+    m = _window_lk(ref, stack, ref_mask, wx, wy, src, first.shift.reshape(-1)[src], win, cfg)
     s_new = m.s
     keep = m.ok & (_own_ncc(ref, tgt, wx, wy, x[take], y[take], s_new) > own_first[take])
     jj = jj[keep]
