@@ -110,7 +110,7 @@ def crack_defects(
                     wd, wsum = wd + S * n / V, wsum + n * n / V
             pieces.append(
                 (c.width_m[j], wd, c.n_points[j] + c.dense_n[j], c.n_below[j] + c.dense_below[j],
-                 wsum, c.max_depth_m[j], c.across_share[j], c.across_px_per_m[j],
+                 wsum, c.max_depth_m[j], c.across_share[j],
                  *_reading(c.sum_depth_m[j], c.n_points[j], c.var_m2[j]),
                  *_reading(c.dense_sum_m[j], c.dense_n[j], c.dense_var_m2[j]))
             )  # fmt: skip
@@ -164,7 +164,7 @@ def crack_defects(
             if c in confirmed or sel.sum() < 3:
                 continue
             ids = np.unique(piece[sel])
-            reads = np.r_[pc[ids][:, [8, 9]], pc[ids][:, [10, 11]]]
+            reads = np.r_[pc[ids][:, [7, 8]], pc[ids][:, [9, 10]]]  # (mean, SE): points, dense
             blind_ap = aperture_blind(pc[ids, 6], cfg.crack)
             dis, birge = readings_disagree(reads[:, 0], reads[:, 1], cfg.crack)
             blind = blind_ap or (cfg.crack.image_disagree and dis)

@@ -67,18 +67,16 @@ class PairCracks:
     dense_var_m2: np.ndarray | None = None  # (C,) variance of dense_sum_m (m²)
     # The pair's geometry at each piece (``crackaperture.across_parallax``); NaN without image
     # b: share of the depth parallax across the crack (sine of its angle to the epipolar
-    # direction) and that parallax in pixels per metre of depth
+    # direction)
     across_share: np.ndarray | None = None  # (C,) (0-1)
-    across_px_per_m: np.ndarray | None = None  # (C,) (px/m)
 
     def __post_init__(self) -> None:
         c = len(self.width_m)
         for f in ("dense_sum_m", "dense_n", "dense_below", "dense_var_m2"):
             if getattr(self, f) is None:
                 setattr(self, f, np.zeros(c))
-        for f in ("across_share", "across_px_per_m"):
-            if getattr(self, f) is None:
-                setattr(self, f, np.full(c, np.nan))
+        if self.across_share is None:
+            self.across_share = np.full(c, np.nan)
 
 
 def empty() -> PairCracks:
@@ -134,7 +132,7 @@ def detect_pair_cracks(
     zcoef = np.linalg.lstsq(A, P[road, 2], rcond=None)[0]
     xyz, labels, wd, sd, nn, nb, vv, mx = [], [], [], [], [], [], [], []
     dense: list[DenseCrack | None] = []
-    across: list[tuple[float, float]] = []
+    across: list[float] = []
     for i, wpx, gsd in zip(keep, widths, gsds, strict=True):
         line = centre_line(lab == i)
         if not line.any():
@@ -179,7 +177,7 @@ def detect_pair_cracks(
             mx.append(float(d[0]))
         dense.append(dn)
         across.append(
-            (math.nan, math.nan)
+            math.nan
             if view is None
             else across_parallax(
                 np.c_[xs, ys].astype(float),
@@ -189,7 +187,7 @@ def detect_pair_cracks(
                 # reconstruction's 21 px LK window): what their aperture sees; a 7 px tangent
                 # follows the centre line's pixel steps
                 max(float(cfg.local_road_gap_px), float(cfg.dense_window_px)),
-            )  # fmt: skip
+            )[0]  # fmt: skip
         )
     if not wd:
         return empty()
@@ -199,7 +197,7 @@ def detect_pair_cracks(
         np.concatenate(labels),
         *(np.asarray(a, float) for a in (wd, sd, nn, nb, vv, mx)),
         *(np.asarray(a, float) for a in zip(*dd, strict=True)),
-        *(np.asarray(a, float) for a in zip(*across, strict=True)),
+        np.asarray(across, float),
     )
 
 

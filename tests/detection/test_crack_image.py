@@ -92,7 +92,7 @@ def _pair(k: int, mean_m: float, share: float, dense_mean_m: float | None = None
         dense_sum_m=a([10 * dense_mean_m if dn else 0.0]), dense_n=a([10.0 if dn else 0.0]),
         dense_below=a([10.0 if dn and dense_mean_m > 0 else 0.0]),
         dense_var_m2=a([10 * 1e-6 if dn else 0.0]),
-        across_share=a([share]), across_px_per_m=a([50.0]),
+        across_share=a([share]),
     )  # fmt: skip
     z = np.zeros(3)
     return PairDefects(k, f"{k:06d}.png", z.astype(bool), z.astype(bool), z, 0.008, 0.001, 0.0,
