@@ -25,6 +25,8 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial.transform import Rotation
 
+from roadsurf.core.rolling import row_offset
+
 # σ of the change of the window's mean camera tilt from the pose graph's with a rolling shutter
 # (deg): a roll of every camera about a straight track, the points turning with them, is a gauge
 # (GPS and the images do not see it), so the bundle keeps the pose graph's; 0.1° moves the map
@@ -123,19 +125,6 @@ def pair_translation(t: np.ndarray, n: np.ndarray, psi: float) -> tuple[np.ndarr
     dL = e * e * nxy / L
     dg = t * np.array([-1.0 / e, -1.0 / e, 0.0]) * L[:, None] + t * Ai * dL[:, None]
     return g, dg
-
-
-def row_offset(
-    v: np.ndarray, tau_s: np.ndarray, vel: np.ndarray, omega: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """A rolling shutter's row pose (as ``core.rolling.raw_px_from_world``): the camera at τ
-    after the frame's time has moved by vel τ and turned by a = ω τ (small angle, world frame),
-    so a point seen from it is Rᵀ (I - [a]x)(X - C - vel τ) with the frame's R, C. v: (M, 3)
-    world vectors X - C (m); tau_s (M,) s; vel, omega (M, 3) m/s, rad/s (constant over the
-    readout, ``core.rolling.frame_motion``). Returns (I - [a]x)(v - vel τ) (M, 3) and a."""
-    a = omega * tau_s[:, None]
-    w = v - vel * tau_s[:, None]
-    return w - np.cross(a, w), a
 
 
 def _skew_cross(a: np.ndarray, v: np.ndarray) -> np.ndarray:

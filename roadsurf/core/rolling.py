@@ -58,6 +58,19 @@ def frame_motion(
     return vel, Rotation.from_matrix(dR).as_rotvec() / dt
 
 
+def row_offset(
+    v: np.ndarray, tau_s: np.ndarray, vel: np.ndarray, omega: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """A rolling shutter's row pose: the camera at τ after the frame's time has moved by vel τ
+    and turned by a = ω τ (small angle, world frame), so a point seen from it is
+    Rᵀ (I - [a]x)(X - C - vel τ) with the frame's R, C. v: (..., 3) world vectors X - C (m);
+    tau_s (...,) s; vel, omega (..., 3) m/s, rad/s (constant over the readout,
+    ``frame_motion``). Returns (I - [a]x)(v - vel τ) (..., 3) and a."""
+    a = omega * tau_s[..., None]
+    w = v - vel * tau_s[..., None]
+    return w - np.cross(a, w), a
+
+
 def raw_px_from_world(
     camera: Camera,
     X_world: np.ndarray,
@@ -79,9 +92,7 @@ def raw_px_from_world(
     k = camera.readout_s / camera.height  # s per row
 
     def row_after(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        tau = (np.nan_to_num(v, nan=0.0) * k)[..., None]
-        d = X - C - vel * tau
-        d = d - np.cross(om * tau, d)  # (I + [w tau]x)^T d: small-angle rotation during readout
+        d, _ = row_offset(X - C, np.nan_to_num(v, nan=0.0) * k, vel, om)
         return camera.project(d @ R)
 
     return solve_rows(row_after, X.shape[:-1], rounds)

@@ -8,8 +8,8 @@ import dataclasses
 
 import numpy as np
 
+from roadsurf.core.rolling import row_offset
 from roadsurf.mapping import poses
-from roadsurf.mapping.bundle_problem import row_offset
 from roadsurf.mapping.config import MappingConfig
 from tests.mapping.bundle_synth import make_track_drive
 from tests.mapping.test_bundle import _relative_errors
