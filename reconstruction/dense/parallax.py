@@ -263,13 +263,11 @@ def _match_level(
         var_s = var_s + fwd.last_step[0, 0].double().cpu().numpy() ** 2
     ncc = fwd.ncc[0, 0].cpu().numpy()
     reject = flags[0, 0].cpu().numpy()
-    if f_rs is not None:  # the resampled pair's parallax is that of s_b - s_a of the motion
-        shift_m = shift / f_rs  # (dense.rolling): as the pair's own baseline would show it
-        eta = ppc.height_from_shift(shift_m, u_np, v_np, nw_np)
-        deta = ppc.dheight_dshift(shift_m, u_np, v_np, nw_np) / f_rs
-    else:
-        eta = ppc.height_from_shift(shift, u_np, v_np, nw_np)
-        deta = ppc.dheight_dshift(shift, u_np, v_np, nw_np)
+    # a rolling shutter's resampled pair shows the parallax of s_b - s_a of the motion
+    # (dense.rolling): divided by it, as the pair's own baseline would show it
+    f = 1.0 if f_rs is None else f_rs
+    eta = ppc.height_from_shift(shift / f, u_np, v_np, nw_np)
+    deta = ppc.dheight_dshift(shift / f, u_np, v_np, nw_np) / f
     var = deta * deta * var_s + (cfg.scale_rel_sigma * eta) ** 2
     with np.errstate(invalid="ignore", divide="ignore"):
         near = nw_np / max(abs(float(ppc.E[2])), 1e-12) < cfg.min_epipole_px * s
