@@ -42,15 +42,43 @@ _ROAD_RELIEF_M = 0.2
 _PLANE_SAMPLES = 4000
 
 
-def _border_rays_cam(cam: Any) -> np.ndarray:
+def _border_rays_cam(cam: Any) -> tuple[np.ndarray, np.ndarray]:
     """(4n, 3) camera-frame rays (z = 1) through the raw image's border pixel centres, in order
-    around the image from its top-left corner, undistorted as the simulator renders them."""
+    around the image from its top-left corner, undistorted as the simulator renders them, and
+    their (4n,) raw rows v (px)."""
     w, h, n = float(cam.width) - 1.0, float(cam.height) - 1.0, _BORDER_RAYS_PER_EDGE
     t = np.linspace(0.0, 1.0, n + 1)[:-1]
     u = np.concatenate([t * w, np.full(n, w), (1 - t) * w, np.zeros(n)])
     v = np.concatenate([np.zeros(n), t * h, np.full(n, h), (1 - t) * h])
     und = cam.normalised_from_raw_px(np.column_stack([u, v]), criteria=RENDER_UNDISTORT_CRITERIA)
-    return np.column_stack([und, np.ones(len(und))])
+    return np.column_stack([und, np.ones(len(und))]), v
+
+
+def _row_rays_world(
+    rays_cam: np.ndarray,
+    rows_px: np.ndarray,
+    world_from_cam: np.ndarray,
+    k: int,
+    t_s: np.ndarray,
+    readout_s: float,
+    height_px: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """World (N, 3) centres and rays of frame ``k``'s camera rays (N, 3) at raw rows (N,) px:
+    the frame's pose (N, 4, 4 for all frames) at its first row, each later row ``readout_s * v /
+    height`` s later with the frame's motion from its neighbours (``core.rolling``'s convention;
+    a global shutter: every ray from the frame's pose)."""
+    from scipy.spatial.transform import Rotation
+
+    from roadsurf.core.rolling import frame_motion
+
+    R, C = world_from_cam[k, :3, :3], world_from_cam[k, :3, 3]
+    rays_w = rays_cam @ R.T
+    if readout_s <= 0 or not np.isfinite(t_s).all():
+        return np.broadcast_to(C, rays_w.shape), rays_w
+    vel, omega = frame_motion(world_from_cam, t_s, k)
+    tau = readout_s * rows_px / float(height_px)
+    turn = Rotation.from_rotvec(omega[None, :] * tau[:, None]).as_matrix()  # (N, 3, 3)
+    return C + vel[None, :] * tau[:, None], np.einsum("nij,nj->ni", turn, rays_w)
 
 
 def _truth_heights(truth_dir: Path) -> tuple[np.ndarray, Any] | None:
@@ -111,8 +139,9 @@ def _plane_under(
 def road_xy_from_rays(
     centre: np.ndarray, rays: np.ndarray, height_m: float, heights: np.ndarray, transform: Any
 ) -> np.ndarray | None:
-    """(N, 2) map points (m) where (N, 3) world rays from the camera centre (3,) (map x, y and
-    the heights' z, m) meet the truth road; None where a ray does not descend onto it.
+    """(N, 2) map points (m) where (N, 3) world rays from the camera centre (3,) or from one
+    centre per ray (N, 3) (map x, y and the heights' z, m; a rolling shutter's rows) meet the
+    truth road; None where a ray does not descend onto it.
 
     The rays meet a plane fitted to the heights under the flat-road footprint (``height_m``
     below the camera), then one fitted under that footprint (the footprint moves with the
@@ -121,17 +150,21 @@ def road_xy_from_rays(
     the truth corridor). Without heights under the footprint: the flat-road footprint."""
     if np.any(rays[:, 2] >= -1e-6):
         return None
-    c_xy, c_z = centre[:2], float(centre[2])
+    C = np.broadcast_to(np.asarray(centre, float), rays.shape)
+    c_xy, c_z = C[:, :2], C[:, 2]
+    origin = c_xy.mean(axis=0)
     xy = c_xy + (-height_m / rays[:, 2])[:, None] * rays[:, :2]
     den = lam = None
     for _ in range(2):
-        plane = _plane_under(xy, c_xy, heights, transform)
+        plane = _plane_under(xy, origin, heights, transform)
         if plane is None:
             break
         den = rays[:, 2] - plane[0] * rays[:, 0] - plane[1] * rays[:, 1]
         if np.any(den >= -1e-6):
             return None
-        lam = (plane[2] - c_z) / den
+        # the plane's height under each ray's own centre, minus that centre's height
+        d_xy = c_xy - origin
+        lam = (plane[0] * d_xy[:, 0] + plane[1] * d_xy[:, 1] + plane[2] - c_z) / den
         xy = c_xy + lam[:, None] * rays[:, :2]
     if den is None or lam is None:
         return xy
@@ -141,7 +174,7 @@ def road_xy_from_rays(
     reach = _ROAD_RELIEF_M / -den  # λ from the plane's point to ±_ROAD_RELIEF_M off the plane
     n = int(np.ceil(np.max(2 * reach * np.linalg.norm(rays[:, :2], axis=1)) / cell)) + 2
     ls = lam[:, None] + reach[:, None] * np.linspace(-1.0, 1.0, n)[None, :]  # (N, n)
-    P = centre[None, None, :] + ls[:, :, None] * rays[:, None, :]
+    P = C[:, None, :] + ls[:, :, None] * rays[:, None, :]
     f = P[..., 2] - heights_from_xy(P[..., :2].reshape(-1, 2), heights, transform).reshape(ls.shape)
     cross = np.isfinite(f[:, :-1]) & np.isfinite(f[:, 1:]) & (f[:, :-1] > 0) & (f[:, 1:] <= 0)
     hit = cross.any(axis=1)
@@ -169,22 +202,28 @@ def true_footprints(
     if not cam_yaml.is_file():
         return None
     cam = load_camera(cam_yaml)
-    rays = _border_rays_cam(cam)
+    rays, rows = _border_rays_cam(cam)
     hmap = _truth_heights(truth_dir) if road and "up" in truth else None
     q = truth["q"]
     Rs = Rotation.from_quat(np.column_stack([q[:, 1], q[:, 2], q[:, 3], q[:, 0]])).as_matrix()
+    W = np.tile(np.eye(4), (len(q), 1, 1))
+    W[:, :3, :3] = Rs
+    W[:, :2, 3] = truth["xy"]
+    W[:, 2, 3] = truth["up"] if "up" in truth else 0.0
+    t_s = truth.get("t", np.full(len(q), np.nan))
     polys: list[Geometry | None] = []
     for k in range(len(q)):
         if truth["filename"][k] not in seen:
             polys.append(None)
             continue
-        rw = rays @ Rs[k].T
+        # a rolling shutter's rows each from their own pose (the bottom rows are exposed up to
+        # readout_s later: on the drive's border that is the vehicle's travel over it)
+        cw, rw = _row_rays_world(rays, rows, W, k, t_s, cam.readout_s, cam.height)
         xy: np.ndarray | None
         if hmap is not None:
-            centre = np.array([*truth["xy"][k], truth["up"][k]], float)
-            xy = road_xy_from_rays(centre, rw, cam.height_m, *hmap)
+            xy = road_xy_from_rays(cw, rw, cam.height_m, *hmap)
         elif np.all(rw[:, 2] < -1e-6):
-            xy = truth["xy"][k] + (-cam.height_m / rw[:, 2])[:, None] * rw[:, :2]
+            xy = cw[:, :2] + (-cam.height_m / rw[:, 2])[:, None] * rw[:, :2]
         else:
             xy = None
         # a frame without a footprint keeps its place, so the stereo pairs stay consecutive

@@ -25,6 +25,8 @@ def truth_poses(truth_dir: Path) -> dict[str, Any]:
         "up": np.array([float(r["up_m"]) for r in rows]),
         "q": np.array([[float(r[k]) for k in ("qw", "qx", "qy", "qz")] for r in rows]),
         "heading_deg": np.array([float(r["heading_deg"]) for r in rows]),
+        # the frames' (first rows') times: a rolling shutter's later rows from the motion
+        "t": np.array([float(r.get("timestamp_s") or "nan") for r in rows]),
     }
 
 
