@@ -1,7 +1,7 @@
 """Benchmark: the two-view coverage by measured cells (``roadsurf evaluate``'s
 ``coverage_two_view_measured``) against two truth corridors: the evaluation's, whose camera
 footprints are the image borders cast on the true road (truth/height.tif,
-``roadsurf.evaluation.surface.true_footprints``), and the flat-road one it used before, whose
+``roadsurf.evaluation.corridor.true_footprints``), and the flat-road one it used before, whose
 footprints lie on a flat road ``height_m`` below each true camera (its fallback without
 truth heights).
 
@@ -32,7 +32,7 @@ def analyse(run: Path, drive: Path) -> dict[str, Any]:
     from rasterio.features import rasterize
 
     from roadsurf.core.atomic import read_json
-    from roadsurf.evaluation.surface import corridor_from_footprints, true_footprints
+    from roadsurf.evaluation.corridor import corridor_from_footprints, true_footprints
     from roadsurf.evaluation.trajectory import run_trajectory, trajectory_metrics, truth_poses
 
     td = drive / "truth"

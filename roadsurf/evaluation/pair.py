@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
-from roadsurf.evaluation.surface import heights_from_xy
+from roadsurf.evaluation.corridor import heights_from_xy
 from roadsurf.io import runfolder as rf
 from roadsurf.io.drive.camera_yaml import load_camera
 from roadsurf.io.formats import GridSpec, read_geotiff

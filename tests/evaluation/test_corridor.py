@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from roadsurf.evaluation.surface import _corridor_polygon
+from roadsurf.evaluation.corridor import _corridor_polygon
 
 
 def _drive(tmp_path: Path, dist: list[float]) -> Path:
@@ -155,7 +155,7 @@ def _brute_force_footprints(truth: dict, phase: float) -> list:
 def test_tilted_corridor_is_the_border_cast_on_the_true_road(tmp_path: Path, pitch_deg: float):
     import shapely
 
-    from roadsurf.evaluation.surface import corridor_from_footprints, true_footprints
+    from roadsurf.evaluation.corridor import corridor_from_footprints, true_footprints
 
     td, truth, phase = _tilted_drive(tmp_path, pitch_deg, seed=23)
     seen = set(truth["filename"])
@@ -232,7 +232,7 @@ def test_corridor_beyond_the_truth_heights_extrapolates_the_road_plane(tmp_path:
     where the flat road misses by ~20 cm."""
     import rasterio
 
-    from roadsurf.evaluation.surface import true_footprints
+    from roadsurf.evaluation.corridor import true_footprints
 
     td, truth, phase = _tilted_drive(tmp_path, 45.0, seed=23)
     with rasterio.open(td / "height.tif") as src:
@@ -260,7 +260,7 @@ def test_rolling_shutter_border_rows_are_cast_from_their_own_poses(tmp_path: Pat
     import shapely
     from scipy.spatial.transform import Rotation
 
-    from roadsurf.evaluation.surface import true_footprints
+    from roadsurf.evaluation.corridor import true_footprints
 
     td, truth, phase = _tilted_drive(tmp_path, 25.0, seed=5)
     cam_yaml = td.parent / "camera.yaml"
