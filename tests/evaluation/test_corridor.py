@@ -127,9 +127,12 @@ def _tilted_drive(tmp_path: Path, pitch_deg: float, seed: int) -> tuple[Path, di
     return td, truth, phase
 
 
-def _brute_force_footprints(truth: dict, phase: float) -> list:
+def _brute_force_footprints(
+    truth: dict, phase: float, readout_s: float = 0.0, vel: np.ndarray | None = None
+) -> list:
     """Each frame's border rays (8 a side, pixel centres) marched from the camera in 0.5 mm steps
-    to their first point under the analytic road."""
+    to their first point under the analytic road; with a rolling shutter, each row's ray from
+    the frame's centre moved by its velocity ``vel`` (frames, 3) over readout_s · v / 480."""
     import shapely
     from scipy.spatial.transform import Rotation
 
@@ -143,8 +146,10 @@ def _brute_force_footprints(truth: dict, phase: float) -> list:
     for k in range(len(truth["filename"])):
         q = truth["q"][k]
         rw = rays @ Rotation.from_quat([q[1], q[2], q[3], q[0]]).as_matrix().T
-        C = np.array([*truth["xy"][k], truth["up"][k]])
-        P = C + lam[None, :, None] * rw[:, None, :]  # (rays, steps, 3)
+        C = np.array([*truth["xy"][k], truth["up"][k]])[None, :]
+        if vel is not None:
+            C = C + vel[k][None, :] * (readout_s * v / 480.0)[:, None]  # (rays, 3)
+        P = C[:, None, :] + lam[None, :, None] * rw[:, None, :]  # (rays, steps, 3)
         below = P[..., 2] <= _road_z(P[..., 0], P[..., 1], phase)
         assert below.any(axis=1).all()
         out.append(shapely.Polygon(P[np.arange(len(rw)), np.argmax(below, axis=1), :2]))
@@ -257,9 +262,6 @@ def test_rolling_shutter_border_rows_are_cast_from_their_own_poses(tmp_path: Pat
     first row, 9 cm of travel for the bottom row. The cast footprint follows the brute-force
     march from each row's own centre (velocity from the neighbouring frames), where the
     first-row pose alone misplaces the late rows by centimetres."""
-    import shapely
-    from scipy.spatial.transform import Rotation
-
     from roadsurf.evaluation.corridor import true_footprints
 
     td, truth, phase = _tilted_drive(tmp_path, 25.0, seed=5)
@@ -268,25 +270,13 @@ def test_rolling_shutter_border_rows_are_cast_from_their_own_poses(tmp_path: Pat
     truth["t"] = 0.1 * np.arange(6)
     C_all = np.column_stack([truth["xy"], truth["up"]])
     vel = np.gradient(C_all, truth["t"], axis=0)  # central differences, one-sided at the ends
-    n = 8
-    s = np.linspace(0.0, 1.0, n + 1)[:-1]
-    u = np.concatenate([s * 639, np.full(n, 639.0), (1 - s) * 639, np.zeros(n)])
-    v = np.concatenate([np.zeros(n), s * 479, np.full(n, 479.0), (1 - s) * 479])
-    rays = np.column_stack([(u - 319.5) / 600, (v - 239.5) / 600, np.ones(4 * n)])
-    lam = np.arange(0.2, 6.0, 0.0005)
+    ref = _brute_force_footprints(truth, phase, 0.03, vel)
     seen = set(truth["filename"])
     feet = true_footprints(td, truth, seen)
     gs = dict(truth, t=np.full(6, np.nan))  # no times: every ray from the first row's pose
     feet_gs = true_footprints(td, gs, seen)
     assert feet is not None and feet_gs is not None
-    for k in range(6):
-        q = truth["q"][k]
-        rw = rays @ Rotation.from_quat([q[1], q[2], q[3], q[0]]).as_matrix().T
-        C = C_all[k] + vel[k][None, :] * (0.03 * v / 480.0)[:, None]  # (rays, 3)
-        P = C[:, None, :] + lam[None, :, None] * rw[:, None, :]
-        below = P[..., 2] <= _road_z(P[..., 0], P[..., 1], phase)
-        want = shapely.Polygon(P[np.arange(len(rw)), np.argmax(below, axis=1), :2])
-        got = feet[k]
-        assert got is not None and feet_gs[k] is not None
+    for got, first_row, want in zip(feet, feet_gs, ref, strict=True):
+        assert got is not None and first_row is not None
         assert got.hausdorff_distance(want) < 0.5 * CELL
-        assert feet_gs[k].hausdorff_distance(want) > 0.05
+        assert first_row.hausdorff_distance(want) > 0.05
