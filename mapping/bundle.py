@@ -62,7 +62,7 @@ log = logging.getLogger(__name__)
 # the algorithm's version, in the poses stage's fingerprint: a run resumed after a change
 # recomputes its poses (2: relief weight per frame, the pairs' motions, heading placement; 4: a
 # rolling shutter's rows each from their own pose, the pairs' translations follow the focal)
-BUNDLE_VERSION = 5  # 5: a rolling shutter keeps the pose graph's mean tilt
+BUNDLE_VERSION = 6  # 5: RS keeps the pose graph's mean tilt; 6: tracks.link_residuals_m
 N_ANCHOR = 2  # frames before a window held at their refined poses
 MIN_OBS = 8  # a frame seeing fewer 3+-view track points keeps its pose graph pose
 MIN_OFFSET_S = 0.005  # a smaller GPS time offset is not applied (s)
