@@ -23,6 +23,7 @@ DENSE_SURFACE_FIELDS = (
     "dense_outlier_sigmas",
     "dense_visible_k",
     "dense_reference",
+    "dense_match_image",
     "dense_fill_max_m",
     "dense_sparse_fill",
     "dense_single_view",
@@ -220,6 +221,11 @@ class MappingConfig:
     # the local road surface fitted to the sparse points with each pair's offset and tilt to it
     # removed
     dense_reference: Literal["pair_plane", "local_surface"] = "pair_plane"
+    # the image of a pair whose pixels the dense heights are measured on: "nearer" = the one
+    # whose camera sees the pair's common road from nearer (finer ground sampling; image b of
+    # a camera tilted forward, image a of a nadir one; image a with a rolling shutter),
+    # "a" = always image a (mapping/dense_refimage.py)
+    dense_match_image: Literal["a", "nearer"] = "nearer"
     # extend the dense surface by at most this (m) inside the part both frames of an ok pair saw,
     # where the relief is road (surface_fill_relief_min_m): the matching windows stop a few
     # pixels short of the images' borders; 0 = off
@@ -319,5 +325,6 @@ class MappingConfig:
         "dense_outlier_sigmas": "(0, inf)",
         "dense_visible_k": "[0, inf); 0 = off",
         "dense_reference": "{pair_plane, local_surface}",
+        "dense_match_image": "{a, nearer}",
         "dense_fill_max_m": "[0, inf); 0 = off",
     }

@@ -2,13 +2,14 @@
 into the residual raster (``MappingConfig.surface_source = "dense"``).
 
 1. Each ok pair is matched densely (plane + parallax) on its two images: a height above the
-   pair's road plane and its variance for every pixel of the overlap in image a.
-2. Levelling: the pair's pixels are posed in ENU with the fused pose of frame a, and a robust
+   pair's road plane and its variance for every pixel of the overlap in its reference image
+   (image a, or image b where b sees the common road nearer: ``dense_refimage``).
+2. Levelling: the pair's pixels are posed in ENU with the fused pose of that frame, and a robust
    plane (offset and tilt) of their height above the local road surface (``mapping.surface``,
    fitted to the sparse points) is removed, so pairs agree where they overlap (what
    ``align_patches`` does for the sparse points).
 3. Per cell of a raster tile, each pair that saw it gives one sample: the cell's centre is
-   projected into image a at the height of the surface there, the pair's height map sampled,
+   projected into the reference image at the surface's height there, its height map sampled,
    and the projection repeated at the new height (a fixed point, like a ray cast).
 4. Fusion (``fuse_cells``): per cell the variance-weighted median of the pairs' samples, then
    the weighted mean of those within ``dense_outlier_sigmas`` σ of it; its count and σ.
@@ -39,6 +40,7 @@ from roadsurf.io.drive import Drive, GrayFrames
 from roadsurf.io.formats import GridSpec
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.dense_cells import cell_samples, fuse_cells
+from roadsurf.mapping.dense_refimage import reference_is_b, reversed_pair
 from roadsurf.mapping.dense_seams import SeamSamples
 from roadsurf.mapping.raster import GridToEnu, TileLattice
 from roadsurf.mapping.surface import LocalSurface
@@ -136,15 +138,26 @@ class DenseSurface:
         self.pairs = ok
         self.pose_a = [pose_of[p.frame_a] for p in ok]
         self.pose_b = [pose_of[p.frame_b] for p in ok]
+        # each pair measured on the image that sees its common road nearer (dense_refimage)
+        W = traj.world_from_cam
+        self.ref_b = [
+            cfg.dense_match_image == "nearer" and reference_is_b(drive.camera, W[ia], W[ib])
+            for ia, ib in zip(self.pose_a, self.pose_b, strict=True)
+        ]
+        self.pose_ref = [
+            ib if rb else ia
+            for ia, ib, rb in zip(self.pose_a, self.pose_b, self.ref_b, strict=True)
+        ]
         self.images = GrayFrames(drive.frames, 4, "dense surface")
-        # tiles each pair may touch: frame a's footprint, widened by the relief's reach
+        # tiles each pair may touch: its reference frame's footprint, widened by the relief's
+        # reach
         wanted = set(tiles)
         fg = lat.full_grid
         tp = lat.tile_px
         pad = 0.1 / lat.gsd_m
         self.pair_tiles: list[set[tuple[int, int]]] = []
         self.pair_box: list[tuple[int, int, int, int] | None] = []
-        for i in self.pose_a:
+        for i in self.pose_ref:
             fp = fp_grid[i]
             if len(fp) < 3:
                 self.pair_tiles.append(set())
@@ -186,21 +199,18 @@ class DenseSurface:
             dt: float | None = float(ts[self.pose_b[k]] - ts[self.pose_a[k]])
             if "rs_iterations" not in p.config_name:
                 dt = None
-            dh = dense_height(
-                a,
-                b,
-                self.cam,
-                p.R_b_from_a,
-                p.t_b_from_a_m,
-                p.plane,
-                p.H,
-                self.cfg.dense,
-                frame_dt_s=dt,
-            )
+            if self.ref_b[k]:  # measured on image b (never with a rolling shutter)
+                R_ab, t_ab, plane_b = reversed_pair(p)
+                dh = dense_height(b, a, self.cam, R_ab, t_ab, plane_b, None, self.cfg.dense)
+            else:
+                dh = dense_height(
+                    a, b, self.cam, p.R_b_from_a, p.t_b_from_a_m, p.plane, p.H, self.cfg.dense,
+                    frame_dt_s=dt,
+                )  # fmt: skip
         except Exception as e:  # a pair that cannot be matched leaves its cells to the others
             log.warning("dense surface: pair %s -> %s not matched (%s)", p.frame_a, p.frame_b, e)
             return None
-        W = self.traj.world_from_cam[self.pose_a[k]]
+        W = self.traj.world_from_cam[self.pose_ref[k]]
         R, C = W[:3, :3], W[:3, 3]
         # about 20,000 of the valid pixels level the pair
         vv, uu = np.nonzero(dh.valid)

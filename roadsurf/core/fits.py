@@ -93,6 +93,21 @@ def plane_signed_distance(points_m: np.ndarray, plane: np.ndarray) -> np.ndarray
     return (p0 * P[:, 0] + p1 * P[:, 1] - P[:, 2] + p2) / np.sqrt(p0 * p0 + p1 * p1 + 1.0)
 
 
+def plane_b_from_plane_a(
+    plane_a: np.ndarray, R_b_from_a: np.ndarray, t_b_from_a_m: np.ndarray
+) -> np.ndarray:
+    """The plane z = p0 x + p1 y + p2 (3,) of camera a's frame as the same plane in camera b's
+    (X_b = R X_a + t, m): (3,) p' with the same sign of ``plane_signed_distance`` on either
+    side. Raises ValueError when camera b sees the plane edge-on (its z axis in the plane)."""
+    p = check_shape("plane_a", np.asarray(plane_a, float), (3,))
+    R = check_shape("R_b_from_a", np.asarray(R_b_from_a, float), (3, 3))
+    t = check_shape("t_b_from_a_m", np.asarray(t_b_from_a_m, float), (3,))
+    m = R @ np.array([-p[0], -p[1], 1.0])  # the normal (-p0, -p1, 1) in camera b
+    if m[2] <= 1e-9 * np.linalg.norm(m):
+        raise ValueError("camera b sees the plane edge-on or from behind: no z = f(x, y) form")
+    return np.array([-m[0] / m[2], -m[1] / m[2], (p[2] + m @ t) / m[2]])
+
+
 def camera_plane_distance(p: np.ndarray) -> float:
     """d_c = |p2| / sqrt(p0² + p1² + 1) (eq. 3.33): the camera's distance to the plane, when
     the plane is in camera coordinates."""

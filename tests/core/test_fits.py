@@ -83,3 +83,24 @@ def test_trimmed_lstsq_drops_outliers_and_refuses_too_few_rows() -> None:
     assert not use[:6].any() and use[6:].mean() > 0.95
     assert sig == pytest.approx(0.01, rel=0.2) and res.shape == y.shape
     assert trimmed_lstsq(A, y, min_used=199, sigma_floor=1e-6) is None  # 6 rows go
+
+
+def test_plane_in_camera_b_holds_the_same_points_and_side() -> None:
+    from scipy.spatial.transform import Rotation
+
+    from roadsurf.core.fits import plane_b_from_plane_a, plane_signed_distance
+
+    rng = np.random.default_rng(4)
+    R = Rotation.from_rotvec([0.05, -0.1, 0.2]).as_matrix()
+    t = np.array([0.1, -0.4, 0.05])
+    plane_a = np.array([0.1, -0.7, 1.3])
+    P_a = rng.uniform(-1, 1, (20, 3))
+    P_a[:, 2] += 1.5
+    pb = plane_b_from_plane_a(plane_a, R, t)
+    P_b = P_a @ R.T + t
+    # signed distances (m) are the same in both frames, on the plane and off it
+    assert np.allclose(plane_signed_distance(P_b, pb), plane_signed_distance(P_a, plane_a))
+    # camera b looking along the plane has no z = f(x, y) form
+    edge = Rotation.from_euler("x", 90, degrees=True).as_matrix()
+    with pytest.raises(ValueError, match="edge-on"):
+        plane_b_from_plane_a(np.array([0.0, 0.0, 1.0]), edge, np.zeros(3))
