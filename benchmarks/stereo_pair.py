@@ -68,6 +68,7 @@ def main(argv: list[str] | None = None) -> int:
         print(
             f"{name:24s} found {row['found']!s:5s} depth err "
             f"{_mm(row.get('depth_error_m'))} pothole RMS {_mm(row.get('pothole_rms_m'))} "
+            f"(to the surface {_mm(row.get('pothole_surface_rms_m'))}) "
             f"flat MAE {_mm(row.get('flat_mae_m'))} ({wall:.1f} s)",
             flush=True,
         )

@@ -7,7 +7,13 @@ offset absorbs what the tie leaves (the road level under camera a). Then, over t
 run measured (``surface_nobs`` > 0):
 
 - ``pothole_rms_m`` / ``pothole_mae_m``: cells whose true residual is deeper than
-  ``POTHOLE_M`` (issue 29: RMS to the true surface ≤ 2.2 mm, Fan et al.'s stereo figure);
+  ``POTHOLE_M``, height differences (vertical);
+- ``pothole_surface_rms_m``: the same cells' distance to the true surface (issue 29: "RMS
+  distance to the true surface ≤ 2.2 mm", Fan et al.'s figure, a cloud-to-surface distance):
+  each vertical difference times the cosine of the true surface's slope there (the distance to
+  its local tangent plane, first order; the slope from the truth raster's central differences
+  after a 1-cell Gaussian). On a wall of slope m a point off by e along the camera's ray is
+  off vertically by about e (1 + m cot θ): the vertical figure triples there;
 - ``flat_mae_m``: the other cells;
 - ``depth_error_m``: the deepest reported pothole's ``max_depth_m`` minus the truth's deepest
   point among the measured cells (target within 3 mm); ``depth_error_median3_m`` against the
@@ -72,6 +78,22 @@ def _sampler(t: np.ndarray, grid: GridSpec):
     return sample
 
 
+def _cos_slope(t: np.ndarray, gsd_m: float) -> np.ndarray:
+    """(H, W) cosine of the surface slope of the height raster ``t`` (m, cells ``gsd_m``):
+    1 / sqrt(1 + |grad t|²), the gradient by central differences after a Gaussian of one cell
+    (the raster's own quantisation is not a slope); NaN where ``t`` or a neighbour is."""
+    valid = np.isfinite(t)
+    f = np.where(valid, t, 0.0)
+    w = ndimage.gaussian_filter(valid.astype(float), 1.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        sm = ndimage.gaussian_filter(f, 1.0) / w
+    sm[~valid] = np.nan
+    gy, gx = np.gradient(sm, gsd_m)
+    c = 1.0 / np.sqrt(1.0 + gx * gx + gy * gy)
+    c[~valid] = np.nan
+    return c
+
+
 def _deepest_pothole_m(run_dir: Path) -> float | None:
     path = run_dir / rf.DEFECTS_CSV
     if not path.is_file():
@@ -132,6 +154,9 @@ def score_pair(run_dir: str | Path, drive_dir: str | Path) -> dict[str, Any]:
     t3 = _sampler(ndimage.median_filter(truth, size=3), tgrid)(e0 + dx, n0 + dy)
     true_depth_3 = float(-np.nanmin(t3[ok])) if ok.any() else float("nan")
     share = _measured_share(truth, tgrid, e0 + dx, n0 + dy)
+    cos_t = _sampler(_cos_slope(truth, tgrid.gsd_m), tgrid)(e0 + dx, n0 + dy)[ok]
+    dn = d * cos_t
+    pit_n = pit & np.isfinite(dn)
     return {
         "found": ours_depth is not None,
         "pothole_measured_share": share,
@@ -140,6 +165,7 @@ def score_pair(run_dir: str | Path, drive_dir: str | Path) -> dict[str, Any]:
         "pothole_cells": int(pit.sum()),
         "pothole_rms_m": float(np.sqrt(np.mean(d[pit] ** 2))) if pit.any() else None,
         "pothole_mae_m": float(np.mean(np.abs(d[pit]))) if pit.any() else None,
+        "pothole_surface_rms_m": float(np.sqrt(np.mean(dn[pit_n] ** 2))) if pit_n.any() else None,
         "flat_mae_m": float(np.mean(np.abs(d[~pit]))) if (~pit).any() else None,
         "true_max_depth_m": true_depth,
         "true_max_depth_median3_m": true_depth_3,

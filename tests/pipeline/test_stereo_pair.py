@@ -34,6 +34,8 @@ def test_a_tilted_photo_pair_without_gps_measures_its_pothole(pair) -> None:
     assert s["found"]
     assert abs(s["depth_error_m"]) <= 0.003
     assert s["pothole_rms_m"] <= 0.0022
+    # the distance to the surface is at most the vertical difference, and less on the walls
+    assert s["pothole_surface_rms_m"] < s["pothole_rms_m"]
     assert s["flat_mae_m"] <= 0.0015
 
 
