@@ -115,7 +115,9 @@ class MappingConfig:
     # the GPS - camera time offset (GPS latency) is searched within ± this (s; 0 = not estimated)
     bundle_max_time_offset_s: float = 0.5
     bundle_max_two_view: int = 50  # two-view tracks kept per frame (count; 3+-view: all)
-    bundle_track_tol_m: float = 0.02  # a track whose pairs disagree by more is dropped (m)
+    # a track whose consecutive pairs disagree by more, after their smooth (affine on the
+    # road) disagreement is removed, is dropped (m)
+    bundle_track_tol_m: float = 0.02
     bundle_max_nfev: int = 20  # least-squares evaluations per window (count)
     # refine the focal length (one scale on fx and fy for the drive; real calibrations are off by
     # a fraction of a percent to a few percent): every window estimates it with a prior of
