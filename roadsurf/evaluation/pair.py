@@ -10,10 +10,11 @@ run measured (``surface_nobs`` > 0):
   ``POTHOLE_M``, height differences (vertical);
 - ``pothole_surface_rms_m``: the same cells' distance to the true surface (issue 29: "RMS
   distance to the true surface ≤ 2.2 mm", Fan et al.'s figure, a cloud-to-surface distance):
-  each vertical difference times the cosine of the true surface's slope there (the distance to
-  its local tangent plane, first order; the slope from the truth raster's central differences
-  after a 1-cell Gaussian). On a wall of slope m a point off by e along the camera's ray is
-  off vertically by about e (1 + m cot θ): the vertical figure triples there;
+  from each cell's point (its centre at the truth's height plus its difference) to the nearest
+  point of the bilinear truth surface, searched on a 0.5 mm lattice within the vertical
+  difference (the point straight below or above is that far; at most ``SURFACE_SEARCH_M``). On
+  a wall of slope m a point off by e along the camera's ray is off vertically by about
+  e (1 + m cot θ): the vertical figure triples there;
 - ``flat_mae_m``: the other cells;
 - ``depth_error_m``: the deepest reported pothole's ``max_depth_m`` minus the truth's deepest
   point among the measured cells (target within 3 mm); ``depth_error_median3_m`` against the
@@ -41,6 +42,8 @@ from roadsurf.io.formats import GridSpec, read_geotiff
 POTHOLE_M = 0.005  # truth residual below -5 mm counts as inside the pothole (m)
 SHIFT_M = 0.03  # horizontal registration search half-width (m): the tie's lever arm
 SHIFT_STEP_M = 0.002  # search step (m); refined to 0.5 mm around the best
+SURFACE_SEARCH_M = 0.015  # nearest-surface search radius (m): beyond, the vertical difference
+SURFACE_STEP_M = 0.0005  # nearest-surface search lattice (m)
 
 
 def _read_truth(truth_tif: Path) -> tuple[np.ndarray, GridSpec]:
@@ -78,20 +81,27 @@ def _sampler(t: np.ndarray, grid: GridSpec):
     return sample
 
 
-def _cos_slope(t: np.ndarray, gsd_m: float) -> np.ndarray:
-    """(H, W) cosine of the surface slope of the height raster ``t`` (m, cells ``gsd_m``):
-    1 / sqrt(1 + |grad t|²), the gradient by central differences after a Gaussian of one cell
-    (the raster's own quantisation is not a slope); NaN where ``t`` or a neighbour is."""
-    valid = np.isfinite(t)
-    f = np.where(valid, t, 0.0)
-    w = ndimage.gaussian_filter(valid.astype(float), 1.0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        sm = ndimage.gaussian_filter(f, 1.0) / w
-    sm[~valid] = np.nan
-    gy, gx = np.gradient(sm, gsd_m)
-    c = 1.0 / np.sqrt(1.0 + gx * gx + gy * gy)
-    c[~valid] = np.nan
-    return c
+def _surface_distance(e: np.ndarray, n: np.ndarray, z: np.ndarray, sample) -> np.ndarray:
+    """(N,) distance (m) from points (e, n, z) to the surface ``sample(e, n)`` (bilinear): the
+    vertical difference, or less where a surface point within it horizontally (a 0.5 mm
+    lattice up to ``SURFACE_SEARCH_M``) is nearer. NaN where the surface is not under the
+    point."""
+    best = np.abs(z - sample(e, n))
+    under = np.isfinite(best)
+    r = min(float(np.nanmax(best)) if len(best) and np.isfinite(best).any() else 0.0,
+            SURFACE_SEARCH_M)  # fmt: skip
+    k = int(np.ceil(r / SURFACE_STEP_M))
+    offsets = [(i, j) for i in range(-k, k + 1) for j in range(-k, k + 1) if 0 < i * i + j * j]
+    for i, j in sorted(offsets, key=lambda o: o[0] ** 2 + o[1] ** 2):
+        h2 = (i * i + j * j) * SURFACE_STEP_M**2
+        sel = np.flatnonzero(best * best > h2)  # only a point further than h can come nearer
+        if not len(sel):
+            break
+        de, dn = i * SURFACE_STEP_M, j * SURFACE_STEP_M
+        cand = np.sqrt(h2 + (z[sel] - sample(e[sel] + de, n[sel] + dn)) ** 2)
+        best[sel] = np.fmin(best[sel], cand)
+    best[~under] = np.nan
+    return best
 
 
 def _deepest_pothole_m(run_dir: Path) -> float | None:
@@ -154,9 +164,8 @@ def score_pair(run_dir: str | Path, drive_dir: str | Path) -> dict[str, Any]:
     t3 = _sampler(ndimage.median_filter(truth, size=3), tgrid)(e0 + dx, n0 + dy)
     true_depth_3 = float(-np.nanmin(t3[ok])) if ok.any() else float("nan")
     share = _measured_share(truth, tgrid, e0 + dx, n0 + dy)
-    cos_t = _sampler(_cos_slope(truth, tgrid.gsd_m), tgrid)(e0 + dx, n0 + dy)[ok]
-    dn = d * cos_t
-    pit_n = pit & np.isfinite(dn)
+    ep, np_ = (e0 + dx)[ok][pit], (n0 + dy)[ok][pit]
+    dn = _surface_distance(ep, np_, t[ok][pit] + d[pit], sample)
     return {
         "found": ours_depth is not None,
         "pothole_measured_share": share,
@@ -165,7 +174,9 @@ def score_pair(run_dir: str | Path, drive_dir: str | Path) -> dict[str, Any]:
         "pothole_cells": int(pit.sum()),
         "pothole_rms_m": float(np.sqrt(np.mean(d[pit] ** 2))) if pit.any() else None,
         "pothole_mae_m": float(np.mean(np.abs(d[pit]))) if pit.any() else None,
-        "pothole_surface_rms_m": float(np.sqrt(np.mean(dn[pit_n] ** 2))) if pit_n.any() else None,
+        "pothole_surface_rms_m": (
+            float(np.sqrt(np.nanmean(dn**2))) if np.isfinite(dn).any() else None
+        ),
         "flat_mae_m": float(np.mean(np.abs(d[~pit]))) if (~pit).any() else None,
         "true_max_depth_m": true_depth,
         "true_max_depth_median3_m": true_depth_3,
