@@ -62,7 +62,8 @@ log = logging.getLogger(__name__)
 # the algorithm's version, in the poses stage's fingerprint: a run resumed after a change
 # recomputes its poses (2: relief weight per frame, the pairs' motions, heading placement; 4: a
 # rolling shutter's rows each from their own pose, the pairs' translations follow the focal)
-BUNDLE_VERSION = 6  # 5: RS keeps the pose graph's mean tilt; 6: tracks.link_residuals_m
+# 5: RS keeps the pose graph's mean tilt; 6: tracks.link_residuals_m; 7: its gross bound
+BUNDLE_VERSION = 7
 N_ANCHOR = 2  # frames before a window held at their refined poses
 MIN_OBS = 8  # a frame seeing fewer 3+-view track points keeps its pose graph pose
 MIN_OFFSET_S = 0.005  # a smaller GPS time offset is not applied (s)
@@ -91,7 +92,9 @@ def refine_poses(
     tips the tilt prior's axis."""
     t0 = time.perf_counter()
     n = len(t)
-    tracks = build_tracks(pairs, pos_of, world, tol_m=cfg.bundle_track_tol_m)
+    tracks = build_tracks(
+        pairs, pos_of, world, tol_m=cfg.bundle_track_tol_m, sigma_trans_m=cfg.visual_sigma_trans_m
+    )
     cam = drive.camera
     tracks = thin_tracks(tracks, cfg.bundle_max_two_view, (cam.width, cam.height))
     if cam.readout_s > 0:  # a rolling shutter: each observation at its raw row's time
