@@ -48,22 +48,35 @@ from roadsurf.mapping.bundle_gps import (
 )
 from roadsurf.mapping.bundle_problem import WindowData, WindowProblem, true_px_from_observed_px
 from roadsurf.mapping.bundle_reduced import ReducedProblem, solve_reduced
+from roadsurf.mapping.bundle_terms import unit_normal
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.grade import up_axes_in_cam
 from roadsurf.mapping.pose_gps import GpsFixes
-from roadsurf.mapping.tracks import Tracks, build_tracks, thin_tracks, triangulate_w
+from roadsurf.mapping.tracks import (
+    Tracks,
+    build_tracks,
+    initial_planes,
+    thin_tracks,
+    triangulate_w,
+)
 from roadsurf.reconstruction.rolling_shutter import row_times_s
 
 if TYPE_CHECKING:
     from roadsurf.reconstruction.types import PairResult
+
+try:  # (scikit-learn's dependency)
+    from threadpoolctl import threadpool_limits
+except ImportError:  # pragma: no cover - BLAS keeps its own thread count
+    threadpool_limits = None
 
 log = logging.getLogger(__name__)
 
 # the algorithm's version, in the poses stage's fingerprint: a run resumed after a change
 # recomputes its poses (2: relief weight per frame, the pairs' motions, heading placement; 4: a
 # rolling shutter's rows each from their own pose, the pairs' translations follow the focal)
-# 5: RS keeps the pose graph's mean tilt; 6: tracks.link_residuals_m; 7: its gross bound
-BUNDLE_VERSION = 7
+# 5: RS keeps the pose graph's mean tilt; 6: tracks.link_residuals_m; 7: its gross bound; 8: the
+# points' steps on dense blocks, one BLAS thread (poses changed at rounding level)
+BUNDLE_VERSION = 8
 N_ANCHOR = 2  # frames before a window held at their refined poses
 MIN_OBS = 8  # a frame seeing fewer 3+-view track points keeps its pose graph pose
 MIN_OFFSET_S = 0.005  # a smaller GPS time offset is not applied (s)
@@ -89,7 +102,27 @@ def refine_poses(
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """(N, 4, 4) refined world_from_cam and a report (figures for poses_report.json).
     ``grade_rad`` (N,): the road's grade at each frame (``mapping.grade``; None: level), which
-    tips the tilt prior's axis."""
+    tips the tilt prior's axis. On one BLAS thread: a window's dense algebra is small (~260
+    unknowns); threads cost more than they gave (sample drive, 2 cores: 6.1 -> 3.3 CPU s)."""
+    args = (cfg, drive, t, world, pairs, pos_of, gps, gps_used, R_vehicle_from_cam, grade_rad)
+    if threadpool_limits is None:
+        return _refine_poses(*args)
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _refine_poses(*args)
+
+
+def _refine_poses(
+    cfg: MappingConfig,
+    drive: Drive,
+    t: np.ndarray,
+    world: np.ndarray,
+    pairs: list[PairResult],
+    pos_of: dict[int, int],
+    gps: GpsFixes | None,
+    gps_used: np.ndarray | None,
+    R_vehicle_from_cam: np.ndarray,
+    grade_rad: np.ndarray | None,
+) -> tuple[np.ndarray, dict[str, Any]]:
     t0 = time.perf_counter()
     n = len(t)
     tracks = build_tracks(
@@ -136,7 +169,7 @@ def refine_poses(
         (pos_of[p.index_a], pos_of[p.index_b]): (
             np.asarray(p.R_b_from_a, float),
             np.asarray(p.t_b_from_a_m, float),
-            _unit_normal(p.plane, d_down),
+            unit_normal(p.plane, d_down),
         )
         for p in pairs
         if p.index_a in pos_of and p.index_b in pos_of
@@ -334,7 +367,7 @@ def _solve_window(
         Co = Co + vel[obs_f] * obs_time[:, None]
     X0, tri_ok = triangulate_w(obs_p, px_tri, Ro, Co, Kf, len(tr_ids))
     X0[~tri_ok] = pts[tr_ids][~tri_ok]
-    planes0 = _initial_planes(R0, C0, X0, obs_f, obs_p, plane_nominal)
+    planes0 = initial_planes(R0, C0, X0, obs_f, obs_p, plane_nominal)
     # consecutive frames tied by too few tracks: the current relative motion as a prior
     shared = np.zeros(max(F - 1, 0), int)
     for i in range(F - 1):
@@ -452,39 +485,6 @@ def _solve_window(
         "rms0": rms0,
         "rms1": float(np.sqrt(np.mean(r[: 2 * m] ** 2)) * cfg.bundle_pixel_sigma_px),
     }
-
-
-def _unit_normal(plane: np.ndarray, fallback: np.ndarray) -> np.ndarray:
-    """(3,) unit normal of a pair's road plane z = p0 x + p1 y + p2 in camera a (``fallback``
-    where the plane is not finite)."""
-    n = np.array([-plane[0], -plane[1], 1.0]) if np.all(np.isfinite(plane)) else fallback
-    return n / np.linalg.norm(n)
-
-
-def _initial_planes(
-    R: np.ndarray,
-    C: np.ndarray,
-    X: np.ndarray,
-    obs_f: np.ndarray,
-    obs_p: np.ndarray,
-    nominal: np.ndarray,
-) -> np.ndarray:
-    """Each frame's road plane Z = p0 X + p1 Y + p2 fitted to its points in its camera (one
-    trimmed refit: potholes are not road); the mount's nominal plane when too few points."""
-    out = np.tile(nominal, (len(R), 1))
-    for f in range(len(R)):
-        sel = obs_p[obs_f == f]
-        if len(sel) < 10:
-            continue
-        Xc = (X[sel] - C[f]) @ R[f]
-        A = np.column_stack([Xc[:, 0], Xc[:, 1], np.ones(len(Xc))])
-        p, *_ = np.linalg.lstsq(A, Xc[:, 2], rcond=None)
-        d = np.abs(A @ p - Xc[:, 2])
-        keep = d <= max(3.0 * np.median(d), 1e-4)
-        if keep.sum() >= 10:
-            p, *_ = np.linalg.lstsq(A[keep], Xc[keep, 2], rcond=None)
-        out[f] = p
-    return out
 
 
 def with_motions_of(

@@ -19,112 +19,26 @@ re-linearises every step)."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
 from scipy.spatial.transform import Rotation
 
-from roadsurf.core.rolling import row_offset
+from roadsurf.mapping.bundle_terms import (
+    ObsTerms,
+    WindowData,
+    observation_terms,
+    pair_translation,
+    true_px_from_observed_px,
+)
+
+__all__ = ["WindowData", "WindowProblem", "pair_translation", "true_px_from_observed_px"]
 
 # σ of the change of the window's mean camera tilt from the pose graph's with a rolling shutter
 # (deg): a roll of every camera about a straight track, the points turning with them, is a gauge
 # (GPS and the images do not see it), so the bundle keeps the pose graph's; 0.1° moves the map
 # 2 mm sideways at 1.1 m. The per-frame tilt prior (σ_tilt) keeps each frame's own tilt free
 TILT_MEAN_SIGMA_DEG = 0.1
-
-
-@dataclass
-class WindowData:
-    """Everything one window's problem needs (frames by their position inside the window)."""
-
-    K: np.ndarray  # (3, 3) intrinsics of the undistorted ideal pixels
-    t: np.ndarray  # (F,) frame times (s)
-    R0: np.ndarray  # (F, 3, 3) initial world_from_cam rotations
-    C0: np.ndarray  # (F, 3) initial camera centres (m)
-    free: np.ndarray  # (F,) bool: pose is an unknown (else held)
-    C_prior: np.ndarray  # (F, 3) the pose graph's centres (m)
-    planes0: np.ndarray  # (F, 3) initial road planes in camera coordinates
-    n_up: np.ndarray  # (F, 3) camera-frame axis held vertical by the tilt prior
-    obs_f: np.ndarray  # (M,) window frame of each observation
-    obs_p: np.ndarray  # (M,) point of each observation
-    obs_px: np.ndarray  # (M, 2) ideal pixels
-    X0: np.ndarray  # (P, 3) initial points (m)
-    gps_t: np.ndarray  # (G,) fix times (s)
-    gps_enu: np.ndarray  # (G, 3)
-    gps_sigma: np.ndarray  # (G,) horizontal σ (m)
-    gps_has_alt: np.ndarray  # (G,) bool
-    gap_i: np.ndarray  # (B,) frames i whose motion to i+1 only the prior holds
-    obd_i: np.ndarray  # (O,) frames i with a speed for (i, i+1)
-    obd_v: np.ndarray  # (O,) m/s
-    height_m: float
-    sigma_px: float
-    sigma_relief_m: float
-    sigma_height_m: float
-    sigma_prior_m: float
-    sigma_tilt_rad: float
-    sigma_gap_m: float
-    sigma_gap_rad: float
-    sigma_obd_mps: float
-    vertical_factor: float
-    tau0: float  # prior mean of τ (s)
-    sigma_tau_s: float  # 0: τ held at tau0
-    on_road: np.ndarray | None = None  # (P,) bool: the point-on-plane term applies; None = all
-    # the pairs' relative motions (the pose graph's factors): window frames a (K,) and a + 1,
-    # R_b_from_a (K, 3, 3) with σ per axis (rad), t_b_from_a (K, 3) with σ per axis (K,) (m)
-    rel_i: np.ndarray | None = None
-    rel_R: np.ndarray | None = None
-    sigma_rel_rad: float = 0.0
-    rel_t: np.ndarray | None = None  # None: rotations only
-    sigma_rel_m: np.ndarray | None = None
-    # (K, 3) unit road normal of each pair in its camera a: with a focal scale the pairs' metric
-    # translations (solved with camera.yaml's focal) are rescaled (``pair_translation``)
-    rel_n: np.ndarray | None = None
-    # focal length: K's fx, fy scaled by exp(ψ); ψ starts at focal0 with a prior σ (0: held)
-    focal0: float = 0.0
-    sigma_focal: float = 0.0
-    # radial distortion: the observed (camera.yaml-undistorted) normalised point is the true one
-    # times (1 + κ r²); κ (= true k1 - camera.yaml's k1) starts at k1_0 with a prior σ (0: held)
-    k1_0: float = 0.0
-    sigma_k1: float = 0.0
-    # rolling shutter: each observation's exposure time after its frame's (M,) s and each
-    # frame's linear (F, 3) m/s and angular (F, 3) rad/s velocity in the world (held): an
-    # observation is projected from its row's pose; None = a global shutter
-    obs_time_s: np.ndarray | None = None
-    vel: np.ndarray | None = None
-    omega: np.ndarray | None = None
-
-
-def true_px_from_observed_px(px: np.ndarray, K: np.ndarray, kappa: float) -> np.ndarray:
-    """(M, 2) ideal pixels of the true camera from (M, 2) pixels undistorted with camera.yaml's
-    k1, given the k1 correction κ (−) and K (3, 3): x_obs = x (1 + κ r²) solved for the
-    normalised x by fixed-point iteration (|κ r²| ≪ 1)."""
-    if kappa == 0.0 or len(px) == 0:
-        return px
-    f = np.array([K[0, 0], K[1, 1]])
-    c = np.array([K[0, 2], K[1, 2]])
-    xo = (px - c) / f
-    x = xo.copy()
-    for _ in range(8):
-        x = xo / (1.0 + kappa * np.sum(x**2, axis=1, keepdims=True))
-    return x * f + c
-
-
-def pair_translation(t: np.ndarray, n: np.ndarray, psi: float) -> tuple[np.ndarray, np.ndarray]:
-    """(K, 3) the pairs' translations t (m, solved with camera.yaml's focal, scaled by the
-    camera height) under the focal scale exp(ψ), and their derivative d/dψ (K, 3). A focal
-    error maps each pair's scene by A = diag(e^ψ, e^ψ, 1) in its camera (the rays' x/z, y/z
-    scale by e^ψ: exact for the points, first order in the inter-frame rotation for the motion)
-    and the height scaling then multiplies it by 1 / |A n̂|, n̂ the true road normal; with n the
-    pair's own unit normal (K, 3) the true translation is A⁻¹ t |A n|."""
-    e = np.exp(psi)
-    Ai = np.array([1.0 / e, 1.0 / e, 1.0])
-    nxy = n[:, 0] ** 2 + n[:, 1] ** 2
-    L = np.sqrt(e * e * nxy + n[:, 2] ** 2)  # |A n|
-    g = t * Ai * L[:, None]
-    dL = e * e * nxy / L
-    dg = t * np.array([-1.0 / e, -1.0 / e, 0.0]) * L[:, None] + t * Ai * dL[:, None]
-    return g, dg
 
 
 def _skew_cross(a: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -199,7 +113,22 @@ class WindowProblem:
         return r, J
 
     # ---------------------------------------------------------------- residuals + Jacobian
-    def _build(self, x: np.ndarray) -> tuple[np.ndarray, sp.csr_matrix]:
+    def _obs_terms(
+        self, x: np.ndarray, R: np.ndarray, C: np.ndarray, planes: np.ndarray, pts: np.ndarray
+    ) -> ObsTerms:
+        fs = float(np.exp(self.focal_log_scale(x)))
+        return observation_terms(
+            self.d, self.relief_w, R, C, planes, pts, fs, self.k1_correction(x)
+        )
+
+    def point_terms(self, x: np.ndarray) -> ObsTerms:
+        """The observations' residuals and point derivatives alone (the points' own steps)."""
+        R, C, planes, pts, _ = self.unpack(x)
+        return self._obs_terms(x, R, C, planes, pts)
+
+    def _build(self, x: np.ndarray, points: bool = True) -> tuple[np.ndarray, sp.csr_matrix]:
+        """Residuals and the sparse Jacobian; points=False: without the point columns (their
+        entries are ``point_terms``' dense blocks), the matrix (rows x point_col0)."""
         d = self.d
         R, C, planes, pts, tau = self.unpack(x)
         res: list[np.ndarray] = []
@@ -223,61 +152,27 @@ class WindowProblem:
         f, p = d.obs_f, d.obs_p
         m = len(f)
         if m:
-            v = pts[p] - C[f]
-            a_rs = None
-            if d.obs_time_s is not None and d.vel is not None and d.omega is not None:
-                v, a_rs = row_offset(v, d.obs_time_s, d.vel[f], d.omega[f])
-            Xc = np.einsum("mji,mj->mi", R[f], v)  # R^T v
-            z = np.maximum(Xc[:, 2], 1e-3)
-            fs = np.exp(self.focal_log_scale(x))
-            fx, fy, cx, cy = d.K[0, 0] * fs, d.K[1, 1] * fs, d.K[0, 2], d.K[1, 2]
-            kap = self.k1_correction(x)
-            xn, yn = Xc[:, 0] / z, Xc[:, 1] / z
-            r2 = xn**2 + yn**2
-            a = 1.0 + kap * r2  # the k1 correction's radial factor (1 when κ = 0)
-            u = fx * xn * a + cx
-            w = fy * yn * a + cy
+            ot = self._obs_terms(x, R, C, planes, pts)
+            res += list(ot.res)
             s = d.sigma_px
-            res += [(u - d.obs_px[:, 0]) / s, (w - d.obs_px[:, 1]) / s]
-            zero = np.zeros(m)
-            # d(xn)/dXc = [1/z, 0, -xn/z], d(yn)/dXc = [0, 1/z, -yn/z]
-            dxn = np.column_stack([1.0 / z, zero, -xn / z])
-            dyn = np.column_stack([zero, 1.0 / z, -yn / z])
-            cxy = 2.0 * kap * xn * yn
-            Ju = fx * ((a + 2.0 * kap * xn**2)[:, None] * dxn + cxy[:, None] * dyn) / s
-            Jv = fy * (cxy[:, None] * dxn + (a + 2.0 * kap * yn**2)[:, None] * dyn) / s
-            pl = planes[f]
-            # relief as a share of the camera's height above its plane, times h: a metric
-            # distance would let the solver shrink the scene to shrink every relief residual
-            # (a scale bias only the height prior held back)
-            p2 = np.where(np.abs(pl[:, 2]) > 1e-6, pl[:, 2], 1e-6)
-            N = pl[:, 0] * Xc[:, 0] + pl[:, 1] * Xc[:, 1] + pl[:, 2] - Xc[:, 2]
-            sr = d.sigma_relief_m
-            # a defect's point is not held to the road plane (relief_w 0)
-            q = d.height_m / (p2 * sr) * self.relief_w
-            res.append(N * q)
-            Jp = np.column_stack([pl[:, 0], pl[:, 1], -np.ones(m)]) * q[:, None]
             pose0 = self.pose_col[f]
             pcol = self.point_col0 + 3 * p
-            for k, Jx in enumerate((Ju, Jv, Jp)):
+            for k in range(3):
                 row = r0 + k * m + np.arange(m)
-                A = np.einsum("mi,mji->mj", Jx, R[f])  # d/d(R^T v) rotated to the world
-                # v = (I - [a]x)(X - C - vel τ): d/dX = A (I - [a]x) = A + a x A
-                Ax = A if a_rs is None else A + np.cross(a_rs, A)
-                put_block(row, pcol, Ax)
-                put_block(row, np.where(pose0 >= 0, pose0 + 3, -1), -Ax)
-                put_block(row, pose0, _skew_cross(A, v))
+                if points:
+                    put_block(row, pcol, ot.Ax[k])
+                put_block(row, np.where(pose0 >= 0, pose0 + 3, -1), -ot.Ax[k])
+                put_block(row, pose0, _skew_cross(ot.A[k], ot.v))
             if self.focal_col >= 0:  # du/dψ = u - cx
                 fc = np.full(m, self.focal_col)
-                put(r0 + np.arange(m), fc, (u - cx) / s)
-                put(r0 + m + np.arange(m), fc, (w - cy) / s)
+                put(r0 + np.arange(m), fc, (ot.u - d.K[0, 2]) / s)
+                put(r0 + m + np.arange(m), fc, (ot.w - d.K[1, 2]) / s)
             if self.k1_col >= 0:  # du/dκ = fx xn r²
                 kc = np.full(m, self.k1_col)
-                put(r0 + np.arange(m), kc, fx * xn * r2 / s)
-                put(r0 + m + np.arange(m), kc, fy * yn * r2 / s)
+                put(r0 + np.arange(m), kc, ot.fx * ot.xn * ot.r2 / s)
+                put(r0 + m + np.arange(m), kc, ot.fy * ot.yn * ot.r2 / s)
             row = r0 + 2 * m + np.arange(m)
-            gpl = np.column_stack([Xc[:, 0] * q, Xc[:, 1] * q, q - N * q / p2])
-            put_block(row, self.plane_col0 + 3 * f, gpl)
+            put_block(row, self.plane_col0 + 3 * f, ot.gpl)
             r0 += 3 * m
 
         # ------------------------------------------------ camera height above its plane
@@ -459,7 +354,8 @@ class WindowProblem:
         if len(r) != r0:
             raise RuntimeError(f"bundle: {len(r)} residuals but {r0} Jacobian rows")
         J = sp.csr_matrix(
-            (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(r0, self.n)
+            (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+            shape=(r0, self.n if points else self.point_col0),
         )
         return r, J
 

@@ -36,6 +36,7 @@ class ReducedProblem:
         self.dX = np.zeros(full.n - full.point_col0)  # latest point offsets (warm start)
         self._key: bytes | None = None
         self._r = np.zeros(0)
+        self._op: ProjectedJacobian | None = None
         self._J: sp.csr_matrix | None = None
 
     def full_x(self, theta: np.ndarray) -> np.ndarray:
@@ -47,70 +48,110 @@ class ReducedProblem:
         return self._r
 
     def jac(self, theta: np.ndarray) -> sp.csr_matrix:
-        self._update(theta)
+        """The reduced Jacobian as an explicit sparse matrix (rows x n)."""
+        op = self.jac_op(theta)
         if self._J is None:
-            raise RuntimeError("bundle: no Jacobian after an update")
+            self._J = op.explicit()
         return self._J
+
+    def jac_op(self, theta: np.ndarray) -> ProjectedJacobian:
+        """The reduced Jacobian kept factored (products only: no fill-in)."""
+        self._update(theta)
+        if self._op is None:
+            raise RuntimeError("bundle: no Jacobian after an update")
+        return self._op
 
     def _update(self, theta: np.ndarray) -> None:
         key = theta.tobytes()
         if key == self._key:
             return
+        full = self.full
         P = len(self.dX) // 3
-        nt = self.n
+        p = full.d.obs_p
         dX = self.dX.copy()
+        # the points' steps need only their own dense (3 x 3) blocks per observation: the
+        # window's sparse Jacobian is built once, at the final points
         for it in range(INNER_STEPS + 1):
-            r, J = self.full._build(np.concatenate([theta, dX]))
-            J = J.tocsc()
-            Jx = J[:, nt:]
-            w = _robust_weights(r, self.loss, self.scale)
-            WJx = Jx.multiply(w[:, None]).tocsc()
-            H = _block_diag3(Jx.T @ WJx, P) + 1e-9 * np.eye(3)
+            ot = full.point_terms(np.concatenate([theta, dX]))
+            w = [_robust_weights(r, self.loss, self.scale) for r in ot.res]
+            # H = Jxᵀ W Jx, block-diagonal per point, and the gradient Jxᵀ W r
+            h = np.zeros((len(p), 3, 3))
+            gm = np.zeros((len(p), 3))
+            for wk, rk, a in zip(w, ot.res, ot.Ax, strict=True):
+                h += wk[:, None, None] * a[:, :, None] * a[:, None, :]
+                gm += (wk * rk)[:, None] * a
+            H = _per_point(h, p, P) + 1e-9 * np.eye(3)
             if it == INNER_STEPS:
                 break
-            g = (WJx.T @ r).reshape(P, 3)
+            g = _per_point(gm, p, P)
             step = np.linalg.solve(H, -g[..., None])[..., 0].ravel()
             if not np.all(np.isfinite(step)):
                 break
             dX += step
         self.dX = dX
-        Jt = J[:, :nt].tocsr()
-        Hinv = _block_diag_csr(np.linalg.inv(H))
-        proj = Jx.tocsr() @ (Hinv @ (WJx.T.tocsr() @ Jt))
-        self._J = (Jt - proj).tocsr()
+        r, Jt = full._build(np.concatenate([theta, dX]), points=False)
+        Hinv = np.linalg.inv(H)
+        ax = np.concatenate(ot.Ax)  # (3M, 3): rows k M + i
+        pk = np.tile(p, 3)
+        wr = np.concatenate(w)[:, None] * np.einsum("mij,mj->mi", Hinv[pk], ax)
+        self._op = ProjectedJacobian(Jt, ax, wr, pk, P)
+        self._J = None
         self._r = r
         self._key = key
 
 
-def _block_diag_csr(B: np.ndarray) -> sp.csr_matrix:
-    """(P, 3, 3) blocks -> (3P, 3P) block-diagonal CSR."""
-    P = len(B)
-    i = np.arange(3 * P)
-    cols = (3 * (i // 3))[:, None] + np.arange(3)[None, :]
-    return sp.csr_matrix(
-        (B.reshape(-1), cols.reshape(-1), 3 * np.arange(3 * P + 1)), (3 * P, 3 * P)
-    )
+class ProjectedJacobian:
+    """The camera-side Jacobian projected off the points, J = Jt - Jx M, kept factored: Jt
+    (rows x n) sparse, Jx (rows x 3P) each observation row's point block (ax, (3M, 3), rows
+    first), M = H⁻¹ Jxᵀ W (3P x rows) from its rows' (W Jx H⁻¹) (wr, (3M, 3)), pk (3M,) each
+    observation row's point. A product costs one of Jt's and per-point sums; the explicit
+    matrix (each row filled over every frame seeing its point) about three times as much."""
+
+    def __init__(
+        self, Jt: sp.csr_matrix, ax: np.ndarray, wr: np.ndarray, pk: np.ndarray, P: int
+    ) -> None:
+        self.Jt, self.ax, self.wr, self.pk, self.P = Jt, ax, wr, pk, P
+        self.shape = Jt.shape
+        self._JtT: sp.csr_matrix | None = None
+
+    def matvec(self, v: np.ndarray) -> np.ndarray:
+        y = self.Jt @ v
+        n3 = len(self.pk)
+        z = _per_point(self.wr * y[:n3, None], self.pk, self.P)  # M (Jt v)
+        y[:n3] -= np.einsum("ri,ri->r", self.ax, z[self.pk])
+        return y
+
+    def rmatvec(self, u: np.ndarray) -> np.ndarray:
+        if self._JtT is None:
+            self._JtT = self.Jt.T.tocsr()
+        n3 = len(self.pk)
+        s = _per_point(self.ax * u[:n3, None], self.pk, self.P)  # Jxᵀ u
+        u2 = u.copy()
+        u2[:n3] -= np.einsum("ri,ri->r", self.wr, s[self.pk])
+        return self._JtT @ u2
+
+    def explicit(self) -> sp.csr_matrix:
+        n3, rows = len(self.pk), self.shape[0]
+        cols = (3 * self.pk)[:, None] + np.arange(3)
+        ptr = np.r_[3 * np.arange(n3 + 1), np.full(rows - n3, 3 * n3)]
+        Jx = sp.csr_matrix((self.ax.ravel(), cols.ravel(), ptr), shape=(rows, 3 * self.P))
+        Mt = sp.csr_matrix((self.wr.ravel(), cols.ravel(), ptr), shape=(rows, 3 * self.P))
+        return (self.Jt - Jx @ (Mt.T.tocsr() @ self.Jt)).tocsr()
 
 
-def _block_diag3(A: sp.spmatrix, P: int) -> np.ndarray:
-    """The (P, 3, 3) diagonal blocks of a (3P, 3P) sparse matrix."""
-    A = A.tocoo()
-    i, j = A.row, A.col
-    on = (i // 3) == (j // 3)
-    out = np.zeros((P, 3, 3))
-    np.add.at(out, (i[on] // 3, i[on] % 3, j[on] % 3), A.data[on])
-    return out
+def _per_point(v: np.ndarray, p: np.ndarray, P: int) -> np.ndarray:
+    """Per-observation (M, ...) values summed over each of the P points (p: (M,) point index)."""
+    flat = v.reshape(len(p), -1)
+    out = np.stack([np.bincount(p, flat[:, j], minlength=P) for j in range(flat.shape[1])], 1)
+    return out.reshape((P,) + v.shape[1:])
 
 
-def _whitened(J: sp.csr_matrix, T: np.ndarray) -> LinearOperator:
+def _whitened(J: ProjectedJacobian, T: np.ndarray) -> LinearOperator:
     """J T as an operator: two products a LSMR step instead of a dense (rows x n) matrix."""
-    Jt = J.T.tocsr()
     return LinearOperator(
         (J.shape[0], T.shape[1]),
-        matvec=lambda v: J @ (T @ v),
-        rmatvec=lambda u: T.T @ (Jt @ u),
-        matmat=lambda V: J @ (T @ V),
-        rmatmat=lambda U: T.T @ (Jt @ U),
+        matvec=lambda v: J.matvec(T @ np.ravel(v)),
+        rmatvec=lambda u: T.T @ J.rmatvec(np.ravel(u)),
         dtype=float,
     )
 
@@ -135,7 +176,7 @@ def solve_reduced(red: ReducedProblem, theta: np.ndarray, cfg: MappingConfig) ->
         return red.fun(theta + T @ y)
 
     def jac(y: np.ndarray) -> LinearOperator:
-        return _whitened(red.jac(theta + T @ y), T)
+        return _whitened(red.jac_op(theta + T @ y), T)
 
     sol = least_squares(
         fun,

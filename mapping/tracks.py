@@ -306,3 +306,29 @@ def triangulate_w(
         H += 1e-9 * np.eye(3)
         X = X - np.linalg.solve(H, g[..., None])[..., 0]
     return X, ok
+
+
+def initial_planes(
+    R: np.ndarray,
+    C: np.ndarray,
+    X: np.ndarray,
+    obs_f: np.ndarray,
+    obs_p: np.ndarray,
+    nominal: np.ndarray,
+) -> np.ndarray:
+    """Each frame's road plane Z = p0 X + p1 Y + p2 fitted to its points in its camera (one
+    trimmed refit: potholes are not road); the mount's nominal plane when too few points."""
+    out = np.tile(nominal, (len(R), 1))
+    for f in range(len(R)):
+        sel = obs_p[obs_f == f]
+        if len(sel) < 10:
+            continue
+        Xc = (X[sel] - C[f]) @ R[f]
+        A = np.column_stack([Xc[:, 0], Xc[:, 1], np.ones(len(Xc))])
+        p, *_ = np.linalg.lstsq(A, Xc[:, 2], rcond=None)
+        d = np.abs(A @ p - Xc[:, 2])
+        keep = d <= max(3.0 * np.median(d), 1e-4)
+        if keep.sum() >= 10:
+            p, *_ = np.linalg.lstsq(A[keep], Xc[keep, 2], rcond=None)
+        out[f] = p
+    return out
