@@ -225,8 +225,8 @@ class MappingConfig:
     dense_reference: Literal["pair_plane", "local_surface"] = "pair_plane"
     # the image of a pair whose pixels the dense heights are measured on: "nearer" = the one
     # whose camera sees the pair's common road from nearer (finer ground sampling; image b of
-    # a camera tilted forward, image a of a nadir one; image a with a rolling shutter),
-    # "a" = always image a (mapping/dense_refimage.py)
+    # a camera tilted forward, image a of a nadir one), "a" = always image a
+    # (mapping/dense_refimage.py)
     dense_match_image: Literal["a", "nearer"] = "nearer"
     # extend the dense surface by at most this (m) inside the part both frames of an ok pair saw,
     # where the relief is road (surface_fill_relief_min_m): the matching windows stop a few

@@ -23,7 +23,7 @@ import numpy as np
 # slanted second pass (dense.slanted) and the ray fixed point run to convergence; 5: the
 # sweep's unscored band along the overlap's edge starts from its swept neighbours; 6: the
 # shifted windows, the step test and no coarse fill of left-right or step refusals
-DENSE_SURFACE_VERSION = 6
+DENSE_SURFACE_VERSION = 7  # 7: a rolling-shutter pair measured on image b
 FIXED_POINT_STEPS = 3  # cell -> pixel projections at the sampled height (nadir: 2 suffice)
 # ... then, on the cells whose last step moved by more than FIXED_POINT_TOL_M, up to this
 # many in all (a cell still jumping by FIXED_POINT_FLIP_M then keeps its FIXED_POINT_STEPS

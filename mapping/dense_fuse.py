@@ -199,9 +199,12 @@ class DenseSurface:
             dt: float | None = float(ts[self.pose_b[k]] - ts[self.pose_a[k]])
             if "rs_iterations" not in p.config_name:
                 dt = None
-            if self.ref_b[k]:  # measured on image b (never with a rolling shutter)
+            if self.ref_b[k]:  # measured on image b: its time first (a rolling shutter)
                 R_ab, t_ab, plane_b = reversed_pair(p)
-                dh = dense_height(b, a, self.cam, R_ab, t_ab, plane_b, None, self.cfg.dense)
+                dh = dense_height(
+                    b, a, self.cam, R_ab, t_ab, plane_b, None, self.cfg.dense,
+                    frame_dt_s=None if dt is None else -dt,
+                )  # fmt: skip
             else:
                 dh = dense_height(
                     a, b, self.cam, p.R_b_from_a, p.t_b_from_a_m, p.plane, p.H, self.cfg.dense,

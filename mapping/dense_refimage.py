@@ -8,8 +8,9 @@ track). "nearer" matches on the image whose camera is nearer to the common groun
 camera is as near from both and keeps image a. Measured on the tilted drives: potholes read
 0.3-1.3 mm less shallow at 45° (docs/mapping.md, *Reference image*).
 
-A rolling shutter's resampling (``dense.rolling``) places rows in time from image a forward,
-so with ``readout_s`` the reference stays image a.
+With a rolling shutter the pair measured on image b has b's timestamp first: its frame time
+difference is negative, and ``dense.rolling`` places each row along the pair's motion from b
+back to a.
 """
 
 from __future__ import annotations
@@ -29,11 +30,9 @@ def reference_is_b(cam: Camera, world_from_cam_a: np.ndarray, world_from_cam_b: 
     """True when camera b (pose (4, 4), m) sees the two frames' common road from nearer than
     camera a by more than ``NEARER_MARGIN``: the centroid of their footprints' intersection on
     the road ``height_m`` below each camera (ENU), distances from the camera centres. False
-    without a common footprint or with a rolling shutter."""
+    without a common footprint."""
     import shapely
 
-    if cam.readout_s > 0:
-        return False
     hulls = []
     for W in (world_from_cam_a, world_from_cam_b):
         fp = cam.footprint_grid_enu(W, float(W[2, 3]) - cam.height_m)

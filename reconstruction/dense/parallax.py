@@ -122,8 +122,9 @@ def dense_height(
     (m); plane: (p0, p1, p2) with z = p0 x + p1 y + p2 in camera a (m). ``H`` (the pair's
     estimated road homography, ideal px) is only compared with the one R, t and the plane give,
     which is the one used (the parallax relation holds for it exactly). With a rolling shutter
-    (``camera.readout_s`` > 0) and ``frame_dt_s`` (b's timestamp minus a's, s) each image is
-    resampled from the rows that saw the road (``dense.rolling``). Pixels that fail on the work
+    (``camera.readout_s`` > 0) and ``frame_dt_s`` (b's timestamp minus a's, s; negative when
+    image a is the later frame) each image is resampled from the rows that saw the road
+    (``dense.rolling``). Pixels that fail on the work
     grid are matched again on coarser grids (``DenseHeightConfig.fallback_levels``,
     ``dense.pyramid``)."""
     cfg = cfg or DenseHeightConfig()
@@ -141,7 +142,7 @@ def dense_height(
     s = cfg.work_scale(camera.width, camera.height)
     ppw = pp.scaled(s) if s != 1.0 else pp
     rs = None
-    if camera.readout_s > 0 and frame_dt_s is not None and frame_dt_s > 0:
+    if camera.readout_s > 0 and frame_dt_s is not None and frame_dt_s != 0:
         rs = (np.asarray(R_b_from_a, float), np.asarray(t_b_from_a_m, float), plane, frame_dt_s)
     timings: dict[str, float] = {}
     with torch.no_grad(), cpu_threads(dev, cfg.cpu_threads), heap_blocks(dev):
