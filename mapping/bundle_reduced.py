@@ -104,39 +104,32 @@ class ProjectedJacobian:
     """The camera-side Jacobian projected off the points, J = Jt - Jx M, kept factored: Jt
     (rows x n) sparse, Jx (rows x 3P) each observation row's point block (ax, (3M, 3), rows
     first), M = H⁻¹ Jxᵀ W (3P x rows) from its rows' (W Jx H⁻¹) (wr, (3M, 3)), pk (3M,) each
-    observation row's point. A product costs one of Jt's and per-point sums; the explicit
-    matrix (each row filled over every frame seeing its point) about three times as much."""
+    observation row's point. A product costs one of Jt's and two of three entries a row; the
+    explicit matrix (each row filled over every frame seeing its point) about three times as
+    much."""
 
     def __init__(
         self, Jt: sp.csr_matrix, ax: np.ndarray, wr: np.ndarray, pk: np.ndarray, P: int
     ) -> None:
-        self.Jt, self.ax, self.wr, self.pk, self.P = Jt, ax, wr, pk, P
-        self.shape = Jt.shape
+        self.Jt, self.shape = Jt, Jt.shape
+        n3, rows = len(pk), Jt.shape[0]
+        cols = ((3 * pk)[:, None] + np.arange(3)).ravel()
+        ptr = np.r_[3 * np.arange(n3 + 1), np.full(rows - n3, 3 * n3)]
+        self.Jx = sp.csr_matrix((ax.ravel(), cols, ptr), shape=(rows, 3 * P))
+        self.Mt = sp.csr_matrix((wr.ravel(), cols, ptr), shape=(rows, 3 * P))  # Mᵀ
         self._JtT: sp.csr_matrix | None = None
 
     def matvec(self, v: np.ndarray) -> np.ndarray:
         y = self.Jt @ v
-        n3 = len(self.pk)
-        z = _per_point(self.wr * y[:n3, None], self.pk, self.P)  # M (Jt v)
-        y[:n3] -= np.einsum("ri,ri->r", self.ax, z[self.pk])
-        return y
+        return y - self.Jx @ (self.Mt.T @ y)
 
     def rmatvec(self, u: np.ndarray) -> np.ndarray:
         if self._JtT is None:
             self._JtT = self.Jt.T.tocsr()
-        n3 = len(self.pk)
-        s = _per_point(self.ax * u[:n3, None], self.pk, self.P)  # Jxᵀ u
-        u2 = u.copy()
-        u2[:n3] -= np.einsum("ri,ri->r", self.wr, s[self.pk])
-        return self._JtT @ u2
+        return self._JtT @ (u - self.Mt @ (self.Jx.T @ u))
 
     def explicit(self) -> sp.csr_matrix:
-        n3, rows = len(self.pk), self.shape[0]
-        cols = (3 * self.pk)[:, None] + np.arange(3)
-        ptr = np.r_[3 * np.arange(n3 + 1), np.full(rows - n3, 3 * n3)]
-        Jx = sp.csr_matrix((self.ax.ravel(), cols.ravel(), ptr), shape=(rows, 3 * self.P))
-        Mt = sp.csr_matrix((self.wr.ravel(), cols.ravel(), ptr), shape=(rows, 3 * self.P))
-        return (self.Jt - Jx @ (Mt.T.tocsr() @ self.Jt)).tocsr()
+        return (self.Jt - self.Jx @ (self.Mt.T.tocsr() @ self.Jt)).tocsr()
 
 
 def _per_point(v: np.ndarray, p: np.ndarray, P: int) -> np.ndarray:

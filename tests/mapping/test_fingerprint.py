@@ -16,7 +16,8 @@ grade's version (the poses key); DenseHeightConfig.slant_sigmas and the dense su
 version 4 (the map key); BUNDLE_VERSION 6 (the poses key, issue 30: track links compared beyond
 the pairs' smooth disagreement); BUNDLE_VERSION 7 (the poses key: that removal bounded by the
 pairs' stated uncertainty); BUNDLE_VERSION 8 (the poses key, issue 29: the bundle's points'
-steps on dense blocks and one BLAS thread, poses changed at rounding level).
+steps on dense blocks and one BLAS thread, poses changed at rounding level); BUNDLE_VERSION 9
+(the reduced Jacobian's point products as sparse matrices; rounding level).
 A change of MappingConfig's fields changes them legitimately. The keys must also
 change with what the outputs depend on (below)."""
 
@@ -32,9 +33,9 @@ from tests.mapping.synth import make_synthetic
 
 def test_poses_fingerprint_is_unchanged() -> None:
     syn = make_synthetic(n=6, seed=3, failed=(2,))
-    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "eafd12e0425149e2"
+    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "624bea935e37970c"
     syn = make_synthetic(n=6, seed=3, with_gps=False)
-    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "586bee06484379f5"
+    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "10fa1b2358eecd0e"
 
 
 def test_globalmap_fingerprint_is_unchanged() -> None:
