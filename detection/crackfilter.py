@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 
 from roadsurf.detection.config import CrackConfig
+from roadsurf.detection.crackbank import bank_max
 
 
 @functools.lru_cache(maxsize=8)
@@ -47,6 +48,7 @@ def line_response(
     cfg: CrackConfig,
     line_m: float | None = None,
     gsd_m: float | None = None,
+    dark: tuple[np.ndarray, int] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Oriented dark-line response: (z, contrast), both (H, W) float32.
 
@@ -59,22 +61,18 @@ def line_response(
     length. ``z`` is the contrast over d's standard deviation in a window twice as large (the
     texture's spread there): busy textures (gravel, worn paint on a marking) need a stronger
     line than smooth asphalt. Runs at about ``line_gsd_m`` per pixel (area averaging keeps a
-    thin crack's integrated darkness) so the kernels stay small (fast).
+    thin crack's integrated darkness) so the kernels stay small (fast). ``dark``: d from
+    ``darkness`` of the same image, reused when its factor matches (two segment lengths at
+    one pixel size share it).
     """
-    g = cv2.GaussianBlur(np.asarray(gray, np.uint8), (3, 3), 0)
-    k = max(3, int(round(cfg.tophat_m / m_per_px)) | 1)
-    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
-    close = cv2.morphologyEx(g, cv2.MORPH_CLOSE, disc).astype(np.float32)
-    d = (close - g) / np.maximum(close, 1.0)
-    h, w = d.shape
-    f = max(1, int((cfg.line_gsd_m if gsd_m is None else gsd_m) / m_per_px))
-    if f > 1:
-        d = cv2.resize(d, (max(1, w // f), max(1, h // f)), interpolation=cv2.INTER_AREA)
+    f = _factor(m_per_px, cfg, gsd_m)
+    if dark is None or dark[1] != f:
+        dark = darkness(gray, m_per_px, cfg, gsd_m)
+    d = dark[0]
+    h, w = np.asarray(gray).shape[:2]
     length = max(5.0, (cfg.line_m if line_m is None else line_m) / (m_per_px * f))
-    c = None
-    for kern in _line_kernels(round(length, 1)):
-        x = cv2.filter2D(d, -1, kern, borderType=cv2.BORDER_REFLECT)
-        c = x if c is None else np.maximum(c, x)
+    # max over directions of cv2.filter2D, bit for bit (the bank's image DFT shared)
+    c = bank_max(d, _line_kernels(round(length, 1)), cv2.BORDER_REFLECT)
     s = int(math.ceil(length)) | 1
     c -= cv2.blur(d, (s, s), borderType=cv2.BORDER_REFLECT)
     s2 = 2 * s + 1
@@ -82,11 +80,56 @@ def line_response(
     sd = np.sqrt(np.maximum(cv2.blur(d * d, (s2, s2), borderType=cv2.BORDER_REFLECT) - m1 * m1, 0))
     # Floor on the spread: 5 % of its median (and 1e-4): a flat patch (saturated, no texture)
     # must not turn quantisation into a strong line.
-    z = c / (sd + 0.05 * float(np.median(sd)) + 1e-4)
+    z = c / (sd + 0.05 * exact_median(sd) + 1e-4)
     if f > 1:
         z = cv2.resize(z, (w, h), interpolation=cv2.INTER_LINEAR)
         c = cv2.resize(c, (w, h), interpolation=cv2.INTER_LINEAR)
     return z, c
+
+
+def _factor(m_per_px: float, cfg: CrackConfig, gsd_m: float | None = None) -> int:
+    """Whole-pixel downsampling factor to about ``gsd_m`` (``line_gsd_m``) per pixel."""
+    return max(1, int((cfg.line_gsd_m if gsd_m is None else gsd_m) / m_per_px))
+
+
+def darkness(
+    gray: np.ndarray, m_per_px: float, cfg: CrackConfig, gsd_m: float | None = None
+) -> tuple[np.ndarray, int]:
+    """The darkness d of ``line_response`` (black top-hat, disc ``tophat_m``, over the closing;
+    float32) area-averaged down by the factor f to about ``gsd_m`` per pixel: (d, f)."""
+    g = cv2.GaussianBlur(np.asarray(gray, np.uint8), (3, 3), 0)
+    k = max(3, int(round(cfg.tophat_m / m_per_px)) | 1)
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
+    close = cv2.morphologyEx(g, cv2.MORPH_CLOSE, disc).astype(np.float32)
+    d: np.ndarray = (close - g) / np.maximum(close, 1.0)
+    h, w = d.shape
+    f = _factor(m_per_px, cfg, gsd_m)
+    if f > 1:
+        d = cv2.resize(d, (max(1, w // f), max(1, h // f)), interpolation=cv2.INTER_AREA)
+    return d, f
+
+
+def exact_median(x: np.ndarray) -> float:
+    """``float(np.median(x))`` bit for bit, for a large float array in a fraction of its time:
+    the middle order statistics are selected among the values between two bounds read off a
+    strided subsample (their ranks checked by counting; a full ``np.median`` when the bounds
+    miss them or x holds NaN)."""
+    a = np.asarray(x).ravel()
+    n = a.size
+    if n < 1 << 14 or a.dtype.kind != "f":
+        return float(np.median(a))
+    k1, k2 = (n - 1) // 2, n // 2
+    s = np.sort(a[:: n >> 10])
+    m = len(s)
+    lo, hi = s[int(0.46 * m)], s[min(m - 1, int(0.54 * m))]
+    below = int(np.count_nonzero(a < lo))
+    mid = a[(a >= lo) & (a <= hi)]
+    above = int(np.count_nonzero(a > hi))
+    if below + mid.size + above != n or below > k1 or below + mid.size <= k2:
+        return float(np.median(a))
+    part = np.partition(mid, sorted({k1 - below, k2 - below}))
+    # as np.median: the mean of the middle one or two values, in the array's dtype
+    return float(np.mean(part[k1 - below : k2 - below + 1]))
 
 
 def thin_dark_components(
@@ -110,9 +153,10 @@ def thin_dark_components(
     thinned, where the short one also sees them darker. The width is the crack's equivalent width measured on the top-hat
     (``equivalent_width_px``).
     """
-    z, contrast = line_response(gray, m_per_px, cfg)
+    dark = darkness(gray, m_per_px, cfg)  # the long segment shares it at the same pixel size
+    z, contrast = line_response(gray, m_per_px, cfg, dark=dark)
     mask = _above(z, cfg.contrast_k) & (contrast >= cfg.min_contrast)
-    lab, keep, mask_w, gsd = _thin_pieces(mask, m_per_px, cfg, gsd_at)
+    extra: np.ndarray | None = None
     if cfg.line_long_m > cfg.line_m:
         # Busy textures: the long segment finds the crack where the short one drowns in
         # texture. Only its lines at least twice its length join (it smears each texture
@@ -121,14 +165,16 @@ def thin_dark_components(
         # surroundings (the long one overshoots a line's ends by half its length).
         from skimage.morphology import skeletonize
 
-        z_long, c_long = line_response(gray, m_per_px, cfg, cfg.line_long_m, cfg.line_long_gsd_m)
+        z_long, c_long = line_response(
+            gray, m_per_px, cfg, cfg.line_long_m, cfg.line_long_gsd_m, dark=dark
+        )
         extra = _above(z_long, cfg.long_contrast_k) & (c_long >= cfg.min_contrast)
         extra = _long_components(extra, 2.0 * cfg.line_long_m / m_per_px)
         if extra.any():
             extra = cv2.dilate(skeletonize(extra).astype(np.uint8), np.ones((3, 3), np.uint8))
             extra = extra.astype(bool) & (contrast >= cfg.min_contrast)
-        if extra.any():
-            lab, keep, mask_w, gsd = _thin_pieces(mask | extra, m_per_px, cfg, gsd_at)
+    pieces = mask if extra is None or not extra.any() else mask | extra
+    lab, keep, mask_w, gsd = _thin_pieces(pieces, m_per_px, cfg, gsd_at)
     if not keep:
         return lab, keep, np.zeros(0), np.zeros(0)
     g = cv2.GaussianBlur(np.asarray(gray, np.uint8), (3, 3), 0)
@@ -140,8 +186,8 @@ def thin_dark_components(
 
 def _above(z: np.ndarray, k: float) -> np.ndarray:
     """z above the image's own median + k · 1.4826 MAD."""
-    med = float(np.median(z))
-    mad = 1.4826 * float(np.median(np.abs(z - med)))
+    med = exact_median(z)
+    mad = 1.4826 * exact_median(np.abs(z - med))
     return z > med + k * max(mad, 1e-6)
 
 
