@@ -38,6 +38,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from roadsurf.core.geometry import invert_pose, up_in_cam
+from roadsurf.core.parallel import one_blas_thread
 from roadsurf.core.rolling import frame_motion
 from roadsurf.io.drive import Drive
 from roadsurf.mapping.bundle_gps import (
@@ -64,11 +65,6 @@ from roadsurf.reconstruction.rolling_shutter import row_times_s
 if TYPE_CHECKING:
     from roadsurf.reconstruction.types import PairResult
 
-try:  # (scikit-learn's dependency)
-    from threadpoolctl import threadpool_limits
-except ImportError:  # pragma: no cover - BLAS keeps its own thread count
-    threadpool_limits = None
-
 log = logging.getLogger(__name__)
 
 # the algorithm's version, in the poses stage's fingerprint: a run resumed after a change
@@ -88,6 +84,7 @@ TIME_OFFSET_SIGMAS = 5.0
 MIN_SHARED = 8  # consecutive frames sharing fewer tracks get the constant-motion prior
 
 
+@one_blas_thread
 def refine_poses(
     cfg: MappingConfig,
     drive: Drive,
@@ -104,25 +101,6 @@ def refine_poses(
     ``grade_rad`` (N,): the road's grade at each frame (``mapping.grade``; None: level), which
     tips the tilt prior's axis. On one BLAS thread: a window's dense algebra is small (~260
     unknowns); threads cost more than they gave (sample drive, 2 cores: 6.1 -> 3.3 CPU s)."""
-    args = (cfg, drive, t, world, pairs, pos_of, gps, gps_used, R_vehicle_from_cam, grade_rad)
-    if threadpool_limits is None:
-        return _refine_poses(*args)
-    with threadpool_limits(limits=1, user_api="blas"):
-        return _refine_poses(*args)
-
-
-def _refine_poses(
-    cfg: MappingConfig,
-    drive: Drive,
-    t: np.ndarray,
-    world: np.ndarray,
-    pairs: list[PairResult],
-    pos_of: dict[int, int],
-    gps: GpsFixes | None,
-    gps_used: np.ndarray | None,
-    R_vehicle_from_cam: np.ndarray,
-    grade_rad: np.ndarray | None,
-) -> tuple[np.ndarray, dict[str, Any]]:
     t0 = time.perf_counter()
     n = len(t)
     tracks = build_tracks(

@@ -1,9 +1,11 @@
 """A bounded, ordered thread map for stages whose per-item work is mostly OpenCV/numpy (which
 release the GIL): decoding frames ahead of the CNN, computing raster tiles ahead of the writer.
-``SharedCache``: the few decoded frames such threads share."""
+``SharedCache``: the few decoded frames such threads share. ``one_blas_thread``: a function
+whose dense algebra is too small for BLAS's own threads."""
 
 from __future__ import annotations
 
+import functools
 import threading
 from collections import OrderedDict, deque
 from collections.abc import Callable, Iterable, Iterator
@@ -14,6 +16,23 @@ T = TypeVar("T")
 R = TypeVar("R")
 K = TypeVar("K")
 _END: Any = object()
+
+
+def one_blas_thread(fn: Callable[..., R]) -> Callable[..., R]:
+    """``fn`` run with BLAS on one thread (threadpoolctl), for work whose matrices are small
+    (a few hundred unknowns): on 2 cores OpenBLAS's threads cost more than they give. Without
+    threadpoolctl, BLAS keeps its own thread count."""
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> R:
+        try:
+            from threadpoolctl import threadpool_limits
+        except ImportError:  # pragma: no cover - a declared dependency
+            return fn(*args, **kwargs)
+        with threadpool_limits(limits=1, user_api="blas"):
+            return fn(*args, **kwargs)
+
+    return wrapper
 
 
 def ordered_map(

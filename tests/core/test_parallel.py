@@ -101,3 +101,17 @@ def test_gray_frames_reads_once_and_gives_none_for_missing_or_unreadable_frames(
         assert np.array_equal(a, img) and gf.get("a.png") is a  # cached, not read again
         assert gf.get("b.png") is None and gf.get("nowhere.png") is None
     assert caplog.text.count("test: skipping") == 1 and "b.png" in caplog.text
+
+
+def test_one_blas_thread_runs_the_function_with_blas_on_one_thread() -> None:
+    from threadpoolctl import threadpool_info
+
+    from roadsurf.core.parallel import one_blas_thread
+
+    @one_blas_thread
+    def inside(x: int, *, y: int) -> tuple[int, list[int]]:
+        return x + y, [p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"]
+
+    total, threads = inside(2, y=3)
+    assert total == 5 and inside.__name__ == "inside"
+    assert all(n == 1 for n in threads)
