@@ -245,3 +245,37 @@ def synthetic_drive(cam, t: np.ndarray, gps: GpsTrack) -> Drive:  # type: ignore
     root = Path("/nonexistent-synthetic-drive")
     frames = [Frame(i, f"{i:06d}.png", root / f"{i:06d}.png", float(t[i])) for i in range(len(t))]
     return Drive(root=root, camera=cam, frames=frames, gps=gps, obd=None)
+
+
+def recorded_window(seed: int, readout_s: float):  # type: ignore[no-untyped-def]
+    """The last bundle window (a ``mapping.bundle_problem.WindowProblem``) that
+    ``poses.estimate_trajectory`` builds on a seeded 12-frame track drive with every factor on
+    (reprojection, road plane, camera height, GPS, the pairs' motions, focal and k1), one window
+    for the whole drive; ``readout_s`` > 0: a rolling shutter."""
+    import pytest
+
+    from roadsurf.mapping import bundle, poses
+    from roadsurf.mapping.bundle_problem import WindowProblem
+    from roadsurf.mapping.config import MappingConfig
+
+    seen: list[WindowProblem] = []
+
+    class Recording(WindowProblem):
+        def __init__(self, d):  # type: ignore[no-untyped-def]
+            super().__init__(d)
+            seen.append(self)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(bundle, "WindowProblem", Recording)
+        syn = make_track_drive(n=12, seed=seed, density_per_m2=30, readout_s=readout_s)
+        cfg = MappingConfig(
+            gps_sigma_m=0.02,
+            bundle_max_time_offset_s=0.0,
+            bundle_refine_focal=True,
+            bundle_refine_k1=True,
+            bundle_window_frames=13,
+        )
+        poses.estimate_trajectory(cfg, syn.drive, syn.pairs)
+    if not seen:
+        raise AssertionError("no bundle window was built")
+    return seen[-1]

@@ -8,44 +8,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from roadsurf.mapping import bundle, poses
 from roadsurf.mapping.bundle_problem import WindowProblem
-from roadsurf.mapping.config import MappingConfig
-from tests.mapping.bundle_synth import make_track_drive
+from tests.mapping.bundle_synth import recorded_window
 
 
 @pytest.fixture(scope="module", params=[0.0, 0.03], ids=["global", "rolling"])
-def problem(
-    monkeypatch_module: pytest.MonkeyPatch, request: pytest.FixtureRequest
-) -> WindowProblem:
-    seen: list[WindowProblem] = []
-
-    class Recording(WindowProblem):
-        def __init__(self, d):  # type: ignore[no-untyped-def]
-            super().__init__(d)
-            seen.append(self)
-
-    monkeypatch_module.setattr(bundle, "WindowProblem", Recording)
+def problem(request: pytest.FixtureRequest) -> WindowProblem:
     # a global shutter, and a 30 ms readout (each observation from its row's pose)
-    syn = make_track_drive(n=12, seed=4, density_per_m2=30, readout_s=request.param)
-    cfg = MappingConfig(
-        gps_sigma_m=0.02,
-        bundle_max_time_offset_s=0.0,
-        bundle_refine_focal=True,
-        bundle_refine_k1=True,
-        bundle_window_frames=13,
-    )
-    poses.estimate_trajectory(cfg, syn.drive, syn.pairs)
-    assert seen, "no bundle window was built"
-    assert (seen[-1].d.obs_time_s is not None) == (request.param > 0)
-    return seen[-1]
-
-
-@pytest.fixture(scope="module")
-def monkeypatch_module() -> pytest.MonkeyPatch:  # type: ignore[misc]
-    mp = pytest.MonkeyPatch()
-    yield mp
-    mp.undo()
+    p = recorded_window(4, request.param)
+    assert (p.d.obs_time_s is not None) == (request.param > 0)
+    return p
 
 
 def test_the_jacobian_matches_finite_differences(problem: WindowProblem) -> None:

@@ -10,39 +10,15 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from roadsurf.mapping import bundle, poses
 from roadsurf.mapping.bundle_problem import WindowProblem
 from roadsurf.mapping.bundle_reduced import ReducedProblem
-from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.pose_graph import _robust_weights
-from tests.mapping.bundle_synth import make_track_drive
+from tests.mapping.bundle_synth import recorded_window
 
 
 @pytest.fixture(scope="module", params=[0.0, 0.03], ids=["global", "rolling"])
 def problem(request: pytest.FixtureRequest) -> WindowProblem:
-    seen: list[WindowProblem] = []
-
-    class Recording(WindowProblem):
-        def __init__(self, d):  # type: ignore[no-untyped-def]
-            super().__init__(d)
-            seen.append(self)
-
-    mp = pytest.MonkeyPatch()
-    mp.setattr(bundle, "WindowProblem", Recording)
-    try:
-        syn = make_track_drive(n=12, seed=5, density_per_m2=30, readout_s=request.param)
-        cfg = MappingConfig(
-            gps_sigma_m=0.02,
-            bundle_max_time_offset_s=0.0,
-            bundle_refine_focal=True,
-            bundle_refine_k1=True,
-            bundle_window_frames=13,
-        )
-        poses.estimate_trajectory(cfg, syn.drive, syn.pairs)
-    finally:
-        mp.undo()
-    assert seen, "no bundle window was built"
-    return seen[-1]
+    return recorded_window(5, request.param)
 
 
 def _x(problem: WindowProblem) -> np.ndarray:
