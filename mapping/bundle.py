@@ -47,9 +47,9 @@ from roadsurf.mapping.bundle_gps import (
     keep_placement,
     time_offset_bound_s,
 )
-from roadsurf.mapping.bundle_problem import WindowData, WindowProblem, true_px_from_observed_px
+from roadsurf.mapping.bundle_problem import WindowProblem
 from roadsurf.mapping.bundle_reduced import ReducedProblem, solve_reduced
-from roadsurf.mapping.bundle_terms import unit_normal
+from roadsurf.mapping.bundle_terms import WindowData, true_px_from_observed_px, unit_normal
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.grade import up_axes_in_cam
 from roadsurf.mapping.pose_gps import GpsFixes

@@ -49,7 +49,7 @@ from roadsurf.core.camera import Camera, normalised_from_px
 from roadsurf.core.fits import fit_plane_z_trimmed, plane_signed_distance
 from roadsurf.io import runfolder as rf
 from roadsurf.io.drive import Drive
-from roadsurf.mapping.bundle_problem import pair_translation, true_px_from_observed_px
+from roadsurf.mapping.bundle_terms import pair_translation, true_px_from_observed_px
 from roadsurf.mapping.types import Trajectory
 
 if TYPE_CHECKING:

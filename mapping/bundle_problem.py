@@ -29,10 +29,7 @@ from roadsurf.mapping.bundle_terms import (
     WindowData,
     observation_terms,
     pair_translation,
-    true_px_from_observed_px,
 )
-
-__all__ = ["WindowData", "WindowProblem", "pair_translation", "true_px_from_observed_px"]
 
 # σ of the change of the window's mean camera tilt from the pose graph's with a rolling shutter
 # (deg): a roll of every camera about a straight track, the points turning with them, is a gauge

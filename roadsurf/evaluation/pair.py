@@ -88,8 +88,7 @@ def _surface_distance(e: np.ndarray, n: np.ndarray, z: np.ndarray, sample) -> np
     point."""
     best = np.abs(z - sample(e, n))
     under = np.isfinite(best)
-    r = min(float(np.nanmax(best)) if len(best) and np.isfinite(best).any() else 0.0,
-            SURFACE_SEARCH_M)  # fmt: skip
+    r = min(float(best[under].max()), SURFACE_SEARCH_M) if under.any() else 0.0
     k = int(np.ceil(r / SURFACE_STEP_M))
     offsets = [(i, j) for i in range(-k, k + 1) for j in range(-k, k + 1) if 0 < i * i + j * j]
     for i, j in sorted(offsets, key=lambda o: o[0] ** 2 + o[1] ** 2):

@@ -114,4 +114,4 @@ def test_one_blas_thread_runs_the_function_with_blas_on_one_thread() -> None:
 
     total, threads = inside(2, y=3)
     assert total == 5 and inside.__name__ == "inside"
-    assert all(n == 1 for n in threads)
+    assert threads and all(n == 1 for n in threads)  # numpy's BLAS is found, on one thread

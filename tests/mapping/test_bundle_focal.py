@@ -20,7 +20,7 @@ from roadsurf.mapping.bundle_camera import (
     refined_inputs,
     refined_pairs,
 )
-from roadsurf.mapping.bundle_problem import pair_translation
+from roadsurf.mapping.bundle_terms import pair_translation
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.types import Trajectory
 from tests.mapping.bundle_synth import TrackDrive, make_track_drive
