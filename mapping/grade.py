@@ -14,15 +14,18 @@ its vertical σ), shrunk towards a level road by its standard error se against t
 prior σ_γ (``grade_sigma_pct``: the spread of road grades, not the tilt prior's σ, which also
 holds cross-fall and vibration): γ = k · b, k = σ_γ² / (σ_γ² + se²), the posterior mean of a
 grade drawn from N(0, σ_γ²) seen with error se. The se holds the fixes' white scatter (their
-stated σ pooled with their scatter about the line) and their slow wander (a Gauss-Markov height
-error, ``WANDER_TAU_S``). Grades change slowly (vertical curves run over hundreds of metres),
-so where a window's se is above σ_γ / 2 the window widens, doubling up to the whole track, to
-where se crosses σ_γ / 2. A fit that keeps less than 2/3 even there (``MIN_SHRINK``) gives a
-level road. RTK heights resolve a 1 % grade to ~0.1° within 10 m; a consumer receiver's (1 Hz,
-metre-level) within a few hundred metres; over a 60 m drive not at all (se ~2.6°): there the
-old per-frame 10 m fits (se ~8°, shrunk against the tilt prior's 3°) tipped frames by -1.6° to
-+1.9° and doubled the bundle's trajectory error (rough-gps 6.7 -> 12.1 mm). A track shorter than
-twice the window gives a level road. ``shrink`` (k, 0-1) says how much of the fit is kept.
+stated σ pooled with their scatter about the line in the log of the variance factor,
+``variance_factor``) and their slow wander (a Gauss-Markov height error, ``WANDER_TAU_S``).
+Grades change slowly (vertical curves run over hundreds of metres), so where a window's se is
+above σ_γ / 2 the window widens, doubling up to the whole track, to where se crosses σ_γ / 2;
+near a track's end (or across an outage) the first window is widened to the kernel mass it
+holds mid-track (``_window_holding``). A fit that keeps less than 2/3 even there
+(``MIN_SHRINK``) gives a level road. RTK heights resolve a 1 % grade to ~0.1° within 10 m; a
+consumer receiver's (1 Hz, metre-level) within a few hundred metres; over a 60 m drive not at
+all (se ~2.6°): there the old per-frame 10 m fits (se ~8°, shrunk against the tilt prior's 3°)
+tipped frames by -1.6° to +1.9° and doubled the bundle's trajectory error (rough-gps 6.7 -> 12.1
+mm). A track shorter than twice the window gives a level road. ``shrink`` (k, 0-1) says how much
+of the fit is kept.
 """
 
 from __future__ import annotations
@@ -47,9 +50,14 @@ MAX_STATIONS = 2000  # ... at most this many stations per drive (-): 60 km at 30
 # 3: fitted at stations and interpolated
 GRADE_VERSION = 3
 SE_OVER_PRIOR = 0.5
+WINDOW_BISECTIONS = 12  # bisections in log of a first rung's 2x bracket (0.02 % of the window)
+KERNEL_REACH = 5.0  # a kernel's mass counted within this many windows (the rest < 4e-6 a fix)
 # the stated vertical σ (HDOP × gps_sigma_per_hdop_m × the vertical factor, a generic UERE
-# scale, uncertain by a factor ~2) weighs as this many residuals against the fixes' own scatter
+# scale, uncertain by a factor ~2) weighs as this many residuals against the fixes' own scatter:
+# a prior on the log of the variance factor of information STATED_DOF / 2 (what that many
+# residuals hold on it), i.e. a log-normal of σ 1/√2 (σ uncertain by 1.4× at 1 sd, 2× at 2 sd)
 STATED_DOF = 4.0
+NEWTON_STEPS = 30  # Newton steps for the log variance factor (converges in < 10)
 # the least share of the fitted slope worth keeping: the posterior mean k·b (k = σ_γ² /
 # (σ_γ² + se²)) has a mean squared error σ_γ²(1 - k)(1 + 3k) when se is understated 2× (wander,
 # multipath), less than a level road's σ_γ² only for k > 2/3 (se < σ_γ / √2); below, the grade
@@ -140,9 +148,12 @@ def road_grade(
     while windows[-1] < 2.0 * s[-1]:
         windows.append(min(2.0 * windows[-1], 2.0 * float(s[-1])))
     target = SE_OVER_PRIOR * math.sqrt(prior_var)
+    # the first rung's kernel mass away from the track's ends (fixes per metre x √(2π) window)
+    mass = math.sqrt(2.0 * math.pi) * window_m * len(sa) / max(float(sa[-1] - sa[0]), 1e-9)
     for i in range(m):
         prev: tuple[float, float] | None = None  # (window, se) of the last rung tried
-        for win in windows:
+        first = _window_holding(sa - at[i], mass, window_m, windows[-1])
+        for win in [first, *(w for w in windows if w > first)]:
             got = _local_slope(sa - at[i], za, w0, dt, win)
             if got is None:
                 continue
@@ -171,6 +182,37 @@ def road_grade(
     return RoadGrade(np.arctan(grade * keep), np.arctan(se), keep)
 
 
+def _window_holding(ds: np.ndarray, mass: float, lo: float, hi: float) -> float:
+    """The Gaussian window (m, within [lo, hi]) whose kernel over the fixes at distances ``ds``
+    (m, ascending) holds ``mass``: near a track's end, or across a GPS outage, a kernel loses
+    fixes on one side, and the local slope fitted from the half it keeps (its centroid a window
+    inside the track) is the noisiest and, through the se, the most shrunk on the track.
+    Widening the first rung there to the kernel mass it holds elsewhere (the nearest-neighbour
+    bandwidth of kernel regression at a boundary) keeps the first rung's data the same along the
+    track; the ladder then widens it as everywhere. The mass grows with the window: doubled to a
+    bracket, then bisected in log."""
+
+    def held(win: float) -> float:
+        a, b = np.searchsorted(ds, [-KERNEL_REACH * win, KERNEL_REACH * win])
+        return float(np.exp(-0.5 * (ds[a:b] / win) ** 2).sum())
+
+    if held(lo) >= mass:
+        return lo
+    low, high = lo, min(2.0 * lo, hi)
+    while held(high) < mass:
+        if high >= hi:
+            return hi
+        low, high = high, min(2.0 * high, hi)
+    a, b = math.log(low), math.log(high)
+    for _ in range(WINDOW_BISECTIONS):
+        mid = 0.5 * (a + b)
+        if held(math.exp(mid)) < mass:
+            a = mid
+        else:
+            b = mid
+    return math.exp(b)
+
+
 def _local_slope(
     ds: np.ndarray, za: np.ndarray, w0: np.ndarray, dt: np.ndarray, window_m: float
 ) -> tuple[float, float] | None:
@@ -195,12 +237,11 @@ def _local_slope(
         return None
     m, sxx, zm, b = fit
     # the fixes' scale: their reduced χ² about the line (ν = n_eff - 2 residuals) pooled with
-    # the stated σ counted as STATED_DOF residuals (the posterior mean of the variance factor
-    # under a scaled inverse-χ² prior on it): an RTK receiver's heights scatter ~10× less than
-    # its HDOP × 0.5 m says, a consumer's scatter as stated, and a few residuals move it little
+    # the stated σ (variance_factor): an RTK receiver's heights scatter ~10× less than its
+    # HDOP × 0.5 m says, a consumer's scatter as stated, and a few residuals move it little
     nu = n_eff - 2.0
     chi2 = (w * (za - zm - b * (ds - m)) ** 2).sum() / sk * n_eff / nu
-    factor = (STATED_DOF + nu * chi2) / (STATED_DOF + nu)
+    factor = variance_factor(chi2, nu)
     # slow wander: a random walk of q² = 2 σ² / WANDER_TAU_S (σ² the kernel-weighted stated
     # variance, scaled like the scatter) moves the slope by q² Σ_i Δt_i (Σ_{j >= i} c_j)², c_j =
     # w_j (x_j - m) / Sxx the line's weights on the heights (they sum to 0)
@@ -209,6 +250,37 @@ def _local_slope(
     q2 = 2.0 * factor * float((k / w0).sum() / sk) / WANDER_TAU_S
     var_wander = q2 * float((dt * tail**2).sum())
     return b, math.sqrt(factor / sxx + var_wander)
+
+
+def variance_factor(chi2: float, nu: float, prior_dof: float = STATED_DOF) -> float:
+    """Posterior mean of the fixes' variance factor f (their variance over the stated one) from
+    a reduced χ² ``chi2`` of ``nu`` residuals and a log-normal prior on f at 1 holding
+    ``prior_dof`` residuals' information (ν₀/2 on log f).
+
+    With u = log f, the residuals give ν χ² / f ~ χ²_ν: log-likelihood -ν u / 2 - ν χ² e^-u / 2,
+    information ν / 2 on u. The posterior mode solves ν χ² e^-u / 2 = ν / 2 + ν₀ u / 2 (Newton,
+    the left side falls and the right rises with u: one root); its mean under the Laplace
+    approximation is exp(u + 1 / (2 I)), I = ν χ² e^-u / 2 + ν₀ / 2. A scale is pooled in its
+    log: a scaled inverse-χ² prior of ν₀ residuals pools arithmetically, (ν₀ + ν χ²) / (ν₀ + ν),
+    and holds f >= ν₀ / (ν₀ + ν) whatever the residuals say: an RTK receiver's 1/100 (heights
+    10× better than HDOP × 0.5 m) read as 0.15 from 24 fixes (benchmarks.variation's
+    mount15_r0: the white se 3.9× what the scatter gives, the 1 % grade dropped as unresolved);
+    here 0.028. Where the scatter is within ~2× of the stated σ the two agree within a few %."""
+    if not (nu > 0 and chi2 > 0 and math.isfinite(chi2)):
+        return 1.0  # no residual scatter to go by: the stated σ
+    a, c = 0.5 * prior_dof, 0.5 * nu * chi2
+    # Newton from the arithmetic pool: g falls and is convex, its tangent lies under it, so
+    # after the first step the iterates sit at or below the root and rise to it
+    u = math.log((prior_dof + nu * chi2) / (prior_dof + nu))
+    for _ in range(NEWTON_STEPS):
+        ce = c * math.exp(-u)
+        g = ce - 0.5 * nu - a * u  # d log posterior / du
+        step = g / (ce + a)
+        u += step
+        if abs(step) < 1e-10:
+            break
+    info = c * math.exp(-u) + a
+    return math.exp(u + 0.5 / info)
 
 
 def _line(x: np.ndarray, z: np.ndarray, w: np.ndarray) -> tuple[float, float, float, float] | None:
