@@ -47,8 +47,8 @@ STATION_M = 1.0  # the grade is fitted every this far along the track (m): 1/10 
 MAX_STATIONS = 2000  # ... at most this many stations per drive (-): 60 km at 30 m
 # bump when the estimate changes for the same fixes and settings: the poses' key holds it, so
 # a resumed run does not keep poses from the earlier grade. 2: own prior, adaptive window;
-# 3: fitted at stations and interpolated
-GRADE_VERSION = 3
+# 3: fitted at stations and interpolated; 4: scale pooled in its log, first window by mass
+GRADE_VERSION = 4
 SE_OVER_PRIOR = 0.5
 WINDOW_BISECTIONS = 12  # bisections in log of a first rung's 2x bracket (0.02 % of the window)
 KERNEL_REACH = 5.0  # a kernel's mass counted within this many windows (the rest < 4e-6 a fix)
