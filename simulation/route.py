@@ -70,4 +70,6 @@ class Pose:
     R: np.ndarray  # (3, 3) world (grid E, N, U) from camera, the mount included
     heading_deg: float  # grid heading of the vehicle (deg)
     roll_rad: float  # vehicle roll (vibration), about the nadir camera's y (rad)
-    pitch_rad: float  # vehicle pitch (vibration), about the nadir camera's x (rad)
+    pitch_rad: (
+        float  # vehicle pitch (vibration + the road's slope), about the nadir camera's x (rad)
+    )

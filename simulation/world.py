@@ -24,6 +24,8 @@ from roadsurf.simulation.noise import fractal_noise, value_noise
 from roadsurf.simulation.route import Pose, Route, Trajectory
 from roadsurf.simulation.texture import TextureField
 
+WHEELBASE_M = 2.8  # axle distance of the simulated vehicle (m): its body's pitch on the road
+
 
 @dataclass
 class World:
@@ -91,7 +93,15 @@ class World:
         hd = math.degrees(float(self.route.heading_at(np.array([s]))[0]))
         hd += math.degrees(float(np.interp(t, tr.t, tr.yaw)))
         roll = float(np.interp(t, tr.t, tr.roll))
-        pitch = float(np.interp(t, tr.t, tr.pitch))
+        # a vehicle's body follows the road: pitched nose-up by the road's slope along its
+        # heading between its axles (WHEELBASE_M; grade and long-wave undulation), plus the
+        # vibration. Without it the camera kept its pitch over a 1 % grade, where roadsurf
+        # (mapping.grade) tips a camera.yaml mount by the grade the GPS heights give
+        h = math.radians(hd)
+        dx, dy = 0.5 * WHEELBASE_M * math.sin(h), 0.5 * WHEELBASE_M * math.cos(h)
+        front = float(self.base(np.array(xy[0] + dx), np.array(xy[1] + dy)))
+        rear = float(self.base(np.array(xy[0] - dx), np.array(xy[1] - dy)))
+        pitch = float(np.interp(t, tr.t, tr.pitch)) + math.atan((front - rear) / WHEELBASE_M)
         # The vehicle's pose (a nadir camera's) times the mount; the centre stays at C.
         T = world_from_cam(hd % 360.0, roll, pitch, np.array([xy[0], xy[1], z]))
         R = T[:3, :3] @ c.vehicle_from_cam() if c.mounted else T[:3, :3].copy()

@@ -348,3 +348,22 @@ def test_a_drive_too_short_for_a_rut_skips_it(tmp_path: Path) -> None:
     feats = read_geojson(out / "truth/defects.geojson")["features"]
     types = {f["properties"]["type"] for f in feats}
     assert "rut" not in types
+
+
+@pytest.mark.parametrize("grade", [0.0, 0.03, -0.05])
+def test_the_vehicle_pitches_with_the_road(grade: float) -> None:
+    """A vehicle's body lies on its wheels: on a grade it is pitched by the grade (nose up
+    uphill), and the truth pose says so. Without vibration the pose's pitch is the road's slope
+    between the axles, and the camera's optical axis (nadir) tilts with it."""
+    from roadsurf.simulation.build import build_world
+    from roadsurf.simulation.scenarios import make_config
+
+    world = build_world(make_config("flat", grade=grade, vibration_deg=0.0), 101, 10)
+    t = float(np.mean(world.traj.t))
+    pose = world.pose(t)
+    assert pose.pitch_rad == pytest.approx(np.arctan(grade), abs=1e-3)
+    # the optical axis, world frame: nadir + the road's tilt along the heading
+    h = np.radians(pose.heading_deg)
+    forward = np.array([np.sin(h), np.cos(h), 0.0])
+    axis = pose.R[:, 2]
+    assert float(axis @ forward) == pytest.approx(np.sin(np.arctan(grade)), abs=1e-3)

@@ -71,7 +71,8 @@ def test_centre_ray_meets_the_road_h_tan_pitch_ahead(tmp_path: Path) -> None:
     vehicle heading); the optical axis meets the road h tan(pitch) ahead along the travel."""
     rows = {}
     for pitch in (0.0, 25.0):
-        kw = dict(SMALL, **QUIET, mount_pitch_deg=pitch, progress=False)
+        # a level road: on a grade the vehicle, and the axis, pitch with it (test_simulator)
+        kw = dict(SMALL, **QUIET, mount_pitch_deg=pitch, grade=0.0, progress=False)
         out = simulate("flat", tmp_path / f"p{pitch:g}", seed=8, n_frames=4, **kw)
         rows[pitch] = read_csv(out / "truth" / "poses.csv")
     h = 1.1
