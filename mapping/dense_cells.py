@@ -22,8 +22,9 @@ import numpy as np
 # valid-only sampling; 3: the sweep's minimum samples per candidate (session 24); 4: the
 # slanted second pass (dense.slanted) and the ray fixed point run to convergence; 5: the
 # sweep's unscored band along the overlap's edge starts from its swept neighbours; 6: the
-# shifted windows, the step test and no coarse fill of left-right or step refusals
-DENSE_SURFACE_VERSION = 7  # 7: a rolling-shutter pair measured on image b
+# shifted windows, the step test and no coarse fill of left-right or step refusals; 7: a
+# rolling-shutter pair measured on image b
+DENSE_SURFACE_VERSION = 8  # 8: the sweep's pixels outside the overlap start from its neighbours
 FIXED_POINT_STEPS = 3  # cell -> pixel projections at the sampled height (nadir: 2 suffice)
 # ... then, on the cells whose last step moved by more than FIXED_POINT_TOL_M, up to this
 # many in all (a cell still jumping by FIXED_POINT_FLIP_M then keeps its FIXED_POINT_STEPS

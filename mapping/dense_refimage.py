@@ -8,6 +8,12 @@ track). "nearer" matches on the image whose camera is nearer to the common groun
 camera is as near from both and keeps image a. Measured on the tilted drives: potholes read
 0.3-1.3 mm less shallow at 45° (docs/mapping.md, *Reference image*).
 
+Measured on image b, the sides of the drive's two-view part are image b's own first and last
+columns (image a, further back, sees the road wider there), and its far corners lie next to
+image a's top row. The left-right check keeps those columns since the sweep's pixels outside
+the overlap start from their swept neighbours (``dense.parallax._init``): before, the reverse
+match there started 2-13 px off and 2-4 columns a side were refused.
+
 With a rolling shutter the pair measured on image b has b's timestamp first: its frame time
 difference is negative, and ``dense.rolling`` places each row along the pair's motion from b
 back to a.

@@ -47,6 +47,7 @@ from roadsurf.reconstruction.dense.checks import REJECT_GEOMETRY, REJECT_LR, che
 from roadsurf.reconstruction.dense.config import DenseHeightConfig
 from roadsurf.reconstruction.dense.geometry import PlaneParallax
 from roadsurf.reconstruction.dense.matching import (
+    INSIDE_MIN,
     fill_unswept,
     gaussian,
     refine,
@@ -397,8 +398,12 @@ def _init(
     win = int(cfg.window_px) | 1
     res = sweep(r_s, t_s, wxs, wys, values, shift_of, win, tm_s, rm_s)
     # the band next to the overlap's edge that no candidate saw with enough samples starts
-    # from its swept neighbours (a window's reach, win pixels of the sweep grid)
-    eta_s = fill_unswept(res.value, res.ncc, win)
+    # from its swept neighbours (a window's reach, win pixels of the sweep grid), and so do the
+    # sweep pixels outside the overlap (part of them beyond either image at zero parallax): they
+    # have no match, the sweep takes the candidate that pulls their window into the target, and
+    # the upsampling below would carry that up to a sweep pixel into the overlap
+    inside = (tm_s >= INSIDE_MIN) & (rm_s >= INSIDE_MIN)
+    eta_s = fill_unswept(res.value, torch.where(inside, res.ncc, -2.0), win)
     if ss != 1.0:  # back on the work grid (sweep coordinates of work pixels, clamped)
         ys, xs = torch.meshgrid(
             torch.arange(h, device=ref.device, dtype=torch.float32),

@@ -1,7 +1,7 @@
 """The image a pair's dense heights are measured on (mapping.dense_refimage): the nearer one for
 a camera tilted forward, image a for a nadir camera or a backward drive; heights measured on
-image b of a seeded tilted pair agree with the exact height field, and a rolling-shutter pair
-measured on image b (its time first) stays level."""
+image b of a seeded tilted pair agree with the exact height field and reach image b's own side
+borders, and a rolling-shutter pair measured on image b (its time first) stays level."""
 
 from __future__ import annotations
 
@@ -38,7 +38,14 @@ def _poses(pitch_deg: float, forward_m: float) -> tuple[np.ndarray, np.ndarray]:
 
 @pytest.mark.parametrize(
     ("pitch_deg", "forward_m", "want"),
-    [(30.0, 0.35, True), (45.0, 0.4, True), (0.0, 0.35, False), (30.0, -0.35, False)],
+    [
+        (30.0, 0.35, True),
+        (45.0, 0.4, True),
+        (0.0, 0.35, False),
+        (1.0, 0.35, False),  # a nadir camera pitched by the vehicle keeps image a
+        (-1.0, 0.35, False),
+        (30.0, -0.35, False),
+    ],
 )
 def test_the_nearer_image_is_b_only_for_a_forward_tilted_drive(
     pitch_deg: float, forward_m: float, want: bool
@@ -112,3 +119,23 @@ def test_heights_measured_on_image_b_match_the_truth() -> None:
     assert float(np.mean(np.abs(err[pot]))) < 0.003
     # the pothole reads below the road (the plane's side is kept in camera b)
     assert float(np.median(h[pot])) < -0.01
+
+
+def test_a_pair_measured_on_image_b_reaches_its_side_borders() -> None:
+    """With image b as the reference, the two-view part's sides are image b's own first and
+    last columns (image a, further back, sees the road wider). Their left-right check needs the
+    reverse match (a -> b) there, which starts from the sweep: the sweep pixels past image b's
+    border have no match, took the candidate that pulled their window into image b (a ramp of
+    parallax, 2-13 px), and the upsampling carried it up to a sweep pixel (4 px) into the
+    overlap. Before the fix the three outermost columns kept 18 % (left) and 16 % (right) of
+    their pixels on this pair (the map: a 2-4 cell strip along the two-view part's edge); now
+    99 / 100 %."""
+    pair = synthetic_pair((320, 240), pitch_deg=30.0, seed=2)
+    p = SimpleNamespace(R_b_from_a=pair.R, t_b_from_a_m=pair.t, plane=pair.plane)
+    R_ab, t_ab, plane_b = reversed_pair(p)  # type: ignore[arg-type]
+    cfg = DenseHeightConfig(device="cpu")
+    dh = dense_height(pair.img_b, pair.img_a, pair.camera, R_ab, t_ab, plane_b, cfg=cfg)
+    h = dh.shape[0]
+    rows = slice(h // 3, h - 10)  # image b's lower two thirds: inside image a's view
+    left, right = dh.valid[rows, :3].mean(), dh.valid[rows, -3:].mean()
+    assert left > 0.9 and right > 0.9, (left, right)
