@@ -250,9 +250,10 @@ class MappingConfig:
     # pothole split it into a defect per pair (precision 0.88 -> 0.58), its depth continued
     # joined two. 0.25 m covers strips up to 0.5 m (0 = the road model everywhere)
     dense_single_view_relief_m: float = 0.25
-    # the matching; the heights smoothed edge-preserving over ~one window (smooth_px = 3 px,
-    # range 3 mm: about 2 x the cells' noise σ): see DenseHeightConfig.smooth_px
-    dense: DenseHeightConfig = field(default_factory=lambda: DenseHeightConfig(smooth_px=3.0))
+    # the matching; the heights smoothed edge-preserving within about the matching window's own
+    # extent (smooth_px = 1.5 px ~ the 5 px window's σ, 5/√12; range 3 mm: about 2 x the
+    # cells' noise σ): see DenseHeightConfig.smooth_px
+    dense: DenseHeightConfig = field(default_factory=lambda: DenseHeightConfig(smooth_px=1.5))
 
     # valid values (interval notation; see roadsurf.core.config). Upper bounds only where a
     # larger value is a unit mistake

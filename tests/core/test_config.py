@@ -317,10 +317,10 @@ def test_order_is_checked_on_built_objects_too():
 
 
 def test_a_section_override_keeps_the_enclosing_config_default() -> None:
-    # MappingConfig's dense section defaults to smooth_px 3 (DenseHeightConfig's own is 0):
+    # MappingConfig's dense section defaults to smooth_px 1.5 (DenseHeightConfig's own is 0):
     # overriding another key of that section must not reset it to the class default
     from roadsurf.mapping.config import MappingConfig
 
     cfg = from_dict(MappingConfig, {"dense": {"hole_fill_m": 0.0}})
     assert cfg.dense.hole_fill_m == 0.0
-    assert cfg.dense.smooth_px == MappingConfig().dense.smooth_px == 3.0
+    assert cfg.dense.smooth_px == MappingConfig().dense.smooth_px == 1.5
