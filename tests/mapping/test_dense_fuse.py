@@ -362,3 +362,21 @@ def test_single_view_cells_next_to_relief_stay_unknown() -> None:
     row[cells] = got
     assert np.isnan(row[:, 5:11]).all() and (row[:, 12:] == 0).all()  # beyond reach: 0
     assert (single_view_heights(far, cells, near_px=0.0, road_m=0.002) == 0).all()
+
+
+def test_one_noisy_edge_cell_does_not_blank_the_single_view_road_behind_it() -> None:
+    """The relief beside a single-view strip is judged on the block around the nearest known
+    cell: one edge cell off by 5 mm (more than the 2 mm limit) among road cells leaves the road
+    model behind it, a pothole's edge (a block of deep cells) still blanks it."""
+    from roadsurf.mapping.rasterfill import single_view_heights
+
+    rng = np.random.default_rng(3)
+    v = np.full((40, 60), np.nan, np.float32)
+    v[:, :20] = rng.normal(0, 0.0005, (40, 20))
+    v[20, 19] = -0.005  # one noisy cell at the measured part's edge
+    v[5:12, 14:20] = -0.03  # a pothole reaching the edge
+    cells = ~np.isfinite(v)
+    out = np.full(v.shape, np.nan, np.float32)
+    out[cells] = single_view_heights(v, cells, near_px=10.0, road_m=0.002)
+    assert (out[17:24, 20:28] == 0).all()  # behind the noisy cell: the road model
+    assert np.isnan(out[7:10, 20:26]).all()  # beside the pothole: unknown
