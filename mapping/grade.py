@@ -47,8 +47,9 @@ STATION_M = 1.0  # the grade is fitted every this far along the track (m): 1/10 
 MAX_STATIONS = 2000  # ... at most this many stations per drive (-): 60 km at 30 m
 # bump when the estimate changes for the same fixes and settings: the poses' key holds it, so
 # a resumed run does not keep poses from the earlier grade. 2: own prior, adaptive window;
-# 3: fitted at stations and interpolated; 4: scale pooled in its log, first window by mass
-GRADE_VERSION = 4
+# 3: fitted at stations and interpolated; 4: scale pooled in its log, first window by mass;
+# 5: the factor's Newton in x from the left, the mass the track's median
+GRADE_VERSION = 5
 SE_OVER_PRIOR = 0.5
 WINDOW_BISECTIONS = 12  # bisections in log of a first rung's 2x bracket (0.02 % of the window)
 KERNEL_REACH = 5.0  # a kernel's mass counted within this many windows (the rest < 4e-6 a fix)
@@ -57,7 +58,7 @@ KERNEL_REACH = 5.0  # a kernel's mass counted within this many windows (the rest
 # a prior on the log of the variance factor of information STATED_DOF / 2 (what that many
 # residuals hold on it), i.e. a log-normal of σ 1/√2 (σ uncertain by 1.4× at 1 sd, 2× at 2 sd)
 STATED_DOF = 4.0
-NEWTON_STEPS = 30  # Newton steps for the log variance factor (converges in < 10)
+NEWTON_STEPS = 60  # Newton steps for the log variance factor (<= 10 on real fixes, 23 at χ² 1e-30)
 # the least share of the fitted slope worth keeping: the posterior mean k·b (k = σ_γ² /
 # (σ_γ² + se²)) has a mean squared error σ_γ²(1 - k)(1 + 3k) when se is understated 2× (wander,
 # multipath), less than a level road's σ_γ² only for k > 2/3 (se < σ_γ / √2); below, the grade
@@ -148,8 +149,10 @@ def road_grade(
     while windows[-1] < 2.0 * s[-1]:
         windows.append(min(2.0 * windows[-1], 2.0 * float(s[-1])))
     target = SE_OVER_PRIOR * math.sqrt(prior_var)
-    # the first rung's kernel mass away from the track's ends (fixes per metre x √(2π) window)
-    mass = math.sqrt(2.0 * math.pi) * window_m * len(sa) / max(float(sa[-1] - sa[0]), 1e-9)
+    # the first rung's kernel mass at a typical place along the track (the median over evenly
+    # spaced points: a stop or a slow stretch piles fixes up in a few metres and must not set it
+    # for the rest of the track, as the mean density did: 2-5x wider first windows)
+    mass = _typical_mass(sa, window_m)
     for i in range(m):
         prev: tuple[float, float] | None = None  # (window, se) of the last rung tried
         first = _window_holding(sa - at[i], mass, window_m, windows[-1])
@@ -182,6 +185,20 @@ def road_grade(
     return RoadGrade(np.arctan(grade * keep), np.arctan(se), keep)
 
 
+def _typical_mass(sa: np.ndarray, win: float) -> float:
+    """The median over 201 evenly spaced points of the track of the kernel mass (σ ``win``, m)
+    over the fixes at distances ``sa`` (m, ascending) along it."""
+    probes = np.linspace(float(sa[0]), float(sa[-1]), 201)
+    return float(np.median([_kernel_mass(sa - p, win) for p in probes]))
+
+
+def _kernel_mass(ds: np.ndarray, win: float) -> float:
+    """Mass of a Gaussian kernel of σ ``win`` (m) over fixes at distances ``ds`` (m, ascending),
+    counted within ``KERNEL_REACH`` windows."""
+    a, b = np.searchsorted(ds, [-KERNEL_REACH * win, KERNEL_REACH * win])
+    return float(np.exp(-0.5 * (ds[a:b] / win) ** 2).sum())
+
+
 def _window_holding(ds: np.ndarray, mass: float, lo: float, hi: float) -> float:
     """The Gaussian window (m, within [lo, hi]) whose kernel over the fixes at distances ``ds``
     (m, ascending) holds ``mass``: near a track's end, or across a GPS outage, a kernel loses
@@ -193,8 +210,7 @@ def _window_holding(ds: np.ndarray, mass: float, lo: float, hi: float) -> float:
     bracket, then bisected in log."""
 
     def held(win: float) -> float:
-        a, b = np.searchsorted(ds, [-KERNEL_REACH * win, KERNEL_REACH * win])
-        return float(np.exp(-0.5 * (ds[a:b] / win) ** 2).sum())
+        return _kernel_mass(ds, win)
 
     if held(lo) >= mass:
         return lo
@@ -265,22 +281,25 @@ def variance_factor(chi2: float, nu: float, prior_dof: float = STATED_DOF) -> fl
     and holds f >= ν₀ / (ν₀ + ν) whatever the residuals say: an RTK receiver's 1/100 (heights
     10× better than HDOP × 0.5 m) read as 0.15 from 24 fixes (benchmarks.variation's
     mount15_r0: the white se 3.9× what the scatter gives, the 1 % grade dropped as unresolved);
-    here 0.028. Where the scatter is within ~2× of the stated σ the two agree within a few %."""
+    here 0.028. Where the scatter is within ~2× of the stated σ the two agree within ~10 % (ν ≥ 7;
+    a few % for ν ≥ 20)."""
     if not (nu > 0 and chi2 > 0 and math.isfinite(chi2)):
         return 1.0  # no residual scatter to go by: the stated σ
-    a, c = 0.5 * prior_dof, 0.5 * nu * chi2
-    # Newton from the arithmetic pool: g falls and is convex, its tangent lies under it, so
-    # after the first step the iterates sit at or below the root and rise to it
-    u = math.log((prior_dof + nu * chi2) / (prior_dof + nu))
+    a, half = 0.5 * prior_dof, 0.5 * nu
+    lc = math.log(half) + math.log(chi2)  # log c, c = ν χ² / 2
+    # The mode solves c e^-u = ν/2 + a u. In x = ν/2 + a u (> 0 at the mode): φ(x) = log c +
+    # ν/(2a) - x/a - log x = 0; φ falls and is convex, so Newton from a point left of the root
+    # rises to it monotonically; x = min(c, ν/2) is one (φ(c) = (ν/2 - c)/a, φ(ν/2) = log χ²).
+    # Newton in u from the arithmetic pool overshot far left for χ² << 1 with many residuals
+    # (a 10-20 Hz RTK log, a stop) and crawled back, or overflowed exp(-u)
+    x = min(math.exp(lc), half)
     for _ in range(NEWTON_STEPS):
-        ce = c * math.exp(-u)
-        g = ce - 0.5 * nu - a * u  # d log posterior / du
-        step = g / (ce + a)
-        u += step
-        if abs(step) < 1e-10:
+        step = (lc + half / a - x / a - math.log(x)) / (1.0 / a + 1.0 / x)
+        x += step
+        if abs(step) <= 1e-13 * x:
             break
-    info = c * math.exp(-u) + a
-    return math.exp(u + 0.5 / info)
+    # the information at the mode: c e^-u + a = x + a
+    return math.exp((x - half) / a + 0.5 / (x + a))
 
 
 def _line(x: np.ndarray, z: np.ndarray, w: np.ndarray) -> tuple[float, float, float, float] | None:

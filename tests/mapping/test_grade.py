@@ -8,7 +8,13 @@ import numpy as np
 import pytest
 
 from roadsurf.core.geometry import vehicle_from_cam_rotation
-from roadsurf.mapping.grade import _window_holding, road_grade, up_axes_in_cam, variance_factor
+from roadsurf.mapping.grade import (
+    _typical_mass,
+    _window_holding,
+    road_grade,
+    up_axes_in_cam,
+    variance_factor,
+)
 from roadsurf.mapping.pose_gps import GpsFixes
 
 PRIOR = math.atan(0.02)  # MappingConfig.grade_sigma_pct
@@ -259,3 +265,30 @@ def test_stations_interpolated_to_many_frames_match_the_frames_own_fits() -> Non
     b_at_few = np.interp(few, many, b.grade_rad)
     assert np.max(np.abs(np.degrees(b_at_few - a.grade_rad))) < 0.02
     assert np.all(np.isfinite(b.grade_rad)) and np.all((b.shrink >= 0) & (b.shrink <= 1))
+
+
+def test_the_variance_factor_is_exact_for_many_tight_residuals() -> None:
+    """A 10-20 Hz RTK log or a stop: many residuals far below the stated σ. The factor is the
+    Laplace mean at the posterior mode (checked against a bracketing root finder), and an exact
+    (zero-scatter) log does not overflow."""
+    from scipy.optimize import brentq
+
+    for chi2, nu in ((1e-4, 300.0), (5e-5, 500.0), (2e-4, 300.0), (0.3, 40.0), (9.0, 60.0)):
+        a, c = 2.0, 0.5 * nu * chi2  # STATED_DOF = 4 residuals: a = 2
+        u = brentq(
+            lambda u, a=a, c=c, nu=nu: c * math.exp(-u) - 0.5 * nu - a * u, -60, 60, xtol=1e-14
+        )
+        want = math.exp(u + 0.5 / (c * math.exp(-u) + a))
+        assert variance_factor(chi2, nu) == pytest.approx(want, rel=1e-9)
+    assert 0 < variance_factor(1e-12, 5000.0) < 1e-10
+    assert 0 < variance_factor(1e-30, 1e7) < 1e-28
+
+
+def test_a_stop_does_not_widen_the_first_window_along_the_track() -> None:
+    """The first rung's mass is the track's typical one: 600 fixes piled up at a stop do not
+    raise it (the mean density did, and every first window along the track widened 2-5x)."""
+    sa = np.arange(0.0, 400.0, 1.0)  # 5 Hz at 5 m/s
+    with_stop = np.sort(np.r_[sa, np.full(600, 200.0)])
+    assert _typical_mass(with_stop, 10.0) == pytest.approx(_typical_mass(sa, 10.0), rel=0.02)
+    mass = _typical_mass(with_stop, 10.0)
+    assert _window_holding(with_stop - 100.0, mass, 10.0, 800.0) == pytest.approx(10.0, rel=1e-3)
