@@ -85,9 +85,13 @@ def single_view_heights(
     iy, ix = np.divmod(np.flatnonzero(known)[used], values.shape[1])
     r = RELIEF_BLOCK_HALF
     dy, dx = np.mgrid[-r : r + 1, -r : r + 1]
-    yy = np.clip(iy[:, None] + dy.ravel()[None, :], 0, values.shape[0] - 1)
-    xx = np.clip(ix[:, None] + dx.ravel()[None, :], 0, values.shape[1] - 1)
-    block = values[yy, xx]  # NaN where unknown; the cell itself is known
+    h, w = values.shape
+    yy = iy[:, None] + dy.ravel()[None, :]
+    xx = ix[:, None] + dx.ravel()[None, :]
+    inside = (yy >= 0) & (yy < h) & (xx >= 0) & (xx < w)
+    # NaN where unknown or beyond the tile (a clipped index would count an edge cell again);
+    # the cell itself is known and inside
+    block = np.where(inside, values[np.clip(yy, 0, h - 1), np.clip(xx, 0, w - 1)], np.nan)
     relief = np.abs(np.nanmedian(block, axis=1)) > road_m
     out[np.flatnonzero(near)[relief[inv]]] = np.nan
     return out

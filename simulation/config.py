@@ -223,15 +223,17 @@ class SimConfig:
             )
 
     def check_view(self) -> None:
-        """Raise ConfigError unless every image-border ray of the level camera looks at least
-        MIN_DEPRESSION_DEG below the horizon: rays near or above it never meet the road."""
-        worst = self._min_depression_deg(self.mount_pitch_deg)
+        """Raise ConfigError unless every image-border ray of the camera looks at least
+        MIN_DEPRESSION_DEG below the horizon: rays near or above it never meet the road. On a
+        climb the vehicle pitches nose-up by the grade (``World.pose``): its rays look higher."""
+        climb = math.degrees(math.atan(max(self.grade, 0.0)))
+        worst = self._min_depression_deg(self.mount_pitch_deg + climb)
         if worst >= MIN_DEPRESSION_DEG:
             return
         ok = [
             p
             for p in np.arange(60.0, -0.01, -0.5)
-            if self._min_depression_deg(p) >= MIN_DEPRESSION_DEG
+            if self._min_depression_deg(p + climb) >= MIN_DEPRESSION_DEG
         ]
         hint = (
             f"mount_pitch_deg <= {ok[0]:g} works with this fx and height"
@@ -240,7 +242,8 @@ class SimConfig:
         )
         raise ConfigError(
             f"simulator: the image's upper border looks only {worst:.1f} deg below the horizon "
-            f"(mount_pitch_deg={self.mount_pitch_deg:g}, mount_roll_deg={self.mount_roll_deg:g}, "
+            f"(mount_pitch_deg={self.mount_pitch_deg:g} on a grade of {self.grade:g}, "
+            f"mount_roll_deg={self.mount_roll_deg:g}, "
             f"mount_yaw_deg={self.mount_yaw_deg:g}, fx={self.fx:g} px, height={self.height} px); "
             f"the renderer needs >= {MIN_DEPRESSION_DEG:g} deg so every ray meets the road. Lower "
             f"mount_pitch_deg, raise fx or lower height ({hint})."

@@ -380,3 +380,16 @@ def test_one_noisy_edge_cell_does_not_blank_the_single_view_road_behind_it() -> 
     out[cells] = single_view_heights(v, cells, near_px=10.0, road_m=0.002)
     assert (out[17:24, 20:28] == 0).all()  # behind the noisy cell: the road model
     assert np.isnan(out[7:10, 20:26]).all()  # beside the pothole: unknown
+
+
+def test_the_relief_block_is_not_padded_at_a_tile_corner() -> None:
+    """At a tile's corner the block holds only the cells inside the tile: one noisy corner cell
+    among three road cells is outvoted there as anywhere else."""
+    from roadsurf.mapping.rasterfill import single_view_heights
+
+    v = np.full((30, 30), np.nan, np.float32)
+    v[:2, :2] = 0.0003
+    v[0, 0] = -0.005  # the noisy cell, in the corner
+    cells = ~np.isfinite(v)
+    got = single_view_heights(v, cells, near_px=8.0, road_m=0.002)
+    assert (got == 0).all()

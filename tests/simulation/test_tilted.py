@@ -207,6 +207,11 @@ def test_a_view_reaching_the_horizon_is_refused(tmp_path: Path) -> None:
     assert not out.exists()  # refused before writing anything
     with pytest.raises(ConfigError, match="below the horizon"):
         build_world(SimConfig(mount_pitch_deg=58.0), 1, 2)
+    # on a 20 % climb the vehicle pitches nose-up 11°: a 55° mount a level road takes is refused
+    SimConfig(mount_pitch_deg=55.0, grade=0.0).check_view()
+    SimConfig(mount_pitch_deg=55.0, grade=-0.2).check_view()
+    with pytest.raises(ConfigError, match="on a grade of 0.2"):
+        build_world(SimConfig(mount_pitch_deg=55.0, grade=0.2), 1, 2)
     with pytest.raises(ConfigError, match="mount_pitch_deg"):
         make_config("flat", mount_pitch_deg=70.0)  # outside the field's range
     make_config("flat", mount_pitch_deg=45.0, mount_roll_deg=15.0, mount_yaw_deg=-15.0)
