@@ -276,10 +276,17 @@ def segment_windows(
             reg.noise_m, reg.seed_m = seg.noise_m, seg.seed_m
             if count is not None:
                 # cells deeper than T_d that two or more pairs measured alike (dense_fuse keeps
-                # a pair's sample only within 3 σ of the cell's weighted median)
-                deep = np.nan_to_num(reg.depth_m, nan=0.0) >= reg.seed_m
-                n2 = count[reg.rows - win.r0, reg.cols - win.c0] >= 2
-                reg.dense_support_m2 = float((deep & n2).sum() * grid.gsd_m**2)
+                # a pair's sample only within 3 σ of the cell's weighted median), or deeper
+                # than 2 T_d that one pair's dense matching measured (count 1, not filled): one
+                # pair's cells get no second view to average a systematic error of its match
+                # (a mismatched block in a tilted camera's far field read 14-17 mm over
+                # 70-210 cm² at 45°), so they must clear twice the threshold. Most of a tilted
+                # camera's road is seen by one pair: a 14 cm, 53 mm pothole there (2 feature
+                # points) was vetoed on the varied drive when two pairs were asked of it
+                d = np.nan_to_num(reg.depth_m, nan=0.0)
+                n = count[reg.rows - win.r0, reg.cols - win.c0]
+                ok = ((d >= reg.seed_m) & (n >= 2)) | ((d >= 2 * reg.seed_m) & (n >= 1))
+                reg.dense_support_m2 = float(ok.sum() * grid.gsd_m**2)
             regions.append(reg)
     merged = merge_regions(regions, grid.width, ev_pair)
     noise = float(np.median(noises)) if noises else float("nan")

@@ -193,27 +193,32 @@ class _ArraySource:
         return None if self.count is None else self.count[r0 : r0 + h, c0 : c0 + w]
 
 
-def test_dense_support_counts_deep_cells_two_pairs_measured() -> None:
+def test_dense_support_counts_deep_cells_two_pairs_or_one_pair_twice_as_deep() -> None:
     """A region's dense support: its cells deeper than T_d that two or more pairs' dense
-    heights share (surface_nobs >= 2), as an area; none without a count raster."""
+    heights share (surface_nobs >= 2), and those one pair measured (count 1) deeper than 2 T_d,
+    as an area; filled cells (count 0) never; none without a count raster."""
     rng = np.random.default_rng(5)
     n = 240
-    res = rng.normal(0, 0.0003, (n, n)).astype(np.float32)
     rr, cc = np.mgrid[0:n, 0:n]
     disc = (rr - 120) ** 2 + (cc - 120) ** 2 < 30**2
-    res[disc] -= 0.03
     count = np.ones((n, n), np.uint8)
     count[:, :120] = 2  # the left half seen by two pairs
-    g = _ArraySource(res, count).grid
-    seed = g.xy_from_rowcol(np.array([120]), np.array([120]))
-    segs = {}
-    for name, cnt in (("count", count), ("none", None)):
-        src = _ArraySource(res, cnt)
-        segs[name] = segment_windows(src, CFG.map, seed, seed, np.zeros(1, int), min_points=1)
-    (reg,) = [r for r in segs["count"].regions if len(r.rows) > 1000]
-    half = disc[:, :120].sum() * 0.005**2
-    assert reg.dense_support_m2 == pytest.approx(half, rel=0.1)
-    assert all(r.dense_support_m2 == 0 for r in segs["none"].regions)
+    count[:60, :] = 0  # the top rows filled, not measured
+    measured = disc & (rr >= 60)
+    for depth in (0.03, 0.012):  # 3.75 and 1.5 x T_d (8 mm)
+        res = rng.normal(0, 0.0003, (n, n)).astype(np.float32)
+        res[disc] -= depth
+        g = _ArraySource(res, count).grid
+        seed = g.xy_from_rowcol(np.array([120]), np.array([120]))
+        segs = {}
+        for name, cnt in (("count", count), ("none", None)):
+            src = _ArraySource(res, cnt)
+            segs[name] = segment_windows(src, CFG.map, seed, seed, np.zeros(1, int), min_points=1)
+        (reg,) = [r for r in segs["count"].regions if len(r.rows) > 1000]
+        assert reg.seed_m == pytest.approx(0.008, abs=0.001)
+        part = measured if depth > 2 * reg.seed_m else measured & (cc < 120)
+        assert reg.dense_support_m2 == pytest.approx(part.sum() * 0.005**2, rel=0.1)
+        assert all(r.dense_support_m2 == 0 for r in segs["none"].regions)
 
 
 def test_raster_source_reads_the_road_model_cells_as_unknown(tmp_path) -> None:
