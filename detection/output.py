@@ -145,6 +145,12 @@ def load_result(run_dir: Path, signature: str) -> DetectionResult | None:
     return res
 
 
+# bump when detection changes its outputs for the same inputs and settings: a resumed run then
+# re-detects instead of keeping the earlier outputs. 2: one pair's dense cells deeper than 2 T_d
+# support a region (windows.segment_windows)
+DETECTION_VERSION = 2
+
+
 def signature(
     cfg: DetectionConfig,
     pairs: list[PairResult],
@@ -153,8 +159,10 @@ def signature(
     frame_probs: dict[str, float] | None,
     fusion: FusionRule | None = None,
 ) -> str:
-    """Hash of everything the outputs depend on (config, pairs, poses, raster, CNN scores)."""
+    """Hash of everything the outputs depend on (config, pairs, poses, raster, CNN scores, and
+    ``DETECTION_VERSION``)."""
     fp = Fingerprint().add_json(to_dict(cfg), default_str=False)
+    fp.add_text(f"detection v{DETECTION_VERSION}")
     for p in pairs:
         fp.add_text(f"{p.frame_a}|{p.frame_b}|{p.status}|{p.n_points}|{p.method}")
         if p.n_points:

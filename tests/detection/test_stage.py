@@ -329,3 +329,15 @@ def test_pairs_analysed_by_threads_match_one_thread(tmp_path):
                 va, vb = np.asarray(va), np.asarray(vb)  # NaN: a share not measured
                 assert np.array_equal(va, vb, equal_nan=va.dtype.kind == "f"), f.name
     assert any(one[k].refined.any() for k in one)
+
+
+def test_the_signature_holds_the_detection_version(tmp_path, monkeypatch):
+    """A resumed run re-detects after detection changed its outputs (DETECTION_VERSION)."""
+    from roadsurf.detection import output
+    from roadsurf.mapping.types import Trajectory
+
+    traj = Trajectory(["a.png"], np.zeros(1, int), np.zeros(1), np.eye(4)[None], ["gps"], None)
+    one = output.signature(DetectionConfig(), [], traj, tmp_path, None)
+    assert output.signature(DetectionConfig(), [], traj, tmp_path, None) == one
+    monkeypatch.setattr(output, "DETECTION_VERSION", output.DETECTION_VERSION + 1)
+    assert output.signature(DetectionConfig(), [], traj, tmp_path, None) != one
