@@ -167,6 +167,54 @@ class Segmentation:
     grid: GridSpec  # grid of ``smoothed`` and of the regions' rows/cols (cropped to the data)
 
 
+def _bridged_components(
+    rim: np.ndarray, rim_lab: np.ndarray, n_rim: int, unknown: np.ndarray, radius_px: float
+) -> np.ndarray:
+    """(n_rim + 1,) int: for each rim component (1..n_rim) of the (H, W) ``rim`` mask, a group
+    number shared by the parts of one defect cut by an unknown strip: ``rim`` is closed (a disk
+    of ``radius_px``) through ``unknown`` cells only, and two components that one piece of that
+    bridge touches are joined when each touches it along at least half its own equivalent side
+    (√cells / 2): a pothole cut across meets the strip along its width on both sides, a second
+    pothole that only grazes the strip with a corner stays apart. Index 0 and components not
+    joined keep their own number."""
+    out = np.arange(n_rim + 1)
+    if radius_px <= 0 or n_rim < 2 or not unknown.any():
+        return out
+    # closing by a disk through distance transforms: dilate (within r of rim), then erode
+    grown = ndimage.distance_transform_edt(~rim) <= radius_px
+    closed = ndimage.distance_transform_edt(grown) > radius_px
+    bridge = closed & unknown & ~rim
+    if not bridge.any():
+        return out
+    blab, _ = ndimage.label(bridge, structure=np.ones((3, 3), bool))
+    near = ndimage.grey_dilation(blab, size=3)  # a bridge piece's label on the cells around it
+    touch = rim & (near > 0)
+    if not touch.any():
+        return out
+    size = np.bincount(rim_lab[rim], minlength=n_rim + 1)
+    key = rim_lab[touch].astype(np.int64) * (int(blab.max()) + 1) + near[touch]
+    keys, contact = np.unique(key, return_counts=True)
+    comp, piece = np.divmod(keys, int(blab.max()) + 1)
+    ok = contact >= 0.5 * np.sqrt(size[comp])
+    parent = np.arange(n_rim + 1)
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = int(parent[i])
+        return i
+
+    first: dict[int, int] = {}
+    for c, p in zip(comp[ok].tolist(), piece[ok].tolist(), strict=True):
+        if p in first:
+            a, b = find(c), find(first[p])
+            if a != b:
+                parent[a] = b
+        else:
+            first[p] = c
+    return np.array([find(i) for i in range(n_rim + 1)])
+
+
 def segment(
     surface: Surface,
     cfg: MapSegmentConfig,
@@ -185,6 +233,7 @@ def segment(
         return Segmentation(float("nan"), float("nan"), float("nan"), [], res, grid)
     # Fill small holes from observed neighbours, then smooth lightly (σ in metres).
     res = np.where(np.isfinite(res), res, smooth_nan(res, cfg.fill_px))
+    unknown = ~np.isfinite(res)
     if cfg.level_window_m > 0:
         # Re-level: the residual of a real map drifts by millimetres around zero (seams, local
         # fits); measure depth from the surrounding road instead. Deep cells are left out.
@@ -202,7 +251,8 @@ def segment(
     rim = depth_s >= rim_t
     rim = ndimage.binary_closing(rim, structure=np.ones((3, 3), bool)) | rim
     rim &= _near_seeds(seed, grid.gsd_m, cfg.rim_max_grow_frac, cfg.rim_max_grow_min_m)
-    rim_lab, _ = ndimage.label(rim, structure=np.ones((3, 3), bool))
+    rim_lab, n_rim = ndimage.label(rim, structure=np.ones((3, 3), bool))
+    bridge_of = _bridged_components(rim, rim_lab, n_rim, unknown, cfg.bridge_unknown_m / grid.gsd_m)
     seed_rc = np.argwhere(seed)
     if len(seed_rc) == 0:
         return Segmentation(noise, seed_t, rim_t, [], sm, grid)
@@ -254,6 +304,16 @@ def segment(
                 parent[a] = b
         else:
             comp_first[comp] = lab
+    # rim components joined across an unknown strip (a gap between two pairs' views)
+    first_by_bridge: dict[int, int] = {}
+    for comp, lab in comp_first.items():
+        b = int(bridge_of[comp])
+        if b in first_by_bridge:
+            a, c = find(lab), find(first_by_bridge[b])
+            if a != c:
+                parent[a] = c
+        else:
+            first_by_bridge[b] = lab
     groups: dict[int, set[int]] = {}
     for comp, lab in comp_first.items():
         groups.setdefault(find(lab), set()).add(comp)

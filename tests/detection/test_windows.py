@@ -273,3 +273,30 @@ def test_raster_source_plain_read_equals_the_masked_read(tmp_path, nodata) -> No
         got = src.read(0, 0, 520, 600)
         assert np.isnan(got[:, :256]).all() and np.isnan(got[256:]).all()  # unwritten blocks
     src.close()
+
+
+def test_a_pothole_cut_by_an_unknown_strip_is_one_defect_a_grazing_neighbour_is_not() -> None:
+    """Below 50 % overlap a strip between two pairs' parts is unknown: the two halves of a
+    pothole it cuts are joined across it (they meet it along their width), a second pothole
+    whose corner grazes the strip stays apart, and measured road never bridges."""
+    from scipy import ndimage
+
+    from roadsurf.detection.mapseg import _bridged_components
+
+    n = 200
+    rr, cc = np.mgrid[0:n, 0:n]
+    unknown = (cc >= 90) & (cc < 110)  # a 20-cell strip across the drive
+    pothole = (rr - 60) ** 2 + (cc - 100) ** 2 < 40**2
+    rim = pothole & ~unknown  # cut in two by the strip
+    rim |= (rr - 150) ** 2 + (cc - 140) ** 2 < 31**2  # a neighbour: its corner at column 109
+    rim &= ~unknown
+    rim |= (rr >= 150) & (rr < 190) & (cc >= 20) & (cc < 60)  # a patch beyond measured road
+    rim |= (rr >= 150) & (rr < 190) & (cc >= 64) & (cc < 90)  # touches the strip
+    lab, k = ndimage.label(rim, structure=np.ones((3, 3), bool))
+    groups = _bridged_components(rim, lab, k, unknown, radius_px=12.0)
+    left, right = lab[60, 70], lab[60, 130]
+    neighbour, far_a, far_b = lab[150, 140], lab[170, 40], lab[170, 80]
+    assert groups[left] == groups[right]
+    assert groups[neighbour] != groups[right]
+    assert groups[far_a] != groups[far_b]
+    assert (_bridged_components(rim, lab, k, unknown, radius_px=0.0) == np.arange(k + 1)).all()
