@@ -48,8 +48,9 @@ MAX_STATIONS = 2000  # ... at most this many stations per drive (-): 60 km at 30
 # bump when the estimate changes for the same fixes and settings: the poses' key holds it, so
 # a resumed run does not keep poses from the earlier grade. 2: own prior, adaptive window;
 # 3: fitted at stations and interpolated; 4: scale pooled in its log, first window by mass;
-# 5: the factor's Newton in x from the left, the mass the track's median
-GRADE_VERSION = 5
+# 5: the factor's Newton in x from the left, the mass the track's median; 6: fitted again
+# without the fixes the pose fusion rejected (mapping.poses)
+GRADE_VERSION = 6
 SE_OVER_PRIOR = 0.5
 WINDOW_BISECTIONS = 12  # bisections in log of a first rung's 2x bracket (0.02 % of the window)
 KERNEL_REACH = 5.0  # a kernel's mass counted within this many windows (the rest < 4e-6 a fix)

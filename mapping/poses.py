@@ -46,7 +46,7 @@ from roadsurf.mapping.export import write_trajectory_csv, write_trajectory_geojs
 from roadsurf.mapping.grade import GRADE_VERSION, road_grade
 from roadsurf.mapping.mount import resolve
 from roadsurf.mapping.plausibility import CHECKS_VERSION, check, make_chains
-from roadsurf.mapping.pose_gps import gps_enu, interp_weights
+from roadsurf.mapping.pose_gps import GpsFixes, gps_enu, interp_weights
 from roadsurf.mapping.pose_graph import PoseGraph
 from roadsurf.mapping.pose_init import chain, initial_poses, segments
 from roadsurf.mapping.separate import keep_apart, segment_has_gps
@@ -161,26 +161,29 @@ def estimate_trajectory(
     comp = np.zeros(n, int)
     for i in range(1, n):
         comp[i] = comp[i - 1] + (0 if (i - 1, i) in consecutive else 1)
-    grade = road_grade(
-        t,
-        gps,
-        window_m=cfg.grade_window_m,
-        vertical_factor=cfg.gps_vertical_sigma_factor,
-        prior_sigma_rad=math.atan(cfg.grade_sigma_pct / 100.0),
-    )
-    mount = resolve(
-        drive.camera,
-        ok_pairs,
-        estimate=cfg.estimate_mount,
-        disagree_deg=cfg.mount_disagree_deg,
-        min_pitch_deg=cfg.mount_min_pitch_deg,
-        grade_known=grade.mean_shrink(),
-    )
-    rep.mount = mount.to_dict()
-    rep.mount.update(grade.to_dict())
-    rep.warnings += mount.warnings
-    R_vc = mount.R_vehicle_from_cam
-    g_rad = grade.grade_rad
+
+    def grade_and_mount(fixes: GpsFixes | None) -> tuple[np.ndarray, np.ndarray, list[str]]:
+        grade = road_grade(
+            t,
+            fixes,
+            window_m=cfg.grade_window_m,
+            vertical_factor=cfg.gps_vertical_sigma_factor,
+            prior_sigma_rad=math.atan(cfg.grade_sigma_pct / 100.0),
+        )
+        mount = resolve(
+            drive.camera,
+            ok_pairs,
+            estimate=cfg.estimate_mount,
+            disagree_deg=cfg.mount_disagree_deg,
+            min_pitch_deg=cfg.mount_min_pitch_deg,
+            grade_known=grade.mean_shrink(),
+        )
+        rep.mount = mount.to_dict()
+        rep.mount.update(grade.to_dict())
+        return mount.R_vehicle_from_cam, grade.grade_rad, mount.warnings
+
+    R_vc, g_rad, mount_warnings = grade_and_mount(gps)
+    rep.warnings += mount_warnings
     init = initial_poses(cfg, t, comp, consecutive, gps, rep, R_vc)
 
     # ---------------------------------------------------------------- segments
@@ -197,6 +200,21 @@ def estimate_trajectory(
     # ---------------------------------------------------------------- robust fusion
     problem = PoseGraph(cfg, t, init, ok_pairs, pos_of, gps, drive, comp, R_vc, g_rad)
     world = problem.solve(rep)
+    if gps is not None and rep.gps_outliers:
+        # The grade was fitted on every fix before the fusion found some wrong: a fix moved
+        # metres sideways lengthens the track the heights are measured along and flattens the
+        # slope (3 fixes moved 6 m: 0.16° kept of 0.45°, the camera 0.3° off in pitch). Fit it
+        # again on the fixes kept, and solve again with it.
+        keep = problem.gps_used
+        kept = GpsFixes(
+            gps.t_s[keep], gps.enu_m[keep], gps.sigma_m[keep], gps.has_alt[keep],
+            gps.orig_index[keep],
+        )  # fmt: skip
+        R_vc, g_rad, again = grade_and_mount(kept)
+        rep.warnings += [w for w in again if w not in mount_warnings]
+        init = initial_poses(cfg, t, comp, consecutive, gps, rep, R_vc)
+        problem = PoseGraph(cfg, t, init, ok_pairs, pos_of, gps, drive, comp, R_vc, g_rad)
+        world = problem.solve(rep)
     has_gps = segment_has_gps(segment, t, None if gps is None else gps.t_s)
     names = [f.filename for f in frames]
     world, warns = keep_apart(world, segment, pairs, pos_of, drive.camera, names, has_gps=has_gps)
