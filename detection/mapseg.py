@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 from scipy import ndimage
+from scipy.cluster.hierarchy import DisjointSet
 
 from roadsurf.core.fits import robust_sigma
 from roadsurf.detection.config import MapSegmentConfig, SeverityConfig
@@ -196,23 +197,11 @@ def _bridged_components(
     keys, contact = np.unique(key, return_counts=True)
     comp, piece = np.divmod(keys, int(blab.max()) + 1)
     ok = contact >= 0.5 * np.sqrt(size[comp])
-    parent = np.arange(n_rim + 1)
-
-    def find(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = int(parent[i])
-        return i
-
+    sets = DisjointSet(range(n_rim + 1))
     first: dict[int, int] = {}
     for c, p in zip(comp[ok].tolist(), piece[ok].tolist(), strict=True):
-        if p in first:
-            a, b = find(c), find(first[p])
-            if a != b:
-                parent[a] = b
-        else:
-            first[p] = c
-    return np.array([find(i) for i in range(n_rim + 1)])
+        sets.merge(c, first.setdefault(p, c))
+    return np.array([sets[i] for i in range(n_rim + 1)])
 
 
 def segment(
