@@ -275,37 +275,18 @@ def segment(
     comps = np.concatenate([seed_comp, ev_comp])
     # Union-find: mean-shift clusters and rim components that share points are one defect.
     n_cl = int(labels.max()) + 1 if len(labels) else 0
-    parent = list(range(n_cl))
-
-    def find(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
+    sets = DisjointSet(range(n_cl))
     comp_first: dict[int, int] = {}
     for lab, comp in zip(labels.tolist(), comps.tolist(), strict=True):
-        if comp <= 0:
-            continue
-        if comp in comp_first:
-            a, b = find(lab), find(comp_first[comp])
-            if a != b:
-                parent[a] = b
-        else:
-            comp_first[comp] = lab
+        if comp > 0:
+            sets.merge(lab, comp_first.setdefault(comp, lab))
     # rim components joined across an unknown strip (a gap between two pairs' views)
     first_by_bridge: dict[int, int] = {}
     for comp, lab in comp_first.items():
-        b = int(bridge_of[comp])
-        if b in first_by_bridge:
-            a, c = find(lab), find(first_by_bridge[b])
-            if a != c:
-                parent[a] = c
-        else:
-            first_by_bridge[b] = lab
+        sets.merge(lab, first_by_bridge.setdefault(int(bridge_of[comp]), lab))
     groups: dict[int, set[int]] = {}
     for comp, lab in comp_first.items():
-        groups.setdefault(find(lab), set()).add(comp)
+        groups.setdefault(sets[lab], set()).add(comp)
 
     objects = ndimage.find_objects(rim_lab)
     regions: list[Region] = []
