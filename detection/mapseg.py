@@ -24,6 +24,7 @@ from scipy.cluster.hierarchy import DisjointSet
 
 from roadsurf.core.fits import robust_sigma
 from roadsurf.detection.config import MapSegmentConfig, SeverityConfig
+from roadsurf.detection.mapbridge import bridged_components
 from roadsurf.detection.meanshift import mean_shift_flat
 from roadsurf.detection.planefit import nanmedian_last
 from roadsurf.detection.robust import CELL_SUPPORT, supported_max
@@ -168,42 +169,6 @@ class Segmentation:
     grid: GridSpec  # grid of ``smoothed`` and of the regions' rows/cols (cropped to the data)
 
 
-def _bridged_components(
-    rim: np.ndarray, rim_lab: np.ndarray, n_rim: int, unknown: np.ndarray, radius_px: float
-) -> np.ndarray:
-    """(n_rim + 1,) int: for each rim component (1..n_rim) of the (H, W) ``rim`` mask, a group
-    number shared by the parts of one defect cut by an unknown strip: ``rim`` is closed (a disk
-    of ``radius_px``) through ``unknown`` cells only, and two components that one piece of that
-    bridge touches are joined when each touches it along at least half its own equivalent side
-    (√cells / 2): a pothole cut across meets the strip along its width on both sides, a second
-    pothole that only grazes the strip with a corner stays apart. Index 0 and components not
-    joined keep their own number."""
-    out = np.arange(n_rim + 1)
-    if radius_px <= 0 or n_rim < 2 or not unknown.any():
-        return out
-    # closing by a disk through distance transforms: dilate (within r of rim), then erode
-    grown = ndimage.distance_transform_edt(~rim) <= radius_px
-    closed = ndimage.distance_transform_edt(grown) > radius_px
-    bridge = closed & unknown & ~rim
-    if not bridge.any():
-        return out
-    blab, _ = ndimage.label(bridge, structure=np.ones((3, 3), bool))
-    near = ndimage.grey_dilation(blab, size=3)  # a bridge piece's label on the cells around it
-    touch = rim & (near > 0)
-    if not touch.any():
-        return out
-    size = np.bincount(rim_lab[rim], minlength=n_rim + 1)
-    key = rim_lab[touch].astype(np.int64) * (int(blab.max()) + 1) + near[touch]
-    keys, contact = np.unique(key, return_counts=True)
-    comp, piece = np.divmod(keys, int(blab.max()) + 1)
-    ok = contact >= 0.5 * np.sqrt(size[comp])
-    sets = DisjointSet(range(n_rim + 1))
-    first: dict[int, int] = {}
-    for c, p in zip(comp[ok].tolist(), piece[ok].tolist(), strict=True):
-        sets.merge(c, first.setdefault(p, c))
-    return np.array([sets[i] for i in range(n_rim + 1)])
-
-
 def segment(
     surface: Surface,
     cfg: MapSegmentConfig,
@@ -241,7 +206,7 @@ def segment(
     rim = ndimage.binary_closing(rim, structure=np.ones((3, 3), bool)) | rim
     rim &= _near_seeds(seed, grid.gsd_m, cfg.rim_max_grow_frac, cfg.rim_max_grow_min_m)
     rim_lab, n_rim = ndimage.label(rim, structure=np.ones((3, 3), bool))
-    bridge_of = _bridged_components(rim, rim_lab, n_rim, unknown, cfg.bridge_unknown_m / grid.gsd_m)
+    bridge_of = bridged_components(rim, rim_lab, n_rim, unknown, cfg.bridge_unknown_m / grid.gsd_m)
     seed_rc = np.argwhere(seed)
     if len(seed_rc) == 0:
         return Segmentation(noise, seed_t, rim_t, [], sm, grid)

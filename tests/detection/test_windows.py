@@ -281,7 +281,7 @@ def test_a_pothole_cut_by_an_unknown_strip_is_one_defect_a_grazing_neighbour_is_
     whose corner grazes the strip stays apart, and measured road never bridges."""
     from scipy import ndimage
 
-    from roadsurf.detection.mapseg import _bridged_components
+    from roadsurf.detection.mapbridge import bridged_components
 
     n = 200
     rr, cc = np.mgrid[0:n, 0:n]
@@ -293,10 +293,10 @@ def test_a_pothole_cut_by_an_unknown_strip_is_one_defect_a_grazing_neighbour_is_
     rim |= (rr >= 150) & (rr < 190) & (cc >= 20) & (cc < 60)  # a patch beyond measured road
     rim |= (rr >= 150) & (rr < 190) & (cc >= 64) & (cc < 90)  # touches the strip
     lab, k = ndimage.label(rim, structure=np.ones((3, 3), bool))
-    groups = _bridged_components(rim, lab, k, unknown, radius_px=12.0)
+    groups = bridged_components(rim, lab, k, unknown, radius_px=12.0)
     left, right = lab[60, 70], lab[60, 130]
     neighbour, far_a, far_b = lab[150, 140], lab[170, 40], lab[170, 80]
     assert groups[left] == groups[right]
     assert groups[neighbour] != groups[right]
     assert groups[far_a] != groups[far_b]
-    assert (_bridged_components(rim, lab, k, unknown, radius_px=0.0) == np.arange(k + 1)).all()
+    assert (bridged_components(rim, lab, k, unknown, radius_px=0.0) == np.arange(k + 1)).all()
