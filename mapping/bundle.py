@@ -71,8 +71,9 @@ log = logging.getLogger(__name__)
 # recomputes its poses (2: relief weight per frame, the pairs' motions, heading placement; 4: a
 # rolling shutter's rows each from their own pose, the pairs' translations follow the focal)
 # 5: RS keeps the pose graph's mean tilt; 6: tracks.link_residuals_m; 7: its gross bound; 8: the
-# points' steps on dense blocks, one BLAS thread; 9: sparse point products (8, 9: rounding level)
-BUNDLE_VERSION = 9
+# points' steps on dense blocks, one BLAS thread; 9: sparse point products (8, 9: rounding level);
+# 10: the pose graph's slope kept at the placement length (bundle_gps.keep_placement)
+BUNDLE_VERSION = 10
 N_ANCHOR = 2  # frames before a window held at their refined poses
 MIN_OBS = 8  # a frame seeing fewer 3+-view track points keeps its pose graph pose
 MIN_OFFSET_S = 0.005  # a smaller GPS time offset is not applied (s)

@@ -242,3 +242,25 @@ def test_the_pose_graph_heading_is_kept_on_a_drive_shorter_than_the_placement_le
     out = keep_placement(moved, still, 25.0)
     assert np.allclose(out[:, :3, 3], 0.0, atol=1e-12)
     assert np.allclose(out[:, :3, :3], Rz)
+
+
+def test_the_pose_graph_slope_is_kept_and_the_cameras_pitch_with_it() -> None:
+    """24 m climbing 1 %: the bundle's windows hand a flatter slope on (0.5 %) and pitch every
+    camera down by the difference; the pose graph's slope (all fixes' heights at once) is kept,
+    and each camera is turned with its centre, so its pitch follows."""
+    n = 61
+    s = np.linspace(0.0, 24.0, n)
+    W = np.tile(np.eye(4), (n, 1, 1))
+    W[:, 0, 3], W[:, 1, 3], W[:, 2, 3] = 0.6 * s, 0.8 * s, 0.01 * s
+    cur = W.copy()
+    cur[:, 2, 3] = 0.005 * s
+    out = keep_placement(cur, W, 25.0)
+    assert abs(np.polyfit(s, out[:, 2, 3], 1)[0] - 0.01) < 2e-4
+    assert np.max(np.abs(out[:, 2, 3] - W[:, 2, 3])) < 2e-3
+    # the cameras turned by the slopes' difference about the axis across the travel
+    fwd = np.array([0.6, 0.8, 0.0])
+    turn = out[30, :3, :3] @ np.linalg.inv(cur[30, :3, :3])
+    want = np.arctan(0.01) - np.arctan(0.005)
+    assert abs(float((turn @ fwd)[2]) - np.sin(want)) < 1e-4
+    across = np.cross(fwd, [0.0, 0.0, 1.0])
+    assert np.allclose(turn @ across, across, atol=1e-9)
