@@ -8,6 +8,7 @@ import math
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from roadsurf.mapping.pose_gps import GpsFixes, interp_weights
 
@@ -76,15 +77,13 @@ def _slope_rotation(w: np.ndarray, b: np.ndarray, p: np.ndarray) -> np.ndarray:
         return np.eye(3)
     # the travel: the band's principal horizontal direction
     cov = (d * w[:, None]).T @ d
-    ev, vec = np.linalg.eigh(cov)
-    fwd = np.array([vec[0, 1], vec[1, 1], 0.0])
+    fwd = np.append(np.linalg.eigh(cov)[1][:, 1], 0.0)
     u_b, u_p = b[:, :2] @ fwd[:2], d @ fwd[:2]
     sb = float(w @ (u_b * b[:, 2])) / max(float(w @ u_b**2), 1e-12)  # the refined slope
     sp = float(w @ (u_p * p[:, 2])) / max(float(w @ u_p**2), 1e-12)  # the pose graph's
     theta = math.atan(sp) - math.atan(sb)
-    k = np.cross(fwd, [0.0, 0.0, 1.0])  # fwd x up: rotating fwd about it by θ raises it
-    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + math.sin(theta) * K + (1.0 - math.cos(theta)) * (K @ K)
+    # about fwd x up: rotating fwd about it by θ raises it
+    return Rotation.from_rotvec(theta * np.cross(fwd, [0.0, 0.0, 1.0])).as_matrix()
 
 
 def fit_time_offset(

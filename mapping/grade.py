@@ -210,20 +210,17 @@ def _window_holding(ds: np.ndarray, mass: float, lo: float, hi: float) -> float:
     track; the ladder then widens it as everywhere. The mass grows with the window: doubled to a
     bracket, then bisected in log."""
 
-    def held(win: float) -> float:
-        return _kernel_mass(ds, win)
-
-    if held(lo) >= mass:
+    if _kernel_mass(ds, lo) >= mass:
         return lo
     low, high = lo, min(2.0 * lo, hi)
-    while held(high) < mass:
+    while _kernel_mass(ds, high) < mass:
         if high >= hi:
             return hi
         low, high = high, min(2.0 * high, hi)
     a, b = math.log(low), math.log(high)
     for _ in range(WINDOW_BISECTIONS):
         mid = 0.5 * (a + b)
-        if held(math.exp(mid)) < mass:
+        if _kernel_mass(ds, math.exp(mid)) < mass:
             a = mid
         else:
             b = mid

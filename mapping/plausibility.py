@@ -278,12 +278,6 @@ def _hypotheses(drive: Drive, gps: GpsFixes, t: np.ndarray, chains: Chains, sigm
     return None
 
 
-def _subset(gps: GpsFixes, idx: np.ndarray) -> GpsFixes:
-    return GpsFixes(
-        gps.t_s[idx], gps.enu_m[idx], gps.sigma_m[idx], gps.has_alt[idx], gps.orig_index[idx]
-    )
-
-
 def receiver_sigma(t_s: np.ndarray, enu_m: np.ndarray, stated: np.ndarray) -> np.ndarray:
     """(G,) horizontal σ of the fixes for the plausibility windows: the stated σ, lowered to
     the track's own fix-to-fix scatter when that is smaller (an RTK receiver logging a
@@ -312,7 +306,7 @@ def _static(t: np.ndarray, chains: Chains, gps: GpsFixes, stated: np.ndarray,
     inside = np.flatnonzero((gps.t_s >= t[0]) & (gps.t_s <= t[-1]))
     if len(inside) < 3:
         return None
-    gps = _subset(gps, inside)
+    gps = gps.subset(inside)
     stated = stated[inside]
     n = len(gps.t_s)
     j = 0

@@ -28,6 +28,13 @@ class GpsFixes:
     has_alt: np.ndarray  # (G,) bool
     orig_index: np.ndarray  # (G,) index into drive.gps
 
+    def subset(self, idx: np.ndarray) -> GpsFixes:
+        """The fixes at ``idx`` (a (G,) bool mask or an index array)."""
+        return GpsFixes(
+            self.t_s[idx], self.enu_m[idx], self.sigma_m[idx], self.has_alt[idx],
+            self.orig_index[idx],
+        )  # fmt: skip
+
 
 def gps_enu(
     cfg: MappingConfig, drive: Drive, t: np.ndarray, rep: PoseReport

@@ -205,12 +205,7 @@ def estimate_trajectory(
         # metres sideways lengthens the track the heights are measured along and flattens the
         # slope (3 fixes moved 6 m: 0.16° kept of 0.45°, the camera 0.3° off in pitch). Fit it
         # again on the fixes kept, and solve again with it.
-        keep = problem.gps_used
-        kept = GpsFixes(
-            gps.t_s[keep], gps.enu_m[keep], gps.sigma_m[keep], gps.has_alt[keep],
-            gps.orig_index[keep],
-        )  # fmt: skip
-        R_vc, g_rad, again = grade_and_mount(kept)
+        R_vc, g_rad, again = grade_and_mount(gps.subset(problem.gps_used))
         rep.warnings += [w for w in again if w not in mount_warnings]
         init = initial_poses(cfg, t, comp, consecutive, gps, rep, R_vc)
         problem = PoseGraph(cfg, t, init, ok_pairs, pos_of, gps, drive, comp, R_vc, g_rad)
