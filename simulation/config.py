@@ -108,6 +108,17 @@ class SimConfig:
     jpeg_quality: int = 90  # JPEG quality (0-100)
     greyscale: bool = False  # write 8-bit single-channel images
 
+    # --- image-fixed overlays (simulation.overlay; in the image only, never in the truth) ---
+    overlay_text: bool = False  # a burned-in date/time/speed stamp: an opaque black box with
+    # white text in the top-left corner (35 % of the width, 6 % of the height, >= 12 px),
+    # fixed in the image; its text changes per frame
+    hood_share: float = 0.0  # the vehicle's bonnet over the bottom of the image: its top edge
+    # is this share of the image height (-) above the bottom edge at the centre, a gentle
+    # curve lower towards the sides; 0 = none
+    write_mask: bool = False  # write DRIVE/mask.png (uint8, 0 = the overlay pixels dilated by
+    # 2 px, 255 = usable) and `mask: mask.png` in camera.yaml; truth/mask.png is written with
+    # any overlay whether or not this is set
+
     # --- rendering ---------------------------------------------------------------------------
     supersample: int = 2  # rays per pixel along each axis (anti-aliasing)
     render_gsd_m: float | None = None  # world raster resolution (m); None = pixel footprint / 1.5
@@ -182,6 +193,7 @@ class SimConfig:
         "shot_noise": "[0, inf)",
         "exposure_time_s": "[0, 1]",
         "jpeg_quality": "[0, 100]",
+        "hood_share": "[0, 0.5]; a bonnet over more than half the image leaves little road",
         "supersample": "[1, inf)",
         "render_gsd_m": "(0, 1]; a raster cell above 1 m is a unit mistake",
         "raycast_iters": "[1, inf)",

@@ -25,6 +25,7 @@ from roadsurf.core.errors import ConfigError, RoadsurfError
 from roadsurf.io.formats import write_csv
 from roadsurf.simulation.build import build_world
 from roadsurf.simulation.config import SimConfig
+from roadsurf.simulation.overlay import MASK_NAME, apply_overlay, write_masks
 from roadsurf.simulation.placement import footprint_m
 from roadsurf.simulation.render import Renderer
 from roadsurf.simulation.sensors import (
@@ -222,7 +223,7 @@ def make_config(name: str, config: str | Path | None = None, **overrides: Any) -
 
 
 def prepare_out(out: Path) -> None:
-    known = {"frames", "truth", "camera.yaml", "frames.csv", "obd.csv"}
+    known = {"frames", "truth", "camera.yaml", "frames.csv", "obd.csv", MASK_NAME}
     known |= {"gps.csv", "gps.gpx", "gps.nmea"}
     if out.exists() and any(out.iterdir()):
         if not {p.name for p in out.iterdir()} <= known:
@@ -275,6 +276,8 @@ def simulate(
         gain = float(1.0 + cfg.exposure_var * rng.standard_normal())
         speed = float(np.interp(pose.t, world.traj.t, world.traj.speed))
         img = form_image(fr.radiance, cfg, speed, gain, rng)
+        img = apply_overlay(img, cfg, float(world.frame_times[k]), speed)  # burned in: after
+        # the sensor model, before encoding
         write_bytes_atomic(out / "frames" / names[k], encode_image(img, cfg))
         poses.append((names[k], pose))
         labels.append((names[k], fr.defect_area_m2, fr.max_depth_m))
@@ -319,7 +322,8 @@ def simulate(
 
 
 def write_camera_yaml(cfg: SimConfig, out: Path) -> None:
-    """out/camera.yaml of the simulated camera (the mount only with ``write_mount``)."""
+    """out/camera.yaml of the simulated camera (the mount only with ``write_mount``, the image
+    mask only with ``write_mask``) and the overlays' masks (``overlay.write_masks``)."""
     cam = cfg.camera()
     text = (
         "# written by roadsurf simulate\n"
@@ -335,6 +339,9 @@ def write_camera_yaml(cfg: SimConfig, out: Path) -> None:
         text += "".join(f"{k}: {v!r}\n" for k, v in zip(keys, cam.mount_deg, strict=True))
     if cam.readout_s > 0:  # a rolling shutter (docs/formats.md)
         text += f"readout_s: {cam.readout_s!r}\n"
+    if cfg.write_mask:  # the image mask, relative to camera.yaml's folder (docs/simulator.md)
+        text += f"mask: {MASK_NAME}\n"
+    write_masks(cfg, out)
     write_text_atomic(out / "camera.yaml", text)
 
 

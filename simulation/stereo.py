@@ -25,6 +25,7 @@ from roadsurf.core.atomic import write_bytes_atomic, write_json_atomic
 from roadsurf.core.errors import ConfigError
 from roadsurf.io.formats import write_csv
 from roadsurf.simulation.build import build_world
+from roadsurf.simulation.overlay import apply_overlay
 from roadsurf.simulation.placement import footprint_offset_m
 from roadsurf.simulation.render import Renderer
 from roadsurf.simulation.route import Pose
@@ -107,6 +108,7 @@ def simulate_stereo_pair(
     names = [f"{k:06d}.{cfg.image_format}" for k in range(2)]
     for k, fr in enumerate((fr0, fr1)):
         img = form_image(fr.radiance, cfg, 0.0, 1.0, np.random.default_rng([seed, 500 + k]))
+        img = apply_overlay(img, cfg, 0.5 * k, 0.0)  # the frames' times, a standing camera
         write_bytes_atomic(out / "frames" / names[k], encode_image(img, cfg))
     write_camera_yaml(cfg, out)
     write_csv(out / "frames.csv", ["filename", "timestamp_s"], [[names[0], 0.0], [names[1], 0.5]])
