@@ -116,6 +116,16 @@ CASES = [
         "barrel k1 -0.25, k2 0.08 (in camera.yaml)",
         args=_set("distortion=[-0.25, 0.08, 0.001, -0.001, 0.0]"),
     ),  # fmt: skip
+    Case(
+        "overlay",
+        "burned-in stamp + bonnet over 15 % (no mask: warns, suggests one)",
+        args=_set("overlay_text=true", "hood_share=0.15"),
+    ),  # fmt: skip
+    Case(
+        "overlay_mask",
+        "the same overlays, their mask in camera.yaml",
+        args=_set("overlay_text=true", "hood_share=0.15", "write_mask=true"),
+    ),  # fmt: skip
     Case("gps05", "GPS σ 0.5 m (RTK rate 5 Hz)", args=_set("gps_sigma_m=0.5")),
     Case("gps_outliers", "RTK GPS with 3 fixes moved 6 m", gps_outliers_m=6.0),
     Case("seed17", "potholes street, seed 17", args=("--seed", "17")),

@@ -137,9 +137,12 @@ def thin_dark_components(
     m_per_px: float,
     cfg: CrackConfig,
     gsd_at: Callable[[np.ndarray], np.ndarray] | None = None,
+    usable: np.ndarray | None = None,
 ) -> tuple[np.ndarray, list[int], np.ndarray, np.ndarray]:
     """Label image (H, W) int32, the ids of long thin dark components, their width (px) and the
-    ground size of a pixel where each lies (m/px).
+    ground size of a pixel where each lies (m/px). ``usable``: (H, W) bool pixels off the
+    camera's mask (None: all); line pixels elsewhere are dropped (the gaps between a burned-in
+    stamp's letters are thin dark lines).
 
     ``m_per_px`` sets the filters' scales (top-hat disc, line length); each component's length
     and width limits and its measured width use the ground size of a pixel at the component
@@ -156,6 +159,8 @@ def thin_dark_components(
     dark = darkness(gray, m_per_px, cfg)  # the long segment shares it at the same pixel size
     z, contrast = line_response(gray, m_per_px, cfg, dark=dark)
     mask = _above(z, cfg.contrast_k) & (contrast >= cfg.min_contrast)
+    if usable is not None:
+        mask &= usable
     extra: np.ndarray | None = None
     if cfg.line_long_m > cfg.line_m:
         # Busy textures: the long segment finds the crack where the short one drowns in
@@ -173,6 +178,8 @@ def thin_dark_components(
         if extra.any():
             extra = cv2.dilate(skeletonize(extra).astype(np.uint8), np.ones((3, 3), np.uint8))
             extra = extra.astype(bool) & (contrast >= cfg.min_contrast)
+    if extra is not None and usable is not None:
+        extra &= usable
     pieces = mask if extra is None or not extra.any() else mask | extra
     lab, keep, mask_w, gsd = _thin_pieces(pieces, m_per_px, cfg, gsd_at)
     if not keep:

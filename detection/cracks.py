@@ -116,7 +116,9 @@ def detect_pair_cracks(
     # Lengths and widths in metres at each crack's own pixels (a tilted camera's pixels cover
     # more road towards the horizon); ``m_per_px`` sets the filters' scales.
     gsd_at = None if cam is None else functools.partial(ground_px_m_raw, cam, fallback_m=m_per_px)
-    lab, keep, widths, gsds = thin_dark_components(gray, m_per_px, cfg, gsd_at)
+    # off the camera's mask by more than the line filter's half-width (3 px)
+    usable = None if cam is None or cam.mask is None else cam.mask.eroded(3.0)
+    lab, keep, widths, gsds = thin_dark_components(gray, m_per_px, cfg, gsd_at, usable)
     if not keep:
         return empty()
     h, w = lab.shape

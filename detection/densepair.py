@@ -142,6 +142,9 @@ def measure_dense(
         pb0[:, 1] <= gray_b.shape[0] - 1 - margin
     )
     use = (inside | ring) & in_b
+    if camera.mask is not None:  # LK windows off the camera's mask, in a and in b
+        use &= camera.usable_px(camera.distort_px(pa), margin)
+        use &= camera.usable_px(camera.distort_px(pb0), margin)
     if (inside & use).sum() < 10 or (ring & use).sum() < 30:
         return _none("too little of the defect in both images")
     a8, b8 = as_u8(gray_a), as_u8(gray_b)

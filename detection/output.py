@@ -159,11 +159,14 @@ def signature(
     run_dir: Path,
     frame_probs: dict[str, float] | None,
     fusion: FusionRule | None = None,
+    mask_digest: str | None = None,
 ) -> str:
-    """Hash of everything the outputs depend on (config, pairs, poses, raster, CNN scores, and
-    ``DETECTION_VERSION``)."""
+    """Hash of everything the outputs depend on (config, pairs, poses, raster, CNN scores, the
+    camera's image mask (``mask_digest``, None: none) and ``DETECTION_VERSION``)."""
     fp = Fingerprint().add_json(to_dict(cfg), default_str=False)
     fp.add_text(f"detection v{DETECTION_VERSION}")
+    if mask_digest:
+        fp.add_text(f"|mask {mask_digest}")
     for p in pairs:
         fp.add_text(f"{p.frame_a}|{p.frame_b}|{p.status}|{p.n_points}|{p.method}")
         if p.n_points:

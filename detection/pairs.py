@@ -81,13 +81,21 @@ def analyse_pair(
     # The image is raw (as captured); the pair's pixels are ideal (undistorted). Image work
     # reads the image where each point really is.
     px_img = _raw_px(np.asarray(pair.px_a, float), camera) if gray is not None else None
+    # pixels off the camera's mask by more than the refinement's window (None: all)
+    usable = None
+    if gray is not None and camera is not None and camera.mask is not None:
+        usable = camera.mask.eroded(max(1, cfg.refine.window_px) // 2 + 1)
     if refines(cfg) and gray is not None and refined.any():
         road = ~fit.candidate & (np.abs(fit.dist_m) < fit.threshold_m)
         dark = binarise(gray, cfg.refine, road_px=px_img[road])
+        if usable is not None:  # a burned-in stamp's black box is dark, not a defect
+            dark &= usable
         refined = correct_defects(
             fit.dist_m, px_img, fit.candidate, dark, fit.threshold_m, cfg.refine
         )
         mask = refined_mask(dark, px_img, refined, max(1, cfg.refine.window_px))
+        if usable is not None:
+            mask &= usable
     cracks = None
     if cfg.crack.enabled and gray is not None and m_per_px:
         road = ~fit.candidate & (np.abs(fit.dist_m) < fit.threshold_m)

@@ -95,7 +95,10 @@ def run(
     back instead of recomputed (``cfg.overwrite`` forces a recompute).
     """
     run_dir = Path(run_dir)
-    sig = signature(cfg, pairs, traj, run_dir, frame_probs, fusion)
+    mask = drive.camera.mask
+    sig = signature(
+        cfg, pairs, traj, run_dir, frame_probs, fusion, None if mask is None else mask.digest
+    )
     if not cfg.overwrite:
         cached = load_result(run_dir, sig)
         if cached is not None:

@@ -25,7 +25,6 @@ This module is the stage (``run``, ``build_map``); steps 1-2 are in ``mapping.cl
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import time
 from pathlib import Path
@@ -109,7 +108,7 @@ def _fingerprint(
         if run is not None:
             fp.add_text(read_fingerprint(run.pair(p.index_a, p.index_b)) or "-")
     if drive is not None:
-        fp.add_json(dataclasses.asdict(drive.camera)).add_text(vertical_datum(cfg, drive))
+        fp.add_json(drive.camera.fingerprint_fields()).add_text(vertical_datum(cfg, drive))
         if cfg.surface_source != "sparse" and drive.camera.readout_s > 0:
             from roadsurf.reconstruction.dense.rolling import DENSE_ROLLING_VERSION
 

@@ -123,7 +123,9 @@ class FrameMatcher:
     def _features(self, i: int) -> Features:
         from roadsurf.reconstruction.stage import frame_features
 
-        return frame_features(self.cfg, self.run_dir, self.drive.frames[i])[0]
+        return frame_features(self.cfg, self.run_dir, self.drive.frames[i], self.drive.camera.mask)[
+            0
+        ]
 
     def score(self, i: int, j: int) -> int:
         """Retrieval score of frames i and j (``retrieval.retrieval_score``); 0 when unreadable."""

@@ -112,6 +112,8 @@ def mosaic_tile(
         d = np.minimum.reduce(
             [u - border, cam.width - 1 - border - u, v - border, cam.height - 1 - border - v]
         )
+        if cam.mask is not None:  # feathered off the camera's mask as off the image border
+            d = np.minimum(d, cam.mask.clearance_at(u, v) - 1.0 - border)
         w = np.clip(d / feather, 0.0, 1.0)
         w = np.where(np.isfinite(w), w, 0.0).astype(np.float32) ** 2
         if not (w > 0).any():

@@ -167,7 +167,7 @@ def retry_stretched(
     t0 = time.perf_counter()
     best: PairResult | None = None
     for s in cfg.features.stretch_retry:
-        fb = feat.detect_stretched(image_b, cfg.features, s)
+        fb = feat.detect_stretched(image_b, cfg.features, s, camera.mask)
         r = reconstruct_features(
             fa, fb, camera, cfg, frame_dt_s=frame_dt_s, road_normal_cam=road_normal_cam
         )
@@ -195,12 +195,12 @@ def _check_overlap(res: PairResult, camera: Camera, cfg: ReconstructionConfig) -
             inside &= (px[:, axis] >= lo) & (px[:, axis] <= hi)
         px = px[inside]
     hull = cv2.convexHull(px.astype(np.float32))
-    share = float(cv2.contourArea(hull)) / float(camera.width * camera.height)
+    usable = 1.0 if camera.mask is None else 1.0 - camera.mask.masked_share
+    share = float(cv2.contourArea(hull)) / float(camera.width * camera.height * usable)
     if share < cfg.min_overlap:
         res.status = "no_overlap"
-        res.reason = (
-            f"matched points cover {share:.1%} of image a (< min_overlap={cfg.min_overlap})"
-        )
+        of = "image a" if camera.mask is None else "image a's unmasked pixels"
+        res.reason = f"matched points cover {share:.1%} of {of} (< min_overlap={cfg.min_overlap})"
 
 
 def _as_gray(x: np.ndarray | Frame) -> np.ndarray:
@@ -229,8 +229,8 @@ def reconstruct_pair(
             names[0], names[1], idx[0], idx[1], cfg.method, "unreadable_frame", str(e)
         )
     t0 = time.perf_counter()
-    fa = feat.detect(ga, cfg.features)
-    fb = feat.detect(gb, cfg.features)
+    fa = feat.detect(ga, cfg.features, camera.mask)
+    fb = feat.detect(gb, cfg.features, camera.mask)
     t_feat = time.perf_counter() - t0
     if frame_dt_s is None and isinstance(frame_a, Frame) and isinstance(frame_b, Frame):
         frame_dt_s = frame_b.timestamp_s - frame_a.timestamp_s

@@ -14,6 +14,7 @@ import numpy as np
 from roadsurf.core.atomic import write_npz_atomic
 from roadsurf.core.camera import capped_scale
 from roadsurf.core.errors import ConfigError
+from roadsurf.core.imagemask import ImageMask
 from roadsurf.reconstruction.config import FeatureConfig
 from roadsurf.reconstruction.types import Features
 
@@ -54,8 +55,10 @@ def to_gray(image: np.ndarray) -> np.ndarray:
     return img
 
 
-def detect(image: np.ndarray, cfg: FeatureConfig) -> Features:
-    """Detect and describe keypoints of one image, at most cfg.max_features, spread on a grid."""
+def detect(image: np.ndarray, cfg: FeatureConfig, mask: ImageMask | None = None) -> Features:
+    """Detect and describe keypoints of one image, at most cfg.max_features, spread on a grid.
+    ``mask`` (the camera's, raw pixels of ``image``): keypoints whose described neighbourhood
+    (radius size / 2) touches a masked pixel are dropped before the spread."""
     check_available(cfg)
     gray = to_gray(image)
     scale = capped_scale(cfg.downscale, gray.shape[1], gray.shape[0], cfg.max_detect_megapixels)
@@ -80,6 +83,13 @@ def detect(image: np.ndarray, cfg: FeatureConfig) -> Features:
     if not kps:
         return _empty(cfg)
     pts = np.array([k.pt for k in kps], dtype=np.float32) - pad
+    if mask is not None:
+        s = scale if 0 < scale < 1 else 1.0
+        radius = np.array([0.5 * k.size for k in kps]) / s
+        ok = mask.usable_at((pts.astype(np.float64) + 0.5) / s - 0.5, radius)
+        kps, pts = [k for k, o in zip(kps, ok, strict=True) if o], pts[ok]
+        if not kps:
+            return _empty(cfg)
     resp = np.array([k.response for k in kps], dtype=np.float32)
     keep = _spread(pts, resp, (h0, w0), cfg)
     kps, desc = det.compute(gray, [kps[i] for i in keep])
@@ -91,7 +101,9 @@ def detect(image: np.ndarray, cfg: FeatureConfig) -> Features:
     return Features(pts.astype(np.float32), desc, cfg.kind)
 
 
-def detect_stretched(image: np.ndarray, cfg: FeatureConfig, scale_v: float) -> Features:
+def detect_stretched(
+    image: np.ndarray, cfg: FeatureConfig, scale_v: float, mask: ImageMask | None = None
+) -> Features:
     """Features of ``image`` resized vertically by ``scale_v`` (0 < scale_v <= 1), detected and
     described there (an affine view simulation as in ASIFT) and returned at the pixel positions
     of the image as recorded (u right, v down), so everything after matching is unchanged."""
@@ -99,9 +111,15 @@ def detect_stretched(image: np.ndarray, cfg: FeatureConfig, scale_v: float) -> F
         raise ValueError(f"vertical scale {scale_v} outside (0, 1]")
     gray = to_gray(image)
     if scale_v == 1:
-        return detect(gray, cfg)
+        return detect(gray, cfg, mask)
     h = max(1, int(round(gray.shape[0] * scale_v)))
-    f = detect(cv2.resize(gray, (gray.shape[1], h), interpolation=cv2.INTER_AREA), cfg)
+    small = None
+    if mask is not None:  # the mask squeezed the same way (a pixel masked if any of it is)
+        sq = cv2.resize(
+            mask.usable.astype(np.float32), (gray.shape[1], h), interpolation=cv2.INTER_AREA
+        )
+        small = ImageMask(sq > 0.999, mask.source)
+    f = detect(cv2.resize(gray, (gray.shape[1], h), interpolation=cv2.INTER_AREA), cfg, small)
     pts = f.keypoints_px.astype(np.float64)
     pts[:, 1] = (pts[:, 1] + 0.5) * (gray.shape[0] / h) - 0.5  # pixel centres, not corners
     return Features(pts.astype(np.float32), f.descriptors, f.kind)

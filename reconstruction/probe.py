@@ -46,10 +46,11 @@ log = logging.getLogger(__name__)
 
 
 def _coarse_homography(
-    gray_a: np.ndarray, gray_b: np.ndarray, pcfg: ProbeConfig
+    gray_a: np.ndarray, gray_b: np.ndarray, pcfg: ProbeConfig, usable: np.ndarray | None = None
 ) -> tuple[np.ndarray | None, str]:
     """Homography (3, 3) a -> b in full-resolution pixels from SIFT on downscaled frames, or
-    (None, why)."""
+    (None, why). ``usable``: (H, W) bool pixels away from the camera's mask (keypoints only
+    there: a burned-in stamp matches itself with no motion)."""
     scale = min(1.0, float(np.sqrt(pcfg.coarse_megapixels * 1e6 / gray_a.size)))
     if scale < 1.0:
         sa = cv2.resize(gray_a, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
@@ -57,8 +58,12 @@ def _coarse_homography(
     else:
         sa, sb = gray_a, gray_b
     sift = cv2.SIFT_create(nfeatures=int(pcfg.coarse_features), contrastThreshold=0.01)
-    ka, da = sift.detectAndCompute(sa, None)
-    kb, db = sift.detectAndCompute(sb, None)
+    m = None
+    if usable is not None:
+        m = cv2.resize(usable.astype(np.uint8) * 255, (sa.shape[1], sa.shape[0]), None, 0, 0,
+                       cv2.INTER_NEAREST)  # fmt: skip
+    ka, da = sift.detectAndCompute(sa, m)
+    kb, db = sift.detectAndCompute(sb, m)
     if da is None or db is None or len(ka) < 8 or len(kb) < 8:
         return None, f"coarse alignment: {len(ka)} and {len(kb)} keypoints"
     matches = cv2.BFMatcher(cv2.NORM_L2, crossCheck=True).match(da, db)
@@ -93,7 +98,9 @@ def probe_pair(
     ga, gb = to_gray(image_a), to_gray(image_b)
     if ga.shape != gb.shape:
         raise ValueError(f"frames differ in size: {ga.shape} and {gb.shape}")
-    H, why = _coarse_homography(ga, gb, pcfg)
+    # pixels whose LK window / SIFT neighbourhood stays off the camera's mask
+    usable = None if camera.mask is None else camera.mask.eroded(max(pcfg.window_px // 2, 8))
+    H, why = _coarse_homography(ga, gb, pcfg, usable)
     if H is None:
         return _failed(cfg, "too_few_matches", why, t0)
     h, w = ga.shape
@@ -104,6 +111,10 @@ def probe_pair(
     q = cv2.perspectiveTransform(grid, H)[:, 0]
     m = pcfg.window_px // 2
     inside = (q[:, 0] >= m) & (q[:, 0] < w - m) & (q[:, 1] >= m) & (q[:, 1] < h - m)
+    if usable is not None:  # in a and at their coarse position in b
+        inside &= usable[ys.ravel(), xs.ravel()]
+        qi = np.clip(np.rint(q).astype(int), 0, [w - 1, h - 1])
+        inside &= usable[qi[:, 1], qi[:, 0]]
     mask = np.zeros((h, w), np.uint8)
     mask[ys.ravel()[inside], xs.ravel()[inside]] = 255
     mask = cv2.dilate(mask, np.ones((step + 1, step + 1), np.uint8))

@@ -33,6 +33,7 @@ from roadsurf.core.atomic import write_text_atomic
 from roadsurf.core.camera import Camera
 from roadsurf.core.errors import FrameReadError, OutputError
 from roadsurf.core.fingerprint import Fingerprint
+from roadsurf.core.imagemask import ImageMask
 from roadsurf.io.drive import Drive, Frame, read_gray
 from roadsurf.io.runfolder import RunFolder, feature_filename, fingerprint_path, read_fingerprint
 from roadsurf.reconstruction import consensus
@@ -52,7 +53,9 @@ log = logging.getLogger(__name__)
 NOT_IN_PAIR_FINGERPRINT = ("probe", "workers", "overwrite", "save_features")
 
 
-def _feature_path(run_dir: Path, frame: Frame, cfg: ReconstructionConfig) -> Path:
+def _feature_path(
+    run_dir: Path, frame: Frame, cfg: ReconstructionConfig, mask: ImageMask | None = None
+) -> Path:
     f = cfg.features
     # every detection setting is in the name, so a changed config never reuses stale features
     det = (f.grid_cells, f.downscale, f.max_detect_megapixels, f.contrast_threshold)
@@ -64,7 +67,10 @@ def _feature_path(run_dir: Path, frame: Frame, cfg: ReconstructionConfig) -> Pat
         f.border_pad_px,
     )
     # ... and so is the image file's identity: a re-rendered frame is detected again
-    digest = Fingerprint().add_repr(det).add_file_stat(frame.path, frame.filename).hexdigest(8)
+    fp = Fingerprint().add_repr(det).add_file_stat(frame.path, frame.filename)
+    if mask is not None:  # the camera's mask drops keypoints: a new mask, new features
+        fp.add_text(f"|mask {mask.digest}")
+    digest = fp.hexdigest(8)
     tag = f"{f.kind}{f.max_features}_{digest}"
     return RunFolder(run_dir).features_dir / feature_filename(frame.index, tag)
 
@@ -75,7 +81,7 @@ def pair_fingerprint(cfg: ReconstructionConfig, camera: Camera, a: Frame, b: Fra
     readout) and both frames' index, name, file size and mtime; with a rolling shutter also
     their timestamps (the frame interval enters the geometry)."""
     settings = {k: v for k, v in asdict(cfg).items() if k not in NOT_IN_PAIR_FINGERPRINT}
-    fp = Fingerprint().add_json(settings).add_json(asdict(camera))
+    fp = Fingerprint().add_json(settings).add_json(camera.fingerprint_fields())
     for f in (a, b):
         fp.add_text(f"|{f.index}|{f.filename}|").add_file_stat(f.path, "file")
         if camera.readout_s > 0:
@@ -84,19 +90,19 @@ def pair_fingerprint(cfg: ReconstructionConfig, camera: Camera, a: Frame, b: Fra
 
 
 def frame_features(
-    cfg: ReconstructionConfig, run_dir: Path, frame: Frame
+    cfg: ReconstructionConfig, run_dir: Path, frame: Frame, mask: ImageMask | None = None
 ) -> tuple[Features, float]:
     """A frame's features from RUN/features when cached there (with these detection settings
     and this image file), else detected (and saved with ``cfg.save_features``); with the
     detection time (s, 0 when read). FrameReadError propagates."""
-    path = _feature_path(run_dir, frame, cfg)
+    path = _feature_path(run_dir, frame, cfg, mask)
     if path.is_file() and not cfg.overwrite:
         try:
             return feat.load_features(path), 0.0
         except (OSError, ValueError, KeyError) as e:
             log.warning("%s: unreadable feature cache (%s); recomputing", path, e)
     t0 = time.perf_counter()
-    f = feat.detect(read_gray(frame), cfg.features)
+    f = feat.detect(read_gray(frame), cfg.features, mask)
     seconds = time.perf_counter() - t0
     if cfg.save_features:
         feat.save_features(path, f)
@@ -110,8 +116,15 @@ class _FeatureCache:
     workers already extract the features of the next frames (2 cores used).
     """
 
-    def __init__(self, cfg: ReconstructionConfig, run_dir: Path, frames: list[Frame]) -> None:
+    def __init__(
+        self,
+        cfg: ReconstructionConfig,
+        run_dir: Path,
+        frames: list[Frame],
+        mask: ImageMask | None = None,
+    ) -> None:
         self.cfg = cfg
+        self.mask = mask
         self.run_dir = run_dir
         self.order = frames  # frames in the order they will be asked for
         self.pos = 0
@@ -126,7 +139,7 @@ class _FeatureCache:
             self.pool.shutdown(wait=True, cancel_futures=True)
 
     def _compute(self, frame: Frame) -> tuple[Features, float]:
-        return frame_features(self.cfg, self.run_dir, frame)
+        return frame_features(self.cfg, self.run_dir, frame, self.mask)
 
     def _submit(self, frame: Frame) -> None:
         if frame.index in self.futures:
@@ -204,7 +217,7 @@ def run(
             for f in (a, b):
                 if not need or need[-1].index != f.index:
                     need.append(f)
-    cache = _FeatureCache(cfg, run_dir, need)
+    cache = _FeatureCache(cfg, run_dir, need, drive.camera.mask)
     results: list[PairResult] = []
     try:
         for fa_frame, fb_frame in tqdm(todo, desc="reconstruction", unit="pair", leave=False):

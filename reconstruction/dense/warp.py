@@ -31,7 +31,8 @@ def resample_pair(
     share: list[np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Image a on its ideal pixel grid resized by ``s``, image b through H onto the same grid
-    (float32 DN), and where each sample lies inside its image (bool). ``rs`` = (R, t, plane,
+    (float32 DN), and where each sample lies inside its image and off the camera's mask
+    (bool). ``rs`` = (R, t, plane,
     frame_dt_s): a rolling shutter, each grid pixel read from the rows that saw its road
     point (``dense.rolling``) instead of through H at the timestamps. ``pad`` (px): the grid
     reaches that far beyond the work grid on every side (its pixel (pad, pad) is the work
@@ -40,8 +41,12 @@ def resample_pair(
     a frame's row is unknown) appended."""
     W, Hh = camera.width, camera.height
     w, h = int(round(W * s)), int(round(Hh * s))
+    # a sample whose cubic kernel (2 px) or anti-aliasing blur (2 σ) reaches a masked raw pixel
+    # is not a road sample: it counts as outside its image
+    mask_margin = 2.0
     if s < 1.0:  # anti-aliasing before the resampling
         sig = 0.5 * np.sqrt(1.0 / (s * s) - 1.0)
+        mask_margin += 2.0 * sig
         img_a = cv2.GaussianBlur(img_a, (0, 0), sig)
         img_b = cv2.GaussianBlur(img_b, (0, 0), sig)
     v, u = np.mgrid[-pad : h + pad, -pad : w + pad].astype(np.float64)
@@ -76,6 +81,9 @@ def resample_pair(
 
     A, mA = remap(img_a, ua, va)
     B, mB = remap(img_b, ub, vb)
+    if camera.mask is not None:
+        mA &= camera.mask.usable_grid(ua, va, mask_margin)
+        mB &= camera.mask.usable_grid(ub, vb, mask_margin)
     return A, B, mA, mB
 
 

@@ -12,12 +12,14 @@ bit-for-bit reproducible. They agree to ~1e-12 px.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
+from typing import Any
 
 import cv2
 import numpy as np
 
 from roadsurf.core.geometry import check_shape, vehicle_from_cam_rotation
+from roadsurf.core.imagemask import ImageMask
 
 # cv2.undistortPoints stopping rule of the simulator (renders): 30 iterations or 1e-9. The
 # pipeline uses OpenCV's default (5 iterations), which is finer than the features' noise.
@@ -46,6 +48,25 @@ class Camera:
     # row v (raw pixel, 0 = top) exposed readout_s * v / height after the frame's timestamp
     # (docs/reconstruction.md, "Rolling shutter"); 0 = global shutter
     readout_s: float = 0.0
+    # pixels that never show the road (a burned-in stamp, the bonnet; camera.yaml 'mask',
+    # core.imagemask); None = every pixel may be used
+    mask: ImageMask | None = None
+
+    def fingerprint_fields(self) -> dict[str, Any]:
+        """The fields as stage fingerprints take them: the mask by its digest, and no 'mask'
+        key at all without one (fingerprints of unmasked cameras are those of before)."""
+        d = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "mask"}
+        if self.mask is not None:
+            d["mask"] = self.mask.digest
+        return d
+
+    def usable_px(self, px_raw: np.ndarray, margin_px: float | np.ndarray = 0.0) -> np.ndarray:
+        """(N,) bool: raw pixels (N, 2) not within ``margin_px`` of the mask (all True without
+        one; ``ImageMask.usable_at``)."""
+        px = np.asarray(px_raw, float).reshape(-1, 2)
+        if self.mask is None:
+            return np.ones(len(px), bool)
+        return self.mask.usable_at(px, margin_px)
 
     @property
     def vehicle_from_cam(self) -> np.ndarray:

@@ -40,7 +40,11 @@ from roadsurf.mapping.bundle_camera import later_stage_inputs
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.datum import vertical_datum
 from roadsurf.mapping.loops import frame_matcher
-from roadsurf.pipeline.run_checks import check_reconstruction, claim_run_folder
+from roadsurf.pipeline.run_checks import (
+    check_reconstruction,
+    claim_run_folder,
+    static_pixels_warning,
+)
 from roadsurf.pipeline.run_checks import pair_failures_warning as failures_warning
 from roadsurf.reconstruction.config import ReconstructionConfig
 
@@ -232,6 +236,8 @@ def _run_drive(
 
     drive = timed("drive", lambda: load_drive(drive_dir))
     claim_run_folder(drive_dir, out, overwrite)  # refuses another drive's run folder
+    if static := static_pixels_warning(drive, out):
+        drive.warnings.append(static)
 
     if overwrite:
         cfg = _with_overwrite(cfg)

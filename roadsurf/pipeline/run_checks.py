@@ -186,3 +186,27 @@ def pair_failures_warning(pairs: list[PairResult], out: Path) -> str | None:
     )
     log.warning(msg)
     return msg
+
+
+def static_pixels_warning(drive: Drive, out: Path) -> str | None:
+    """Without a camera.yaml mask: a warning (and RUN/suggested_mask.png) when the frames hold
+    pixels that never change (``io.drive.staticpx``), else None. With a mask, or when the drive
+    cannot tell, None, and an old suggestion in ``out`` is removed."""
+    import cv2
+
+    from roadsurf.core.atomic import atomic_path
+    from roadsurf.io.drive.staticpx import WARN_SHARE, static_pixels
+
+    path = Path(out) / rf.SUGGESTED_MASK_PNG
+    sp = None
+    if drive.camera.mask is None:
+        sp = static_pixels(drive.frames, drive.camera.width, drive.camera.height)
+    if sp is None or sp.share <= WARN_SHARE:
+        path.unlink(missing_ok=True)
+        return None
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), sp.suggested_mask()):
+            log.warning("%s: could not be written", path)
+    msg = sp.warning(str(path))
+    log.warning(msg)
+    return msg

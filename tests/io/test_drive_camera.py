@@ -8,7 +8,7 @@ import pytest
 
 from roadsurf.core.errors import DriveFormatError
 from roadsurf.io.drive import load_drive
-from tests.io.drive_fixtures import W, camera_yaml, make_drive
+from tests.io.drive_fixtures import H, W, camera_yaml, make_drive
 
 # --------------------------------------------------------------------------- camera.yaml
 
@@ -119,5 +119,87 @@ def test_readout_time_out_of_range_names_file_line_and_value(
 ) -> None:
     root = make_drive(tmp_path / "d")  # fps 10: a frame period of 0.1 s
     (root / "camera.yaml").write_text(camera_yaml(readout_s=value))
+    with pytest.raises(DriveFormatError, match=message):
+        load_drive(root)
+
+
+# --------------------------------------------------------------------------- mask
+
+
+def _write_mask(path: Path, shape: tuple[int, int], masked_rows: int) -> None:
+    import cv2
+    import numpy as np
+
+    m = np.full(shape, 255, np.uint8)
+    m[shape[0] - masked_rows :] = 0  # the bonnet along the bottom edge
+    assert cv2.imwrite(str(path), m)
+
+
+def test_mask_loads_and_enters_the_fingerprint_only_when_given(tmp_path: Path) -> None:
+    """Optional mask: an image of the camera's size, 0 = ignore; its digest joins the stage
+    fingerprints, and a camera without one fingerprints as before the key existed."""
+    import dataclasses
+
+    root = make_drive(tmp_path / "d")
+    cam = load_drive(root).camera
+    assert cam.mask is None
+    expected = {k: v for k, v in dataclasses.asdict(cam).items() if k != "mask"}
+    assert cam.fingerprint_fields() == expected
+    _write_mask(root / "mask.png", (H, W), 12)
+    (root / "camera.yaml").write_text(camera_yaml(mask="mask.png"))
+    drive = load_drive(root)
+    m = drive.camera.mask
+    assert m is not None and m.shape == (H, W)
+    assert m.masked_share == pytest.approx(12 / H)
+    assert not m.usable[-1].any() and m.usable[0].all()
+    assert drive.camera.fingerprint_fields()["mask"] == m.digest
+    assert not any("mask" in w for w in drive.warnings)
+    # a colour mask counts any nonzero channel as usable; an absolute path works too
+    import cv2
+    import numpy as np
+
+    rgb = np.zeros((H, W, 3), np.uint8)
+    rgb[: H - 12, :, 1] = 200
+    cv2.imwrite(str(tmp_path / "rgb.png"), rgb)
+    (root / "camera.yaml").write_text(camera_yaml(mask=str(tmp_path / "rgb.png")))
+    assert load_drive(root).camera.mask == m
+
+
+def test_mask_hiding_most_of_the_image_warns(tmp_path: Path) -> None:
+    root = make_drive(tmp_path / "d")
+    _write_mask(root / "mask.png", (H, W), 30)
+    (root / "camera.yaml").write_text(camera_yaml(mask="mask.png"))
+    drive = load_drive(root)
+    assert any("mask hides 62%" in w for w in drive.warnings)
+
+
+@pytest.mark.parametrize(
+    ("value", "shape", "rows", "message"),
+    [
+        (
+            "none.png",
+            None,
+            0,
+            r"camera.yaml:11: camera.yaml 'mask' names .*none.png, which does not",
+        ),
+        (
+            "mask.png",
+            (H + 2, W),
+            4,
+            r":11: .*mask.png is 64 x 50 px, the camera's images are 64 x 48",
+        ),
+        ("mask.png", (H, W), H - 2, r":11: .*leaves 4.2% of the image usable.*inverted"),
+        (12, None, 0, r":11: camera.yaml 'mask' must be the path of an image"),
+        ("junk.png", None, 0, r":11: .*junk.png cannot be read as an image"),
+    ],
+)
+def test_bad_mask_names_file_line_and_what_to_do(
+    tmp_path: Path, value: object, shape: tuple[int, int] | None, rows: int, message: str
+) -> None:
+    root = make_drive(tmp_path / "d")
+    if shape is not None:
+        _write_mask(root / "mask.png", shape, rows)
+    (root / "junk.png").write_bytes(b"not an image")
+    (root / "camera.yaml").write_text(camera_yaml(mask=value))
     with pytest.raises(DriveFormatError, match=message):
         load_drive(root)

@@ -75,9 +75,9 @@ def _count_calls(monkeypatch) -> tuple[list[tuple[int, int]], list[int]]:
         pairs.append((a.index, b.index))
         return orig_pair(cfg, drive, cache, a, b)
 
-    def detect(gray, cfg):
+    def detect(gray, cfg, mask=None):
         detected.append(1)
-        return orig_detect(gray, cfg)
+        return orig_detect(gray, cfg, mask)
 
     monkeypatch.setattr(stage, "_one_pair", one_pair)
     monkeypatch.setattr(features, "detect", detect)

@@ -12,6 +12,7 @@ import yaml
 
 from roadsurf.core.camera import Camera
 from roadsurf.core.errors import DriveFormatError
+from roadsurf.io.drive.maskfile import load_mask
 from roadsurf.io.drive.textfile import read_text
 from roadsurf.io.drive.types import FORMAT_HINT
 
@@ -31,6 +32,7 @@ _CAMERA_KEYS: dict[str, tuple[type, bool]] = {
     "mount_roll_deg": (float, False),
     "mount_yaw_deg": (float, False),
     "readout_s": (float, False),
+    "mask": (Path, False),  # image of the pixels to ignore (io.drive.maskfile)
 }
 MAX_CAMERA_HEIGHT_M = 10.0  # above this, height_m is a unit mistake, not a vehicle mount
 _MOUNT_KEYS = ("mount_pitch_deg", "mount_roll_deg", "mount_yaw_deg")
@@ -145,6 +147,8 @@ def load_camera(path: Path) -> Camera:
                     "to last row) in seconds, typically 0.005-0.05 (ms typed for s?); 0 or no "
                     "key = global shutter."
                 )
+        elif tp is Path:
+            v = load_mask(v, path, where(key), vals["width"], vals["height"])
         elif tp is str:
             if not isinstance(v, str) or v.strip().lower() != "pinhole":
                 raise DriveFormatError(
@@ -183,6 +187,7 @@ def load_camera(path: Path) -> Camera:
             else None
         ),
         readout_s=float(vals.get("readout_s", 0.0)),
+        mask=vals.get("mask"),
     )
     if cam.readout_s * cam.fps > 1.0 + 1e-9:
         raise DriveFormatError(

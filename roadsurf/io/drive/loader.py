@@ -31,6 +31,7 @@ from roadsurf.io.drive.checks import check_obd_vs_gps, check_static
 from roadsurf.io.drive.frames import load_frames
 from roadsurf.io.drive.gps import check_overlap, load_gps_csv
 from roadsurf.io.drive.gpx import load_gps_gpx
+from roadsurf.io.drive.maskfile import mask_warning
 from roadsurf.io.drive.nmea import load_gps_nmea
 from roadsurf.io.drive.obd import load_obd
 from roadsurf.io.drive.types import FORMAT_HINT, NO_GEOREF, Drive, GpsTrack, Skipped
@@ -49,6 +50,8 @@ def load_drive(root: str | Path, check_images: bool = True) -> Drive:
     skipped: list[Skipped] = []
     warnings: list[str] = []
     camera = load_camera(root / "camera.yaml")
+    if camera.mask is not None and (w := mask_warning(camera.mask)):
+        warnings.append(w)
     frames = load_frames(root, camera, check_images, skipped, warnings)
 
     present = [name for name in GPS_FILES if (root / name).is_file()]
