@@ -173,7 +173,7 @@ def dense_crack_depth(
         (raw[:, 0] >= half) & (raw[:, 0] < w - half) & (raw[:, 1] >= half) & (raw[:, 1] < h - half)
     )
     if cam.mask is not None:  # windows off the camera's mask in a and in b
-        ok &= cam.usable_px(raw, half) & cam.usable_px(rb.reshape(-1, 2), half)
+        ok &= cam.usable_px(raw, half + 1) & cam.usable_px(rb.reshape(-1, 2), half + 1)
     rbv = rb.reshape(-1, 2)
     hb, wb = gb.shape[:2]
     ok &= (rbv[:, 0] >= half) & (rbv[:, 0] < wb - half) & (rbv[:, 1] >= half)

@@ -81,9 +81,12 @@ def analyse_pair(
     # The image is raw (as captured); the pair's pixels are ideal (undistorted). Image work
     # reads the image where each point really is.
     px_img = _raw_px(np.asarray(pair.px_a, float), camera) if gray is not None else None
-    # pixels off the camera's mask by more than the refinement's window (None: all)
+    # The camera's mask: its pixels filled with the median grey (the adaptive threshold's
+    # blur, tens of pixels wide, would carry a black stamp's darkness onto the road around
+    # it), and nothing within the refinement's window of it is dark (None: no mask)
     usable = None
     if gray is not None and camera is not None and camera.mask is not None:
+        gray = camera.mask.fill(np.asarray(gray))
         usable = camera.mask.eroded(max(1, cfg.refine.window_px) // 2 + 1)
     if refines(cfg) and gray is not None and refined.any():
         road = ~fit.candidate & (np.abs(fit.dist_m) < fit.threshold_m)

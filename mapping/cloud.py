@@ -45,7 +45,8 @@ def collect_points(
         if cfg.colour_from_images and fr is not None:
             try:
                 img = read_image(fr)
-                px = np.asarray(p.px_a, float)[good]
+                # the pair's pixels are ideal (undistorted); the image is as recorded
+                px = drive.camera.distort_px(np.asarray(p.px_a, float)[good])
                 u = np.clip(np.round(px[:, 0]).astype(int), 0, img.shape[1] - 1)
                 v = np.clip(np.round(px[:, 1]).astype(int), 0, img.shape[0] - 1)
                 col = img[v, u]

@@ -57,10 +57,14 @@ def to_gray(image: np.ndarray) -> np.ndarray:
 
 def detect(image: np.ndarray, cfg: FeatureConfig, mask: ImageMask | None = None) -> Features:
     """Detect and describe keypoints of one image, at most cfg.max_features, spread on a grid.
-    ``mask`` (the camera's, raw pixels of ``image``): keypoints whose described neighbourhood
-    (radius size / 2) touches a masked pixel are dropped before the spread."""
+    ``mask`` (the camera's, raw pixels of ``image``): the masked pixels are filled with the
+    median grey first (a descriptor reaching over the mask's edge sees flat ground, not a
+    black stamp), and keypoints within their own size (the diameter OpenCV gives) of a masked
+    pixel are dropped before the spread."""
     check_available(cfg)
     gray = to_gray(image)
+    if mask is not None:
+        gray = mask.fill(gray)
     scale = capped_scale(cfg.downscale, gray.shape[1], gray.shape[0], cfg.max_detect_megapixels)
     if 0 < scale < 1:
         gray = cv2.resize(gray, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
@@ -85,7 +89,7 @@ def detect(image: np.ndarray, cfg: FeatureConfig, mask: ImageMask | None = None)
     pts = np.array([k.pt for k in kps], dtype=np.float32) - pad
     if mask is not None:
         s = scale if 0 < scale < 1 else 1.0
-        radius = np.array([0.5 * k.size for k in kps]) / s
+        radius = np.array([k.size for k in kps]) / s
         ok = mask.usable_at((pts.astype(np.float64) + 0.5) / s - 0.5, radius)
         kps, pts = [k for k, o in zip(kps, ok, strict=True) if o], pts[ok]
         if not kps:

@@ -26,7 +26,7 @@ class ImageMask:
     stage fingerprints take: a changed mask recomputes what it touches."""
 
     def __init__(self, usable: np.ndarray, source: str = "") -> None:
-        u = np.ascontiguousarray(np.asarray(usable, bool))
+        u = np.array(usable, dtype=bool, copy=True, order="C")  # its own, frozen below
         if u.ndim != 2:
             raise ValueError(f"image mask must be (height, width), got shape {u.shape}")
         u.setflags(write=False)
@@ -35,6 +35,21 @@ class ImageMask:
         h = hashlib.sha256(f"{u.shape[0]}x{u.shape[1]}|".encode())
         h.update(np.packbits(u).tobytes())
         self.digest = h.hexdigest()[:16]
+
+    def __reduce__(self) -> tuple[type[ImageMask], tuple[np.ndarray, str]]:
+        # pickles and deep copies carry the pixels only (not the cached distance transform)
+        return (ImageMask, (self.usable, self.source))
+
+    def fill(self, gray: np.ndarray) -> np.ndarray:
+        """(height, width) image with the masked pixels set to the median of the usable ones:
+        a filter or a descriptor reaching across the mask's edge sees flat ground there, not a
+        black stamp or a dark bonnet (a copy; ``gray`` unchanged)."""
+        g = np.asarray(gray)
+        if g.shape[:2] != self.shape:
+            raise ValueError(f"image {g.shape[:2]} and mask {self.shape} differ in size")
+        out = g.copy()
+        out[~self.usable] = np.median(g[self.usable], axis=0).astype(g.dtype)
+        return out
 
     def __eq__(self, other: object) -> bool:
         return isinstance(other, ImageMask) and other.digest == self.digest

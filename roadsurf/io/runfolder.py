@@ -45,7 +45,7 @@ DETECTION_JSON = "detection.json"
 SCREENING_JSON = "screening.json"  # fused run: CNN screening per frame
 # run level
 RUN_JSON = "run.json"  # which drive the run folder belongs to (refused for another drive)
-# written when the frames hold pixels that never change and camera.yaml names no mask
+# written when the frames hold pixels that never change outside camera.yaml's mask
 # (io.drive.staticpx): a suggestion in camera.yaml's mask convention, 0 = ignore
 SUGGESTED_MASK_PNG = "suggested_mask.png"
 REPORT_JSON = "report.json"

@@ -189,24 +189,28 @@ def pair_failures_warning(pairs: list[PairResult], out: Path) -> str | None:
 
 
 def static_pixels_warning(drive: Drive, out: Path) -> str | None:
-    """Without a camera.yaml mask: a warning (and RUN/suggested_mask.png) when the frames hold
-    pixels that never change (``io.drive.staticpx``), else None. With a mask, or when the drive
-    cannot tell, None, and an old suggestion in ``out`` is removed."""
+    """A warning (and RUN/suggested_mask.png) when the frames hold pixels that never change
+    (``io.drive.staticpx``) that camera.yaml's mask does not already name, else None (and an
+    old suggestion in ``out`` is removed)."""
     import cv2
 
     from roadsurf.core.atomic import atomic_path
-    from roadsurf.io.drive.staticpx import WARN_SHARE, static_pixels
+    from roadsurf.io.drive.staticpx import static_pixels
 
     path = Path(out) / rf.SUGGESTED_MASK_PNG
-    sp = None
-    if drive.camera.mask is None:
-        sp = static_pixels(drive.frames, drive.camera.width, drive.camera.height)
-    if sp is None or sp.share <= WARN_SHARE:
+    cam = drive.camera
+    sp = static_pixels(drive.frames, cam.width, cam.height)
+    if sp is not None and cam.mask is not None:  # what the mask leaves, off its edge's blur
+        sp = sp.outside(cam.mask.eroded(sp.grow_px))
+    if sp is None or not sp.static.any():
         path.unlink(missing_ok=True)
         return None
+    suggestion = sp.suggested_mask()
+    if cam.mask is not None:  # the suggestion extends the user's own mask
+        suggestion[~cam.mask.usable] = 0
     with atomic_path(path) as tmp:
-        if not cv2.imwrite(str(tmp), sp.suggested_mask()):
+        if not cv2.imwrite(str(tmp), suggestion):
             log.warning("%s: could not be written", path)
-    msg = sp.warning(str(path))
+    msg = sp.warning(str(path), outside_mask=cam.mask is not None)
     log.warning(msg)
     return msg

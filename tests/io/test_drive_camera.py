@@ -163,6 +163,19 @@ def test_mask_loads_and_enters_the_fingerprint_only_when_given(tmp_path: Path) -
     cv2.imwrite(str(tmp_path / "rgb.png"), rgb)
     (root / "camera.yaml").write_text(camera_yaml(mask=str(tmp_path / "rgb.png")))
     assert load_drive(root).camera.mask == m
+    # RGBA: painted black on an opaque layer, or cut out as transparency: both mask
+    rgba = np.full((H, W, 4), 255, np.uint8)
+    rgba[H - 12 :, :, :3] = 0
+    cv2.imwrite(str(root / "mask.png"), rgba)
+    (root / "camera.yaml").write_text(camera_yaml(mask="mask.png"))
+    assert load_drive(root).camera.mask == m
+    rgba[H - 12 :, :, :3] = 255
+    rgba[H - 12 :, :, 3] = 0
+    cv2.imwrite(str(root / "mask.png"), rgba)
+    assert load_drive(root).camera.mask == m
+    # an empty value is no mask
+    (root / "camera.yaml").write_text(camera_yaml(mask=None).rstrip() + "\nmask:\n")
+    assert load_drive(root).camera.mask is None
 
 
 def test_mask_hiding_most_of_the_image_warns(tmp_path: Path) -> None:

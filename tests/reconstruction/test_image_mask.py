@@ -70,16 +70,55 @@ def test_dense_leaves_the_masked_stamp_out(pair: RenderedPair) -> None:
     assert np.mean(err_masked > 0.005) < 0.01
 
 
-def test_features_keep_off_the_mask(pair: RenderedPair) -> None:
+@pytest.mark.parametrize("scale", [1, 4])
+def test_features_keep_off_the_mask(pair: RenderedPair, scale: int) -> None:
+    """At 320 x 240 and at 1280 x 960 (above the detector's 0.3 Mpx cap: detected on a
+    downscaled image, the mask test in full-resolution pixels)."""
     img = _stamp(pair.img_a)
-    cfg = FeatureConfig()
     mask = _mask(img.shape)
+    if scale > 1:
+        img = cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_CUBIC)
+        mask = ImageMask(
+            cv2.resize(mask.usable.astype(np.uint8), None, fx=scale, fy=scale,
+                       interpolation=cv2.INTER_NEAREST) > 0
+        )  # fmt: skip
+    cfg = FeatureConfig()
     f_raw = feat.detect(img, cfg)
     f = feat.detect(img, cfg, mask)
-    inside = ~mask.usable_at(f_raw.keypoints_px)
-    assert inside.sum() > 5  # the stamp's text is full of corners
+    assert (~mask.usable_at(f_raw.keypoints_px)).sum() > 5  # the stamp's text has corners
     assert mask.usable_at(f.keypoints_px).all()
+    # each keeps its own size (>= ~2 px) off the mask; the unmasked detector puts keypoints
+    # right on its edge
+    clear = mask.clearance_at(f.keypoints_px[:, 0], f.keypoints_px[:, 1])
+    clear_raw = mask.clearance_at(f_raw.keypoints_px[:, 0], f_raw.keypoints_px[:, 1])
+    assert clear.min() >= 2 and clear_raw.min() < 1
     assert len(f.keypoints_px) > 0.5 * len(f_raw.keypoints_px)
+
+
+def test_a_changed_mask_changes_the_features_and_pairs_fingerprints(
+    pair: RenderedPair, tmp_path
+) -> None:
+    from roadsurf.io.drive.types import Frame
+    from roadsurf.reconstruction.config import ReconstructionConfig
+    from roadsurf.reconstruction.stage import _feature_path, pair_fingerprint
+
+    cfg = ReconstructionConfig()
+    paths = [tmp_path / "a.png", tmp_path / "b.png"]
+    for p, im in zip(paths, (pair.img_a, pair.img_b), strict=True):
+        cv2.imwrite(str(p), im)
+    a, b = (Frame(i, p.name, p, 0.1 * i) for i, p in enumerate(paths))
+    m1 = _mask(pair.img_a.shape)
+    u = m1.usable.copy()
+    u[0, 0] = False
+    m2 = ImageMask(u)
+    cams = [pair.camera, dataclasses.replace(pair.camera, mask=m1),
+            dataclasses.replace(pair.camera, mask=m2)]  # fmt: skip
+    feats = {_feature_path(tmp_path, a, cfg, c.mask) for c in cams}
+    pairs = {pair_fingerprint(cfg, c, a, b) for c in cams}
+    assert len(feats) == 3 and len(pairs) == 3
+    # and the same mask twice is the same work
+    again = dataclasses.replace(pair.camera, mask=ImageMask(m1.usable))
+    assert pair_fingerprint(cfg, again, a, b) == pair_fingerprint(cfg, cams[1], a, b)
 
 
 def test_mask_digest_and_clearance() -> None:

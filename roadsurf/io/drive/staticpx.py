@@ -25,7 +25,9 @@ log = logging.getLogger(__name__)
 
 N_FRAMES = 12  # frames sampled, evenly over the drive (count)
 MIN_FRAMES = 6  # below this many readable frames the test says nothing (count)
-WORK_PX = 320  # the frames are compared at this width (px): the test is about regions
+# the σ map is judged at this width (px): the test is about regions; σ itself is taken at full
+# resolution first (downscaling the frames would average a fine road grain to "static")
+WORK_PX = 640
 # a pixel is static when its temporal σ is below max(STATIC_DN, STATIC_REL x the image's
 # median temporal σ): sensor noise is 1-3 DN, a road pixel's σ over different stretches of
 # road is its texture's contrast (10-40 DN on asphalt)
@@ -34,8 +36,11 @@ STATIC_REL = 0.15
 # ... and only where the road does vary: an image whose median σ is below this (DN) is a
 # stopped vehicle or a textureless road, where nothing can be told apart
 MIN_MEDIAN_DN = 6.0
-MIN_REGION_SHARE = 0.002  # static regions smaller than this share of the image are noise (−)
-WARN_SHARE = 0.005  # warn when the static regions cover more than this share (−)
+SATURATED_DN = 250  # at or above this in every frame: over-exposed (sky), not a stamp (DN)
+# static regions smaller than this share of the image are noise (−): a one-line text stamp
+# without a box is ~0.4 % of a 1280 x 720 frame, a stuck pixel or dust far below
+MIN_REGION_SHARE = 0.002
+GROUP_PX = 15  # static pieces this close on the work grid form one region (px at WORK_PX)
 
 
 @dataclass(frozen=True)
@@ -43,24 +48,41 @@ class StaticPixels:
     """Where the sampled frames did not change."""
 
     static: np.ndarray  # (height, width) bool at the camera's size: True = the same every frame
-    share: float  # share of the image that is static (0-1)
+    saturated: np.ndarray  # (height, width) bool: ... of them, over-exposed in every frame
     n_frames: int  # frames compared
     median_sigma_dn: float  # the image's median temporal σ (DN)
+    grow_px: int  # the suggested mask grows the regions by this (px): the work grid's pixel + 3
+
+    @property
+    def share(self) -> float:
+        """Share of the image that is static (0-1)."""
+        return float(self.static.mean())
+
+    def outside(self, usable: np.ndarray) -> StaticPixels:
+        """The static pixels within ``usable`` (a camera mask's usable pixels) only."""
+        keep = usable & self.static
+        return StaticPixels(keep, keep & self.saturated, self.n_frames, self.median_sigma_dn,
+                            self.grow_px)  # fmt: skip
 
     def suggested_mask(self) -> np.ndarray:
         """(height, width) uint8 in camera.yaml's mask convention: 0 = ignore (the static
-        regions grown by 3 px), 255 = road."""
-        grown = cv2.dilate(self.static.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
+        regions grown by ``grow_px``), 255 = road."""
+        k = 2 * self.grow_px + 1
+        grown = cv2.dilate(self.static.astype(np.uint8), np.ones((k, k), np.uint8)) > 0
         return np.where(grown, 0, 255).astype(np.uint8)
 
-    def warning(self, mask_path: str) -> str:
+    def warning(self, mask_path: str, outside_mask: bool = False) -> str:
         ys, xs = np.nonzero(self.static)
+        where = " outside camera.yaml's mask" if outside_mask else ""
+        sat = float(self.saturated.mean())
+        what = "something fixed to the camera (a burned-in stamp, the bonnet)"
+        if sat > 0.5 * self.share:  # (a stamp's white letters are over-exposed too)
+            what = "mostly pixels over-exposed in every frame (sky, glare)"
         return (
-            f"{self.share:.1%} of the image is the same in all {self.n_frames} frames compared "
-            f"(rows {ys.min()}-{ys.max()}, columns {xs.min()}-{xs.max()}): something fixed to "
-            "the camera (a burned-in stamp, the bonnet) that the mosaic paints along the whole "
-            f"drive. A suggested mask is in {mask_path}: check it and name it in camera.yaml "
-            "('mask', docs/formats.md)."
+            f"{self.share:.1%} of the image{where} is the same in all {self.n_frames} frames "
+            f"compared (rows {ys.min()}-{ys.max()}, columns {xs.min()}-{xs.max()}): {what}, "
+            "which the mosaic paints along the whole drive. A suggested mask is in "
+            f"{mask_path}: check it and name it in camera.yaml ('mask', docs/formats.md)."
         )
 
 
@@ -71,9 +93,10 @@ def static_pixels(frames: list[Frame], width: int, height: int) -> StaticPixels 
     if len(frames) < MIN_FRAMES:
         return None
     pick = np.unique(np.linspace(0, len(frames) - 1, min(N_FRAMES, len(frames))).round())
-    s = min(1.0, WORK_PX / width)
-    size = (max(1, round(width * s)), max(1, round(height * s)))
-    stack = []
+    s1 = np.zeros((height, width), np.float64)
+    s2 = np.zeros((height, width), np.float64)
+    lo = np.full((height, width), 255, np.uint8)
+    n = 0
     for i in pick.astype(int):
         try:
             g = read_gray(frames[i])
@@ -82,20 +105,51 @@ def static_pixels(frames: list[Frame], width: int, height: int) -> StaticPixels 
             continue
         if g.shape != (height, width):
             continue
-        stack.append(cv2.resize(g, size, interpolation=cv2.INTER_AREA).astype(np.float32))
-    if len(stack) < MIN_FRAMES:
+        s1 += g
+        s2 += np.square(g, dtype=np.float64)
+        np.minimum(lo, g, out=lo)
+        n += 1
+    if n < MIN_FRAMES:
         return None
-    sd = np.std(np.stack(stack), axis=0)
+    sd = np.sqrt(np.maximum(s2 / n - np.square(s1 / n), 0.0)).astype(np.float32)
     med = float(np.median(sd))
     if med < MIN_MEDIAN_DN:
         return None
-    small = (sd < max(STATIC_DN, STATIC_REL * med)).astype(np.uint8)
-    # isolated pixels are chance; a stamp's changing digits are holes in its static box
-    small = cv2.morphologyEx(small, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
-    small = cv2.morphologyEx(small, cv2.MORPH_CLOSE, np.ones((7, 7), np.uint8))
-    n, lab, stats, _ = cv2.connectedComponentsWithStats(small, connectivity=8)
-    keep = np.zeros(n, bool)
-    keep[1:] = stats[1:, cv2.CC_STAT_AREA] >= MIN_REGION_SHARE * small.size
-    small = keep[lab].astype(np.uint8)
+    # judged per full-resolution pixel (a stamp's strokes are a few pixels wide), then a work
+    # pixel is static when any of its pixels is
+    low = (sd < max(STATIC_DN, STATIC_REL * med)).astype(np.float32)
+    s = min(1.0, WORK_PX / width)
+    size = (max(1, round(width * s)), max(1, round(height * s)))
+    if s < 1:
+        low = np.asarray(cv2.resize(low, size, interpolation=cv2.INTER_AREA), np.float32)
+    # a text stamp's strokes merge into one region, and what a static region encloses (the
+    # changing digits inside a stamp's box) belongs to it; isolated pixels, chance, go
+    closed = cv2.morphologyEx(
+        (low > 0).astype(np.uint8), cv2.MORPH_CLOSE, np.ones((5, 5), np.uint8)
+    )
+    small = _fill_holes(
+        np.asarray(cv2.morphologyEx(closed, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)))
+    )
+    # regions are judged by their group: pieces within GROUP_PX of each other (the words of a
+    # stamp's line) count together
+    groups = cv2.dilate(small, np.ones((GROUP_PX, GROUP_PX), np.uint8))
+    count, lab = cv2.connectedComponents(groups, connectivity=8)
+    area = np.bincount(lab[small > 0], minlength=count)
+    keep = area >= MIN_REGION_SHARE * small.size
+    keep[0] = False
+    small = (keep[lab] & (small > 0)).astype(np.uint8)
     static = cv2.resize(small, (width, height), interpolation=cv2.INTER_NEAREST) > 0
-    return StaticPixels(static, float(static.mean()), len(stack), med)
+    saturated = static & (lo >= SATURATED_DN)
+    return StaticPixels(static, saturated, n, med, int(np.ceil(1.0 / s)) + 3)
+
+
+def _fill_holes(region: np.ndarray) -> np.ndarray:
+    """(h, w) uint8 0/1 ``region`` with the background it encloses (not connected to the
+    image border) added."""
+    h, w = region.shape
+    pad = np.zeros((h + 2, w + 2), np.uint8)
+    pad[1:-1, 1:-1] = region
+    flood = pad.copy()
+    cv2.floodFill(flood, np.zeros((h + 4, w + 4), np.uint8), (0, 0), 1)
+    holes = flood[1:-1, 1:-1] == 0
+    return np.asarray(region | holes, np.uint8)

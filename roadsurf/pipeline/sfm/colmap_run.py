@@ -14,9 +14,10 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import cv2
 import numpy as np
 
-from roadsurf.core.atomic import read_json, write_json_atomic
+from roadsurf.core.atomic import atomic_path, read_json, write_json_atomic
 from roadsurf.core.camera import Camera
 from roadsurf.core.fingerprint import Fingerprint
 from roadsurf.io.drive import Drive
@@ -32,6 +33,7 @@ COLMAP_DIR = "colmap"  # everything COLMAP writes, resumable
 COLMAP_DATABASE = "database.db"  # features, matches, two-view geometries
 COLMAP_SPARSE = "sparse"  # one sub-folder per model the mapper made
 COLMAP_STATE = "state.json"  # finished steps with the fingerprint of their settings
+COLMAP_MASK_PNG = "camera_mask.png"  # camera.yaml's mask for COLMAP's reader (0 = ignore)
 DRIVE_FRAMES_DIR = "frames"  # the drive's image folder (drive format), COLMAP's image_path
 
 
@@ -102,6 +104,9 @@ def run_colmap(
         cfg.max_image_size,
         pycolmap.__version__,
     ]
+    mask = drive.camera.mask
+    if mask is not None:  # the same pixels left out as in roadsurf run (0 = ignore)
+        feat_settings.append(mask.digest)
     fp_feat = Fingerprint().add_json(feat_settings).hexdigest(16)
     if not state.done("features", fp_feat):
         state.invalidate_from(steps)
@@ -110,6 +115,11 @@ def run_colmap(
         log.info("COLMAP: extracting SIFT features from %d images", len(names))
         t = time.perf_counter()
         reader = pycolmap.ImageReaderOptions(camera_model=model, camera_params=params)
+        if mask is not None:
+            mask_png = colmap_dir / COLMAP_MASK_PNG
+            with atomic_path(mask_png) as tmp:
+                cv2.imwrite(str(tmp), np.where(mask.usable, 255, 0).astype(np.uint8))
+            reader.camera_mask_path = str(mask_png)
         ext = pycolmap.FeatureExtractionOptions()
         ext.sift.max_num_features = cfg.max_num_features
         ext.max_image_size = cfg.max_image_size

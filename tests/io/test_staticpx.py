@@ -1,0 +1,105 @@
+"""Pixels that never change over a drive (io.drive.staticpx): a burned-in stamp with or without
+its box, the bonnet, over-exposed sky; not a fine-grained low-contrast road, not a stop."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from roadsurf.io.drive.staticpx import MIN_REGION_SHARE, static_pixels
+from roadsurf.io.drive.types import Frame
+
+W, H = 1280, 720  # above the 640 px work width: the σ map is downscaled
+
+
+def _road(rng: np.random.Generator, contrast: float, grain_px: int) -> np.ndarray:
+    """A stretch of road: blurred noise of the given contrast (DN σ) and grain."""
+    n = rng.normal(0.0, 1.0, (H // grain_px + 1, W // grain_px + 1)).astype(np.float32)
+    n = cv2.resize(n, (W, H), interpolation=cv2.INTER_LINEAR)
+    return np.clip(120 + contrast * n / max(float(n.std()), 1e-6), 0, 255).astype(np.uint8)
+
+
+def _text(img: np.ndarray, k: int, org: tuple[int, int], outline: bool) -> None:
+    txt = f"2026-11-28 12:00:{k:02d} 48 km/h"
+    if outline:  # white letters with a black outline straight on the road (no box)
+        cv2.putText(img, txt, org, cv2.FONT_HERSHEY_SIMPLEX, 1.0, 0, 6, cv2.LINE_AA)
+    cv2.putText(img, txt, org, cv2.FONT_HERSHEY_SIMPLEX, 1.0, 255, 2, cv2.LINE_AA)
+
+
+def _drive(tmp: Path, n: int = 12, **kind: bool) -> tuple[list[Frame], np.ndarray]:
+    """Frames of a moving camera with the overlays asked for; the truth of the static pixels."""
+    rng = np.random.default_rng(5)
+    truth = np.zeros((H, W), bool)
+    frames = []
+    for k in range(n):
+        img = _road(rng, 6.0 if kind.get("fine") else 25.0, 1 if kind.get("fine") else 3)
+        if kind.get("box"):
+            img[20:70, 20:520] = 0
+            _text(img, k, (30, 58), False)
+            truth[20:70, 20:520] = True
+        if kind.get("text"):
+            _text(img, k, (700, 680), True)
+        if kind.get("sky"):
+            img[:100] = 255
+            truth[:100] = True
+        if kind.get("stop"):
+            img = _road(np.random.default_rng(1), 25.0, 3)
+        p = tmp / f"f{k:02d}.png"
+        cv2.imwrite(str(p), img)
+        frames.append(Frame(k, p.name, p, 0.1 * k))
+    if kind.get("text"):  # the part that does not change: date and time of day, outlined
+        probe = np.zeros((H, W), np.uint8)
+        cv2.putText(probe, "2026-11-28 12:00:", (700, 680), cv2.FONT_HERSHEY_SIMPLEX, 1.0, 255, 6)
+        truth |= probe > 0
+    return frames, truth
+
+
+def test_a_stamp_in_a_box_is_found_and_the_suggestion_covers_it(tmp_path: Path) -> None:
+    frames, truth = _drive(tmp_path, box=True)
+    sp = static_pixels(frames, W, H)
+    assert sp is not None
+    assert sp.static[truth].mean() > 0.95
+    assert sp.static[~truth].mean() < 0.005
+    suggestion = sp.suggested_mask()
+    assert (suggestion[truth] == 0).all()  # grown by the work grid's pixel + 3
+    assert "burned-in stamp" in sp.warning("m.png")
+
+
+def test_a_text_stamp_without_a_box_is_found(tmp_path: Path) -> None:
+    """White letters outlined in black straight on the road: the date and time-of-day part is
+    the same in every frame (the seconds change)."""
+    frames, truth = _drive(tmp_path, text=True)
+    sp = static_pixels(frames, W, H)
+    assert sp is not None and sp.share >= MIN_REGION_SHARE
+    ys, xs = np.nonzero(sp.static)
+    assert 640 < xs.min() and ys.min() > 600  # where the stamp is, nowhere else
+    assert (sp.suggested_mask()[truth] == 0).mean() > 0.9
+
+
+def test_sky_is_named_as_over_exposure(tmp_path: Path) -> None:
+    frames, _ = _drive(tmp_path, sky=True)
+    sp = static_pixels(frames, W, H)
+    assert sp is not None and sp.share == pytest.approx(100 / H, abs=0.01)
+    assert "over-exposed" in sp.warning("m.png")
+
+
+def test_fine_low_contrast_road_and_a_stop_are_not_static(tmp_path: Path) -> None:
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    frames, _ = _drive(tmp_path / "a", fine=True)
+    sp = static_pixels(frames, W, H)
+    assert sp is None or sp.share == 0
+    frames, _ = _drive(tmp_path / "b", stop=True)  # the same road in every frame: cannot tell
+    assert static_pixels(frames, W, H) is None
+
+
+def test_too_few_or_unreadable_frames_say_nothing(tmp_path: Path) -> None:
+    frames, _ = _drive(tmp_path, n=5, box=True)
+    assert static_pixels(frames, W, H) is None
+    frames, _ = _drive(tmp_path, n=8, box=True)
+    for f in frames[:3]:
+        f.path.write_bytes(b"junk")
+    assert static_pixels(frames, W, H) is None
