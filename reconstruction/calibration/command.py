@@ -43,10 +43,35 @@ def expand_images(paths: Sequence[Path]) -> list[Path]:
     return out
 
 
+# camera.yaml keys a calibration does not measure: with --overwrite they are carried over from
+# the camera.yaml being replaced (a rolling shutter's readout time, the image mask)
+CARRIED_KEYS = ("readout_s", "mask")
+
+
+def carried_over(yaml_path: Path) -> dict[str, object]:
+    """The ``CARRIED_KEYS`` (and ``fps``) of an existing camera.yaml, as written there; {} when
+    it does not exist or cannot be read as a mapping."""
+    import yaml
+
+    try:
+        data = yaml.safe_load(yaml_path.read_text())
+    except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        return {}
+    if not isinstance(data, dict):
+        return {}
+    return {k: data[k] for k in (*CARRIED_KEYS, "fps") if data.get(k) is not None}
+
+
 def camera_yaml_text(
-    intr: Intrinsics, mount: Mount | None, fps: float | None, height_m: float | None, note: str
+    intr: Intrinsics,
+    mount: Mount | None,
+    fps: float | None,
+    height_m: float | None,
+    note: str,
+    extra: dict[str, object] | None = None,
 ) -> str:
-    """camera.yaml in the drive format (docs/formats.md); mount_* keys only with a mount."""
+    """camera.yaml in the drive format (docs/formats.md); mount_* keys only with a mount;
+    ``extra`` keys (``CARRIED_KEYS``) appended as given."""
     K, d = intr.K, intr.dist
     lines = [
         f"# {note}",
@@ -74,6 +99,8 @@ def camera_yaml_text(
             f"mount_roll_deg: {mount.roll_deg:.4f}",
             f"mount_yaw_deg: {mount.yaw_deg:.4f}",
         ]
+    for k, v in (extra or {}).items():
+        lines.append(f"{k}: {v}  # carried over from the camera.yaml this one replaced")
     return "\n".join(lines) + "\n"
 
 
@@ -154,8 +181,13 @@ def calibrate_command(
         f"roadsurf calibrate: {len(intr.per_image_rms_px)} images of {spec.text}, RMS "
         f"reprojection error {intr.rms_px:.3f} px (details in calibration.json)"
     )
+    # what calibration does not measure stays as the replaced camera.yaml had it
+    old = carried_over(yaml_path) if yaml_path.exists() else {}
+    if fps is None and "fps" in old:
+        fps = float(old["fps"])  # type: ignore[arg-type]
+    extra = {k: old[k] for k in CARRIED_KEYS if k in old}
     out.mkdir(parents=True, exist_ok=True)
-    write_text_atomic(yaml_path, camera_yaml_text(intr, mount, fps, height_m, note))
+    write_text_atomic(yaml_path, camera_yaml_text(intr, mount, fps, height_m, note, extra))
     write_json_atomic(json_path, _report(spec, gspec, intr, mount, ground, limits))
     K = intr.K
     lines = [
@@ -178,5 +210,8 @@ def calibrate_command(
             f"camera.yaml lacks {', '.join(missing)}: add them (or pass --ground / --fps) "
             "before using it for a drive."
         )
+    if extra or "fps" in old:
+        kept = [*extra, *(["fps"] if "fps" in old and fps == old.get("fps") else [])]
+        lines.append(f"Kept {', '.join(kept)} from the camera.yaml replaced.")
     lines.append(f"Wrote {yaml_path} and {json_path}")
     return CalibrationResult(intr, mount, yaml_path, json_path, lines)

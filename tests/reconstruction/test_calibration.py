@@ -120,6 +120,14 @@ def test_camera_yaml_without_mount_loads_as_a_drive_camera(calibrated, tmp_path:
     assert "mount_" not in res.camera_yaml.read_text()
     with pytest.raises(CalibrationError, match="--overwrite"):
         calibrate_command(paths[:8], BOARD, tmp_path, fps=10, height_m=1.1)
+    # recalibrating over it keeps what a calibration does not measure
+    cv2.imwrite(str(tmp_path / "mask.png"), np.full((480, 640), 255, np.uint8))
+    with res.camera_yaml.open("a") as f:
+        f.write("readout_s: 0.02\nmask: mask.png\n")
+    again = calibrate_command(paths[:8], BOARD, tmp_path, height_m=1.1, overwrite=True)
+    cam = load_camera(again.camera_yaml)
+    assert cam.readout_s == 0.02 and cam.fps == 10.0 and cam.mask is not None
+    assert any("Kept readout_s, mask, fps" in line for line in again.lines)
 
 
 def test_too_few_images_are_refused(calibrated, tmp_path: Path) -> None:
