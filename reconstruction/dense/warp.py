@@ -32,11 +32,10 @@ def resample_pair(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Image a on its ideal pixel grid resized by ``s``, image b through H onto the same grid
     (float32 DN), and where each sample lies inside its image and off the camera's mask
-    (bool). ``rs`` = (R, t, plane,
-    frame_dt_s): a rolling shutter, each grid pixel read from the rows that saw its road
-    point (``dense.rolling``) instead of through H at the timestamps. ``pad`` (px): the grid
-    reaches that far beyond the work grid on every side (its pixel (pad, pad) is the work
-    grid's (0, 0); (h + 2 pad, w + 2 pad) arrays). ``share``: with ``rs``, a list that gets
+    (bool). ``rs`` = (R, t, plane, frame_dt_s): a rolling shutter, each grid pixel read from
+    the rows that saw its road point (``dense.rolling``) instead of through H at the
+    timestamps. ``pad`` (px): the grid reaches that far beyond the work grid on every side (its
+    pixel (pad, pad) is the work grid's (0, 0); (h + 2 pad, w + 2 pad) arrays). ``share``: with ``rs``, a list that gets
     each grid pixel's baseline share s_b - s_a (``dense.rolling.baseline_share``, NaN where
     a frame's row is unknown) appended."""
     W, Hh = camera.width, camera.height

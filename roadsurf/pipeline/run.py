@@ -478,6 +478,10 @@ def _build_report(
             "posed_frames": len(traj) if traj is not None else 0,
         },
         "skipped_frames": [dataclasses.asdict(s) for s in drive.skipped],
+        # camera.yaml's image mask (docs/formats.md, "Image mask"); null without one
+        "camera_mask": None
+        if (m := drive.camera.mask) is None
+        else {"file": m.source, "masked_share": round(m.masked_share, 4), "digest": m.digest},
         "failed_pairs": failed,
         "warnings": [*drive.warnings, *filter(None, [failures_warning(pairs, out)])],
         "timings_s": timings,

@@ -82,6 +82,9 @@ def test_with_the_mask_the_mosaic_and_map_match_the_clean_drive(runs) -> None:
     assert dark["bare"] > dark["clean"] + 0.02
     assert dark["masked"] < dark["clean"] + 0.005
     clean, masked = runs["clean"][1], runs["masked"][1]
+    assert clean["camera_mask"] is None
+    assert masked["camera_mask"]["file"].endswith("mask.png")
+    assert 0.15 < masked["camera_mask"]["masked_share"] < 0.25  # the bonnet and the stamp
     assert masked["counts"]["pairs_ok"] == clean["counts"]["pairs_ok"]
     # the map against the truth: the bonnet hides part of each pair's overlap (fewer cells
     # seen twice), nothing more (measured flat / in-defect MAE: clean 1.17 / 2.73 mm, masked
