@@ -179,6 +179,28 @@ SCENARIOS: dict[str, Scenario] = {
             "gps_sigma_m": 0.05,
         },
     ),
+    "dashcam": Scenario(
+        "a windscreen camera: 1280x720, 30° forward, 1° roll (not in camera.yaml), a burned-in "
+        "stamp and the bonnet (their mask in camera.yaml), 20 ms rolling shutter, exposure "
+        "jitter, JPEG 75, consumer GPS as NMEA",
+        909,
+        60,
+        {
+            "width": 1280,
+            "height": 720,
+            "fx": 900.0,
+            "mount_pitch_deg": 30.0,
+            "mount_roll_deg": 1.0,
+            "overlay_text": True,
+            "hood_share": 0.12,
+            "write_mask": True,
+            "readout_s": 0.02,
+            "exposure_var": 0.1,
+            "jpeg_quality": 75,
+            "gps_profile": "consumer",
+            "gps_format": "nmea",
+        },
+    ),
     "sample": Scenario(
         "the committed data_samples/drive: 3+ potholes, crack, marking, shadow, oil stain",
         7,
