@@ -60,6 +60,11 @@ class ImageMask:
     def __repr__(self) -> str:
         return f"ImageMask({self.source or 'array'}, {self.masked_share:.1%} masked)"
 
+    def to_report(self) -> dict[str, object]:
+        """What report.json says of the mask (docs/formats.md, "Image mask")."""
+        return {"file": self.source, "masked_share": round(self.masked_share, 4),
+                "digest": self.digest}  # fmt: skip
+
     @property
     def shape(self) -> tuple[int, int]:
         return (int(self.usable.shape[0]), int(self.usable.shape[1]))

@@ -40,11 +40,7 @@ from roadsurf.mapping.bundle_camera import later_stage_inputs
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.datum import vertical_datum
 from roadsurf.mapping.loops import frame_matcher
-from roadsurf.pipeline.run_checks import (
-    check_reconstruction,
-    claim_run_folder,
-    static_pixels_warning,
-)
+from roadsurf.pipeline.run_checks import check_reconstruction, claim_run_folder, static_pixels
 from roadsurf.pipeline.run_checks import pair_failures_warning as failures_warning
 from roadsurf.reconstruction.config import ReconstructionConfig
 
@@ -236,8 +232,7 @@ def _run_drive(
 
     drive = timed("drive", lambda: load_drive(drive_dir))
     claim_run_folder(drive_dir, out, overwrite)  # refuses another drive's run folder
-    if static := static_pixels_warning(drive, out):
-        drive.warnings.append(static)
+    static_pixels(drive, out)  # a warning in drive.warnings and RUN/suggested_mask.png
 
     if overwrite:
         cfg = _with_overwrite(cfg)
@@ -478,10 +473,7 @@ def _build_report(
             "posed_frames": len(traj) if traj is not None else 0,
         },
         "skipped_frames": [dataclasses.asdict(s) for s in drive.skipped],
-        # camera.yaml's image mask (docs/formats.md, "Image mask"); null without one
-        "camera_mask": None
-        if (m := drive.camera.mask) is None
-        else {"file": m.source, "masked_share": round(m.masked_share, 4), "digest": m.digest},
+        "camera_mask": drive.camera.mask and drive.camera.mask.to_report(),  # null: none
         "failed_pairs": failed,
         "warnings": [*drive.warnings, *filter(None, [failures_warning(pairs, out)])],
         "timings_s": timings,

@@ -188,18 +188,18 @@ def pair_failures_warning(pairs: list[PairResult], out: Path) -> str | None:
     return msg
 
 
-def static_pixels_warning(drive: Drive, out: Path) -> str | None:
-    """A warning (and RUN/suggested_mask.png) when the frames hold pixels that never change
-    (``io.drive.staticpx``) that camera.yaml's mask does not already name, else None (and an
-    old suggestion in ``out`` is removed)."""
+def static_pixels(drive: Drive, out: Path) -> str | None:
+    """A warning (added to ``drive.warnings``, logged, returned) and RUN/suggested_mask.png
+    when the frames hold pixels that never change (``io.drive.staticpx``) that camera.yaml's
+    mask does not already name; else None (and an old suggestion in ``out`` is removed)."""
     import cv2
 
     from roadsurf.core.atomic import atomic_path
-    from roadsurf.io.drive.staticpx import static_pixels
+    from roadsurf.io.drive.staticpx import static_pixels as find_static
 
     path = Path(out) / rf.SUGGESTED_MASK_PNG
     cam = drive.camera
-    sp = static_pixels(drive.frames, cam.width, cam.height)
+    sp = find_static(drive.frames, cam.width, cam.height)
     if sp is not None and cam.mask is not None:  # what the mask leaves, off its edge's blur
         sp = sp.outside(cam.mask.eroded(sp.grow_px))
     if sp is None or not sp.static.any():
@@ -213,4 +213,5 @@ def static_pixels_warning(drive: Drive, out: Path) -> str | None:
             log.warning("%s: could not be written", path)
     msg = sp.warning(str(path), outside_mask=cam.mask is not None)
     log.warning(msg)
+    drive.warnings.append(msg)
     return msg
