@@ -50,7 +50,7 @@ from roadsurf.reconstruction.types import PairResult
 __all__ = ["DenseSurface", "DenseTile", "dense_gsd_m", "dense_px_m", "fuse_cells"]
 
 if TYPE_CHECKING:  # torch loads only when a dense surface is built (a sparse run never needs it)
-    from roadsurf.reconstruction.dense.parallax import DenseHeight
+    from roadsurf.reconstruction.dense.geometry import PlaneParallax
 
 log = logging.getLogger(__name__)
 
@@ -91,7 +91,11 @@ class _PairDense:
     """A matched pair: its height map and what places it on the map."""
 
     index: int  # order among the ok pairs
-    dh: DenseHeight
+    # the pair's plane + parallax model on the work grid; of its DenseHeight only this is kept
+    # (its other per-pixel arrays, ~1.7 MB a pair at 320 x 240, are dead weight while the
+    # pair waits for its last tile)
+    model: PlaneParallax
+    n_valid: int  # pixels with a height (count)
     R_wc: np.ndarray  # (3, 3) ENU from camera a (fused pose)
     C: np.ndarray  # (3,) camera a's centre (ENU)
     level: np.ndarray  # (3,) plane removed from its residuals: a + b (e - e0) + c (n - n0)
@@ -233,7 +237,8 @@ class DenseSurface:
         v = dh.valid
         return _PairDense(
             k,
-            dh,
+            dh.model,
+            int(v.sum()),
             R,
             C,
             coef,
@@ -255,7 +260,7 @@ class DenseSurface:
             if pdn is None:
                 self.stats["pairs_failed"] += 1
             else:
-                self.stats["valid_px"] += int(pdn.dh.valid.sum())
+                self.stats["valid_px"] += pdn.n_valid
         self._next = upto + 1
         self.stats["match_s"] += time.perf_counter() - t0
 
@@ -328,7 +333,7 @@ class DenseSurface:
             zs = surface_height_grid(self.surf, e, n, grid.gsd_m)
         z = np.where(np.isfinite(zs), zs, pdn.C[2] - self.cam.height_m)
         got = cell_samples(
-            pdn.dh.model, pdn.R_wc, pdn.C, pdn.height_filled, pdn.valid_f, pdn.var, e, n, z,
+            pdn.model, pdn.R_wc, pdn.C, pdn.height_filled, pdn.valid_f, pdn.var, e, n, z,
             grid.gsd_m, self.cfg.dense_visible_k,
         )  # fmt: skip
         if got is None:
