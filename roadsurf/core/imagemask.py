@@ -7,7 +7,7 @@ feature, a dense window or a 2D defect candidate on them is wrong. camera.yaml's
 names an 8-bit image of the camera's size whose 0 pixels are to be ignored (COLMAP's and
 OpenSfM's convention); every stage that reads pixels asks this object which it may use.
 
-Pure arrays, no file access (``roadsurf.io.drive.camera_yaml`` reads the file).
+Pure arrays, no file access (``roadsurf.io.drive.maskfile`` reads the file).
 """
 
 from __future__ import annotations
@@ -110,11 +110,7 @@ class ImageMask:
     ) -> np.ndarray:
         """Bool array of ``u_raw``'s shape: ``usable_at`` for a grid of raw pixel coordinates
         (u_raw, v_raw, same shape; e.g. a resampling's source pixels)."""
-        u = np.asarray(u_raw, float)
-        ok = self.usable_at(
-            np.column_stack([u.ravel(), np.asarray(v_raw, float).ravel()]), margin_px
-        )
-        return ok.reshape(u.shape)
+        return self.clearance_at(u_raw, v_raw) > max(float(margin_px), 0.0)
 
     def eroded(self, margin_px: float) -> np.ndarray:
         """(height, width) bool: usable pixels more than ``margin_px`` from a masked one."""

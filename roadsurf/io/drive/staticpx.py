@@ -50,7 +50,6 @@ class StaticPixels:
     static: np.ndarray  # (height, width) bool at the camera's size: True = the same every frame
     saturated: np.ndarray  # (height, width) bool: ... of them, over-exposed in every frame
     n_frames: int  # frames compared
-    median_sigma_dn: float  # the image's median temporal σ (DN)
     grow_px: int  # the suggested mask grows the regions by this (px): the work grid's pixel + 3
 
     @property
@@ -61,8 +60,7 @@ class StaticPixels:
     def outside(self, usable: np.ndarray) -> StaticPixels:
         """The static pixels within ``usable`` (a camera mask's usable pixels) only."""
         keep = usable & self.static
-        return StaticPixels(keep, keep & self.saturated, self.n_frames, self.median_sigma_dn,
-                            self.grow_px)  # fmt: skip
+        return StaticPixels(keep, keep & self.saturated, self.n_frames, self.grow_px)
 
     def suggested_mask(self) -> np.ndarray:
         """(height, width) uint8 in camera.yaml's mask convention: 0 = ignore (the static
@@ -140,7 +138,7 @@ def static_pixels(frames: list[Frame], width: int, height: int) -> StaticPixels 
     small = (keep[lab] & (small > 0)).astype(np.uint8)
     static = cv2.resize(small, (width, height), interpolation=cv2.INTER_NEAREST) > 0
     saturated = static & (lo >= SATURATED_DN)
-    return StaticPixels(static, saturated, n, med, int(np.ceil(1.0 / s)) + 3)
+    return StaticPixels(static, saturated, n, int(np.ceil(1.0 / s)) + 3)
 
 
 def _fill_holes(region: np.ndarray) -> np.ndarray:
