@@ -33,6 +33,7 @@ from tqdm import tqdm
 from roadsurf.core.atomic import atomic_path, write_json_atomic, write_text_atomic
 from roadsurf.core.config import to_dict
 from roadsurf.core.errors import RoadsurfError
+from roadsurf.core.imagemask import ImageMask
 from roadsurf.detection.classifier import augment
 from roadsurf.detection.classifier.config import CLASS_NAMES, ClassifierConfig
 from roadsurf.detection.classifier.selflabel import (
@@ -70,15 +71,20 @@ LABEL_FIELDS = [
 
 
 # ---------------------------------------------------------------- image preprocessing (shared)
-def thumbnail(image: np.ndarray, store_size_px: int) -> np.ndarray:
+def thumbnail(image: np.ndarray, store_size_px: int, mask: ImageMask | None = None) -> np.ndarray:
     """Whole frame (H, W) grey or (H, W, 3) RGB uint8 -> square grey uint8 (S, S).
 
     The same function prepares training images and screened frames, so both see identical input.
+    With the camera's image ``mask`` the pixels that never show the road (a burned-in stamp, the
+    bonnet) are set to the road's median grey first (``ImageMask.fill``): the network sees
+    neither a stamp's changing text nor a dark bonnet it could take for a hole.
     """
     if image.ndim == 3:
         image = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
     if image.ndim != 2:
         raise ValueError(f"thumbnail expects (H, W) or (H, W, 3), got {image.shape}")
+    if mask is not None:
+        image = mask.fill(image)
     return cv2.resize(image, (store_size_px, store_size_px), interpolation=cv2.INTER_AREA)
 
 
@@ -155,7 +161,7 @@ def label_run(
             dropped[rule] = dropped.get(rule, 0) + 1
             continue
         try:
-            thumb = thumbnail(read_image(fr), cfg.store_size_px)
+            thumb = thumbnail(read_image(fr), cfg.store_size_px, drive.camera.mask)
         except RoadsurfError as e:
             log.warning("%s: skipped (%s)", fr.path, e)
             dropped["unreadable"] = dropped.get("unreadable", 0) + 1

@@ -13,6 +13,7 @@ import torch
 from tqdm import tqdm
 
 from roadsurf.core.errors import RoadsurfError
+from roadsurf.core.imagemask import ImageMask
 from roadsurf.core.parallel import ordered_map
 from roadsurf.detection.classifier.config import ClassifierConfig
 from roadsurf.detection.classifier.dataset import thumbnail, to_input
@@ -37,10 +38,18 @@ def screen_drive(
     Raises ``ModelFileError`` when the model file is missing, corrupt or incompatible.
     """
 
-    def frames() -> Sequence[Frame]:  # after the model: a bad model file is reported first
-        return (drive if isinstance(drive, Drive) else load_drive(drive)).frames
+    src = drive
 
-    return screen_frames(model_path, frames, cfg, progress=progress)
+    def loaded() -> Drive:  # after the model: a bad model file is reported first
+        nonlocal src
+        if not isinstance(src, Drive):
+            src = load_drive(src)
+        return src
+
+    return screen_frames(
+        model_path, lambda: loaded().frames, cfg, progress=progress,
+        mask=lambda: loaded().camera.mask,
+    )  # fmt: skip
 
 
 def screen_frames(
@@ -49,17 +58,19 @@ def screen_frames(
     cfg: ClassifierConfig | None = None,
     *,
     progress: bool = True,
+    mask: ImageMask | Callable[[], ImageMask | None] | None = None,
 ) -> dict[str, float]:
     """``screen_drive`` on frames in capture order -> {filename: p_defect}. ``frames`` may be
     a callable, called once the model is loaded (the screening worker process loads the model
-    while its parent is still reading the drive)."""
+    while its parent is still reading the drive); so may the camera's image ``mask``
+    (``thumbnail``), called after ``frames``."""
     cfg = cfg or ClassifierConfig()
     threads = screen_threads(cfg)
     before = torch.get_num_threads()
     if threads > 0:
         torch.set_num_threads(threads)
     try:
-        return _screen(model_path, frames, cfg, progress)
+        return _screen(model_path, frames, cfg, progress, mask)
     finally:
         torch.set_num_threads(before)
 
@@ -81,10 +92,12 @@ def _screen(
     frames_or_get: Sequence[Frame] | Callable[[], Sequence[Frame]],
     cfg: ClassifierConfig,
     progress: bool,
+    mask_or_get: ImageMask | Callable[[], ImageMask | None] | None,
 ) -> dict[str, float]:
     device = pick_device(cfg.device)
     net, meta = load_model(model_path, device)
     frames = list(frames_or_get() if callable(frames_or_get) else frames_or_get)
+    mask = mask_or_get() if callable(mask_or_get) else mask_or_get
     store = int(meta.get("store_size_px", cfg.store_size_px))
     side = int(meta["input_size_px"])
     t0 = time.perf_counter()
@@ -104,7 +117,7 @@ def _screen(
 
     def prepare(fr: Frame) -> np.ndarray | RoadsurfError:
         try:
-            return to_input(thumbnail(read_image(fr), store), side)
+            return to_input(thumbnail(read_image(fr), store, mask), side)
         except RoadsurfError as e:
             return e
 

@@ -36,10 +36,13 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from roadsurf.core import errors
 from roadsurf.core.atomic import write_json_atomic
 from roadsurf.core.config import from_dict, to_dict
 from roadsurf.core.errors import RoadsurfError
+from roadsurf.core.imagemask import ImageMask
 from roadsurf.detection.classifier.config import ClassifierConfig
 from roadsurf.io.drive import Frame
 
@@ -124,15 +127,20 @@ class ScreeningJob:
         )
         self._sent = False
 
-    def send(self, frames: Sequence[Frame]) -> None:
-        """The frames to screen, in capture order (once)."""
+    def send(self, frames: Sequence[Frame], mask: ImageMask | None = None) -> None:
+        """The frames to screen, in capture order, and the camera's image mask (once)."""
         if self._proc is None or self._sent:
             raise RoadsurfError("this screening job is closed or already has its frames")
         self._sent = True
         rows = [[f.index, f.filename, str(f.path), f.timestamp_s] for f in frames]
+        mask_file = None
+        if mask is not None:  # the pixels travel as a .npy in the job's folder
+            mask_file = str(Path(self._tmp.name) / "mask.npy")
+            np.save(mask_file, mask.usable)
+        payload = {"frames": rows, "mask": mask_file, "mask_source": mask.source if mask else ""}
         try:
             if self._proc.stdin is not None:
-                self._proc.stdin.write(json.dumps(rows).encode())
+                self._proc.stdin.write(json.dumps(payload).encode())
                 self._proc.stdin.close()
         except OSError:  # the worker stopped early (e.g. a bad model file): result() says why
             pass
@@ -181,15 +189,23 @@ class ScreeningJob:
 
 
 def _work(out: Path, header: dict[str, Any]) -> int:
+    sent: dict[str, Any] = {}
+
     def frames() -> list[Frame]:  # blocks until the parent has read the drive
-        rows = json.loads(sys.stdin.read())
-        return [Frame(int(i), str(fn), Path(p), float(t)) for i, fn, p, t in rows]
+        sent.update(json.loads(sys.stdin.read()))
+        return [Frame(int(i), str(fn), Path(p), float(t)) for i, fn, p, t in sent["frames"]]
+
+    def mask() -> ImageMask | None:  # called after frames()
+        path = sent.get("mask")
+        return ImageMask(np.load(path), str(sent.get("mask_source", ""))) if path else None
 
     try:
         from roadsurf.detection.classifier.screen import screen_frames
 
         cfg = from_dict(ClassifierConfig, header["config"], "classifier")
-        probs = screen_frames(header["model"], frames, cfg, progress=bool(header["progress"]))
+        probs = screen_frames(
+            header["model"], frames, cfg, progress=bool(header["progress"]), mask=mask
+        )
     except RoadsurfError as e:
         write_json_atomic(out, {"error": {"type": type(e).__name__, "message": str(e)}})
         return 2

@@ -113,7 +113,7 @@ def _screen(
         from roadsurf.detection.classifier.screen import screen_drive
 
         return screen_drive(model, drive, cfg)
-    job.send(drive.frames)
+    job.send(drive.frames, drive.camera.mask)
     for name in _FUSED_RUN_IMPORTS:
         try:
             importlib.import_module(name)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import os
 import time
@@ -14,6 +15,7 @@ import pytest
 import torch
 
 from roadsurf.core.errors import ModelFileError, RoadsurfError
+from roadsurf.core.imagemask import ImageMask
 from roadsurf.detection.classifier.config import ClassifierConfig
 from roadsurf.detection.classifier.modelfile import load_model, save_model
 from roadsurf.detection.classifier.network import DefectNet
@@ -214,6 +216,31 @@ def test_train_few_steps_resume_and_screen(tmp_path: Path) -> None:
         job.send(frames)
         with pytest.raises(ModelFileError, match="corrupt.safetensors"):
             job.result()
+    # the camera's image mask: what lies under it never reaches the network, in this process
+    # and in the worker (a bonnet painted differently in every frame screens the same)
+    usable = np.ones((120, 120), bool)
+    usable[90:] = False
+    mcam = dataclasses.replace(cam, mask=ImageMask(usable, "mask.png"))
+    painted = []
+    for i, fr in enumerate(frames):
+        img = cv2.imread(str(fr.path))
+        img[90:] = (0, 60 * i, 255 - 40 * i)
+        q = tmp_path / "drive" / "frames" / f"painted_{fr.filename}"
+        cv2.imwrite(str(q), img)
+        painted.append(Frame(fr.index, q.name, q, fr.timestamp_s))
+    masked = screen_drive(tmp_path / "model", Drive(tmp_path / "drive", mcam, frames, None, None),
+                          scfg)  # fmt: skip
+    masked_painted = screen_drive(
+        tmp_path / "model", Drive(tmp_path / "drive", mcam, painted, None, None), scfg
+    )
+    assert list(masked_painted.values()) == pytest.approx(list(masked.values()), abs=1e-6)
+    unmasked_painted = screen_drive(
+        tmp_path / "model", Drive(tmp_path / "drive", cam, painted, None, None), scfg
+    )
+    assert list(unmasked_painted.values()) != pytest.approx(list(probs.values()), abs=1e-6)
+    with ScreeningJob(tmp_path / "model", scfg, progress=False) as job:
+        job.send(painted, mcam.mask)
+        assert list(job.result().values()) == pytest.approx(list(masked.values()), abs=1e-6)
     # a job that never got its frames (the drive failed to load) is killed on close: a failed
     # or interrupted run leaves no worker behind
     job = ScreeningJob(tmp_path / "model", scfg, progress=False)
