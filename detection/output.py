@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from roadsurf.core.atomic import read_json, write_json_atomic, write_text_atomic
+from roadsurf.core.atomic import read_json, write_json_atomic
 from roadsurf.core.config import to_dict
 from roadsurf.core.fingerprint import Fingerprint
 from roadsurf.detection.config import DetectionConfig
@@ -77,7 +77,7 @@ def write_outputs(
         # No GPS: the file keeps the GeoJSON layout but holds local ENU metres (not RFC 7946).
         meta["coordinates"] = "local ENU metres (east, north); the drive had no GPS, no lon/lat"
         fc = {"type": "FeatureCollection", "features": feats, "properties": meta}
-        write_text_atomic(gj, json.dumps(fc, indent=1) + "\n")
+        write_json_atomic(gj, fc, indent=1)
         log.warning("detection: no GPS reference; defects are written in local ENU metres")
     write_csv(run.path(DEFECTS_CSV), DEFECT_COLUMNS, rows)
     write_csv(

@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import json
+import math
 import os
 import shutil
 import tempfile
@@ -137,18 +138,33 @@ def write_bytes_atomic(path: str | os.PathLike[str], data: bytes) -> Path:
     return Path(path)
 
 
-def _json_default(obj: Any) -> Any:
+def json_safe(obj: Any) -> Any:
+    """``obj`` with what strict JSON cannot hold converted: NaN and ±inf -> None (``null``;
+    a bare ``NaN`` token is not JSON and browsers, jq and GIS readers refuse the file), numpy
+    arrays and scalars -> lists and Python numbers, paths -> str, tuples -> lists, keys -> str."""
+    if isinstance(obj, dict):
+        return {str(k): json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(v) for v in obj]
     if isinstance(obj, np.ndarray):
-        return obj.tolist()
+        return json_safe(obj.tolist())
     if isinstance(obj, np.generic):
-        return obj.item()
+        obj = obj.item()
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
     if isinstance(obj, Path):
         return str(obj)
+    return obj
+
+
+def _json_default(obj: Any) -> Any:
     raise TypeError(f"cannot serialise {type(obj).__name__} to JSON")
 
 
 def write_json_atomic(path: str | os.PathLike[str], obj: Any, indent: int = 2) -> Path:
-    return write_text_atomic(path, json.dumps(obj, indent=indent, default=_json_default) + "\n")
+    """Write ``obj`` as strict JSON (``json_safe``: NaN -> null) atomically."""
+    text = json.dumps(json_safe(obj), indent=indent, default=_json_default, allow_nan=False)
+    return write_text_atomic(path, text + "\n")
 
 
 def read_json(path: str | os.PathLike[str]) -> Any:

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from roadsurf.core.atomic import atomic_path, write_text_atomic
+from roadsurf.core.atomic import atomic_path, json_safe, write_text_atomic
 
 # --------------------------------------------------------------------------- PLY
 
@@ -297,21 +297,7 @@ def polygon_geometry(ring_lonlat: np.ndarray) -> dict[str, Any]:
 
 
 def feature(geometry: dict[str, Any], properties: dict[str, Any]) -> dict[str, Any]:
-    return {"type": "Feature", "geometry": geometry, "properties": _jsonable(properties)}
-
-
-def _jsonable(obj: Any) -> Any:
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _jsonable(obj.tolist())
-    if isinstance(obj, np.generic):
-        obj = obj.item()
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    return obj
+    return {"type": "Feature", "geometry": geometry, "properties": json_safe(properties)}
 
 
 def validate_geojson(fc: dict[str, Any]) -> None:
@@ -344,9 +330,9 @@ def write_geojson(
         properties = {**(properties or {}), "vertical_datum": vertical_datum}
     fc: dict[str, Any] = {"type": "FeatureCollection", "features": list(features)}
     if properties:
-        fc["properties"] = _jsonable(properties)
+        fc["properties"] = json_safe(properties)
     validate_geojson(fc)
-    return write_text_atomic(path, json.dumps(fc, indent=1) + "\n")
+    return write_text_atomic(path, json.dumps(fc, indent=1, allow_nan=False) + "\n")
 
 
 def read_geojson(path: str | Path) -> dict[str, Any]:

@@ -58,3 +58,36 @@ def test_stale_temporaries_are_removed(tmp_path: Path) -> None:
     keep.write_bytes(b"done")
     assert sorted(remove_stale_temporaries(tmp_path)) == sorted(stale)
     assert keep.exists() and not any(p.exists() for p in stale)
+
+
+def test_json_is_strict_nan_becomes_null(tmp_path: Path) -> None:
+    """A bare NaN token is not JSON (browsers, jq and GIS readers refuse the file): non-finite
+    numbers, also inside numpy arrays and scalars, are written as null."""
+    import json
+    import math
+
+    import numpy as np
+
+    from roadsurf.core.atomic import write_json_atomic
+
+    def strict(tok: str) -> float:
+        raise ValueError(f"non-JSON token {tok}")
+
+    obj = {
+        "noise_m": math.nan,
+        "inf": np.float32(np.inf),
+        "arr": np.array([1.0, np.nan, -np.inf]),
+        "nested": [(np.int64(3), Path("a/b"))],
+        4: "key",
+    }
+    p = write_json_atomic(tmp_path / "x.json", obj)
+    back = json.loads(p.read_text(), parse_constant=strict)
+    assert back == {
+        "noise_m": None,
+        "inf": None,
+        "arr": [1.0, None, None],
+        "nested": [[3, "a/b"]],
+        "4": "key",
+    }
+    with pytest.raises(TypeError, match="set"):
+        write_json_atomic(tmp_path / "y.json", {"bad": {1, 2}})
