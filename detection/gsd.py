@@ -16,6 +16,7 @@ import math
 import numpy as np
 
 from roadsurf.core.camera import Camera
+from roadsurf.core.geometry import rotation_b_from_a
 
 
 def ground_px_m_raw(camera: Camera, px_raw: np.ndarray, fallback_m: float) -> np.ndarray:
@@ -26,19 +27,6 @@ def ground_px_m_raw(camera: Camera, px_raw: np.ndarray, fallback_m: float) -> np
         return np.zeros(0)
     g = camera.ground_px_m_at(camera.undistort_px(px))
     return np.where(np.isfinite(g) & (g > 0), g, fallback_m)
-
-
-def _min_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(3, 3) rotation taking unit vector ``a`` to unit vector ``b`` about their common normal
-    (no twist about either); identity when they coincide."""
-    v = np.cross(a, b)
-    s, c = float(np.linalg.norm(v)), float(np.dot(a, b))
-    if s < 1e-15:
-        return np.eye(3)
-    k = v / s
-    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    ang = math.atan2(s, c)
-    return np.eye(3) + math.sin(ang) * K + (1.0 - math.cos(ang)) * (K @ K)
 
 
 class NadirView:
@@ -54,7 +42,7 @@ class NadirView:
             self.R = np.eye(3)
             self.m_per_px = camera.ground_px_m()
         else:
-            self.R = _min_rotation(np.asarray(down, float), np.array([0.0, 0.0, 1.0]))
+            self.R = rotation_b_from_a(np.asarray(down, float), np.array([0.0, 0.0, 1.0]))
             self.m_per_px = camera.height_m / math.sqrt(camera.fx * camera.fy)
 
     def px(self, px_ideal: np.ndarray) -> np.ndarray:

@@ -132,7 +132,8 @@ def refine_poses(
     if gps is not None and gps_used is not None:
         used = gps_used.copy()
     # the fixes' real scatter (MAD) for the time-offset statistics; the windows' GPS weights are
-    # only ever loosened, as in the pose graph: a window sees a few fixes, and tightening an RTK
+    # only ever loosened, never tightened, as in the pose graph (which loosens only beyond 3x:
+    # it fits all fixes at once, the bundle's windows a few each): tightening an RTK
     # receiver's HDOP σ to its residuals made each window's placement follow their noise
     # (potholes, RTK: aligned trajectory RMSE 6.4 mm tightened, 3.7 mm not)
     fit_scale = gps_sigma_scale(world, t, gps, used)

@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from roadsurf.core.fits import RAYLEIGH_MEDIAN
 from roadsurf.mapping.pose_gps import GpsFixes, interp_weights
 
 if TYPE_CHECKING:
@@ -181,12 +182,12 @@ def gps_sigma_scale(
     world: np.ndarray, t: np.ndarray, gps: GpsFixes | None, used: np.ndarray
 ) -> float:
     """Factor on the logged GPS σ from the pose graph's residuals (MAD; a 2D error norm has
-    median 1.1774 σ): an RTK receiver reporting HDOP states decimetres for centimetre fixes.
-    Never below 1/20 (a too-good fit cannot make GPS exact)."""
+    median ``RAYLEIGH_MEDIAN`` σ): an RTK receiver reporting HDOP states decimetres for
+    centimetre fixes. Never below 1/20 (a too-good fit cannot make GPS exact)."""
     if gps is None or used.sum() < 8:
         return 1.0
     k, w = interp_weights(t, gps.t_s)
     k1 = np.minimum(k + 1, len(t) - 1)
     pred = (1 - w)[:, None] * world[k, :3, 3] + w[:, None] * world[k1, :3, 3]
     e = np.linalg.norm(pred[:, :2] - gps.enu_m[:, :2], axis=1) / gps.sigma_m
-    return float(np.clip(np.median(e[used]) / 1.1774, 0.05, 20.0))
+    return float(np.clip(np.median(e[used]) / RAYLEIGH_MEDIAN, 0.05, 20.0))

@@ -13,6 +13,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.spatial.transform import Rotation
 
+from roadsurf.core.fits import RAYLEIGH_MEDIAN
 from roadsurf.core.geometry import (
     forward_in_cam,
     heading_deg_from_displacement,
@@ -384,11 +385,11 @@ class PoseGraph:
         old_scale = self.gps_scale
         old_vis = self.vis_scale
         if self.cfg.adapt_sigmas and self.gps_used.sum() >= 8:
-            # A 2D error norm with per-axis σ has median ≈ 1.1774 σ (Rayleigh). Only GPS that is
+            # A 2D error norm with per-axis σ has median RAYLEIGH_MEDIAN σ. Only GPS that is
             # clearly worse than its σ says (> 3×) is loosened. The reverse (an RTK receiver
             # reporting HDOP) is left alone: residuals after the fit are biased low, and
             # tightening GPS would over-weight it against vision (measured: worse drift).
-            s = float(np.median(e[self.gps_used]) / 1.1774)
+            s = float(np.median(e[self.gps_used]) / RAYLEIGH_MEDIAN)
             if s > 3.0:
                 self.gps_scale = float(np.clip(s, 1.0, 20.0))
         thr = self.cfg.gps_outlier_sigmas * self.gps_scale

@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from roadsurf.core.fits import RAYLEIGH_MEDIAN
 from roadsurf.reconstruction.pose_planar import plane_solutions
 from roadsurf.reconstruction.types import PairResult
 
@@ -41,7 +42,6 @@ log = logging.getLogger(__name__)
 
 MIN_PAIRS = 3  # fewer pairs with candidates and no mount: no consensus (a majority needs 3)
 RAYLEIGH_Q = math.sqrt(-2.0 * math.log(1e-3))  # 3.72: P(θ > q σ) = 1e-3 for a Rayleigh angle
-RAYLEIGH_MEDIAN = math.sqrt(2.0 * math.log(2.0))  # 1.177: median of a Rayleigh(σ = 1) angle
 # Floor of τ (deg): on a vehicle σ̂ is 1-2° (τ would be 4-7°), but a grade change, a crown or a
 # braking pitch moves the road normal a few degrees for a whole pair; 20° is a third of the
 # smallest angle between a road and a mirror normal (a mirror normal lies near the direction of

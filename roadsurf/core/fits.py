@@ -14,6 +14,9 @@ import numpy as np
 from roadsurf.core.geometry import check_shape
 
 MAD_TO_SIGMA = 1.4826  # σ of a normal distribution from its median absolute deviation
+# median of a Rayleigh(σ = 1) variable (≈ 1.1774): the norm of a 2D error with σ per axis, or a
+# small angle between two noisy directions, has median RAYLEIGH_MEDIAN σ
+RAYLEIGH_MEDIAN = math.sqrt(2.0 * math.log(2.0))
 
 
 def robust_sigma(values: np.ndarray) -> float:

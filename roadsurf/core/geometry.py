@@ -154,6 +154,23 @@ def skew(v: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
 
+def rotation_b_from_a(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(3, 3) the smallest rotation R with R a = b for directions a, b (3,) (normalised here):
+    about their common normal, no twist about either (Rodrigues). Identity when they coincide;
+    a half turn about an axis normal to a when they are opposite."""
+    a = check_shape("a", np.asarray(a, float), (3,)) / np.linalg.norm(a)
+    b = check_shape("b", np.asarray(b, float), (3,)) / np.linalg.norm(b)
+    c = float(a @ b)
+    if c < -1.0 + 1e-12:  # opposite: a half turn about any axis orthogonal to a
+        axis = np.cross(a, [1.0, 0.0, 0.0])
+        if np.linalg.norm(axis) < 1e-6:
+            axis = np.cross(a, [0.0, 1.0, 0.0])
+        axis /= np.linalg.norm(axis)
+        return 2.0 * np.outer(axis, axis) - np.eye(3)
+    vx = skew(np.cross(a, b))
+    return np.eye(3) + vx + vx @ vx / (1.0 + c)
+
+
 def rotation_from_euler_xyz(rx_rad: float, ry_rad: float, rz_rad: float) -> np.ndarray:
     """R = Rz @ Ry @ Rx (rotations about the camera x, y, z axes, radians)."""
     cx, sx, cy, sy, cz, sz = (

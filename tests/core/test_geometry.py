@@ -1,3 +1,5 @@
+import math
+
 import numpy as np
 import pytest
 
@@ -68,3 +70,26 @@ def test_shape_checks():
         skew(np.zeros(4))
     with pytest.raises(ValueError, match=r"expected shape \(N, 3\)"):
         transform_points(np.eye(4), np.zeros((5, 2)))
+
+
+@pytest.mark.parametrize(
+    "a, b",
+    [
+        ([0.0, 0.0, 1.0], [0.3, -0.2, 0.9]),
+        ([1.0, 2.0, 3.0], [1.0, 2.0, 3.0]),  # the same: identity
+        ([0.0, 0.0, 1.0], [0.0, 0.0, -1.0]),  # opposite: a half turn, not the identity
+        ([1.0, 0.0, 0.0], [-2.0, 0.0, 0.0]),
+        ([0.2, 0.5, -0.8], [-0.2, -0.5, 0.8]),
+    ],
+)
+def test_rotation_b_from_a_is_a_proper_rotation_onto_b(a: list[float], b: list[float]) -> None:
+    from roadsurf.core.geometry import rotation_b_from_a
+
+    R = rotation_b_from_a(np.array(a), np.array(b))
+    an, bn = np.array(a) / np.linalg.norm(a), np.array(b) / np.linalg.norm(b)
+    assert R @ an == pytest.approx(bn, abs=1e-12)
+    assert R.T @ R == pytest.approx(np.eye(3), abs=1e-12)
+    assert np.linalg.det(R) == pytest.approx(1.0, abs=1e-12)
+    # the smallest rotation: its angle is the angle between a and b
+    ang = math.acos(np.clip((np.trace(R) - 1) / 2, -1, 1))
+    assert ang == pytest.approx(math.acos(np.clip(an @ bn, -1, 1)), abs=1e-7)

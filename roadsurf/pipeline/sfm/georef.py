@@ -28,8 +28,8 @@ from roadsurf.core.fits import MAD_TO_SIGMA, fit_plane_ransac
 from roadsurf.core.geometry import (
     EnuReference,
     heading_deg_from_world_rotation,
+    rotation_b_from_a,
     rotation_from_euler_xyz,
-    skew,
 )
 from roadsurf.io.drive import Drive, Frame
 from roadsurf.mapping.config import MappingConfig
@@ -136,22 +136,6 @@ class ModelGeo:
     outliers: dict[str, str]  # filename -> why its pose was rejected
 
 
-def _rotation_a_to_b(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(3, 3) rotation taking unit vector a onto unit vector b (Rodrigues)."""
-    a = a / np.linalg.norm(a)
-    b = b / np.linalg.norm(b)
-    v = np.cross(a, b)
-    c = float(a @ b)
-    if c < -1 + 1e-12:  # opposite: rotate pi about any axis orthogonal to a
-        axis = np.cross(a, [1.0, 0.0, 0.0])
-        if np.linalg.norm(axis) < 1e-6:
-            axis = np.cross(a, [0.0, 1.0, 0.0])
-        axis /= np.linalg.norm(axis)
-        return 2 * np.outer(axis, axis) - np.eye(3)
-    vx = skew(v)
-    return np.eye(3) + vx + vx @ vx / (1 + c)
-
-
 def _fit_vertical_tilt(
     c_h: np.ndarray, gps_enu: np.ndarray, ok: np.ndarray, cfg: SfmBaselineConfig
 ) -> tuple[np.ndarray, np.ndarray, float] | None:
@@ -189,7 +173,7 @@ def _fit_vertical_tilt(
     if tilt_deg > cfg.gps_tilt_max_deg or rms_tilt > 0.5 * rms_flat:
         return None
     n_new = np.array([-b, -c, 1.0])
-    R = _rotation_a_to_b(np.array([0.0, 0.0, 1.0]), n_new / np.linalg.norm(n_new))
+    R = rotation_b_from_a(np.array([0.0, 0.0, 1.0]), n_new / np.linalg.norm(n_new))
     return R, pivot, tilt_deg
 
 
@@ -253,7 +237,7 @@ def georeference_model(
     alpha = drive.camera.height_m / d_c_med  # eq. 3.34
     up = np.nanmean(normals[has], axis=0)
     up /= np.linalg.norm(up)
-    R_level = _rotation_a_to_b(up, np.array([0.0, 0.0, 1.0]))
+    R_level = rotation_b_from_a(up, np.array([0.0, 0.0, 1.0]))
     origin = centres[0]
     c_lv = alpha * (centres - origin) @ R_level.T
     p_lv = alpha * (pts - origin) @ R_level.T
