@@ -147,7 +147,6 @@ class ReconstructionConfig:
     estimate_sigma: bool = True  # use σ̂ = 1.4826·MAD of the pair's Sampson residuals instead
     # (adaptive to each camera/texture; pixel_sigma_px is then the fallback for < 8 points)
     max_reproj_px: float = 4.0  # drop triangulated points with a larger reprojection error (px)
-    min_parallax_deg: float = 0.0  # drop points with less triangulation angle (deg); 0 = keep
     stereo_baseline_m: float = 0.2  # stereo baseline B (m), dissertation Fig. 3.12
     min_overlap: float = 0.1  # matched area share of image a below this -> no_overlap (0-1)
     normal_consensus: bool = True  # after all pairs: re-solve pairs whose road normal is far
@@ -184,7 +183,6 @@ class ReconstructionConfig:
         "colmap_max_error_px": "(0, inf)",
         "pixel_sigma_px": "(0, inf)",
         "max_reproj_px": "(0, inf)",
-        "min_parallax_deg": "[0, 180); 0 = keep every point",
         "stereo_baseline_m": "(0, 10]; a stereo baseline above 10 m is a unit mistake (cm typed as m?)",
         "min_overlap": "[0, 1]",
         "rs_iterations": "[1, inf)",
