@@ -165,8 +165,7 @@ class Segmentation:
     seed_m: float  # T_d on the map
     rim_m: float  # outline threshold
     regions: list[Region]
-    smoothed: np.ndarray  # (H, W) smoothed residual
-    grid: GridSpec  # grid of ``smoothed`` and of the regions' rows/cols (cropped to the data)
+    grid: GridSpec  # grid of the regions' rows/cols (the residual's, cropped to the data)
 
 
 def segment(
@@ -184,7 +183,7 @@ def segment(
     res, grid = crop_to_data(surface.residual_m.astype(np.float32), surface.grid)
     noise = robust_sigma(res)
     if not np.isfinite(noise):
-        return Segmentation(float("nan"), float("nan"), float("nan"), [], res, grid)
+        return Segmentation(float("nan"), float("nan"), float("nan"), [], grid)
     # Fill small holes from observed neighbours, then smooth lightly (σ in metres).
     res = np.where(np.isfinite(res), res, smooth_nan(res, cfg.fill_px))
     unknown = ~np.isfinite(res)
@@ -209,7 +208,7 @@ def segment(
     bridge_of = bridged_components(rim, rim_lab, n_rim, unknown, cfg.bridge_unknown_m / grid.gsd_m)
     seed_rc = np.argwhere(seed)
     if len(seed_rc) == 0:
-        return Segmentation(noise, seed_t, rim_t, [], sm, grid)
+        return Segmentation(noise, seed_t, rim_t, [], grid)
     seed_xy = grid.xy_from_rowcol(seed_rc[:, 0], seed_rc[:, 1])
     seed_comp = rim_lab[seed_rc[:, 0], seed_rc[:, 1]]
 
@@ -279,7 +278,7 @@ def segment(
         reg.support_idx = np.flatnonzero(in_reg)
         reg.noise_m, reg.seed_m = noise, seed_t
         regions.append(reg)
-    return Segmentation(noise, seed_t, rim_t, regions, sm, grid)
+    return Segmentation(noise, seed_t, rim_t, regions, grid)
 
 
 def measure(region: Region, grid: GridSpec, frame_depth_m: float) -> Measured:

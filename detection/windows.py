@@ -303,7 +303,7 @@ def segment_windows(
         len(regions),
         len(merged),
     )
-    return Segmentation(noise, seed, rim, merged, np.zeros((0, 0), np.float32), grid)
+    return Segmentation(noise, seed, rim, merged, grid)
 
 
 def merge_regions(regions: list[Region], width: int, ev_pair: np.ndarray) -> list[Region]:

@@ -114,12 +114,6 @@ def estimate_from_pairs(
     return R, spread, len(ups)
 
 
-def angle_between_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
-    """Rotation angle (deg) between two (3, 3) rotations."""
-    c = (np.trace(Ra.T @ Rb) - 1.0) / 2.0
-    return math.degrees(math.acos(max(-1.0, min(1.0, c))))
-
-
 def resolve(
     camera: Camera,
     pairs: list[PairResult],

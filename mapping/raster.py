@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import contextlib
 import math
-import os
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,7 +18,7 @@ from xml.sax.saxutils import escape
 import numpy as np
 
 from roadsurf.core.atomic import atomic_path, library_write_error, write_text_atomic
-from roadsurf.core.geometry import EnuReference, ExportFrame, enu_from_lla, lla_from_utm
+from roadsurf.core.geometry import EnuReference, enu_from_lla, lla_from_utm
 from roadsurf.io import runfolder as rf
 from roadsurf.io.formats import LOCAL_CRS, GridSpec, geotiff_profile
 
@@ -122,10 +121,6 @@ class GridToEnu:
         e = A[0, 0] * X + A[0, 1] * Y + A[0, 2]
         n = A[1, 0] * X + A[1, 1] * Y + A[1, 2]
         return e, n
-
-
-def export_epsg(ef: ExportFrame | None) -> int | None:
-    return None if ef is None else ef.epsg
 
 
 # --------------------------------------------------------------------------- gridding
@@ -373,10 +368,6 @@ def write_vrt(
         lines.append("  </VRTRasterBand>")
     lines.append("</VRTDataset>")
     return write_text_atomic(path, "\n".join(x for x in lines if x) + "\n")
-
-
-def file_size_mb(path: Path) -> float:
-    return os.path.getsize(path) / 1e6 if path.exists() else 0.0
 
 
 def iter_tiles(

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from roadsurf.core.camera import normalised_from_px
 from roadsurf.core.geometry import check_shape, skew
 
 
@@ -64,25 +63,6 @@ def triangulate(xa: np.ndarray, xb: np.ndarray, R: np.ndarray, t: np.ndarray) ->
     AtA = np.einsum("nki,nkj->nij", A, A)
     Atb = np.einsum("nki,nk->ni", A, b)
     return np.linalg.solve(AtA, Atb[..., None])[..., 0]
-
-
-def triangulation_jacobian_px(
-    px_a: np.ndarray, px_b: np.ndarray, R: np.ndarray, t: np.ndarray, K: np.ndarray
-) -> np.ndarray:
-    """(N, 3, 4) d X / d (u_a, v_a, u_b, v_b) by central differences, pose held fixed."""
-    h = 1e-3
-    J = np.zeros((px_a.shape[0], 3, 4))
-    for k in range(4):
-        d = np.zeros((px_a.shape[0], 4))
-        d[:, k] = h
-        Xp = triangulate(
-            normalised_from_px(px_a + d[:, :2], K), normalised_from_px(px_b + d[:, 2:], K), R, t
-        )
-        Xm = triangulate(
-            normalised_from_px(px_a - d[:, :2], K), normalised_from_px(px_b - d[:, 2:], K), R, t
-        )
-        J[:, :, k] = (Xp - Xm) / (2 * h)
-    return J
 
 
 def point_covariance(

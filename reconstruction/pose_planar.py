@@ -160,19 +160,6 @@ def refine_homography_sampson(
     return H / H[2, 2]
 
 
-def pose_from_homography(
-    px_a: np.ndarray,
-    px_b: np.ndarray,
-    H: np.ndarray,
-    K: np.ndarray,
-    *,
-    road_normal_cam: np.ndarray | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Homography decomposition with the road priors (``pose_plane_from_homography``)."""
-    R, t, _ = pose_plane_from_homography(px_a, H, K, road_normal_cam=road_normal_cam)
-    return R, t
-
-
 def pose_plane_from_homography(
     px_a: np.ndarray, H: np.ndarray, K: np.ndarray, *, road_normal_cam: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -29,6 +29,9 @@ from roadsurf.core.camera import RENDER_UNDISTORT_CRITERIA
 from roadsurf.simulation.route import Pose
 from roadsurf.simulation.world import World
 
+# frame labels: the footprint area deeper than this counts as defect (m; truth.DEFECT_AREA_M2)
+LABEL_DEPTH_M = 0.010
+
 TILE = 384  # largest tile size (px at the render GSD)
 TILE_M = 0.47  # target tile size on the ground (m): coarse GSDs get smaller tiles
 ROW_KNOT = 8  # rolling shutter: an exact pose every this many supersampled rows (count)
@@ -294,7 +297,7 @@ class Renderer:
             cell = (t / c.fx) ** 2 / (self.ss * self.ss)
         else:
             cell = t * t * np.abs(inv_dz) / np.float32(c.fx * c.fx * self.ss * self.ss)
-        deep = dep > 0.010
+        deep = dep > LABEL_DEPTH_M
         area_m2 = float(np.sum(cell[deep]))
         return FrameRender(rad, area_m2, float(dep.max()) if dep.size else 0.0, fp)
 

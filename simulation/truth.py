@@ -32,8 +32,9 @@ from roadsurf.simulation.route import Pose
 from roadsurf.simulation.world import World
 
 BLOCK = 256
-DEFECT_DEPTH_M = 0.010  # frame label: footprint area deeper than this ...
-DEFECT_AREA_M2 = 0.0020  # ... of at least 20 cm^2 makes a defect frame
+# frame label: footprint area deeper than render.LABEL_DEPTH_M of at least this makes a defect
+# frame (20 cm^2)
+DEFECT_AREA_M2 = 0.0020
 
 POSE_HEADER = [
     "filename", "timestamp_s", "easting_m", "northing_m", "up_m", "lat_deg", "lon_deg", "alt_m",

@@ -73,27 +73,16 @@ class GuidedResult:
     cleared: frozenset[str] = frozenset()  # audited frames a probe showed clear (no full pair)
 
 
-def initial_plan(
-    frame_probs: Mapping[str, float],
-    filenames: list[str],
-    cfg: ClassifierConfig,
-    along_m: Sequence[float] | np.ndarray | None = None,
-) -> tuple[set[tuple[int, int]], dict[str, str]]:
-    """Pairs before any 3D result is known, and the reason of each frame that gets 3D.
-    ``along_m`` (n,): each frame's distance along the drive (m) for the audit's spacing
-    (``audit_every_m``); None counts frames (``audit_every_frames``)."""
-    pairs, audit, reasons = plan_pairs(frame_probs, filenames, cfg, along_m)
-    return pairs | set(audit.values()), reasons
-
-
 def plan_pairs(
     frame_probs: Mapping[str, float],
     filenames: list[str],
     cfg: ClassifierConfig,
     along_m: Sequence[float] | np.ndarray | None = None,
 ) -> tuple[set[tuple[int, int]], dict[int, tuple[int, int]], dict[str, str]]:
-    """``initial_plan`` split in two: (pairs the CNN's decisions need, {audited frame: its
-    audit pair} for pairs only the audit needs, reasons)."""
+    """Pairs before any 3D result is known: (pairs the CNN's decisions need, {audited frame:
+    its audit pair} for pairs only the audit needs, the reason of each frame that gets 3D).
+    ``along_m`` (n,): each frame's distance along the drive (m) for the audit's spacing
+    (``audit_every_m``); None counts frames (``audit_every_frames``)."""
     n = len(filenames)
     thr = cfg.fusion_threshold
     pairs = pairs_to_reconstruct(frame_probs, filenames, thr, cfg.context_frames)

@@ -32,7 +32,7 @@ from roadsurf.detection.classifier import augment
 from roadsurf.detection.classifier.calibration import calibrate_model, training_priors
 from roadsurf.detection.classifier.config import CLASS_NAMES, ClassifierConfig
 from roadsurf.detection.classifier.dataset import Dataset, load_dataset
-from roadsurf.detection.classifier.modelfile import save_model
+from roadsurf.detection.classifier.modelfile import META_NAME, save_model
 from roadsurf.detection.classifier.network import DefectNet, pick_device
 
 log = logging.getLogger(__name__)
@@ -332,19 +332,19 @@ def train(
                 },
                 tmp,
             )
-    if not (out / "model.json").is_file():
+    if not (out / META_NAME).is_file():
         _save(out, net, cfg, ds, tr, va, history[-1] if history else {}, history, device, t0)
     from roadsurf.core.atomic import read_json
 
     if cfg.calibrate and len(va):
         pt, pd = training_priors(ds.labels, augmented, tr, cfg)
         calibrate_model(out, ds.images[va], ds.labels[va], device, cfg, pt, pd)
-    meta = read_json(out / "model.json")
+    meta = read_json(out / META_NAME)
     # the final history/timing is recorded even if the best epoch was earlier
     meta["history"] = history
     meta["best_epoch"] = best.get("epoch")
     meta["train_time_s"] = round(time.perf_counter() - t0, 2)  # this invocation only
-    write_json_atomic(out / "model.json", meta)
+    write_json_atomic(out / META_NAME, meta)
     return meta
 
 

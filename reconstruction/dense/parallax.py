@@ -228,9 +228,9 @@ def _match_level(
         pf = t_(prior_on_grid(prior.init_eta_fwd, ratio, r0, c0, h, w))
         if prior.init_eta_rev is not None:
             pr = t_(prior_on_grid(prior.init_eta_rev, ratio, r0, c0, h, w))
-    s_fwd, e_fwd = _init(cfg, At, Bt, mBt, mAt, ppc, wx, wy, nw, nr, A, B, ss, False, pf)
+    s_fwd, e_fwd = _init(cfg, At, Bt, mBt, mAt, ppc, wx, wy, nw, nr, ss, False, pf)
     s_rev, e_rev = (
-        _init(cfg, Bt, At, mAt, mBt, ppc, wx, wy, nw, nr, B, A, ss, True, pr)
+        _init(cfg, Bt, At, mAt, mBt, ppc, wx, wy, nw, nr, ss, True, pr)
         if cfg.lr_check
         else (None, None)
     )
@@ -335,8 +335,6 @@ def _init(
     wy: torch.Tensor,
     nw: torch.Tensor,
     nr: torch.Tensor,
-    ref_np: np.ndarray,
-    tgt_np: np.ndarray,
     ss: float,
     reverse: bool,
     prior_eta: torch.Tensor | None = None,

@@ -67,11 +67,6 @@ def fingerprint_path(artifact: Path) -> Path:
     return artifact.with_suffix(".fingerprint")
 
 
-def pair_fingerprint_filename(index_a: int, index_b: int) -> str:
-    """``000012_000013.fingerprint``: the fingerprint beside the pair's file."""
-    return fingerprint_path(Path(pair_filename(index_a, index_b))).name
-
-
 def read_fingerprint(artifact: Path) -> str | None:
     """The fingerprint stored beside ``artifact``; None when there is none (written by older
     code, or never finished): the artifact must be recomputed."""

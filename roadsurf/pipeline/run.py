@@ -75,10 +75,6 @@ def load_pipeline_config(path: str | Path | None) -> PipelineConfig:
     return load_yaml_config(PipelineConfig, path)
 
 
-def pipeline_config_from_dict(data: dict[str, Any] | None) -> PipelineConfig:
-    return from_dict(PipelineConfig, data, "pipeline config")
-
-
 # What a fused run imports after screening: the stage modules and the heavy libraries they
 # import inside functions. A stale entry only costs overlap, never correctness
 _FUSED_RUN_IMPORTS = (

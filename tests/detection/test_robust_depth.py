@@ -164,7 +164,7 @@ def test_region_is_judged_by_its_unsmoothed_supported_max_not_the_smoothed_one()
     reg = Region(rows=rr.ravel()[ins], cols=cc.ravel()[ins], depth_m=raw[ins],
                  depth_smooth_m=smooth, noise_m=0.001, seed_m=0.008)  # fmt: skip
     assert raster_max_depth(reg) == pytest.approx(0.012)
-    seg = Segmentation(0.001, 0.008, 0.0015, [reg], np.zeros((200, 200)), grid)
+    seg = Segmentation(0.001, 0.008, 0.0015, [reg], grid)
     defects, _ = measure_regions(DetectionConfig(), seg, {}, have_pairs=False)
     assert len(defects) == 1
     assert defects[0].max_depth_m == pytest.approx(0.012)
