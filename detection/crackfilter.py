@@ -15,6 +15,7 @@ from collections.abc import Callable
 import cv2
 import numpy as np
 
+from roadsurf.core.fits import MAD_TO_SIGMA
 from roadsurf.detection.config import CrackConfig
 from roadsurf.detection.crackbank import bank_max
 
@@ -194,7 +195,7 @@ def thin_dark_components(
 def _above(z: np.ndarray, k: float) -> np.ndarray:
     """z above the image's own median + k · 1.4826 MAD."""
     med = exact_median(z)
-    mad = 1.4826 * exact_median(np.abs(z - med))
+    mad = MAD_TO_SIGMA * exact_median(np.abs(z - med))
     return z > med + k * max(mad, 1e-6)
 
 

@@ -44,6 +44,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from roadsurf.core.fits import MAD_TO_SIGMA, robust_sigma
 from roadsurf.detection.config import CrackConfig
 from roadsurf.detection.rutprofile import run_extent
 from roadsurf.detection.windows import WindowSource
@@ -199,12 +200,12 @@ def measure_crack_on_raster(
         return not_measured(n)
     d, outer, ds, foot = pr.depth, pr.outer, pr.ds, pr.foot
     ro = d[:, outer][np.isfinite(d[:, outer])]
-    sigma = float(1.4826 * np.median(np.abs(ro - np.median(ro)))) if ro.size else math.nan
+    sigma = robust_sigma(ro)
     din = d[:, ~outer]
     area = din.sum(axis=1) * ds  # cross-section of each profile (m²)
     a_med = float(np.median(area))
     n_ind = max(1.0, n * cfg.raster_step_m / max(foot, cfg.raster_step_m))
-    a_se = float(1.4826 * np.median(np.abs(area - a_med)) / math.sqrt(n_ind))
+    a_se = float(MAD_TO_SIGMA * np.median(np.abs(area - a_med)) / math.sqrt(n_ind))
     dmax = din.max(axis=1)
     # full width at half depth of each profile's dip (cells around its deepest point)
     fwhm = np.array([_width_at(din[i], 0.5 * dmax[i], ds) for i in range(n)])

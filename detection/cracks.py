@@ -38,6 +38,7 @@ import cv2
 import numpy as np
 
 from roadsurf.core.camera import Camera
+from roadsurf.core.fits import fit_plane_z
 from roadsurf.detection.config import CrackConfig
 from roadsurf.detection.crackaperture import across_parallax
 from roadsurf.detection.crackdepth import DenseCrack, PairView, dense_crack_depth
@@ -130,8 +131,7 @@ def detect_pair_cracks(
     H, _ = cv2.findHomography(px_ideal[road].astype(np.float32), P[road, :2].astype(np.float32), 0)
     if H is None:
         return empty()
-    A = np.c_[P[road, :2], np.ones(int(road.sum()))]
-    zcoef = np.linalg.lstsq(A, P[road, 2], rcond=None)[0]
+    zcoef = fit_plane_z(P[road])
     xyz, labels, wd, sd, nn, nb, vv, mx = [], [], [], [], [], [], [], []
     dense: list[DenseCrack | None] = []
     across: list[float] = []

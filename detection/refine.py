@@ -12,6 +12,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from roadsurf.core.fits import MAD_TO_SIGMA
 from roadsurf.core.geometry import check_shape
 from roadsurf.detection.config import RefineConfig
 
@@ -101,7 +102,7 @@ def binarise(gray: np.ndarray, cfg: RefineConfig, road_px: np.ndarray | None = N
             med, mad = road_brightness_from_points(g, np.asarray(road_px, float), blur_px=b)
         else:
             med, mad = local_road_brightness(gs, cfg.adaptive_window_frac)
-        drop = np.maximum(cfg.adaptive_dark_k * 1.4826 * mad, cfg.adaptive_min_drop * med)
+        drop = np.maximum(cfg.adaptive_dark_k * MAD_TO_SIGMA * mad, cfg.adaptive_min_drop * med)
         dark = gs.astype(np.float32) < med - drop
     W = max(1, int(cfg.window_px))
     kernel = np.ones((W, W), np.uint8)

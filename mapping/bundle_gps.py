@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from roadsurf.core.fits import RAYLEIGH_MEDIAN
+from roadsurf.core.fits import RAYLEIGH_MEDIAN, fit_rigid_2d
 from roadsurf.mapping.pose_gps import GpsFixes, interp_weights
 
 if TYPE_CHECKING:
@@ -166,16 +166,11 @@ def _lag1_correlation(res: np.ndarray) -> float:
 
 def _rigid_residual(a: np.ndarray, b: np.ndarray, w: np.ndarray, residuals: bool = False) -> Any:
     """Weighted squared residual of 2D points a against b after the best rotation + shift
-    (float), or with residuals=True the whitened (G, 2) residuals."""
-    ca = np.sum(w[:, None] * a, 0) / np.sum(w)
-    cb = np.sum(w[:, None] * b, 0) / np.sum(w)
-    A, B = a - ca, b - cb
-    U, _, Vt = np.linalg.svd((w[:, None] * A).T @ B)
-    D = np.diag([1.0, np.sign(np.linalg.det(U @ Vt))])
-    R = (U @ D @ Vt).T
+    (``core.fits.fit_rigid_2d``; float), or with residuals=True the whitened (G, 2) residuals."""
+    e = fit_rigid_2d(a, b, w).apply(a) - b
     if residuals:
-        return np.sqrt(w)[:, None] * (A @ R.T - B)
-    return float(np.sum(w[:, None] * (A @ R.T - B) ** 2))
+        return np.sqrt(w)[:, None] * e
+    return float(np.sum(w[:, None] * e**2))
 
 
 def gps_sigma_scale(

@@ -11,6 +11,7 @@ import numpy as np
 from tqdm import tqdm
 
 from roadsurf.core.errors import FrameReadError
+from roadsurf.core.fits import MAD_TO_SIGMA
 from roadsurf.io.drive import Drive, Frame, read_image
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.surface import LocalSurface
@@ -108,7 +109,7 @@ def align_patches(
             for _k in range(4):
                 coef, *_ = np.linalg.lstsq(A[inl], dd[inl], rcond=None)
                 e = np.where(ok, dd - A @ coef, np.inf)
-                s = 1.4826 * np.median(np.abs(e[inl])) + 1e-6
+                s = MAD_TO_SIGMA * np.median(np.abs(e[inl])) + 1e-6
                 new = np.abs(e) < max(3 * s, 0.5 * cfg.local_fit_inlier_m)
                 if new.sum() < 10 or np.array_equal(new, inl):
                     break

@@ -34,6 +34,7 @@ import cv2
 import numpy as np
 
 from roadsurf.core.camera import Camera
+from roadsurf.core.fits import MAD_TO_SIGMA
 from roadsurf.core.parallel import ordered_map
 from roadsurf.io import runfolder as rf
 from roadsurf.io.drive import Drive, GrayFrames
@@ -407,7 +408,7 @@ def _robust_plane(
             break
         coef = np.linalg.lstsq(A[keep], y[keep], rcond=None)[0]
         res = y - A @ coef
-        mad = 1.4826 * float(np.median(np.abs(res[keep])))
+        mad = MAD_TO_SIGMA * float(np.median(np.abs(res[keep])))
         new = np.abs(res) < max(3 * mad, band)
         if np.array_equal(new, keep):
             break

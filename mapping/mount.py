@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from roadsurf.core.fits import MAD_TO_SIGMA
 from roadsurf.core.geometry import (
     forward_in_cam,
     mount_angles_deg,
@@ -110,7 +111,7 @@ def estimate_from_pairs(
     R = vehicle_from_up_forward(up, fwd)
     ang = np.degrees(np.arccos(np.clip(U @ up, -1.0, 1.0)))
     # one pair agrees with itself: no spread to report
-    spread = float(1.4826 * np.median(ang)) if len(ang) >= 2 else float("nan")
+    spread = float(MAD_TO_SIGMA * np.median(ang)) if len(ang) >= 2 else float("nan")
     return R, spread, len(ups)
 
 

@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from roadsurf.core.fits import MAD_TO_SIGMA
 from roadsurf.core.geometry import EnuReference, enu_from_lla
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.pose_gps import GpsFixes, interp_weights
@@ -111,7 +112,7 @@ def scale_estimate(ws: list[Window]) -> tuple[float, float] | None:
     s = np.array([w.rel_sigma for w in ws]) * r
     med = float(np.median(r))
     if len(ws) >= 3:
-        birge = max(1.0, 1.4826 * float(np.median(np.abs(r - med) / s)))
+        birge = max(1.0, MAD_TO_SIGMA * float(np.median(np.abs(r - med) / s)))
         s = s * birge
         for w in ws:
             w.rel_sigma *= birge
@@ -292,7 +293,7 @@ def receiver_sigma(t_s: np.ndarray, enu_m: np.ndarray, stated: np.ndarray) -> np
     w1, w2 = (t2 - t1) / span, (t1 - t0) / span
     pred = w1[:, None] * enu_m[:-2, :2] + w2[:, None] * enu_m[2:, :2]
     r = (enu_m[1:-1, :2] - pred) / np.sqrt(1 + w1**2 + w2**2)[:, None]
-    emp = 1.4826 * float(np.median(np.abs(r)))
+    emp = MAD_TO_SIGMA * float(np.median(np.abs(r)))
     return np.minimum(stated, max(emp, 1e-3))
 
 

@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from tqdm import tqdm
 
+from roadsurf.core.fits import MAD_TO_SIGMA
 from roadsurf.core.parallel import ordered_map
 from roadsurf.io import runfolder as rf
 from roadsurf.io.drive import Drive, Frame
@@ -152,7 +153,7 @@ def rasterise(
     # points per tile (with a margin so interpolation is continuous across tile borders)
     margin = cfg.surface_max_edge_m + surface_pad_m(cfg)
     # robust per-point height noise (MAD of all residuals; defects are a small minority)
-    noise_m = float(1.4826 * np.median(np.abs(resid))) if len(resid) else 0.0
+    noise_m = float(MAD_TO_SIGMA * np.median(np.abs(resid))) if len(resid) else 0.0
     prod.residual_stats_m["noise_mad_m"] = noise_m
     writers: list[TiledWriter] = []
     try:

@@ -14,6 +14,7 @@ import logging
 
 import numpy as np
 
+from roadsurf.core.fits import MAD_TO_SIGMA
 from roadsurf.core.geometry import check_shape
 from roadsurf.mapping.config import MappingConfig
 
@@ -115,7 +116,9 @@ class LocalSurface:
             good = np.isfinite(r)
             if not good.any():
                 break
-            mad = 1.4826 * float(np.median(np.abs(r[good & (w > 0)]))) if (w > 0).any() else 0.0
+            mad = (
+                MAD_TO_SIGMA * float(np.median(np.abs(r[good & (w > 0)]))) if (w > 0).any() else 0.0
+            )
             thr = max(3.0 * mad, self.inlier_m)
             w_new = (good & (np.abs(r) < thr)).astype(float)
             if np.array_equal(w_new, w):

@@ -23,6 +23,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy.spatial import cKDTree
 
+from roadsurf.core.fits import MAD_TO_SIGMA
+
 if TYPE_CHECKING:
     from roadsurf.reconstruction.types import PairResult
 
@@ -135,7 +137,7 @@ def build_tracks(
         road = np.concatenate([road, np.ones(k_new, bool)])
         pd = np.abs(np.asarray(p.plane_dist_m, float))
         if len(pd) == m and m:
-            sig = max(1.4826 * float(np.median(pd)), 1e-3)
+            sig = max(MAD_TO_SIGMA * float(np.median(pd)), 1e-3)
             off = ids[pd > ROAD_SIGMAS * sig]
             road[off] = False
         old = ~new

@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from roadsurf.core.camera import RENDER_UNDISTORT_CRITERIA
+from roadsurf.core.fits import fit_plane_z
 from roadsurf.io.drive.camera_yaml import load_camera
 
 if TYPE_CHECKING:
@@ -118,8 +119,8 @@ def _plane_under(
     if m.sum() < 3:
         return None
     x, y = transform * (cc[m] + 0.5, rr[m] + 0.5)
-    A = np.column_stack([np.asarray(x) - origin[0], np.asarray(y) - origin[1], np.ones(m.sum())])
-    return np.linalg.lstsq(A, z[m].astype(np.float64), rcond=None)[0]
+    dx, dy = np.asarray(x, float) - origin[0], np.asarray(y, float) - origin[1]
+    return fit_plane_z(np.column_stack([dx, dy, z[m].astype(np.float64)]))
 
 
 def road_xy_from_rays(
