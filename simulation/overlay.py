@@ -23,9 +23,10 @@ import cv2
 import numpy as np
 
 from roadsurf.core.atomic import write_bytes_atomic
+from roadsurf.io import drivefolder as df
 from roadsurf.simulation.config import SimConfig
 
-MASK_NAME = "mask.png"  # the mask's file name beside camera.yaml and in truth/
+MASK_NAME = df.MASK_PNG  # the mask's file name beside camera.yaml and in truth/
 MASK_DILATE_PX = 2  # the mask's 0 region reaches this far beyond the overlay pixels (px)
 BOX_WIDTH_SHARE = 0.35  # the text box's width / image width (-)
 BOX_HEIGHT_SHARE = 0.06  # the text box's height / image height (-)
@@ -162,7 +163,7 @@ def write_masks(cfg: SimConfig, out: Path) -> None:
     if not ok:
         raise RuntimeError("OpenCV failed to encode the image mask")
     if has_overlay(cfg):
-        (out / "truth").mkdir(parents=True, exist_ok=True)
-        write_bytes_atomic(out / "truth" / MASK_NAME, buf.tobytes())
+        (out / df.TRUTH_DIR).mkdir(parents=True, exist_ok=True)
+        write_bytes_atomic(out / df.TRUTH_DIR / MASK_NAME, buf.tobytes())
     if cfg.write_mask:
         write_bytes_atomic(out / MASK_NAME, buf.tobytes())

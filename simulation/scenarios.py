@@ -22,6 +22,7 @@ from tqdm import tqdm
 from roadsurf.core.atomic import write_bytes_atomic, write_json_atomic, write_text_atomic
 from roadsurf.core.config import from_dict, load_yaml_config
 from roadsurf.core.errors import ConfigError, RoadsurfError
+from roadsurf.io import drivefolder as df
 from roadsurf.io.formats import write_csv
 from roadsurf.simulation.build import build_world
 from roadsurf.simulation.config import SimConfig
@@ -245,8 +246,8 @@ def make_config(name: str, config: str | Path | None = None, **overrides: Any) -
 
 
 def prepare_out(out: Path) -> None:
-    known = {"frames", "truth", "camera.yaml", "frames.csv", "obd.csv", MASK_NAME}
-    known |= {"gps.csv", "gps.gpx", "gps.nmea"}
+    known = {df.FRAMES_DIR, df.TRUTH_DIR, df.CAMERA_YAML, df.FRAMES_CSV, df.OBD_CSV, MASK_NAME}
+    known |= set(df.GPS_FILES)
     if out.exists() and any(out.iterdir()):
         if not {p.name for p in out.iterdir()} <= known:
             raise RoadsurfError(
@@ -260,8 +261,8 @@ def prepare_out(out: Path) -> None:
                 shutil.rmtree(item)
             else:
                 item.unlink()
-    (out / "frames").mkdir(parents=True, exist_ok=True)
-    (out / "truth").mkdir(parents=True, exist_ok=True)
+    (out / df.FRAMES_DIR).mkdir(parents=True, exist_ok=True)
+    (out / df.TRUTH_DIR).mkdir(parents=True, exist_ok=True)
 
 
 def simulate(
@@ -300,14 +301,14 @@ def simulate(
         img = form_image(fr.radiance, cfg, speed, gain, rng)
         img = apply_overlay(img, cfg, float(world.frame_times[k]), speed)  # burned in: after
         # the sensor model, before encoding
-        write_bytes_atomic(out / "frames" / names[k], encode_image(img, cfg))
+        write_bytes_atomic(out / df.FRAMES_DIR / names[k], encode_image(img, cfg))
         poses.append((names[k], pose))
         labels.append((names[k], fr.defect_area_m2, fr.max_depth_m))
         footprints.append(fr.footprint)
     t_render = time.perf_counter() - t0
 
     _write_drive_files(world, out, names)
-    truth = out / "truth"
+    truth = out / df.TRUTH_DIR
     write_poses(world, truth, poses, time_offset_s(cfg))
     write_frame_labels(truth, labels)
     write_features(world, truth)
@@ -315,7 +316,7 @@ def simulate(
     fw, fl = footprint_m(cfg)
     step = cfg.speed_mps / cfg.fps
     write_json_atomic(
-        truth / "scenario.json",
+        truth / df.TRUTH_SCENARIO_JSON,
         {
             "scenario": name,
             "seed": seed,
@@ -364,7 +365,7 @@ def write_camera_yaml(cfg: SimConfig, out: Path) -> None:
     if cfg.write_mask:  # the image mask, relative to camera.yaml's folder (docs/simulator.md)
         text += f"mask: {MASK_NAME}\n"
     write_masks(cfg, out)
-    write_text_atomic(out / "camera.yaml", text)
+    write_text_atomic(out / df.CAMERA_YAML, text)
 
 
 def _write_drive_files(world, out: Path, names: list[str]) -> None:
@@ -372,24 +373,24 @@ def _write_drive_files(world, out: Path, names: list[str]) -> None:
     write_camera_yaml(cfg, out)
     off = time_offset_s(cfg)
     write_csv(
-        out / "frames.csv",
+        out / df.FRAMES_CSV,
         ["filename", "timestamp_s"],
         [[nm, round(float(t) + off, 6)] for nm, t in zip(names, world.frame_times, strict=True)],
     )
     rng = np.random.default_rng([world.seed, 7])
     gps = simulate_gps(world, rng)
     if cfg.gps_format == "gpx":
-        write_text_atomic(out / "gps.gpx", gpx_text(gps, off))
+        write_text_atomic(out / df.GPS_GPX, gpx_text(gps, off))
     elif cfg.gps_format == "nmea":
         quality = 4 if cfg.gps_profile == "rtk" else 1  # RTK fixed / GPS fix
-        write_text_atomic(out / "gps.nmea", nmea_text(gps, off, quality))
+        write_text_atomic(out / df.GPS_NMEA, nmea_text(gps, off, quality))
     else:
         write_csv(
-            out / "gps.csv",
+            out / df.GPS_CSV,
             ["timestamp_s", "lat", "lon", "alt_m", "hdop"],
             zip(gps.timestamp_s, gps.lat_deg, gps.lon_deg, gps.alt_m, gps.hdop, strict=True),
         )
     t, v = simulate_obd(world, np.random.default_rng([world.seed, 8]))
     write_csv(
-        out / "obd.csv", ["timestamp_s", "speed_mps"], zip(np.round(t + off, 3), v, strict=True)
+        out / df.OBD_CSV, ["timestamp_s", "speed_mps"], zip(np.round(t + off, 3), v, strict=True)
     )

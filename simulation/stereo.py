@@ -23,6 +23,7 @@ import numpy as np
 
 from roadsurf.core.atomic import write_bytes_atomic, write_json_atomic
 from roadsurf.core.errors import ConfigError
+from roadsurf.io import drivefolder as df
 from roadsurf.io.formats import write_csv
 from roadsurf.simulation.build import build_world
 from roadsurf.simulation.overlay import apply_overlay
@@ -109,10 +110,10 @@ def simulate_stereo_pair(
     for k, fr in enumerate((fr0, fr1)):
         img = form_image(fr.radiance, cfg, 0.0, 1.0, np.random.default_rng([seed, 500 + k]))
         img = apply_overlay(img, cfg, 0.5 * k, 0.0)  # the frames' times, a standing camera
-        write_bytes_atomic(out / "frames" / names[k], encode_image(img, cfg))
+        write_bytes_atomic(out / df.FRAMES_DIR / names[k], encode_image(img, cfg))
     write_camera_yaml(cfg, out)
-    write_csv(out / "frames.csv", ["filename", "timestamp_s"], [[names[0], 0.0], [names[1], 0.5]])
-    truth = out / "truth"
+    write_csv(out / df.FRAMES_CSV, ["filename", "timestamp_s"], [[names[0], 0.0], [names[1], 0.5]])
+    truth = out / df.TRUTH_DIR
     write_features(world, truth)
     write_rasters(world, corridor_polygon([fr0.footprint, fr1.footprint]), truth)
 
@@ -122,7 +123,7 @@ def simulate_stereo_pair(
         return T.tolist()
 
     write_json_atomic(
-        truth / "stereo_pair.json",
+        truth / df.TRUTH_STEREO_PAIR_JSON,
         {
             "frames": names,
             "baseline_m": baseline_m,

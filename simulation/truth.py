@@ -19,6 +19,7 @@ from shapely.geometry import MultiPolygon, Polygon, box
 from shapely.prepared import prep
 
 from roadsurf.core.geometry import forward_in_cam, lla_from_utm
+from roadsurf.io import drivefolder as df
 from roadsurf.io.formats import (
     GridSpec,
     feature,
@@ -138,9 +139,11 @@ def write_rasters(world: World, corridor, out: Path) -> GridSpec:
                     yield r0, c0, v[1]
 
     tags = {"units": "m", "datum": "WGS84 ellipsoidal height", "source": "roadsurf simulator"}
-    write_geotiff_blocks(out / "height.tif", grid, gen(0), nodata=float("nan"), tags=tags)
+    write_geotiff_blocks(out / df.TRUTH_HEIGHT_TIF, grid, gen(0), nodata=float("nan"), tags=tags)
     tags_r = dict(tags, meaning="height minus the smooth road surface; negative below the road")
-    write_geotiff_blocks(out / "residual.tif", grid, gen(1), nodata=float("nan"), tags=tags_r)
+    write_geotiff_blocks(
+        out / df.TRUTH_RESIDUAL_TIF, grid, gen(1), nodata=float("nan"), tags=tags_r
+    )
     return grid
 
 
@@ -262,8 +265,8 @@ def distractor_features(world: World) -> list[dict[str, Any]]:
 
 def write_features(world: World, out: Path) -> None:
     meta = {"crs_of_e_n": world.crs, "scenario_seed": world.seed}
-    write_geojson(out / "defects.geojson", defect_features(world), meta)
-    write_geojson(out / "distractors.geojson", distractor_features(world), meta)
+    write_geojson(out / df.TRUTH_DEFECTS_GEOJSON, defect_features(world), meta)
+    write_geojson(out / df.TRUTH_DISTRACTORS_GEOJSON, distractor_features(world), meta)
 
 
 def write_poses(
@@ -283,7 +286,7 @@ def write_poses(
             round(math.degrees(p.roll_rad), 5), round(math.degrees(p.pitch_rad), 5),
             *[round(float(v), 9) for v in q],
         ])  # fmt: skip
-    write_csv(out / "poses.csv", POSE_HEADER, data)
+    write_csv(out / df.TRUTH_POSES_CSV, POSE_HEADER, data)
 
 
 def write_frame_labels(out: Path, rows: list[tuple[str, float, float]]) -> None:
@@ -293,5 +296,7 @@ def write_frame_labels(out: Path, rows: list[tuple[str, float, float]]) -> None:
         for name, area, mx in rows
     ]
     write_csv(
-        out / "frame_labels.csv", ["filename", "defect", "defect_area_cm2", "max_depth_m"], data
+        out / df.TRUTH_FRAME_LABELS_CSV,
+        ["filename", "defect", "defect_area_cm2", "max_depth_m"],
+        data,
     )

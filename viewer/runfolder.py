@@ -24,6 +24,7 @@ from roadsurf.core.atomic import read_json
 from roadsurf.core.errors import InputError, RoadsurfError
 from roadsurf.core.geometry import EnuReference, enu_from_lla, lla_from_utm
 from roadsurf.detection.types import Defect
+from roadsurf.io import drivefolder as df
 from roadsurf.io.formats import GridSpec, read_csv, read_ply, validate_geojson
 from roadsurf.io.runfolder import (
     CLOUD_PLY,
@@ -313,7 +314,7 @@ def _load_drive(drive_dir: object, missing: list[str]) -> Drive | None:
         missing.append("drive (report.json names none; pass --drive)")
         return None
     root = Path(str(drive_dir))
-    if not (root / "camera.yaml").exists():
+    if not (root / df.CAMERA_YAML).exists():
         missing.append(f"drive {root} (not found; pass --drive)")
         return None
     from roadsurf.io.drive import load_drive

@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from roadsurf.core.atomic import write_json_atomic, write_text_atomic
+from roadsurf.io import drivefolder as df
 from roadsurf.reconstruction.calibration.board import BoardSpec, parse_board
 from roadsurf.reconstruction.calibration.detect import read_gray
 from roadsurf.reconstruction.calibration.errors import CalibrationError
@@ -160,7 +161,7 @@ def calibrate_command(
     if ground is not None and height_m is not None:
         raise CalibrationError("give either --ground or --height-m, not both.")
     out = Path(out)
-    yaml_path, json_path = out / "camera.yaml", out / "calibration.json"
+    yaml_path, json_path = out / df.CAMERA_YAML, out / "calibration.json"
     if yaml_path.exists() and not overwrite:
         raise CalibrationError(f"{yaml_path} exists. Pass --overwrite to replace it.")
     paths = expand_images(images)

@@ -8,6 +8,7 @@ from typing import Annotated
 import typer
 
 from roadsurf.cli.app import Out, app
+from roadsurf.io import drivefolder as df
 
 
 @app.command()
@@ -172,7 +173,7 @@ def evaluate(
     detection); writes RUN/evaluation.json and .md and prints a markdown table."""
     from roadsurf.evaluation.report import evaluate_run, markdown_table
 
-    if (truth / "stereo_pair.json").is_file():  # a photo pair (simulate --stereo-pair)
+    if (truth / df.TRUTH_STEREO_PAIR_JSON).is_file():  # a photo pair (simulate --stereo-pair)
         import json
 
         from roadsurf.evaluation.pair import score_pair

@@ -13,6 +13,7 @@ import numpy as np
 
 from roadsurf.core.camera import RENDER_UNDISTORT_CRITERIA
 from roadsurf.core.fits import fit_plane_z
+from roadsurf.io import drivefolder as df
 from roadsurf.io.drive.camera_yaml import load_camera
 
 if TYPE_CHECKING:
@@ -71,7 +72,7 @@ def _row_rays_world(
 def _truth_heights(truth_dir: Path) -> tuple[np.ndarray, Any] | None:
     """truth/height.tif as (rows, cols) float32 road heights (m, NaN off the road) and its
     affine transform, or None without the file."""
-    path = truth_dir / "height.tif"
+    path = truth_dir / df.TRUTH_HEIGHT_TIF
     if not path.is_file():
         return None
     import rasterio
@@ -185,7 +186,7 @@ def true_footprints(
     import shapely
     from scipy.spatial.transform import Rotation
 
-    cam_yaml = truth_dir.parent / "camera.yaml"
+    cam_yaml = truth_dir.parent / df.CAMERA_YAML
     if not cam_yaml.is_file():
         return None
     cam = load_camera(cam_yaml)

@@ -29,6 +29,7 @@ import numpy as np
 from roadsurf.core.errors import RoadsurfError
 from roadsurf.core.fits import fit_rigid_2d
 from roadsurf.core.geometry import ExportFrame
+from roadsurf.io import drivefolder as df
 from roadsurf.io import runfolder as rf
 from roadsurf.io.formats import read_csv, read_geojson
 from roadsurf.mapping.types import load_trajectory
@@ -73,7 +74,7 @@ def frame_metrics(pred: dict[str, int], truth: dict[str, int]) -> dict[str, Any]
 
 
 def _truth_crs(truth_dir: Path) -> str:
-    sc = json.loads((truth_dir / "scenario.json").read_text())
+    sc = json.loads((truth_dir / df.TRUTH_SCENARIO_JSON).read_text())
     return str(sc["crs"])
 
 
@@ -107,7 +108,7 @@ def _run_geometries(run_dir: Path, crs: str) -> tuple[list[Outline], bool]:
 def _trajectory_alignment(run_dir: Path, truth_dir: Path, crs: str, georef: bool) -> dict[str, Any]:
     """Rigid 2D fit of the run's camera positions (in ``crs``) onto the true ones."""
     traj = load_trajectory(run_dir)
-    truth = {r["filename"]: r for r in read_csv(truth_dir / "poses.csv")}
+    truth = {r["filename"]: r for r in read_csv(truth_dir / df.TRUTH_POSES_CSV)}
     idx = [i for i, f in enumerate(traj.filenames) if f in truth]
     if len(idx) < 2:
         raise RoadsurfError(
@@ -308,18 +309,20 @@ def evaluate_detection(run_dir: str | Path, truth_dir: str | Path) -> dict[str, 
     for p in (
         run_dir / rf.FRAME_LABELS_CSV,
         run_dir / rf.DEFECTS_GEOJSON,
-        truth_dir / "frame_labels.csv",
+        truth_dir / df.TRUTH_FRAME_LABELS_CSV,
     ):
         if not p.exists():
             raise RoadsurfError(f"{p}: missing; run `roadsurf run` / `roadsurf simulate` first")
     pred = {r["filename"]: int(r["defect"]) for r in read_csv(run_dir / rf.FRAME_LABELS_CSV)}
-    truth = {r["filename"]: int(r["defect"]) for r in read_csv(truth_dir / "frame_labels.csv")}
+    truth = {
+        r["filename"]: int(r["defect"]) for r in read_csv(truth_dir / df.TRUTH_FRAME_LABELS_CSV)
+    }
     out: dict[str, Any] = {"frames": frame_metrics(pred, truth)}
 
     crs = _truth_crs(truth_dir)
     preds, georef = _run_geometries(run_dir, crs)
-    truths = _project(read_geojson(truth_dir / "defects.geojson"), crs)
-    dpath = truth_dir / "distractors.geojson"
+    truths = _project(read_geojson(truth_dir / df.TRUTH_DEFECTS_GEOJSON), crs)
+    dpath = truth_dir / df.TRUTH_DISTRACTORS_GEOJSON
     distractors = _project(read_geojson(dpath), crs) if dpath.exists() else []
     if georef:
         out["defects_raw"] = _defect_metrics(preds, truths, distractors)

@@ -35,6 +35,7 @@ import numpy as np
 from scipy import ndimage
 
 from roadsurf.evaluation.corridor import heights_from_xy
+from roadsurf.io import drivefolder as df
 from roadsurf.io import runfolder as rf
 from roadsurf.io.drive.camera_yaml import load_camera
 from roadsurf.io.formats import GridSpec, read_geotiff
@@ -115,12 +116,12 @@ def _deepest_pothole_m(run_dir: Path) -> float | None:
 def score_pair(run_dir: str | Path, drive_dir: str | Path) -> dict[str, Any]:
     """Figures of one pair run against its drive's truth (module docstring)."""
     run_dir, drive_dir = Path(run_dir), Path(drive_dir)
-    meta = json.loads((drive_dir / "truth" / "stereo_pair.json").read_text())
+    meta = json.loads((drive_dir / df.TRUTH_DIR / df.TRUTH_STEREO_PAIR_JSON).read_text())
     T_true = np.asarray(meta["world_from_cam"][0], float)
     T_run = np.load(run_dir / rf.POSES_NPZ)["world_from_cam"][0]
     R_wl = T_true[:3, :3] @ T_run[:3, :3].T  # truth local from run local
     t_wl = T_true[:3, 3] - R_wl @ T_run[:3, 3]
-    height = load_camera(drive_dir / "camera.yaml").height_m
+    height = load_camera(drive_dir / df.CAMERA_YAML).height_m
 
     s, grid, nodata = read_geotiff(run_dir / rf.SURFACE_TIF)
     s = np.asarray(s, float)
@@ -136,7 +137,7 @@ def score_pair(run_dir: str | Path, drive_dir: str | Path) -> dict[str, Any]:
     p = np.column_stack([xy, z]) @ R_wl.T + t_wl
     e0, n0 = p[:, 0] + meta["origin_e_m"], p[:, 1] + meta["origin_n_m"]
     ours = s[rows, cols]
-    truth, tgrid = _read_truth(drive_dir / "truth" / "residual.tif")
+    truth, tgrid = _read_truth(drive_dir / df.TRUTH_DIR / df.TRUTH_RESIDUAL_TIF)
     sample = _sampler(truth, tgrid)
 
     def misfit(dx: float, dy: float, sub: slice) -> float:

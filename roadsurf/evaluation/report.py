@@ -34,6 +34,7 @@ from roadsurf.evaluation.trajectory import (
     trajectory_metrics,
     truth_poses,
 )
+from roadsurf.io import drivefolder as df
 from roadsurf.io import runfolder as rf
 
 log = logging.getLogger(__name__)
@@ -59,11 +60,15 @@ TARGETS_CONSUMER = [
 def evaluate_run(run_dir: str | Path, truth_dir: str | Path) -> dict[str, Any]:
     """All mapping figures for one run folder; also writes RUN/evaluation.json and .md."""
     run_dir, truth_dir = Path(run_dir), Path(truth_dir)
-    if not (truth_dir / "poses.csv").is_file():
+    if not (truth_dir / df.TRUTH_POSES_CSV).is_file():
         raise RoadsurfError(
             f"{truth_dir}: no poses.csv; pass the simulator's truth folder (DRIVE/truth)"
         )
-    scen = read_json(truth_dir / "scenario.json") if (truth_dir / "scenario.json").is_file() else {}
+    scen = (
+        read_json(truth_dir / df.TRUTH_SCENARIO_JSON)
+        if (truth_dir / df.TRUTH_SCENARIO_JSON).is_file()
+        else {}
+    )
     crs = scen.get("crs")
     out: dict[str, Any] = {"run": str(run_dir), "truth": str(truth_dir), "crs": crs}
     out["scenario"] = scen.get("scenario")

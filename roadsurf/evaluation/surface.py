@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from roadsurf.evaluation.corridor import corridor_from_footprints, true_footprints
+from roadsurf.io import drivefolder as df
 from roadsurf.io import runfolder as rf
 from roadsurf.io.formats import read_geojson
 
@@ -46,7 +47,7 @@ def surface_metrics(
 
     res: dict[str, Any] = {"metrics": {}}
     path = _open_surface(run_dir)
-    tpath = truth_dir / "residual.tif"
+    tpath = truth_dir / df.TRUTH_RESIDUAL_TIF
     if path is None or not tpath.is_file():
         res["metrics"]["note"] = "no surface raster or no truth residual"
         return res
@@ -57,7 +58,7 @@ def surface_metrics(
         tshape = (t.height, t.width)
     if tnd is not None and not math.isnan(tnd):
         tres[tres == tnd] = np.nan
-    defects_path = truth_dir / "defects.geojson"
+    defects_path = truth_dir / df.TRUTH_DEFECTS_GEOJSON
     dmask = np.zeros(tshape, bool)
     if defects_path.is_file() and crs:
         from pyproj import Transformer
@@ -176,7 +177,7 @@ def surface_metrics(
         res["measured_area_m2"] = measured_m2
     if cmask is not None and cmask.any():
         # the road the footprints were cast on: the truth heights, or flat without them
-        road = "up" in truth and (truth_dir / "height.tif").is_file()
+        road = "up" in truth and (truth_dir / df.TRUTH_HEIGHT_TIF).is_file()
         res["corridor_road"] = "truth_height" if road else "flat"
         # our pixels (their own area) inside the true corridor, over the corridor's area
         area = float(cmask.sum() * abs(tT.a * tT.e))

@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from roadsurf.core.fits import fit_rigid_2d
+from roadsurf.io import drivefolder as df
 from roadsurf.io import runfolder as rf
 from roadsurf.io.formats import read_csv, read_geojson
 
@@ -18,7 +19,7 @@ log = logging.getLogger(__name__)
 
 
 def truth_poses(truth_dir: Path) -> dict[str, Any]:
-    rows = read_csv(truth_dir / "poses.csv")
+    rows = read_csv(truth_dir / df.TRUTH_POSES_CSV)
     return {
         "filename": [r["filename"] for r in rows],
         "xy": np.array([[float(r["easting_m"]), float(r["northing_m"])] for r in rows]),
@@ -144,12 +145,12 @@ def _body(d: np.ndarray, heading_rad: float) -> np.ndarray:
 
 def gps_rmse_m(truth_dir: Path, crs: str | None) -> float | None:
     """RMSE of the drive's GPS fixes against the true path interpolated at the fix times."""
-    gps = truth_dir.parent / "gps.csv"
+    gps = truth_dir.parent / df.GPS_CSV
     if crs is None or not gps.is_file():
         return None
     from pyproj import Transformer
 
-    rows = read_csv(truth_dir / "poses.csv")
+    rows = read_csv(truth_dir / df.TRUTH_POSES_CSV)
     tt = np.array([float(r["timestamp_s"]) for r in rows])
     txy = np.array([[float(r["easting_m"]), float(r["northing_m"])] for r in rows])
     g = read_csv(gps)

@@ -10,6 +10,7 @@ import numpy as np
 
 from roadsurf.core.camera import Camera
 from roadsurf.core.errors import DriveFormatError
+from roadsurf.io import drivefolder as df
 from roadsurf.io.drive.csvrows import check_increasing, csv_rows
 from roadsurf.io.drive.images import check_image, image_size_from_header
 from roadsurf.io.drive.types import FORMAT_HINT, Frame, Skipped
@@ -28,8 +29,8 @@ def _is_file(p: Path, exists: bool = False) -> bool:
 def load_frames(
     root: Path, camera: Camera, check_images: bool, skipped: list[Skipped], warnings: list[str]
 ) -> list[Frame]:
-    csv_path = root / "frames.csv"
-    img_dir = root / "frames"
+    csv_path = root / df.FRAMES_CSV
+    img_dir = root / df.FRAMES_DIR
     if not csv_path.is_file():
         raise DriveFormatError(
             f"{csv_path}: frames.csv not found. Write it with the header filename,timestamp_s "
@@ -96,12 +97,12 @@ def load_frames(
         p = img_dir / name
         if not _is_file(p):
             skipped.append(
-                Skipped("frames.csv", lines[k], f"image frames/{name} does not exist; row skipped")
+                Skipped(df.FRAMES_CSV, lines[k], f"image frames/{name} does not exist; row skipped")
             )
         elif p.suffix.lower() not in IMAGE_SUFFIXES:
             skipped.append(
                 Skipped(
-                    "frames.csv",
+                    df.FRAMES_CSV,
                     lines[k],
                     f"frames/{name} is not a .jpg/.jpeg/.png image; row skipped",
                 )

@@ -26,6 +26,7 @@ import logging
 from pathlib import Path
 
 from roadsurf.core.errors import DriveFormatError
+from roadsurf.io import drivefolder as df
 from roadsurf.io.drive.camera_yaml import load_camera
 from roadsurf.io.drive.checks import check_obd_vs_gps, check_static
 from roadsurf.io.drive.frames import load_frames
@@ -38,7 +39,7 @@ from roadsurf.io.drive.types import FORMAT_HINT, NO_GEOREF, Drive, GpsTrack, Ski
 
 log = logging.getLogger(__name__)
 
-GPS_FILES = ("gps.csv", "gps.gpx", "gps.nmea")  # priority order when several are present
+GPS_FILES = df.GPS_FILES  # priority order when several are present
 
 
 def load_drive(root: str | Path, check_images: bool = True) -> Drive:
@@ -49,7 +50,7 @@ def load_drive(root: str | Path, check_images: bool = True) -> Drive:
         raise DriveFormatError(f"{root}: drive folder not found. {FORMAT_HINT}")
     skipped: list[Skipped] = []
     warnings: list[str] = []
-    camera = load_camera(root / "camera.yaml")
+    camera = load_camera(root / df.CAMERA_YAML)
     if camera.mask is not None and (w := mask_warning(camera.mask)):
         warnings.append(w)
     frames = load_frames(root, camera, check_images, skipped, warnings)
@@ -62,12 +63,12 @@ def load_drive(root: str | Path, check_images: bool = True) -> Drive:
         if len(present) > 1:
             warnings.append(f"{root}: several GPS logs {present}; using {present[0]}.")
         path = root / present[0]
-        loader = {"gps.csv": load_gps_csv, "gps.gpx": load_gps_gpx, "gps.nmea": load_gps_nmea}
+        loader = {df.GPS_CSV: load_gps_csv, df.GPS_GPX: load_gps_gpx, df.GPS_NMEA: load_gps_nmea}
         gps = loader[present[0]](path, skipped, warnings)
         if gps is not None:
             gps = check_overlap(gps, frames, warnings)
 
-    obd_path = root / "obd.csv"
+    obd_path = root / df.OBD_CSV
     obd = load_obd(obd_path, skipped, warnings) if obd_path.is_file() else None
     # A static receiver says nothing about the speed: then OBD is not judged against it.
     if gps is not None and not check_static(gps, frames, warnings) and obd is not None:

@@ -10,6 +10,7 @@ import numpy as np
 
 from roadsurf.core.camera import Camera
 from roadsurf.core.geometry import EnuReference, enu_from_lla
+from roadsurf.io import drivefolder as df
 
 FORMAT_HINT = "See docs/formats.md for the drive format."
 
@@ -42,7 +43,7 @@ class GpsTrack:
     lon_deg: np.ndarray
     alt_m: np.ndarray  # NaN where the log has no altitude; vertical datum: ``alt_datum``
     hdop: np.ndarray  # NaN where the log has no HDOP
-    source: str = "gps.csv"  # file it came from
+    source: str = df.GPS_CSV  # file it came from
     alt_datum: str = ALT_ELLIPSOIDAL  # one of the ALT_* names above
 
     def __len__(self) -> int:
@@ -78,7 +79,7 @@ class Drive:
 
     @property
     def truth_dir(self) -> Path | None:
-        p = self.root / "truth"
+        p = self.root / df.TRUTH_DIR
         return p if p.is_dir() else None
 
 

@@ -20,6 +20,7 @@ import numpy as np
 from roadsurf.core.atomic import atomic_path, read_json, write_json_atomic
 from roadsurf.core.camera import Camera
 from roadsurf.core.fingerprint import Fingerprint
+from roadsurf.io import drivefolder as df
 from roadsurf.io.drive import Drive
 from roadsurf.pipeline.sfm.config import SfmBaselineConfig
 
@@ -34,7 +35,7 @@ COLMAP_DATABASE = "database.db"  # features, matches, two-view geometries
 COLMAP_SPARSE = "sparse"  # one sub-folder per model the mapper made
 COLMAP_STATE = "state.json"  # finished steps with the fingerprint of their settings
 COLMAP_MASK_PNG = "camera_mask.png"  # camera.yaml's mask for COLMAP's reader (0 = ignore)
-DRIVE_FRAMES_DIR = "frames"  # the drive's image folder (drive format), COLMAP's image_path
+DRIVE_FRAMES_DIR = df.FRAMES_DIR  # the drive's image folder, COLMAP's image_path
 
 
 def colmap_camera(cam: Camera) -> tuple[str, str]:
