@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from roadsurf.core.geometry import EnuReference, enu_from_lla
-from roadsurf.io.drive import Drive
+from roadsurf.io.drive import Drive, GpsTrack
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.types import PoseReport
 
@@ -48,8 +48,8 @@ def gps_enu(
     rep.n_gps_fixes = len(g)
     alt = np.asarray(g.alt_m, float)
     has_alt = np.isfinite(alt)
-    alt0 = float(alt[has_alt][0]) if has_alt.any() else 0.0
-    ref = EnuReference(float(g.lat_deg[0]), float(g.lon_deg[0]), alt0)
+    ref = enu_reference(g, t)
+    alt0 = ref.alt_m
     enu = enu_from_lla(g.lat_deg, g.lon_deg, np.where(has_alt, alt, alt0), ref)
     hdop = np.asarray(g.hdop, float)
     sigma = np.where(np.isfinite(hdop), hdop * cfg.gps_sigma_per_hdop_m, cfg.gps_sigma_m)
@@ -75,6 +75,23 @@ def gps_enu(
         orig_index=idx,
     )
     return ref, gps
+
+
+def enu_reference(g: GpsTrack, t: np.ndarray) -> EnuReference:
+    """The local ENU frame's origin: the GPS fix nearest in time to the drive's middle frame
+    (``t`` (N,) frame times, s), at that fix's altitude (the nearest fix with one; 0 without).
+
+    Not the log's first fix: a logger started at the depot puts that fix kilometres from the
+    frames, where the tangent plane has left the road (d² / 2R: 0.8 m at 3.2 km) and a height
+    of the road above the ellipsoid moves a cell sideways by h d / R (0.57 m at 1 km, 3,640 m
+    up). From the middle, a drive of L metres stays within L / 2 of its origin."""
+    ts = np.asarray(g.timestamp_s, float)
+    mid = float(t[len(t) // 2]) if len(t) else float(ts[0])
+    i = int(np.argmin(np.abs(ts - mid)))
+    alt = np.asarray(g.alt_m, float)
+    has_alt = np.flatnonzero(np.isfinite(alt))
+    a = float(alt[has_alt[np.argmin(np.abs(has_alt - i))]]) if has_alt.size else 0.0
+    return EnuReference(float(g.lat_deg[i]), float(g.lon_deg[i]), a)
 
 
 def gps_margin_s(cfg: MappingConfig, t: np.ndarray) -> float:

@@ -102,7 +102,9 @@ class GridToEnu:
         ys = grid.y0_m - np.linspace(0, grid.height * grid.gsd_m, 3)
         X, Y = np.meshgrid(xs, ys)
         lla = lla_from_utm(X.ravel(), Y.ravel(), self.epsg)
-        enu = enu_from_lla(lla[:, 0], lla[:, 1], 0.0, self.ref)
+        # at the road's height (the reference's): the local vertical tilts by d / R, so a cell
+        # placed at the ellipsoid would move sideways by h d / R (0.57 m at 1 km, 3,640 m up)
+        enu = enu_from_lla(lla[:, 0], lla[:, 1], self.ref.alt_m, self.ref)
         M = np.column_stack([X.ravel(), Y.ravel(), np.ones(X.size)])
         A, *_ = np.linalg.lstsq(M - [grid.x0_m, grid.y0_m, 0], enu[:, :2], rcond=None)
         # express relative to the tile corner for numerical safety

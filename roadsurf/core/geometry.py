@@ -130,11 +130,13 @@ class ExportFrame:
         return cls(ref, utm_epsg_for(ref.lat_deg, ref.lon_deg))
 
     def utm_from_enu(self, enu_m: np.ndarray) -> np.ndarray:
-        """(N, 3) ENU metres -> (N, 3) easting, northing, height (metres, height = ENU up + ref alt)."""
+        """(N, 3) ENU metres -> (N, 3) easting, northing, ellipsoidal height (metres; through
+        ECEF, so a point far from the reference keeps its height: ENU up + the reference's
+        altitude would drop by d² / 2R, 8 cm at 1 km)."""
         enu = check_shape("enu_m", np.atleast_2d(enu_m), (None, 3))
         lla = lla_from_enu(enu, self.ref)
         en = utm_from_lla(lla[:, 0], lla[:, 1], self.epsg)
-        return np.column_stack([en, enu[:, 2] + self.ref.alt_m])
+        return np.column_stack([en, lla[:, 2]])
 
     def lonlat_from_enu(self, enu_m: np.ndarray) -> np.ndarray:
         """(N, 2|3) ENU metres -> (N, 2) lon, lat degrees (RFC 7946 axis order)."""
