@@ -63,6 +63,8 @@ from roadsurf.mapping.tracks import (
 from roadsurf.reconstruction.rolling_shutter import row_times_s
 
 if TYPE_CHECKING:
+    from collections.abc import Sequence
+
     from roadsurf.reconstruction.types import PairResult
 
 log = logging.getLogger(__name__)
@@ -97,11 +99,14 @@ def refine_poses(
     gps_used: np.ndarray | None,
     R_vehicle_from_cam: np.ndarray,
     grade_rad: np.ndarray | None = None,
+    still: Sequence[PairResult] = (),
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """(N, 4, 4) refined world_from_cam and a report (figures for poses_report.json).
     ``grade_rad`` (N,): the road's grade at each frame (``mapping.grade``; None: level), which
     tips the tilt prior's axis. On one BLAS thread: a window's dense algebra is small (~260
-    unknowns); threads cost more than they gave (sample drive, 2 cores: 6.1 -> 3.3 CPU s)."""
+    unknowns); threads cost more than they gave (sample drive, 2 cores: 6.1 -> 3.3 CPU s).
+    ``still``: consecutive frames of a stopped vehicle (``no_motion`` pairs, R = I, t = 0):
+    no tracks tie them, so their motion (none) is a factor like an ok pair's."""
     t0 = time.perf_counter()
     n = len(t)
     tracks = build_tracks(
@@ -151,7 +156,7 @@ def refine_poses(
             np.asarray(p.t_b_from_a_m, float),
             unit_normal(p.plane, d_down),
         )
-        for p in pairs
+        for p in [*pairs, *still]
         if p.index_a in pos_of and p.index_b in pos_of
     }
     rest = (tracks, gps, K, n_up, plane_nominal, report, used, rel_rot)

@@ -26,6 +26,8 @@ from roadsurf.mapping.pose_gps import GpsFixes, interp_weights
 from roadsurf.mapping.types import PoseReport
 
 if TYPE_CHECKING:
+    from collections.abc import Sequence
+
     from roadsurf.reconstruction.types import PairResult
 
 log = logging.getLogger(__name__)
@@ -90,6 +92,7 @@ class PoseGraph:
         comp: np.ndarray,
         R_vehicle_from_cam: np.ndarray | None = None,
         grade_rad: np.ndarray | None = None,
+        still: Sequence[PairResult] = (),
     ) -> None:
         self.cfg, self.t, self.n = cfg, t, len(t)
         R_vc = np.eye(3) if R_vehicle_from_cam is None else np.asarray(R_vehicle_from_cam, float)
@@ -112,6 +115,15 @@ class PoseGraph:
             )
             sr.append(math.radians(cfg.visual_sigma_rot_deg))
         self.n_vis = len(ia)
+        # frames a stopped vehicle took (``no_motion`` pairs): each at the pose of the stop's
+        # first frame, at the visual σ (a star, not a chain: a chain of N zero motions would
+        # let the stop wander by √N σ); after n_vis, since their zero residuals would shrink
+        # the visual σ's robust rescaling
+        anchor: dict[int, int] = {}
+        for a, b in sorted((pos_of[p.index_a], pos_of[p.index_b]) for p in still):
+            anchor[b] = anchor.get(a, a)
+            ia.append(anchor[b]), ib.append(b), Rm.append(np.eye(3)), tm.append(np.zeros(3))
+            st.append(cfg.visual_sigma_trans_m), sr.append(math.radians(cfg.visual_sigma_rot_deg))
         for i in range(self.n - 1):
             if comp[i] != comp[i + 1]:
                 # the initial guess already holds the best motion across the gap (chained

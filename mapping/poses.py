@@ -25,6 +25,7 @@ This module is the stage (``run``, ``estimate_trajectory``); the GPS preprocessi
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
@@ -51,11 +52,17 @@ from roadsurf.mapping.pose_graph import PoseGraph
 from roadsurf.mapping.pose_init import chain, initial_poses, segments
 from roadsurf.mapping.separate import keep_apart, segment_has_gps
 from roadsurf.mapping.types import PoseReport, Trajectory, load_trajectory, save_trajectory
+from roadsurf.reconstruction.types import STATUS_NO_MOTION
 
 if TYPE_CHECKING:
     from roadsurf.reconstruction.types import PairResult
 
 log = logging.getLogger(__name__)
+
+# the trajectory's own version, in the stage's fingerprint (a resumed run recomputes after a
+# change): 2: the ENU origin at the fix nearest the middle frame (was the log's first fix), a
+# stopped vehicle's frames (no_motion pairs) held together in the pose graph and the bundle
+POSES_VERSION = 2
 
 # =========================================================================== entry point
 
@@ -127,7 +134,13 @@ def _fingerprint(
         fp.add_array(p.cam_b_from_cam_a)
     fp.add_text(f"checks:{CHECKS_VERSION}")
     fp.add_text(f"grade:{GRADE_VERSION}")
+    fp.add_text(f"poses:{POSES_VERSION}")
     return fp.hexdigest(16)
+
+
+def _at_rest(p: PairResult) -> PairResult:
+    """A ``no_motion`` pair as the motion it stands for: none (R = I, t = 0)."""
+    return dataclasses.replace(p, R_b_from_a=np.eye(3), t_b_from_a_m=np.zeros(3))
 
 
 def estimate_trajectory(
@@ -153,6 +166,14 @@ def estimate_trajectory(
     rep.n_pairs_ok = len(ok_pairs)
     rep.n_pairs_failed = sum(1 for p in pairs if not p.ok)
     consecutive = {(pos_of[p.index_a], pos_of[p.index_b]): p for p in ok_pairs}
+    # consecutive frames a stopped vehicle took: the same place (R = I, t = 0), not a gap
+    still = [
+        p for p in pairs
+        if p.status == STATUS_NO_MOTION and p.index_a in pos_of and p.index_b in pos_of
+        and pos_of[p.index_b] == pos_of[p.index_a] + 1
+    ]  # fmt: skip
+    rep.n_pairs_still = len(still)
+    linked = consecutive | {(pos_of[p.index_a], pos_of[p.index_b]): _at_rest(p) for p in still}
 
     # ---------------------------------------------------------------- GPS in ENU
     ref, gps = gps_enu(cfg, drive, t, rep)
@@ -160,7 +181,7 @@ def estimate_trajectory(
     # ---------------------------------------------------------------- visual components
     comp = np.zeros(n, int)
     for i in range(1, n):
-        comp[i] = comp[i - 1] + (0 if (i - 1, i) in consecutive else 1)
+        comp[i] = comp[i - 1] + (0 if (i - 1, i) in linked else 1)
 
     def grade_and_mount(fixes: GpsFixes | None) -> tuple[np.ndarray, np.ndarray, list[str]]:
         grade = road_grade(
@@ -184,7 +205,7 @@ def estimate_trajectory(
 
     R_vc, g_rad, mount_warnings = grade_and_mount(gps)
     rep.warnings += mount_warnings
-    init = initial_poses(cfg, t, comp, consecutive, gps, rep, R_vc)
+    init = initial_poses(cfg, t, comp, linked, gps, rep, R_vc)
 
     # ---------------------------------------------------------------- segments
     segment, bridged_gaps = segments(t, comp, gps, cfg.gps_bridge_s)
@@ -198,7 +219,7 @@ def estimate_trajectory(
         rep.warnings.append(msg)
 
     # ---------------------------------------------------------------- robust fusion
-    problem = PoseGraph(cfg, t, init, ok_pairs, pos_of, gps, drive, comp, R_vc, g_rad)
+    problem = PoseGraph(cfg, t, init, ok_pairs, pos_of, gps, drive, comp, R_vc, g_rad, still)
     world = problem.solve(rep)
     if gps is not None and rep.gps_outliers:
         # The grade was fitted on every fix before the fusion found some wrong: a fix moved
@@ -207,8 +228,8 @@ def estimate_trajectory(
         # again on the fixes kept, and solve again with it.
         R_vc, g_rad, again = grade_and_mount(gps.subset(problem.gps_used))
         rep.warnings += [w for w in again if w not in mount_warnings]
-        init = initial_poses(cfg, t, comp, consecutive, gps, rep, R_vc)
-        problem = PoseGraph(cfg, t, init, ok_pairs, pos_of, gps, drive, comp, R_vc, g_rad)
+        init = initial_poses(cfg, t, comp, linked, gps, rep, R_vc)
+        problem = PoseGraph(cfg, t, init, ok_pairs, pos_of, gps, drive, comp, R_vc, g_rad, still)
         world = problem.solve(rep)
     has_gps = segment_has_gps(segment, t, None if gps is None else gps.t_s)
     names = [f.filename for f in frames]
@@ -229,7 +250,7 @@ def estimate_trajectory(
         rep.bundle["loops"] = [[pos_of[p.index_a], pos_of[p.index_b]] for p in loops]
         if loops:
             problem = PoseGraph(
-                cfg, t, world, ok_pairs + loops, pos_of, gps, drive, comp, R_vc, g_rad
+                cfg, t, world, ok_pairs + loops, pos_of, gps, drive, comp, R_vc, g_rad, still
             )
             world = problem.solve(rep)
     else:
@@ -238,14 +259,17 @@ def estimate_trajectory(
         from roadsurf.mapping.bundle import refine_poses, with_motions_of
 
         world, bundle = refine_poses(
-            cfg, drive, t, world, ok_pairs, pos_of, gps, problem.gps_used, R_vc, g_rad
-        )
+            cfg, drive, t, world, ok_pairs, pos_of, gps, problem.gps_used, R_vc, g_rad,
+            [_at_rest(p) for p in still],
+        )  # fmt: skip
         rep.bundle.update(bundle)
         if loops:
             # the windows hold no loop constraint: one more pose-graph pass over the bundle's
             # frame-to-frame motions and the loop pairs puts the passes back together
             refined = with_motions_of(ok_pairs, pos_of, world) + loops
-            problem = PoseGraph(cfg, t, world, refined, pos_of, gps, drive, comp, R_vc, g_rad)
+            problem = PoseGraph(
+                cfg, t, world, refined, pos_of, gps, drive, comp, R_vc, g_rad, still
+            )
             world = problem.solve(rep)
 
     # ---------------------------------------------------------------- plausibility
@@ -253,8 +277,8 @@ def estimate_trajectory(
         chains = make_chains(
             cfg,
             comp,
-            {k: p.cam_b_from_cam_a[:3, 3] for k, p in consecutive.items()},
-            lambda fr: chain(fr, consecutive, R_vc),
+            {k: p.cam_b_from_cam_a[:3, 3] for k, p in linked.items()},
+            lambda fr: chain(fr, linked, R_vc),
         )
 
         def errors_m() -> np.ndarray:
@@ -273,7 +297,7 @@ def estimate_trajectory(
 
     # ---------------------------------------------------------------- sources
     has_visual = np.zeros(n, bool)
-    for a, b in consecutive:
+    for a, b in linked:
         has_visual[a] = has_visual[b] = True
     gps_comp = set()
     if gps is not None:

@@ -123,6 +123,7 @@ class PoseReport:
     gps_outliers: list[dict[str, Any]] = field(default_factory=list)
     n_pairs_ok: int = 0
     n_pairs_failed: int = 0
+    n_pairs_still: int = 0  # of which no_motion: the vehicle stood still (held together)
     n_segments: int = 1
     gps_sigma_scale: float = 1.0
     visual_sigma_scale: float = 1.0

@@ -39,7 +39,7 @@ from roadsurf.reconstruction.pose_planar import (
     pose_proposed,
     refine_homography_sampson,
 )
-from roadsurf.reconstruction.types import PairFailure, PairResult
+from roadsurf.reconstruction.types import STATUS_NO_MOTION, PairFailure, PairResult
 
 log = logging.getLogger(__name__)
 
@@ -173,7 +173,7 @@ def _estimate(
     disp = float(np.median(np.linalg.norm(pb - pa, axis=1)))
     if method != "stereo" and disp < cfg.min_displacement_px:
         raise PairFailure(
-            "geometry_failed",
+            STATUS_NO_MOTION,
             f"median displacement {disp:.2f} px < {cfg.min_displacement_px} px: the camera did "
             "not move between the frames (vehicle stopped?), depth is unobservable",
         )

@@ -16,6 +16,9 @@ from roadsurf.core.atomic import write_npz_atomic
 
 # Status values. "ok" is the only success; everything else is a reported failure, never raised.
 STATUS_OK = "ok"
+# the camera did not move between the frames (a stopped vehicle): no depth, but the pose graph
+# holds the two frames together (mapping.pose_graph) instead of bridging a gap
+STATUS_NO_MOTION = "no_motion"
 STATUS_FAILED = (
     "unreadable_frame",
     "too_few_features",
@@ -24,6 +27,7 @@ STATUS_FAILED = (
     "not_near_planar",
     "geometry_failed",
     "scale_failed",
+    STATUS_NO_MOTION,
 )
 
 

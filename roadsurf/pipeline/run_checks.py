@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Any
 from roadsurf.core.atomic import read_json, write_json_atomic
 from roadsurf.core.errors import ConfigError, RoadsurfError
 from roadsurf.io import runfolder as rf
+from roadsurf.reconstruction.types import STATUS_NO_MOTION
 
 if TYPE_CHECKING:
     from roadsurf.io.drive import Drive
@@ -125,7 +126,32 @@ _HINTS = {
     "not_near_planar": "that the camera looks at the road, and the intrinsics in camera.yaml",
     "geometry_failed": "the intrinsics (fx, fy, cx, cy, dist) in camera.yaml",
     "scale_failed": "height_m in camera.yaml ({height_m} m; metres above the road, e.g. 1.1)",
+    STATUS_NO_MOTION: "that the vehicle moved between the frames (these pairs show one view)",
 }
+
+
+# frames darker than this (median DN) are named as the likely cause when no pair reconstructs:
+# an eighth of the range; the fault battery's drive failed at a mean of 12 DN and worked at 25
+DARK_FRAMES_DN = 32
+
+
+def _median_brightness(drive: Drive, n: int = 5) -> float | None:
+    """Median grey level (DN) of up to ``n`` frames spread over the drive; None if unreadable."""
+    import numpy as np
+
+    from roadsurf.io.drive import read_gray
+
+    frames = drive.frames
+    if not frames:
+        return None
+    pick = sorted({round(k) for k in np.linspace(0, len(frames) - 1, min(n, len(frames)))})
+    meds = []
+    for k in pick:
+        try:
+            meds.append(float(np.median(read_gray(frames[k])[::4, ::4])))
+        except (RoadsurfError, OSError, ValueError):
+            continue
+    return float(np.median(meds)) if meds else None
 
 
 def check_reconstruction(
@@ -150,6 +176,14 @@ def check_reconstruction(
             f"height_m in camera.yaml ({h:g} m is no vehicle camera height: metres expected, "
             "e.g. 1.1)",
         )
+    dark = _median_brightness(drive)
+    if dark is not None and dark < DARK_FRAMES_DN:
+        checks.insert(
+            0,
+            f"the exposure: the frames are very dark (median {dark:.0f} DN of 255), too dark for "
+            "the road's texture to give features; brighten them (exposure, gain) or drop the "
+            "night frames",
+        )
     checks = list(dict.fromkeys(checks))
     first = next((p for p in pairs if p.status == counts.most_common(1)[0][0]), pairs[0])
     example = f"{first.frame_a} -> {first.frame_b}: {first.reason}" if first.reason else ""
@@ -164,7 +198,13 @@ def check_reconstruction(
 def pair_failures_warning(pairs: list[PairResult], out: Path) -> str | None:
     """A warning when more than ``FAILED_PAIRS_WARN_SHARE`` of the pairs failed: how many, per
     reason, the frames of the longest run of failures and one reason in full; else None."""
-    failed = [i for i, p in enumerate(pairs) if not p.ok]
+    still = [p for p in pairs if p.status == STATUS_NO_MOTION]
+    if still:  # not a failure: the frames of a stop are held together, the road is mapped
+        log.info(
+            "%d pair(s) where the vehicle stood still (%s -> %s, ...): no depth there, the "
+            "frames are held in place", len(still), still[0].frame_a, still[0].frame_b,
+        )  # fmt: skip
+    failed = [i for i, p in enumerate(pairs) if not p.ok and p.status != STATUS_NO_MOTION]
     if not pairs or len(failed) <= FAILED_PAIRS_WARN_SHARE * len(pairs):
         return None
     counts = Counter(pairs[i].status for i in failed)

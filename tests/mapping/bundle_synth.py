@@ -21,7 +21,7 @@ from roadsurf.core.fits import camera_plane_distance
 from roadsurf.core.geometry import invert_pose, lla_from_enu, world_from_cam
 from roadsurf.io.drive import Drive, Frame, GpsTrack
 from roadsurf.reconstruction.geometry import triangulate
-from roadsurf.reconstruction.types import PairResult
+from roadsurf.reconstruction.types import STATUS_NO_MOTION, PairResult
 from tests.mapping.synth import REF, camera
 
 
@@ -48,6 +48,7 @@ def _poses(
     speed_variation: float = 0.3,
     undulation: tuple[float, float] = (0.0, 1.0),
     smooth_attitude: bool = False,
+    stop_s: tuple[float, float] | None = None,
 ) -> tuple[np.ndarray, ...]:
     """Times, (N, 4, 4) poses, a dense (time, centre) path for interpolating GPS truth, the
     dense path's heading (deg) and (roll, pitch) (rad, on the dense times; NaN: drawn per frame).
@@ -56,6 +57,8 @@ def _poses(
     dt = 1.0 / fps
     tt = np.arange(0.0, n / fps + 2.0, dt / 20)  # dense, from 0 (the first frame)
     v = speed * (1.0 + speed_variation * np.sin(2 * np.pi * tt / 2.5))  # ±30 % speed
+    if stop_s is not None:  # the vehicle stands still (an abrupt stop)
+        v[(tt >= stop_s[0]) & (tt < stop_s[1])] = 0.0
     s = np.concatenate([[0.0], np.cumsum(0.5 * (v[1:] + v[:-1]) * np.diff(tt))])
     heading = 30.0 + 25.0 * np.sin(s / 6.0)  # degrees, S-curve
     b = np.radians(heading)
@@ -98,6 +101,8 @@ def make_track_drive(
     k1: float = 0.0,
     readout_s: float = 0.0,
     focal_error: float = 0.0,
+    stop_s: tuple[float, float] | None = None,
+    still_status: str = STATUS_NO_MOTION,
 ) -> TrackDrive:
     """undulation_m: amplitude of the road's smooth relief (m, 0 = the flat road z = 0); k1: the
     lens's radial distortion (−, OpenCV's k1): the keypoints are the true lens's (normalised x
@@ -108,13 +113,15 @@ def make_track_drive(
     times. focal_error: the drive's camera (camera.yaml) has a focal length 1 + focal_error
     times the lens's, and each pair was solved with it, as the reconstruction does: its
     points triangulated from its pixels with that K and its (noisy) motion, then scaled so
-    that its road plane lies the camera height below (α = h / d_c)."""
+    that its road plane lies the camera height below (α = h / d_c). stop_s: the vehicle stands
+    still from..to (s); the pairs of its standing frames fail with ``still_status``."""
     rng = np.random.default_rng(seed)
     cam = camera(width=width_px, height=width_px * 3 // 4, fps=fps)
     und = (undulation_m, undulation_wavelength_m)
     t, W, tt, path, heading, att = _poses(
-        n, fps, speed_mps, rng, speed_variation, und, smooth_attitude=readout_s > 0
-    )
+        n, fps, speed_mps, rng, speed_variation, und, smooth_attitude=readout_s > 0,
+        stop_s=stop_s,
+    )  # fmt: skip
     if readout_s > 0:
         cam = dataclasses.replace(cam, readout_s=readout_s)
     # road points around the path
@@ -145,6 +152,11 @@ def make_track_drive(
     for i in range(n - 1):
         ids = np.array(sorted(set(kp[i]) & set(kp[i + 1])), int)
         T = invert_pose(W[i + 1]) @ W[i]
+        if np.linalg.norm(T[:3, 3]) < 1e-6:  # standing: depth is unobservable, the pair fails
+            pairs.append(PairResult(f"{i:06d}.png", f"{i + 1:06d}.png", i, i + 1, "proposed",
+                                    still_status, "the camera did not move"))  # fmt: skip
+            pair_ids.append(np.zeros(0, int))
+            continue
         k = 1.0 + rng.normal(0, scale_noise)
         w = rng.normal(0, np.radians(rot_noise_deg), 3)
         Rn = Rotation.from_rotvec(w).as_matrix() @ T[:3, :3]

@@ -102,6 +102,44 @@ def test_camera_height_in_cm_is_named_when_nothing_reconstructs() -> None:
     check_reconstruction([], syn.drive, ReconstructionConfig(), Path("RUN"))  # nothing tried
 
 
+def test_dark_frames_are_named_when_nothing_reconstructs(tmp_path: Path) -> None:
+    """Frames too dark for features (median 12 DN) fail as too few matches; the error names
+    the exposure first, with the measured brightness, not only the overlap and min_matches."""
+    import cv2
+
+    syn = make_synthetic(n=4, seed=1)
+    drive_dir = write_drive(syn, tmp_path / "drive")
+    pairs = [failed_pair(i, "too_few_matches") for i in range(3)]
+    from roadsurf.io.drive import load_drive
+
+    drive = load_drive(drive_dir)
+    check = r"Check the exposure: the frames are very dark \(median 12 DN"
+    for f in drive.frames:  # the same scenes, 12 DN on average
+        img = cv2.imread(str(f.path), cv2.IMREAD_GRAYSCALE).astype(float)
+        cv2.imwrite(str(f.path), np.clip(img * 12.0 / np.median(img), 0, 255).astype(np.uint8))
+    with pytest.raises(NoReconstructionError, match=check):
+        check_reconstruction(pairs, drive, ReconstructionConfig(), Path("RUN"))
+    for f in drive.frames:  # well exposed: no such hint
+        img = cv2.imread(str(f.path), cv2.IMREAD_GRAYSCALE).astype(float)
+        cv2.imwrite(str(f.path), np.clip(img * 10.0, 0, 255).astype(np.uint8))
+    with pytest.raises(NoReconstructionError) as e:
+        check_reconstruction(pairs, drive, ReconstructionConfig(), Path("RUN"))
+    assert "exposure" not in str(e.value)
+
+
+def test_no_motion_pairs_are_not_reported_as_failures(tmp_path: Path) -> None:
+    from roadsurf.pipeline.run_checks import pair_failures_warning
+    from roadsurf.reconstruction.types import STATUS_NO_MOTION
+
+    syn = make_synthetic(n=11, seed=1)
+    still = [failed_pair(i, STATUS_NO_MOTION) for i in range(2, 8)]
+    assert pair_failures_warning(syn.pairs[:2] + still + syn.pairs[8:], tmp_path) is None
+    broken = [failed_pair(i) for i in range(2, 8)]
+    assert "6 of 10 pairs failed" in str(
+        pair_failures_warning(syn.pairs[:2] + broken + syn.pairs[8:], tmp_path)
+    )
+
+
 def test_run_folder_of_another_drive_is_refused(tmp_path: Path) -> None:
     from roadsurf.pipeline.run import run_drive
 

@@ -96,4 +96,4 @@ def test_distorted_camera_is_undistorted(cam) -> None:
 def test_no_motion_gives_status(cam) -> None:
     a, _ = render_pair(cam, seed=8)
     res = reconstruct_pair(a, a.copy(), cam, CFG)  # vehicle stopped: same view twice
-    assert res.status == "geometry_failed" and "did not move" in res.reason
+    assert res.status == "no_motion" and "did not move" in res.reason

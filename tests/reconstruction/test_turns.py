@@ -51,8 +51,10 @@ def test_turning_without_moving_fails_with_a_reason(
     heights 0.2-1.7 m off (proposed at 0 m/s, both methods at 5 cm/s = 3 mm apart)."""
     p = make_pair(speed_mps=speed_mps, fps=FPS, yaw_rate_dps=yaw_deg * FPS, seed=1)
     res = reconstruct_matches(p.px_a, p.px_b, p.camera, ReconstructionConfig(method=method))
-    assert res.status == "geometry_failed", (res.status, res.reason)
-    assert "barely moved" in res.reason or "did not move" in res.reason, res.reason
+    assert (res.status, "barely moved" in res.reason or "did not move" in res.reason) in {
+        ("geometry_failed", True),
+        ("no_motion", True),
+    }, (res.status, res.reason)
 
 
 def test_views_that_do_not_overlap_fail_with_a_status() -> None:
