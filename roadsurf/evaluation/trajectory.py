@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+from roadsurf.core.errors import InputError
 from roadsurf.core.fits import fit_rigid_2d
 from roadsurf.io import drivefolder as df
 from roadsurf.io import runfolder as rf
@@ -54,6 +55,14 @@ def run_trajectory(run_dir: Path, crs: str | None) -> dict[str, Any] | None:
 def trajectory_metrics(est: dict[str, Any], truth: dict[str, Any]) -> dict[str, Any]:
     idx = {n: i for i, n in enumerate(truth["filename"])}
     pairs = [(i, idx[n]) for i, n in enumerate(est["filename"]) if n in idx]
+    if len(pairs) < 2:
+        ex = ", ".join(est["filename"][:2]) or "none"
+        tx = ", ".join(truth["filename"][:2]) or "none"
+        raise InputError(
+            f"{len(pairs)} of the run's {len(est['filename'])} frames have a row in the truth's "
+            f"poses.csv (run: {ex}, ...; truth: {tx}, ...): evaluate a run of this drive, and "
+            "keep the frames' file names (the truth is matched by name)"
+        )
     e = est["xy"][[a for a, _ in pairs]]
     t = truth["xy"][[b for _, b in pairs]]
     err = np.linalg.norm(e - t, axis=1)

@@ -53,3 +53,20 @@ def test_cloud_density_reads_the_ply_header(tmp_path) -> None:  # type: ignore[n
     assert cloud_density(tmp_path, 0.1) == pytest.approx(50000.0)
     assert cloud_density(tmp_path, None) is None
     assert cloud_density(tmp_path / "none", 0.1) is None
+
+
+def test_a_run_whose_frame_names_the_truth_lacks_is_a_clear_error() -> None:
+    """Frames converted to PNG after the render: no name matches truth/poses.csv. The evaluation
+    says so (an InputError, exit 2) instead of a traceback from an empty fit."""
+    import pytest
+
+    from roadsurf.core.errors import InputError
+    from roadsurf.evaluation.trajectory import trajectory_metrics
+
+    xy = np.column_stack([np.arange(5.0), np.zeros(5)])
+    truth = {"filename": [f"f{i}.jpg" for i in range(5)], "xy": xy, "heading_deg": np.zeros(5)}
+    est = {"filename": [f"f{i}.png" for i in range(5)], "xy": xy, "heading_deg": np.zeros(5)}
+    with pytest.raises(InputError, match=r"0 of the run's 5 frames .* f0.png, f1.png, .* f0.jpg"):
+        trajectory_metrics(est, truth)
+    est["filename"] = truth["filename"]
+    assert trajectory_metrics(est, truth)["metrics"]["trajectory_rmse_m"] == 0.0

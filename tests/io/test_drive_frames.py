@@ -115,8 +115,33 @@ def test_all_images_missing_is_an_error(tmp_path: Path) -> None:
     root = make_drive(tmp_path / "d", n=2)
     for p in (root / "frames").iterdir():
         p.unlink()
-    with pytest.raises(DriveFormatError, match="empty drive"):
+    with pytest.raises(
+        DriveFormatError, match=r"empty drive.* E.g. frames.csv:2: image frames/000000.png does"
+    ):
         load_drive(root)
+
+
+def test_webp_frames_say_why_the_drive_is_empty(tmp_path: Path) -> None:
+    """Every row a .webp: the error names the first row and its reason, not only 'empty'."""
+    root = make_drive(tmp_path / "d", n=2, ext=".webp")
+    with pytest.raises(DriveFormatError, match=r"E.g. frames.csv:2: frames/000000.webp is not a"):
+        load_drive(root)
+
+
+@pytest.mark.parametrize("ext", [".tif", ".tiff", ".bmp"])
+def test_tiff_and_bmp_frames_load(tmp_path: Path, ext: str) -> None:
+
+    from roadsurf.io.drive import read_gray
+
+    root = make_drive(tmp_path / "d", n=3, ext=ext)
+    if ext == ".tif":  # a 16-bit TIFF, as industrial cameras write
+        p = root / "frames" / "000001.tif"
+        img = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
+        cv2.imwrite(str(p), img.astype(np.uint16) * 257)
+    d = load_drive(root)
+    assert [f.filename for f in d.frames] == [f"00000{i}{ext}" for i in range(3)]
+    g = read_gray(d.frames[1])
+    assert g.dtype == np.uint8 and g.shape == (d.camera.height, d.camera.width)
 
 
 def test_empty_drive(tmp_path: Path) -> None:

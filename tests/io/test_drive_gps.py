@@ -11,7 +11,7 @@ import pytest
 
 from roadsurf.core.errors import DriveFormatError
 from roadsurf.io.drive import load_drive
-from tests.io.drive_fixtures import LAT0, LON0, T0, make_drive
+from tests.io.drive_fixtures import LAT0, LON0, T0, make_drive, moving_gps_rows
 
 # --------------------------------------------------------------------------- GPS csv
 
@@ -46,6 +46,20 @@ def test_gps_not_overlapping_frames_warns_and_drops_gps(tmp_path: Path) -> None:
     d = load_drive(make_drive(tmp_path / "d", gps_rows=rows))
     assert d.gps is None
     assert any("do not overlap" in w and "local frame" in w for w in d.warnings)
+
+
+def test_gps_outage_within_the_frames_warns_naming_times_and_frames(tmp_path: Path) -> None:
+    """A tunnel or a dead logger: no fix for 3 s in the middle of the frames (2 Hz log).
+    First and last fix still bracket the frames, so only a check inside the log sees it."""
+    rows = [r for r in moving_gps_rows(-0.5, 6.5, 5.0) if not 1.2 < float(r.split(",")[0]) < 4.3]
+    d = load_drive(make_drive(tmp_path / "d", n=60, gps_rows=rows))
+    out = [w for w in d.warnings if "no fix for" in w]
+    assert d.gps is not None and len(out) == 1, d.warnings
+    assert "3.5 s between 1.00 and 4.50 s (34 frames, 000011.png to 000044.png)" in out[0]
+    # a 1 Hz receiver missing one fix (2 s) is no outage
+    rows = [r for r in moving_gps_rows(-0.5, 6.5, 5.0, 1.0) if float(r.split(",")[0]) != 2.5]
+    d = load_drive(make_drive(tmp_path / "e", n=60, gps_rows=rows))
+    assert not [w for w in d.warnings if "no fix for" in w], d.warnings
 
 
 def test_gps_partial_overlap_warns(tmp_path: Path) -> None:

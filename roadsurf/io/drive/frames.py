@@ -15,7 +15,8 @@ from roadsurf.io.drive.csvrows import check_increasing, csv_rows
 from roadsurf.io.drive.images import check_image, image_size_from_header
 from roadsurf.io.drive.types import FORMAT_HINT, Frame, Skipped
 
-IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
+# what OpenCV decodes and survey cameras write (8 or 16 bit, grey or colour; 16 bit scaled)
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
 
 
 def _is_file(p: Path, exists: bool = False) -> bool:
@@ -92,6 +93,7 @@ def load_frames(
         )
 
     # Which rows have an image at all.
+    n_skip0 = len(skipped)
     present: list[int] = []
     for k, name in enumerate(names):
         p = img_dir / name
@@ -104,7 +106,7 @@ def load_frames(
                 Skipped(
                     df.FRAMES_CSV,
                     lines[k],
-                    f"frames/{name} is not a .jpg/.jpeg/.png image; row skipped",
+                    f"frames/{name} is not a .jpg/.jpeg/.png/.tif/.tiff/.bmp image; row skipped",
                 )
             )
         else:
@@ -156,8 +158,14 @@ def load_frames(
     if n_bad:
         warnings.append(f"{img_dir}: {n_bad} unreadable or truncated image(s) skipped.")
     if not frames:
+        why = ""
+        if len(skipped) > n_skip0:  # the first row's reason, usually every row's
+            first = skipped[n_skip0]
+            where = f"{first.file}:{first.line}" if first.line is not None else first.file
+            why = f" E.g. {where}: {first.reason}."
         raise DriveFormatError(
             f"{root}: empty drive: none of the {len(names)} rows of frames.csv has a readable "
-            f"image in frames/. Check the folder and the filenames in frames.csv."
+            f"image in frames/.{why} Check the folder and the filenames in frames.csv (names "
+            "relative to frames/, .jpg/.jpeg/.png/.tif/.tiff/.bmp)."
         )
     return frames

@@ -142,4 +142,36 @@ def check_overlap(gps: GpsTrack, frames: list[Frame], warnings: list[str]) -> Gp
             f"{gps.source}: GPS covers only {100 * max(covered, 0):.0f}% of the frame time span; "
             f"frames outside it are placed by visual chaining."
         )
+    outage = gps_outages(gps, frames, slack)
+    if outage:
+        warnings.append(
+            f"{gps.source}: no fix for {outage} (the log's interval is {slack:.2g} s); the "
+            "frames there are placed by visual chaining alone, which drifts with its length"
+        )
     return gps
+
+
+# an outage is a gap between fixes longer than this many of the log's median intervals, and at
+# least OUTAGE_MIN_S: a 1 Hz receiver losing two fixes is not news, a tunnel or a dead logger is
+OUTAGE_INTERVALS = 3.0
+OUTAGE_MIN_S = 2.0
+
+
+def gps_outages(gps: GpsTrack, frames: list[Frame], interval_s: float) -> str:
+    """The GPS outages within the frame time span, as text (times and frames; at most three,
+    then a count), or "" when there is none."""
+    ts = np.asarray(gps.timestamp_s, float)
+    tf = np.array([f.timestamp_s for f in frames], float)
+    limit = max(OUTAGE_INTERVALS * interval_s, OUTAGE_MIN_S)
+    parts = []
+    for k in np.flatnonzero(np.diff(ts) > limit):
+        inside = (tf > ts[k]) & (tf < ts[k + 1])
+        if inside.any():
+            i0, i1 = np.flatnonzero(inside)[[0, -1]]
+            parts.append(
+                f"{ts[k + 1] - ts[k]:.1f} s between {ts[k]:.2f} and {ts[k + 1]:.2f} s "
+                f"({inside.sum()} frames, {frames[i0].filename} to {frames[i1].filename})"
+            )
+    if len(parts) > 3:
+        return "; ".join(parts[:3]) + f"; and {len(parts) - 3} more outages"
+    return "; ".join(parts)
