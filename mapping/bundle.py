@@ -168,6 +168,7 @@ def refine_poses(
         tau, se = fit_time_offset(loose, t, gps, used, fit_scale, cfg)
         se = max(se, time_offset_bound_s(world, t, gps, used, fit_scale))
         report["time_offset_se_s"] = se
+        report["time_offset_estimate_s"] = tau  # before the test: kept, not applied below it
         if abs(tau) <= max(MIN_OFFSET_S, TIME_OFFSET_SIGMAS * se):
             tau = 0.0  # not significant
         report["gps_rejected"] = []
