@@ -43,6 +43,12 @@ class Surface:
     residual_m: np.ndarray
     grid: GridSpec
     source: str  # "surface.tif" | "map_points.npz" | "pairs"
+    # (H, W) σ of each cell's height (m; the dense surface's surface_sigma), NaN or None where
+    # unknown: a seed must also be deeper than noise_k x its own cell's σ
+    sigma_m: np.ndarray | None = None
+    # (H, W) pairs' samples fused into each cell (the dense surface's surface_nobs) or None:
+    # with it, a seed must be a measured cell (count >= 1), not a fill
+    count: np.ndarray | None = None
 
 
 @dataclass
@@ -150,15 +156,6 @@ def choose_gsd(xy_m: np.ndarray, gsd_min_m: float, gsd_max_m: float = 0.1) -> fl
     return float(min(g, gsd_max_m))
 
 
-def crop_to_data(res: np.ndarray, grid: GridSpec, pad: int = 4) -> tuple[np.ndarray, GridSpec]:
-    """Crop a raster to the bounding box of its observed cells (plus ``pad`` cells)."""
-    box = grid.crop_to(np.isfinite(res), pad)
-    if box is None:
-        return res, grid
-    rs, cs, g = box
-    return res[rs, cs], g
-
-
 @dataclass
 class Segmentation:
     noise_m: float  # σ of the residual surface (robust)
@@ -180,7 +177,14 @@ def segment(
     (N,) int pair id of each. They join the mean-shift points (so defects seen in pieces by
     several pairs are clustered together) and give each region its 3D support.
     """
-    res, grid = crop_to_data(surface.residual_m.astype(np.float32), surface.grid)
+    box = surface.grid.crop_to(np.isfinite(surface.residual_m), 4)
+    res, grid = surface.residual_m.astype(np.float32), surface.grid
+    cell_sigma, count = surface.sigma_m, surface.count
+    if box is not None:
+        rs, cs, grid = box
+        res = res[rs, cs]
+        cell_sigma = None if cell_sigma is None else cell_sigma[rs, cs]
+        count = None if count is None else count[rs, cs]
     noise = robust_sigma(res)
     if not np.isfinite(noise):
         return Segmentation(float("nan"), float("nan"), float("nan"), [], grid)
@@ -199,9 +203,22 @@ def segment(
     sm = smooth_nan(res, cfg.smooth_m / grid.gsd_m, min_support=0.5)
     depth_s = -np.nan_to_num(sm, nan=0.0)
     seed = depth_s >= seed_t
+    cell_s = None if cell_sigma is None else np.nan_to_num(cell_sigma, nan=0.0)
+    if cell_s is not None:
+        # T_d = max(T_d floor, noise_k σ) with the cell's own σ where it is larger than the
+        # window's: a steep camera's far field (σ 13-67 mm at 55°) read 17-180 mm "defects"
+        # against a window σ of 1-2 mm; the true potholes' cells read 1-3 mm
+        seed &= depth_s >= cfg.noise_k * cell_s
+    if count is not None:
+        # and a measured cell: there the dense matching failed, the sparse points' fill
+        # reads a steep camera's far field decimetres off (55° at 640 x 480: 80-99 % of the
+        # false regions' cells were fills); a hole-filled wall still joins its floor's seeds
+        seed &= count >= 1
     # Outline mask: deeper than the rim threshold, with small unobserved holes closed, and not
     # further from the seeds than a share of their size (no leaking along shallow undulations).
     rim = depth_s >= rim_t
+    if cell_s is not None:  # the outline's threshold likewise (the pairs' evidence points
+        rim &= depth_s >= cfg.rim_noise_k * cell_s  # make regions of rim components too)
     rim = ndimage.binary_closing(rim, structure=np.ones((3, 3), bool)) | rim
     rim &= _near_seeds(seed, grid.gsd_m, cfg.rim_max_grow_frac, cfg.rim_max_grow_min_m)
     rim_lab, n_rim = ndimage.label(rim, structure=np.ones((3, 3), bool))

@@ -148,8 +148,8 @@ def load_result(run_dir: Path, signature: str) -> DetectionResult | None:
 # bump when detection changes its outputs for the same inputs and settings: a resumed run then
 # re-detects instead of keeping the earlier outputs. 2: one pair's dense cells deeper than 2 T_d
 # support a region (windows.segment_windows); 3: the parts of a defect cut by an unknown strip
-# are one (mapbridge.bridged_components)
-DETECTION_VERSION = 3
+# are one (mapbridge.bridged_components); 4: a seed deeper than noise_k x its own cell's σ too
+DETECTION_VERSION = 4
 
 
 def signature(

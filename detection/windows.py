@@ -29,6 +29,7 @@ from roadsurf.detection.config import MapSegmentConfig
 from roadsurf.detection.mapseg import Region, Segmentation, Surface, segment
 from roadsurf.io.formats import GridSpec
 from roadsurf.mapping.dense_fuse import NOBS as NOBS_NAME
+from roadsurf.mapping.dense_fuse import SIGMA as SIGMA_NAME
 
 log = logging.getLogger(__name__)
 
@@ -47,6 +48,11 @@ class WindowSource(Protocol):
     def read_count(self, r0: int, c0: int, h: int, w: int) -> np.ndarray | None:
         """(h, w) pairs' samples fused into each cell (the dense surface's surface_nobs), or
         None when the source has no such count."""
+        ...
+
+    def read_sigma(self, r0: int, c0: int, h: int, w: int) -> np.ndarray | None:
+        """(h, w) σ of each cell's height (m; the dense surface's surface_sigma, NaN where
+        unknown), or None when the source has none."""
         ...
 
 
@@ -94,6 +100,14 @@ class RasterSource:
                     self.count_path = None
         self._cnt = None
         self._last_count: tuple[tuple[int, int, int, int] | None, np.ndarray | None] = (None, None)
+        self.sigma_path: Path | None = self.path.with_name(SIGMA_NAME + self.path.suffix)
+        if not self.sigma_path.is_file():
+            self.sigma_path = None
+        else:
+            with rasterio.open(self.sigma_path) as c:
+                if (c.width, c.height) != (src.width, src.height):
+                    self.sigma_path = None
+        self._sig = None
 
     def read(self, r0: int, c0: int, h: int, w: int) -> np.ndarray:
         import rasterio
@@ -129,8 +143,18 @@ class RasterSource:
             self._last_count = (key, np.asarray(self._cnt.read(1, window=Window(c0, r0, w, h))))
         return self._last_count[1]
 
+    def read_sigma(self, r0: int, c0: int, h: int, w: int) -> np.ndarray | None:
+        import rasterio
+        from rasterio.windows import Window
+
+        if self.sigma_path is None:
+            return None
+        if self._sig is None:
+            self._sig = rasterio.open(self.sigma_path)
+        return self._sig.read(1, window=Window(c0, r0, w, h), masked=True).filled(np.nan)
+
     def close(self) -> None:
-        for name in ("_src", "_cnt"):
+        for name in ("_src", "_cnt", "_sig"):
             f = getattr(self, name)
             if f is not None:
                 f.close()
@@ -157,6 +181,9 @@ class PointsSource:
         self._rc = np.floor(self.grid.rowcol_from_xy(xy) + 0.5).astype(np.int64)
 
     def read_count(self, r0: int, c0: int, h: int, w: int) -> np.ndarray | None:
+        return None
+
+    def read_sigma(self, r0: int, c0: int, h: int, w: int) -> np.ndarray | None:
         return None
 
     def read(self, r0: int, c0: int, h: int, w: int) -> np.ndarray:
@@ -259,9 +286,11 @@ def segment_windows(
                 & (ev_rc[:, 1] >= win.c0 - pad)
                 & (ev_rc[:, 1] < win.c0 + win.w + pad)
             )
-        seg = segment(Surface(data, wgrid, source.source), cfg, ev_xy[sel], ev_pair[sel])
-        del data
+        sig = source.read_sigma(win.r0, win.c0, win.h, win.w)
         count = source.read_count(win.r0, win.c0, win.h, win.w)
+        surf = Surface(data, wgrid, source.source, sig, count)
+        seg = segment(surf, cfg, ev_xy[sel], ev_pair[sel])
+        del data, surf
         if not np.isfinite(seg.noise_m):
             continue
         noises.append(seg.noise_m)

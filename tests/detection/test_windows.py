@@ -179,10 +179,17 @@ def test_merge_regions_memory_stays_with_the_regions_not_9x_their_cells():
 
 
 class _ArraySource:
-    """A residual raster and its per-cell count held in memory (as RasterSource reads them)."""
+    """A residual raster, its per-cell count and σ held in memory (as RasterSource reads
+    them)."""
 
-    def __init__(self, res: np.ndarray, count: np.ndarray | None, gsd: float = 0.005) -> None:
-        self.res, self.count = res, count
+    def __init__(
+        self,
+        res: np.ndarray,
+        count: np.ndarray | None,
+        gsd: float = 0.005,
+        sigma: np.ndarray | None = None,
+    ) -> None:
+        self.res, self.count, self.sigma = res, count, sigma
         self.grid = GridSpec("EPSG:32617", 500000.0, 4800000.0, gsd, res.shape[1], res.shape[0])
         self.source, self.footprint_m = "surface.tif", 0.009
 
@@ -191,6 +198,9 @@ class _ArraySource:
 
     def read_count(self, r0: int, c0: int, h: int, w: int) -> np.ndarray | None:
         return None if self.count is None else self.count[r0 : r0 + h, c0 : c0 + w]
+
+    def read_sigma(self, r0: int, c0: int, h: int, w: int) -> np.ndarray | None:
+        return None if self.sigma is None else self.sigma[r0 : r0 + h, c0 : c0 + w]
 
 
 def test_dense_support_counts_deep_cells_two_pairs_or_one_pair_twice_as_deep() -> None:
@@ -219,6 +229,38 @@ def test_dense_support_counts_deep_cells_two_pairs_or_one_pair_twice_as_deep() -
         part = measured if depth > 2 * reg.seed_m else measured & (cc < 120)
         assert reg.dense_support_m2 == pytest.approx(part.sum() * 0.005**2, rel=0.1)
         assert all(r.dense_support_m2 == 0 for r in segs["none"].regions)
+
+
+def test_seeds_need_a_measured_cell_deeper_than_its_own_noise() -> None:
+    """A steep camera's far field: cells the dense matching left to the sparse fill (count 0)
+    or measured with a σ of centimetres read decimetre "defects" (a fault battery, 55° at
+    640 x 480: precision 0.42). A seed must be a measured cell deeper than noise_k x its own σ
+    as well as T_d; a true pothole among well measured cells is found as before."""
+    rng = np.random.default_rng(6)
+    n = 240
+    rr, cc = np.mgrid[0:n, 0:n]
+    res = rng.normal(0, 0.0003, (n, n)).astype(np.float32)
+    near = (rr - 60) ** 2 + (cc - 60) ** 2 < 20**2  # a 30 mm pothole, σ 1 mm, measured
+    fill = (rr - 60) ** 2 + (cc - 180) ** 2 < 20**2  # 30 mm deep in the sparse fill (count 0)
+    noisy = (rr - 180) ** 2 + (cc - 120) ** 2 < 20**2  # 30 mm deep, measured with σ 20 mm
+    for m in (near, fill, noisy):
+        res[m] -= 0.03
+    count = np.ones((n, n), np.uint8)
+    count[20:100, 140:220] = 0  # the fill and the noisy cells: a far field around each disc
+    sigma = np.full((n, n), 0.001, np.float32)
+    sigma[140:220, 80:160] = 0.02
+    sigma[count == 0] = np.nan
+    g = _ArraySource(res, count).grid
+    # windows around all three (as around any pair's evidence), no evidence point inside them
+    seeds = g.xy_from_rowcol(np.array([60, 60, 180]), np.array([60, 180, 120]))
+
+    def found(src: _ArraySource) -> set[tuple[int, int]]:
+        seg = segment_windows(src, CFG.map, seeds, None, None, min_points=1)
+        return {(int(np.median(r.rows)) // 60, int(np.median(r.cols)) // 60) for r in seg.regions}
+
+    assert found(_ArraySource(res, count, sigma=sigma)) == {(1, 1)}
+    # without the count and σ rasters (a sparse surface), all three read as defects
+    assert found(_ArraySource(res, None)) == {(1, 1), (1, 3), (3, 2)}
 
 
 def test_raster_source_reads_the_road_model_cells_as_unknown(tmp_path) -> None:
