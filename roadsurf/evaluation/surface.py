@@ -100,6 +100,12 @@ def surface_metrics(
             nsrc = None
         nd = src.nodata
         W, H = src.width, src.height
+        to_truth = None  # a run in another UTM zone than the truth (a drive on a zone border)
+        if crs and src.crs is not None:
+            from pyproj import CRS, Transformer
+
+            if CRS.from_user_input(src.crs.to_wkt()) != CRS.from_user_input(crs):
+                to_truth = Transformer.from_crs(src.crs.to_wkt(), crs, always_xy=True)
         bs = 1024
         for r0 in range(0, H, bs):
             for c0 in range(0, W, bs):
@@ -119,6 +125,8 @@ def surface_metrics(
                 x = T.c + (cc + 0.5) * T.a
                 y = T.f + (rr + 0.5) * T.e
                 v = a[rr, cc]
+                if to_truth is not None:
+                    x, y = to_truth.transform(x, y)
                 xy = np.column_stack([x, y])
                 for tag, pts in (
                     ("raw", xy),

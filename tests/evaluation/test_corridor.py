@@ -280,3 +280,37 @@ def test_rolling_shutter_border_rows_are_cast_from_their_own_poses(tmp_path: Pat
         assert got is not None and first_row is not None
         assert got.hausdorff_distance(want) < 0.5 * CELL
         assert first_row.hausdorff_distance(want) > 0.05
+
+
+def test_a_run_in_the_neighbouring_utm_zone_is_scored_in_the_truths(tmp_path: Path) -> None:
+    """A drive on a zone border: the run may choose the zone west of the truth's (both valid).
+    Its cells are taken into the truth's CRS before they are compared (a fault battery's run
+    in zone 35 against truth in 36 scored 0 % coverage and no height figure)."""
+    import rasterio
+    import shapely
+    from rasterio.warp import Resampling, calculate_default_transform, reproject
+
+    from roadsurf.evaluation.surface import surface_metrics
+
+    td, truth, phase = _tilted_drive(tmp_path, 25.0, seed=7)
+    seen = set(truth["filename"])
+    ref = _brute_force_footprints(truth, phase)
+    twice = shapely.union_all([a.intersection(b) for a, b in zip(ref[:-1], ref[1:], strict=True)])
+    run = _run_with_measured(tmp_path / "a", td, twice)
+    same = surface_metrics(run, td, truth, None, "EPSG:32617", {}, seen)
+    for name in ("surface.tif", "surface_nobs.tif"):  # the run's rasters in zone 16
+        with rasterio.open(run / name) as src:
+            T, w, h = calculate_default_transform(
+                src.crs, "EPSG:32616", src.width, src.height, *src.bounds
+            )
+            dst = np.zeros((h, w), src.dtypes[0])
+            reproject(rasterio.band(src, 1), dst, dst_transform=T, dst_crs="EPSG:32616",
+                      resampling=Resampling.nearest)  # fmt: skip
+        _write_raster(run / name, dst, T)
+        with rasterio.open(run / name, "r+") as f:
+            f.crs = "EPSG:32616"
+    other = surface_metrics(run, td, truth, None, "EPSG:32617", {}, seen)
+    assert same["coverage_two_view_measured"] > 0.99
+    assert other["coverage_two_view_measured"] == pytest.approx(
+        same["coverage_two_view_measured"], abs=0.02
+    )
