@@ -103,3 +103,16 @@ def test_gpx_invalid_value_is_one_line_error(tmp_path: Path) -> None:
     with pytest.raises(DriveFormatError, match="gps.gpx: GPX has an invalid value") as e:
         load_drive(root)
     assert "\n" not in str(e.value)
+
+
+def test_nmea_without_checksums_is_read_with_a_warning(tmp_path: Path) -> None:
+    """A logger that strips the '*hh' checksums: the sentences are read (they were all dropped
+    as 'malformed'), and one warning says they went unchecked. A sentence cut by binary data
+    stays malformed."""
+    lines = [s[: s.rindex("*")] for s in nmea_lines(T0 - 0.5, 4)]
+    d = load_drive(_nmea_drive(tmp_path, ("\r\n".join(lines) + "\r\n").encode()))
+    assert d.gps is not None and len(d.gps) == 4
+    np.testing.assert_allclose(d.gps.lat_deg, LAT0 + 1e-5 * np.arange(4), atol=1e-7)
+    (w,) = [w for w in d.warnings if "no checksum" in w]
+    assert "8 of 8 RMC/GGA sentences" in w
+    assert not [s for s in d.skipped if s.file == "gps.nmea"]

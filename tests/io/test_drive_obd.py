@@ -25,6 +25,21 @@ def test_obd_optional_and_validated(tmp_path: Path) -> None:
         load_drive(root)
 
 
+def test_obd_on_another_clock_is_dropped_with_a_warning(tmp_path: Path) -> None:
+    """An OBD logger stamping in its own clock (here 1,000 s off) never meets the frames: its
+    speeds would constrain the wrong frames, so it is not used, and the run says so."""
+    root = make_drive(tmp_path / "d", n=20)
+    rows = "\n".join(f"{1000 + 0.1 * k:.1f},5.0" for k in range(30))
+    (root / "obd.csv").write_text("timestamp_s,speed_mps\n" + rows + "\n")
+    d = load_drive(root)
+    assert d.obd is None
+    assert any("OBD times" in w and "do not overlap" in w and "+1000.0 s" in w for w in d.warnings)
+    rows = "\n".join(f"{1.5 + 0.1 * k:.1f},5.0" for k in range(30))  # the last quarter only
+    (root / "obd.csv").write_text("timestamp_s,speed_mps\n" + rows + "\n")
+    d = load_drive(root)
+    assert d.obd is not None and any("OBD covers only 21%" in w for w in d.warnings), d.warnings
+
+
 # --------------------------------------------------------------------------- distance along
 
 

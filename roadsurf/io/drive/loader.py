@@ -34,7 +34,7 @@ from roadsurf.io.drive.gps import check_overlap, load_gps_csv
 from roadsurf.io.drive.gpx import load_gps_gpx
 from roadsurf.io.drive.maskfile import mask_warning
 from roadsurf.io.drive.nmea import load_gps_nmea
-from roadsurf.io.drive.obd import load_obd
+from roadsurf.io.drive.obd import check_obd_overlap, load_obd
 from roadsurf.io.drive.types import FORMAT_HINT, NO_GEOREF, Drive, GpsTrack, Skipped
 
 log = logging.getLogger(__name__)
@@ -70,6 +70,8 @@ def load_drive(root: str | Path, check_images: bool = True) -> Drive:
 
     obd_path = root / df.OBD_CSV
     obd = load_obd(obd_path, skipped, warnings) if obd_path.is_file() else None
+    if obd is not None:
+        obd = check_obd_overlap(obd_path, obd, frames, warnings)
     # A static receiver says nothing about the speed: then OBD is not judged against it.
     if gps is not None and not check_static(gps, frames, warnings) and obd is not None:
         obd = check_obd_vs_gps(obd_path, obd, gps, warnings)

@@ -71,9 +71,10 @@ class _Scan:
         self.garbage_lines: list[int] = []
         self.resynced = 0  # sentences found after garbage on the same line
 
-    def sentences(self, data: bytes) -> list[tuple[int, str]]:
-        """(line number, sentence text) of every RMC/GGA-looking or well-formed sentence."""
-        out: list[tuple[int, str]] = []
+    def sentences(self, data: bytes) -> list[tuple[int, str, bool]]:
+        """(line number, sentence text, whether it is the whole line) of every RMC/GGA-looking
+        or well-formed sentence."""
+        out: list[tuple[int, str, bool]] = []
         for line_no, line in enumerate(data.split(b"\n"), start=1):
             pos = 0
             junk = 0
@@ -90,7 +91,8 @@ class _Scan:
                 if junk:
                     self.resynced += 1
                 junk += len(cand[len(sent) :].strip())  # bytes after the checksum
-                out.append((line_no, text))
+                # a whole line: no binary cut it (a sentence without a checksum may be read)
+                out.append((line_no, text, line.strip() == sent))
             junk += len(line[pos:].strip())
             if junk:
                 self.garbage_bytes += junk
@@ -147,13 +149,13 @@ def load_gps_nmea(path: Path, skipped: list[Skipped], warnings: list[str]) -> Gp
     the same second are merged into one fix. Times become UNIX seconds (UTC) using the RMC date.
     Heights are ellipsoidal: GGA altitude (mean sea level) + geoid separation."""
     fixes: dict[float, dict[str, Any]] = {}  # key: seconds of day (+ day offset)
-    n_bad = n_sent = 0
+    n_bad = n_sent = n_unchecked = 0
     day0: float | None = None  # UNIX seconds at 00:00 UTC of the current date
     first_day0: float | None = None
     last_tod: float | None = None
     pending_gga: list[tuple[int, float, dict[str, Any]]] = []  # GGA seen before any RMC date
     scan = _Scan()
-    for line_no, s in scan.sentences(read_bytes(path)):
+    for line_no, s, whole in scan.sentences(read_bytes(path)):
         kind = s[3:6]
         if kind not in ("RMC", "GGA"):
             continue  # other sentence types are ignored
@@ -161,11 +163,19 @@ def load_gps_nmea(path: Path, skipped: list[Skipped], warnings: list[str]) -> Gp
         try:
             msg = pynmea2.parse(s, check=True)
         except pynmea2.ChecksumError as e:
-            n_bad += 1
-            missing = "missing" in str(e)
-            why = "malformed NMEA sentence" if missing else "NMEA checksum mismatch"
-            skipped.append(Skipped(path.name, line_no, why))
-            continue
+            if "missing" not in str(e) or not whole:
+                n_bad += 1
+                why = "NMEA checksum mismatch" if whole else "malformed NMEA sentence"
+                skipped.append(Skipped(path.name, line_no, why))
+                continue
+            # no checksum at all (a logger that strips it): read, but say it was unchecked
+            try:
+                msg = pynmea2.parse(s, check=False)
+            except pynmea2.ParseError:
+                n_bad += 1
+                skipped.append(Skipped(path.name, line_no, "malformed NMEA sentence"))
+                continue
+            n_unchecked += 1
         except pynmea2.ParseError:
             n_bad += 1
             skipped.append(Skipped(path.name, line_no, "malformed NMEA sentence"))
@@ -232,6 +242,12 @@ def load_gps_nmea(path: Path, skipped: list[Skipped], warnings: list[str]) -> Gp
     ]
     if n_bad:
         log.info("%s: %d of %d RMC/GGA sentences skipped", path, n_bad, n_sent)
+    if n_unchecked:
+        warnings.append(
+            f"{path}: {n_unchecked} of {n_sent} RMC/GGA sentences carry no checksum (*hh) and "
+            "were read unchecked: a corrupted digit would pass; log with checksums if the "
+            "receiver allows it"
+        )
     return gps_from_lists(path, good, skipped, n_bad, n_sent, warnings, alt_datum=datum)
 
 
