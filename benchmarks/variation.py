@@ -51,6 +51,7 @@ class Case:
     scenario: str = "potholes"
     args: tuple[str, ...] = ()
     gps_outliers_m: float = 0.0  # > 0: shift a few GPS fixes this far (m) after simulating
+    log_lead_m: float = 0.0  # > 0: the GPS log starts this far (m) south, 600 s before the drive
     config_yaml: str = ""  # roadsurf run --config text (empty: the defaults)
     drive_of: str = ""  # run the drive of this case instead of simulating one
     extra: dict[str, Any] = field(default_factory=dict)
@@ -157,6 +158,18 @@ CASES = [
         ),
     ),  # fmt: skip
     Case("speed9", "9 m/s at 15 fps (overlap ~32 %)", args=_set("speed_mps=9")),
+    Case(
+        "steep55",
+        "camera tilted 55° forward (far field beyond the matcher)",
+        "tilted",
+        ("--mount-pitch", "55"),
+    ),  # fmt: skip
+    Case(
+        "far_log",
+        "La Paz, 3,640 m up; the GPS log starts 1 km away 600 s before the frames",
+        args=_set("origin_lat_deg=-16.5", "origin_lon_deg=-68.15", "origin_alt_m=3640"),
+        log_lead_m=1000.0,
+    ),
 ]
 
 
@@ -194,6 +207,28 @@ def shift_gps_fixes(gps_csv: Path, metres: float, picks: tuple[float, ...] = (0.
         w.writeheader()
         w.writerows(rows)
     return moved
+
+
+def prepend_lead_fixes(gps_csv: Path, metres: float, seconds: int = 600) -> int:
+    """Prepend ``seconds`` fixes at 1 Hz on a line from ``metres`` south of the first fix to it,
+    on the log's clock, same longitude and altitude (a logger started at the depot). Returns
+    the number of rows added."""
+    with open(gps_csv, newline="") as f:
+        rows = list(csv.DictReader(f))
+    if not rows:
+        return 0
+    first = rows[0]
+    t0, lat0 = float(first["timestamp_s"]), float(first["lat"])
+    lead = []
+    for k in range(seconds):
+        frac = 1.0 - k / seconds  # 1 at the far end, towards 0 at the first fix
+        lead.append(first | {"timestamp_s": f"{t0 - (seconds - k):.3f}",
+                             "lat": f"{lat0 - frac * metres / 111_132.0:.9f}"})  # fmt: skip
+    with open(gps_csv, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(first.keys()))
+        w.writeheader()
+        w.writerows(lead + rows)
+    return seconds
 
 
 def figures(ev: dict[str, Any], report: dict[str, Any]) -> dict[str, Any]:
@@ -251,6 +286,8 @@ def run_case(c: Case, work: Path, frames: int, timeout_s: float) -> dict[str, An
             return row
         if src.gps_outliers_m > 0:
             row["gps_rows_moved"] = shift_gps_fixes(drive / "gps.csv", src.gps_outliers_m)
+        if src.log_lead_m > 0:
+            row["gps_rows_prepended"] = prepend_lead_fixes(drive / "gps.csv", src.log_lead_m)
     t1 = time.perf_counter()
     runlog = work / f"run_{c.name}.log"
     args = ["run", str(drive), "--out", str(run), "--overwrite"]

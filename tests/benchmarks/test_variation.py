@@ -6,7 +6,16 @@ import csv
 import math
 from pathlib import Path
 
-from benchmarks.variation import figures, flags, log_warnings, shift_gps_fixes, table
+import pytest
+
+from benchmarks.variation import (
+    figures,
+    flags,
+    log_warnings,
+    prepend_lead_fixes,
+    shift_gps_fixes,
+    table,
+)
 
 GOOD = {
     "trajectory_rmse_m": 0.01,
@@ -85,3 +94,20 @@ def test_log_warnings_keeps_warning_lines_once_and_drops_runpy_noise(tmp_path: P
         "12:00:01 WARNING roadsurf.mapping.mount: mount: roll 4.1 deg\n"
     )
     assert log_warnings(log) == ["12:00:01 WARNING roadsurf.mapping.mount: mount: roll 4.1 deg"]
+
+
+def test_prepend_lead_fixes_starts_the_log_far_away_on_its_clock(tmp_path: Path) -> None:
+    p = tmp_path / "gps.csv"
+    rows = [(10.0 + 0.2 * i, -16.5 + 1e-6 * i, -68.15, 3640.0, 0.7) for i in range(5)]
+    with open(p, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["timestamp_s", "lat", "lon", "alt_m", "hdop"])
+        w.writerows(rows)
+    assert prepend_lead_fixes(p, 1000.0, seconds=10) == 10
+    with open(p, newline="") as f:
+        out = list(csv.DictReader(f))
+    assert len(out) == 15
+    t = [float(r["timestamp_s"]) for r in out]
+    assert t[0] == 0.0 and all(b > a for a, b in zip(t, t[1:], strict=False))
+    assert (float(out[10]["lat"]) - float(out[0]["lat"])) * 111_132.0 == pytest.approx(1000.0)
+    assert float(out[10]["timestamp_s"]) == 10.0 and float(out[9]["lat"]) < float(out[10]["lat"])
