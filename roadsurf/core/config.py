@@ -32,6 +32,7 @@ the two is judged against the other's default; the error names both keys and val
 from __future__ import annotations
 
 import dataclasses
+import datetime as dt
 import difflib
 import functools
 import math
@@ -335,6 +336,9 @@ def _coerce(tp: Any, value: Any, source: str, key: str) -> Any:
             raise _KeyedConfigError(source, key, f"expected true or false, got {_short(value)}")
         return value
     if tp is str:
+        if isinstance(value, (dt.date, dt.datetime)):
+            # YAML reads an unquoted ISO 8601 time as a timestamp: the text it was
+            return value.isoformat()
         if not isinstance(value, str):
             raise _KeyedConfigError(source, key, f"expected a string, got {_short(value)}")
         return value

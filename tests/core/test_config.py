@@ -324,3 +324,15 @@ def test_a_section_override_keeps_the_enclosing_config_default() -> None:
     cfg = from_dict(MappingConfig, {"dense": {"hole_fill_m": 0.0}})
     assert cfg.dense.hole_fill_m == 0.0
     assert cfg.dense.smooth_px == MappingConfig().dense.smooth_px == 1.5
+
+
+def test_an_unquoted_iso_time_for_a_string_field_is_its_text(tmp_path):
+    """YAML reads `kind: 2026-06-15T14:00:00+10:00` as a timestamp; a str field takes the
+    text back (`roadsurf simulate --set start_utc=...` failed with 'expected a string')."""
+    p = tmp_path / "c.yaml"
+    p.write_text("inner:\n  kind: 2026-06-15T14:00:00+10:00\n")
+    assert load_yaml_config(Outer, p).inner.kind == "2026-06-15T14:00:00+10:00"
+    p.write_text("inner:\n  kind: 2026-06-15\n")
+    assert load_yaml_config(Outer, p).inner.kind == "2026-06-15"
+    with pytest.raises(ConfigError, match="expected a string"):
+        from_dict(Outer, {"inner": {"kind": 3}})
