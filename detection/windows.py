@@ -151,7 +151,8 @@ class RasterSource:
             return None
         if self._sig is None:
             self._sig = rasterio.open(self.sigma_path)
-        return self._sig.read(1, window=Window(c0, r0, w, h), masked=True).filled(np.nan)
+        # NaN nodata (mapping's rasters): a plain read holds NaN where the mask would be
+        return self._sig.read(1, window=Window(c0, r0, w, h)).astype(np.float32, copy=False)
 
     def close(self) -> None:
         for name in ("_src", "_cnt", "_sig"):

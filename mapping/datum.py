@@ -32,6 +32,7 @@ def vertical_datum(cfg: MappingConfig, drive: Drive, georeferenced: bool = True)
         return LOCAL_DATUM
     datum = str(getattr(g, "alt_datum", None) or GPS_DATUM_DEFAULT)
     if not cfg.use_gps_altitude:
-        # the ENU origin takes the first fix's altitude, the first camera sits at the origin
-        return f"local: the first frame's camera centre at the first GPS altitude ({datum})"
+        # the ENU origin takes the altitude of the fix nearest the middle frame
+        # (pose_gps.enu_reference); the first camera sits at its height
+        return f"local: the first frame's camera centre at the reference fix's altitude ({datum})"
     return datum

@@ -313,7 +313,10 @@ def rasterise(
             y = grid.y0_m - (rr + 0.5) * grid.gsd_m
             if ef is None:  # local ENU: the grid is ENU itself
                 x, y = e[rr, cc], n[rr, cc]
-            xyz = np.column_stack([x, y, z[rr, cc] + alt0])
+                h = z[rr, cc]
+            else:  # ellipsoidal, as ExportFrame.utm_from_enu writes the sparse cloud
+                h = z[rr, cc] + alt0 + g2e.height_lift(grid, x, y)
+            xyz = np.column_stack([x, y, h])
             return xyz, mos_t[rr, cc], res_t[rr, cc], n_t[rr, cc]
 
         # tiles are computed by worker threads (OpenCV and numpy release the GIL) and written

@@ -135,7 +135,7 @@ class ReconstructionConfig:
     f_ransac_px: float = 1.0  # classic baseline: fundamental-matrix RANSAC threshold (px)
     min_matches: int = 30  # fewer matches (after each filter) -> too_few_matches (count)
     min_displacement_px: float = 3.0  # median match displacement below this: the camera did not
-    # move enough for depth (vehicle stopped) -> geometry_failed (px)
+    # move enough for depth (vehicle stopped) -> no_motion (px)
     min_features: int = 50  # fewer keypoints in a frame -> too_few_features (count)
     f_iterations: int = 10  # max iterations of the F = [e]x H rebuild loop (Fig. 3.4) (count)
     f_tol: float = 1e-9  # convergence of the rebuild loop: change of t direction (unitless)

@@ -44,7 +44,8 @@ def summary_markdown(data: RunData, counts: dict[str, int]) -> str:
         f"- drive: `{r.get('drive', '?')}`",
         f"- CRS: {data.crs or 'local ENU (no GPS)'}",
         f"- frames: {c.get('frames', '?')}, posed: {counts.get('posed_frames', 0)}, "
-        f"pairs ok/failed: {c.get('pairs_ok', '?')}/{c.get('pairs_failed', '?')}",
+        f"pairs ok/failed: {c.get('pairs_ok', '?')}/{c.get('pairs_failed', '?')}"
+        + (f" ({c['pairs_still']} standing still)" if c.get("pairs_still") else ""),
         f"- cloud points shown: {counts.get('cloud_points', 0)}",
         f"- defects: {counts.get('defects', 0)}",
         "",

@@ -158,11 +158,9 @@ def enu_from_crs(xyz: np.ndarray, crs: str | None, reference: EnuReference | Non
         return xyz
     epsg = int(str(crs).split(":")[-1])
     latlon = lla_from_utm(xyz[:, 0], xyz[:, 1], epsg)
-    enu = enu_from_lla(latlon[:, 0], latlon[:, 1], xyz[:, 2], reference)
-    # exports write height = ENU up + reference altitude (ExportFrame.utm_from_enu), not the
-    # ellipsoidal height, so undo exactly that instead of Earth curvature (mm over 100 m)
-    enu[:, 2] = xyz[:, 2] - reference.alt_m
-    return enu
+    # exports write ellipsoidal heights (ExportFrame.utm_from_enu, through ECEF): the exact
+    # inverse (the tangent plane leaves the ellipsoid by d² / 2R: 7.8 cm at 1 km)
+    return enu_from_lla(latlon[:, 0], latlon[:, 1], xyz[:, 2], reference)
 
 
 def _load_cloud(
@@ -201,7 +199,9 @@ def _ring_enu(coords: np.ndarray, georef: bool, reference: EnuReference | None) 
     if reference is None:
         # lon/lat but no saved reference: use the ring's own first vertex (local view only)
         reference = EnuReference(float(c[0, 1]), float(c[0, 0]), 0.0)
-    return enu_from_lla(c[:, 1], c[:, 0], 0.0, reference)[:, :2]
+    # at the road's height, not the ellipsoid's: the local vertical tilts by d / R, a ring
+    # placed at height 0 moved sideways by h d / R (0.57 m at 1 km, 3,640 m up)
+    return enu_from_lla(c[:, 1], c[:, 0], reference.alt_m, reference)[:, :2]
 
 
 def _load_defects(

@@ -43,6 +43,7 @@ from roadsurf.mapping.loops import frame_matcher
 from roadsurf.pipeline.run_checks import check_reconstruction, claim_run_folder, static_pixels
 from roadsurf.pipeline.run_checks import pair_failures_warning as failures_warning
 from roadsurf.reconstruction.config import ReconstructionConfig
+from roadsurf.reconstruction.types import STATUS_NO_MOTION
 
 if TYPE_CHECKING:
     from roadsurf.detection.classifier.fusion import FusionRule
@@ -465,7 +466,8 @@ def _build_report(
             "gps_fixes": len(drive.gps) if drive.gps is not None else 0,
             "pairs": len(pairs),
             "pairs_ok": sum(1 for p in pairs if p.ok),
-            "pairs_failed": len(failed),
+            "pairs_failed": len(failed),  # of which the vehicle stood still (no depth):
+            "pairs_still": sum(1 for p in pairs if p.status == STATUS_NO_MOTION),
             "posed_frames": len(traj) if traj is not None else 0,
         },
         "skipped_frames": [dataclasses.asdict(s) for s in drive.skipped],

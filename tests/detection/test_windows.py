@@ -283,6 +283,13 @@ def test_raster_source_reads_the_road_model_cells_as_unknown(tmp_path) -> None:
     want = res.copy()
     want[0, 2] = want[1, 1] = np.nan  # the road model; a measured 0 (count 1 / 3) stays
     np.testing.assert_array_equal(got, want)
+    # the cells' σ beside it (surface_sigma.tif, NaN where none), read window by window
+    assert src.sigma_path is None and src.read_sigma(0, 0, 2, 4) is None
+    sig = np.array([[0.001, 0.002, np.nan, 0.02], [np.nan, np.nan, np.nan, 0.004]], np.float32)
+    write_geotiff(tmp_path / "surface_sigma.tif", sig, g, nodata=float("nan"))
+    src = RasterSource(tmp_path / "surface.tif")
+    np.testing.assert_array_equal(src.read_sigma(0, 1, 2, 3), sig[:, 1:])
+    src.close()
 
 
 @pytest.mark.parametrize("nodata", [float("nan"), -9999.0])

@@ -18,7 +18,8 @@ the pairs' smooth disagreement); BUNDLE_VERSION 7 (the poses key: that removal b
 pairs' stated uncertainty); BUNDLE_VERSION 8 (the poses key, issue 29: the bundle's points'
 steps on dense blocks and one BLAS thread, poses changed at rounding level); BUNDLE_VERSION 9
 (the reduced Jacobian's point products as sparse matrices; rounding level); POSES_VERSION 2 (the
-poses key: the ENU origin at the middle frame, no_motion pairs held together).
+poses key: the ENU origin at the middle frame, no_motion pairs held together); DENSE_SURFACE_VERSION
+10 (the map key: cloud.ply heights ellipsoidal).
 A change of MappingConfig's fields changes them legitimately. The keys must also
 change with what the outputs depend on (below)."""
 
@@ -50,7 +51,7 @@ def test_globalmap_fingerprint_is_unchanged() -> None:
         reference=None,
         segment=np.zeros(6, int),
     )
-    assert globalmap._fingerprint(MappingConfig(), syn.pairs, traj) == "088d658cb4bd6835"
+    assert globalmap._fingerprint(MappingConfig(), syn.pairs, traj) == "74c18ecf7fc299b7"
 
 
 def test_poses_key_follows_the_gps_altitude() -> None:
