@@ -90,24 +90,22 @@ class RasterSource:
             except ValueError:
                 self.footprint_m = float("nan")
         self._src = None
-        # the dense surface's per-cell count, written next to it on the same grid
-        self.count_path: Path | None = self.path.with_name(NOBS_NAME + self.path.suffix)
-        if not self.count_path.is_file():
-            self.count_path = None
-        else:
-            with rasterio.open(self.count_path) as c:
-                if (c.width, c.height) != (src.width, src.height):
-                    self.count_path = None
+        # the dense surface's per-cell count and σ, written next to it on the same grid
+        self.count_path = self._beside(NOBS_NAME, (src.width, src.height))
         self._cnt = None
         self._last_count: tuple[tuple[int, int, int, int] | None, np.ndarray | None] = (None, None)
-        self.sigma_path: Path | None = self.path.with_name(SIGMA_NAME + self.path.suffix)
-        if not self.sigma_path.is_file():
-            self.sigma_path = None
-        else:
-            with rasterio.open(self.sigma_path) as c:
-                if (c.width, c.height) != (src.width, src.height):
-                    self.sigma_path = None
+        self.sigma_path = self._beside(SIGMA_NAME, (src.width, src.height))
         self._sig = None
+
+    def _beside(self, name: str, size: tuple[int, int]) -> Path | None:
+        """The raster ``name`` next to the residual (same suffix) when it has its size."""
+        import rasterio
+
+        path = self.path.with_name(name + self.path.suffix)
+        if not path.is_file():
+            return None
+        with rasterio.open(path) as c:
+            return path if (c.width, c.height) == size else None
 
     def read(self, r0: int, c0: int, h: int, w: int) -> np.ndarray:
         import rasterio
