@@ -11,7 +11,15 @@ import numpy as np
 from roadsurf.core.errors import DriveFormatError
 from roadsurf.io.drive.checks import reject_jumps
 from roadsurf.io.drive.csvrows import check_increasing, csv_float, csv_rows
-from roadsurf.io.drive.types import ALT_ELLIPSOIDAL, ALT_NONE, NO_GEOREF, Frame, GpsTrack, Skipped
+from roadsurf.io.drive.types import (
+    ALT_ELLIPSOIDAL,
+    ALT_NONE,
+    NO_GEOREF,
+    Frame,
+    GpsTrack,
+    Skipped,
+    log_overlap,
+)
 
 
 def valid_latlon(lat: float, lon: float) -> str | None:
@@ -125,9 +133,9 @@ def load_gps_csv(path: Path, skipped: list[Skipped], warnings: list[str]) -> Gps
 def check_overlap(gps: GpsTrack, frames: list[Frame], warnings: list[str]) -> GpsTrack | None:
     t0, t1 = frames[0].timestamp_s, frames[-1].timestamp_s
     g0, g1 = float(gps.timestamp_s[0]), float(gps.timestamp_s[-1])
-    # A fix slightly outside the frame span still helps; allow one GPS interval of slack.
-    slack = float(np.median(np.diff(gps.timestamp_s))) if len(gps) > 1 else 1.0
-    if g1 < t0 - slack or g0 > t1 + slack:
+    # A fix slightly outside the frame span still helps: one GPS interval of slack.
+    slack, covered = log_overlap(gps.timestamp_s, frames)
+    if covered is None:
         warnings.append(
             f"{gps.source}: GPS times [{g0:.3f}, {g1:.3f}] s do not overlap the frame times "
             f"[{t0:.3f}, {t1:.3f}] s (offset about {g0 - t0:+.1f} s), so the GPS is ignored: "
@@ -135,8 +143,6 @@ def check_overlap(gps: GpsTrack, frames: list[Frame], warnings: list[str]) -> Gp
             f"UTC, for GPX/NMEA logs)."
         )
         return None
-    span = max(t1 - t0, 1e-9)
-    covered = (min(t1, g1) - max(t0, g0)) / span if t1 > t0 else 1.0
     if covered < 0.9:
         warnings.append(
             f"{gps.source}: GPS covers only {100 * max(covered, 0):.0f}% of the frame time span; "

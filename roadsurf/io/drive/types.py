@@ -116,3 +116,15 @@ def along_track_m(drive: Drive) -> np.ndarray | None:
     out = np.where(t_frames < t[0], s[0] - v0 * (t[0] - t_frames), out)
     out = np.where(t_frames > t[-1], s[-1] + v1 * (t_frames - t[-1]), out)
     return out - out[0]
+
+
+def log_overlap(t_log: np.ndarray, frames: list[Frame]) -> tuple[float, float | None]:
+    """A time-stamped log (GPS, OBD; (N,) s, increasing) against the frames' time span: (its
+    median interval (s; 1 s for a single row), the share of the frames' span it covers, or None
+    when it misses the span by more than one interval: a log on another clock)."""
+    t = np.asarray(t_log, float)
+    t0, t1 = frames[0].timestamp_s, frames[-1].timestamp_s
+    slack = float(np.median(np.diff(t))) if len(t) > 1 else 1.0
+    if t[-1] < t0 - slack or t[0] > t1 + slack:
+        return slack, None
+    return slack, (min(t1, t[-1]) - max(t0, t[0])) / (t1 - t0) if t1 > t0 else 1.0
