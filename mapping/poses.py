@@ -168,12 +168,12 @@ def estimate_trajectory(
     consecutive = {(pos_of[p.index_a], pos_of[p.index_b]): p for p in ok_pairs}
     # consecutive frames a stopped vehicle took: the same place (R = I, t = 0), not a gap
     still = [
-        p for p in pairs
+        _at_rest(p) for p in pairs
         if p.status == STATUS_NO_MOTION and p.index_a in pos_of and p.index_b in pos_of
         and pos_of[p.index_b] == pos_of[p.index_a] + 1
     ]  # fmt: skip
     rep.n_pairs_still = len(still)
-    linked = consecutive | {(pos_of[p.index_a], pos_of[p.index_b]): _at_rest(p) for p in still}
+    linked = consecutive | {(pos_of[p.index_a], pos_of[p.index_b]): p for p in still}
 
     # ---------------------------------------------------------------- GPS in ENU
     ref, gps = gps_enu(cfg, drive, t, rep)
@@ -259,9 +259,8 @@ def estimate_trajectory(
         from roadsurf.mapping.bundle import refine_poses, with_motions_of
 
         world, bundle = refine_poses(
-            cfg, drive, t, world, ok_pairs, pos_of, gps, problem.gps_used, R_vc, g_rad,
-            [_at_rest(p) for p in still],
-        )  # fmt: skip
+            cfg, drive, t, world, ok_pairs, pos_of, gps, problem.gps_used, R_vc, g_rad, still
+        )
         rep.bundle.update(bundle)
         if loops:
             # the windows hold no loop constraint: one more pose-graph pass over the bundle's

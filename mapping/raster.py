@@ -94,17 +94,23 @@ class GridToEnu:
     def __init__(self, ref: EnuReference | None, epsg: int | None) -> None:
         self.ref, self.epsg = ref, epsg
 
-    def affine_for(self, grid: GridSpec) -> np.ndarray:
-        """(2, 3) A with [e, n] = A @ [x, y, 1] over the tile's extent."""
+    def _samples(self, grid: GridSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """3 x 3 grid points X, Y (3, 3) over the tile and their exact ENU (9, 3) on the road.
+        At the road's height (the reference's): the local vertical tilts by d / R, so a cell
+        placed at the ellipsoid would move sideways by h d / R (0.57 m at 1 km, 3,640 m up)."""
         if self.ref is None or self.epsg is None:
-            return np.array([[1.0, 0, 0], [0, 1.0, 0]])
+            raise ValueError("GridToEnu: no reference or CRS")
         xs = grid.x0_m + np.linspace(0, grid.width * grid.gsd_m, 3)
         ys = grid.y0_m - np.linspace(0, grid.height * grid.gsd_m, 3)
         X, Y = np.meshgrid(xs, ys)
         lla = lla_from_utm(X.ravel(), Y.ravel(), self.epsg)
-        # at the road's height (the reference's): the local vertical tilts by d / R, so a cell
-        # placed at the ellipsoid would move sideways by h d / R (0.57 m at 1 km, 3,640 m up)
-        enu = enu_from_lla(lla[:, 0], lla[:, 1], self.ref.alt_m, self.ref)
+        return X, Y, enu_from_lla(lla[:, 0], lla[:, 1], self.ref.alt_m, self.ref)
+
+    def affine_for(self, grid: GridSpec) -> np.ndarray:
+        """(2, 3) A with [e, n] = A @ [x, y, 1] over the tile's extent."""
+        if self.ref is None or self.epsg is None:
+            return np.array([[1.0, 0, 0], [0, 1.0, 0]])
+        X, Y, enu = self._samples(grid)
         M = np.column_stack([X.ravel(), Y.ravel(), np.ones(X.size)])
         A, *_ = np.linalg.lstsq(M - [grid.x0_m, grid.y0_m, 0], enu[:, :2], rcond=None)
         # express relative to the tile corner for numerical safety
@@ -121,12 +127,8 @@ class GridToEnu:
         x, y = np.asarray(x, float), np.asarray(y, float)
         if self.ref is None or self.epsg is None:
             return np.zeros(np.broadcast(x, y).shape)
-        xs = grid.x0_m + np.linspace(0, grid.width * grid.gsd_m, 3)
-        ys = grid.y0_m - np.linspace(0, grid.height * grid.gsd_m, 3)
-        X, Y = np.meshgrid(xs, ys)
-        lla = lla_from_utm(X.ravel(), Y.ravel(), self.epsg)
-        # a point at the reference's altitude sits at ENU up -d²/2R: the lift is its negative
-        lift = -enu_from_lla(lla[:, 0], lla[:, 1], self.ref.alt_m, self.ref)[:, 2]
+        X, Y, enu = self._samples(grid)
+        lift = -enu[:, 2]  # a point at the reference's altitude sits at ENU up -d²/2R
 
         def basis(u: np.ndarray, v: np.ndarray) -> np.ndarray:
             u, v = u - grid.x0_m, v - grid.y0_m
