@@ -4,10 +4,10 @@ tile by tile while the rasters are (memory flat in the drive's length).
 Points are the cells' centres in the export CRS (x, y of the grid; z = the local road height +
 the cell's residual as an ellipsoidal height, ENU up + the reference's altitude + the tangent
 plane's rise (``GridToEnu.height_lift``), as ``ExportFrame.utm_from_enu`` gives the sparse
-points, or local ENU without GPS), the mosaic's colour and the same per-point properties as the sparse cloud
-(``residual_m``, ``n_obs``: the pairs fused into the cell). The binary body goes to a temporary
-file as the tiles come; ``close`` writes the PLY header (the vertex count is known only then) and
-the body into place atomically, the same layout ``io.formats.write_ply`` writes.
+points, or local ENU without GPS), the mosaic's colour and the same per-point properties as the
+sparse cloud (``residual_m``, ``n_obs``: the pairs fused into the cell). The binary body goes to
+a temporary file as the tiles come; ``close`` writes the PLY header (the vertex count is known
+only then) and the body into place atomically, the same layout ``io.formats.write_ply`` writes.
 """
 
 from __future__ import annotations

@@ -35,9 +35,9 @@ def resample_pair(
     (bool). ``rs`` = (R, t, plane, frame_dt_s): a rolling shutter, each grid pixel read from
     the rows that saw its road point (``dense.rolling``) instead of through H at the
     timestamps. ``pad`` (px): the grid reaches that far beyond the work grid on every side (its
-    pixel (pad, pad) is the work grid's (0, 0); (h + 2 pad, w + 2 pad) arrays). ``share``: with ``rs``, a list that gets
-    each grid pixel's baseline share s_b - s_a (``dense.rolling.baseline_share``, NaN where
-    a frame's row is unknown) appended."""
+    pixel (pad, pad) is the work grid's (0, 0); (h + 2 pad, w + 2 pad) arrays). ``share``: with
+    ``rs``, a list that gets each grid pixel's baseline share s_b - s_a
+    (``dense.rolling.baseline_share``, NaN where a frame's row is unknown) appended."""
     W, Hh = camera.width, camera.height
     w, h = int(round(W * s)), int(round(Hh * s))
     # a sample whose cubic kernel (2 px) or anti-aliasing blur (2 σ) reaches a masked raw pixel

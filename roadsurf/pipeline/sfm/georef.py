@@ -47,8 +47,8 @@ log = logging.getLogger(__name__)
 def drive_gps(drive: Drive) -> tuple[EnuReference | None, GpsFixes | None]:
     """The ENU origin and the GPS fixes in it, chosen as the pose fusion chooses them
     (``mapping.pose_gps.gps_enu``: the fix nearest the middle frame, its altitude or the
-    nearest finite one; fixes within its default margin of the frame times). (None, None) without 2 such fixes; a drive
-    without GPS gets a warning for the report."""
+    nearest finite one; fixes within its default margin of the frame times). (None, None)
+    without 2 such fixes; a drive without GPS gets a warning for the report."""
     if drive.gps is None:
         drive.warnings.append("no GPS: outputs are in a local metric frame (crs null)")
         return None, None
