@@ -11,6 +11,7 @@ from typing import Any
 
 from roadsurf.core.atomic import write_json_atomic, write_text_atomic
 from roadsurf.io import drivefolder as df
+from roadsurf.io.drive.frames import IMAGE_SUFFIXES
 from roadsurf.reconstruction.calibration.board import BoardSpec, parse_board
 from roadsurf.reconstruction.calibration.detect import read_gray
 from roadsurf.reconstruction.calibration.errors import CalibrationError
@@ -20,8 +21,6 @@ from roadsurf.reconstruction.calibration.intrinsics import (
     calibrate_images,
 )
 from roadsurf.reconstruction.calibration.mount import Mount, mount_from_ground
-
-IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp"}
 
 
 @dataclass

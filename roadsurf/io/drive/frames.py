@@ -17,6 +17,7 @@ from roadsurf.io.drive.types import FORMAT_HINT, Frame, Skipped
 
 # what OpenCV decodes and survey cameras write (8 or 16 bit, grey or colour; 16 bit scaled)
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
+_SUFFIXES_TEXT = "/".join(IMAGE_SUFFIXES)  # ".jpg/.jpeg/..." for messages
 
 
 def _is_file(p: Path, exists: bool = False) -> bool:
@@ -106,7 +107,7 @@ def load_frames(
                 Skipped(
                     df.FRAMES_CSV,
                     lines[k],
-                    f"frames/{name} is not a .jpg/.jpeg/.png/.tif/.tiff/.bmp image; row skipped",
+                    f"frames/{name} is not a {_SUFFIXES_TEXT} image; row skipped",
                 )
             )
         else:
@@ -166,6 +167,6 @@ def load_frames(
         raise DriveFormatError(
             f"{root}: empty drive: none of the {len(names)} rows of frames.csv has a readable "
             f"image in frames/.{why} Check the folder and the filenames in frames.csv (names "
-            "relative to frames/, .jpg/.jpeg/.png/.tif/.tiff/.bmp)."
+            f"relative to frames/, {_SUFFIXES_TEXT})."
         )
     return frames

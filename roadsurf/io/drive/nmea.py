@@ -163,9 +163,10 @@ def load_gps_nmea(path: Path, skipped: list[Skipped], warnings: list[str]) -> Gp
         try:
             msg = pynmea2.parse(s, check=True)
         except pynmea2.ChecksumError as e:
-            if "missing" not in str(e) or not whole:
+            missing = "missing" in str(e)
+            if not missing or not whole:
                 n_bad += 1
-                why = "NMEA checksum mismatch" if whole else "malformed NMEA sentence"
+                why = "malformed NMEA sentence" if missing else "NMEA checksum mismatch"
                 skipped.append(Skipped(path.name, line_no, why))
                 continue
             # no checksum at all (a logger that strips it): read, but say it was unchecked
