@@ -18,6 +18,7 @@ from roadsurf.io.drive.types import (
     Frame,
     GpsTrack,
     Skipped,
+    disjoint_text,
     log_overlap,
 )
 
@@ -131,14 +132,11 @@ def load_gps_csv(path: Path, skipped: list[Skipped], warnings: list[str]) -> Gps
 
 
 def check_overlap(gps: GpsTrack, frames: list[Frame], warnings: list[str]) -> GpsTrack | None:
-    t0, t1 = frames[0].timestamp_s, frames[-1].timestamp_s
-    g0, g1 = float(gps.timestamp_s[0]), float(gps.timestamp_s[-1])
     # A fix slightly outside the frame span still helps: one GPS interval of slack.
     slack, covered = log_overlap(gps.timestamp_s, frames)
     if covered is None:
         warnings.append(
-            f"{gps.source}: GPS times [{g0:.3f}, {g1:.3f}] s do not overlap the frame times "
-            f"[{t0:.3f}, {t1:.3f}] s (offset about {g0 - t0:+.1f} s), so the GPS is ignored: "
+            f"{gps.source}: GPS {disjoint_text(gps.timestamp_s, frames)}, so the GPS is ignored: "
             f"{NO_GEOREF}. Write frames.csv times in the same clock as the GPS (UNIX seconds, "
             f"UTC, for GPX/NMEA logs)."
         )

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from roadsurf.io.drive.csvrows import check_increasing, csv_float, csv_rows
-from roadsurf.io.drive.types import Frame, ObdLog, Skipped, log_overlap
+from roadsurf.io.drive.types import Frame, ObdLog, Skipped, disjoint_text, log_overlap
 
 
 def load_obd(path: Path, skipped: list[Skipped], warnings: list[str]) -> ObdLog | None:
@@ -44,13 +44,10 @@ def check_obd_overlap(
 ) -> ObdLog | None:
     """The OBD log when its times overlap the frames' (None, with a warning, when they do not:
     a logger on another clock; a warning when it covers under 90 % of the frames' span)."""
-    t0, t1 = frames[0].timestamp_s, frames[-1].timestamp_s
-    o0, o1 = float(obd.timestamp_s[0]), float(obd.timestamp_s[-1])
     _, covered = log_overlap(obd.timestamp_s, frames)
     if covered is None:
         warnings.append(
-            f"{path}: OBD times [{o0:.3f}, {o1:.3f}] s do not overlap the frame times "
-            f"[{t0:.3f}, {t1:.3f}] s (offset about {o0 - t0:+.1f} s), so OBD speed is not used. "
+            f"{path}: OBD {disjoint_text(obd.timestamp_s, frames)}, so OBD speed is not used. "
             "Write obd.csv times in the frames' clock."
         )
         return None

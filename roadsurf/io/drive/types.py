@@ -128,3 +128,14 @@ def log_overlap(t_log: np.ndarray, frames: list[Frame]) -> tuple[float, float | 
     if t[-1] < t0 - slack or t[0] > t1 + slack:
         return slack, None
     return slack, (min(t1, t[-1]) - max(t0, t[0])) / (t1 - t0) if t1 > t0 else 1.0
+
+
+def disjoint_text(t_log: np.ndarray, frames: list[Frame]) -> str:
+    """'times [a, b] s do not overlap the frame times [c, d] s (offset about x s)' for a log
+    ``log_overlap`` found on another clock (the warnings name the log and what follows)."""
+    t0, t1 = frames[0].timestamp_s, frames[-1].timestamp_s
+    a, b = float(t_log[0]), float(t_log[-1])
+    return (
+        f"times [{a:.3f}, {b:.3f}] s do not overlap the frame times [{t0:.3f}, {t1:.3f}] s "
+        f"(offset about {a - t0:+.1f} s)"
+    )
