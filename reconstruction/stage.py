@@ -51,6 +51,9 @@ log = logging.getLogger(__name__)
 
 # ReconstructionConfig fields that never change a pair's result
 NOT_IN_PAIR_FINGERPRINT = ("probe", "workers", "overwrite", "save_features")
+# in every pair's fingerprint: bump when the code changes what a pair's result is, so a run
+# resumed by a newer roadsurf re-solves its pairs instead of reusing the old code's results
+PAIR_VERSION = 1
 
 
 def _feature_path(
@@ -76,12 +79,13 @@ def _feature_path(
 
 
 def pair_fingerprint(cfg: ReconstructionConfig, camera: Camera, a: Frame, b: Frame) -> str:
-    """16 hex digits (sha256) over what decides the pair (a, b): the reconstruction settings
-    (all but ``NOT_IN_PAIR_FINGERPRINT``), the camera (intrinsics, distortion, height, mount,
+    """16 hex digits (sha256) over what decides the pair (a, b): ``PAIR_VERSION``, the
+    reconstruction settings (all but ``NOT_IN_PAIR_FINGERPRINT``), the camera (intrinsics, distortion, height, mount,
     readout) and both frames' index, name, file size and mtime; with a rolling shutter also
     their timestamps (the frame interval enters the geometry)."""
     settings = {k: v for k, v in asdict(cfg).items() if k not in NOT_IN_PAIR_FINGERPRINT}
-    fp = Fingerprint().add_json(settings).add_json(camera.fingerprint_fields())
+    fp = Fingerprint().add_text(f"pair v{PAIR_VERSION}|").add_json(settings)
+    fp.add_json(camera.fingerprint_fields())
     for f in (a, b):
         fp.add_text(f"|{f.index}|{f.filename}|").add_file_stat(f.path, "file")
         if camera.readout_s > 0:

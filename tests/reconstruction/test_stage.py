@@ -125,6 +125,12 @@ def test_pairs_are_reused_only_when_their_fingerprint_matches(tmp_path, cam, mon
     res = stage.run(cfg2, drive2, run_dir)
     assert pairs == [(0, 1), (1, 2), (2, 3)]
     assert res[0].ok and abs(res[0].scale_alpha / first[0].scale_alpha - 1.2 / 1.1) < 0.05
+    pairs.clear()
+
+    # newer code (PAIR_VERSION bumped): every pair again, the features from their cache
+    monkeypatch.setattr(stage, "PAIR_VERSION", stage.PAIR_VERSION + 1)
+    stage.run(cfg2, drive2, run_dir)
+    assert pairs == [(0, 1), (1, 2), (2, 3)] and len(detected) == 1
 
 
 def test_feature_cache_name_follows_settings_and_image_file(tmp_path, cam) -> None:
