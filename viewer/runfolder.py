@@ -204,6 +204,18 @@ def _ring_enu(coords: np.ndarray, georef: bool, reference: EnuReference | None) 
     return enu_from_lla(c[:, 1], c[:, 0], reference.alt_m, reference)[:, :2]
 
 
+def _joined_enu(rings: list, georef: bool, reference: EnuReference | None) -> np.ndarray:
+    """(N, 2) ENU exterior of the union of polygon parts (a defect RFC 7946 cut at ±180°: the
+    parts meet again in ENU metres)."""
+    import shapely
+
+    polys = [shapely.Polygon(_ring_enu(np.asarray(r, float), georef, reference)) for r in rings]
+    joined = shapely.union_all([p.buffer(1e-6) for p in polys])
+    if joined.geom_type != "Polygon":
+        joined = max(getattr(joined, "geoms", [joined]), key=lambda p: p.area)
+    return np.asarray(joined.exterior.coords, float)
+
+
 def _load_defects(
     run: RunFolder, reference: EnuReference | None, missing: list[str]
 ) -> list[DefectView]:
@@ -221,14 +233,16 @@ def _load_defects(
         p = f.get("properties") or {}
         if g.get("type") == "Polygon":
             ring = np.asarray(g["coordinates"][0], float)
-        elif g.get("type") == "MultiPolygon":
-            ring = np.asarray(g["coordinates"][0][0], float)
+        elif g.get("type") == "MultiPolygon":  # one defect cut at the antimeridian
+            ring = max((np.asarray(p[0], float) for p in g["coordinates"]), key=len)
         elif g.get("type") == "Point":
             ring = np.asarray([g["coordinates"]], float)
         else:
             log.warning("%s: feature %d has geometry %s; skipped", path, i, g.get("type"))
             continue
         enu = _ring_enu(ring, georef, reference)
+        if g.get("type") == "MultiPolygon" and len(g["coordinates"]) > 1:
+            enu = _joined_enu([p[0] for p in g["coordinates"]], georef, reference)
         out.append(
             DefectView(
                 **Defect.fields_from_properties(p, default_id=i + 1),

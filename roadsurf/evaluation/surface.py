@@ -41,7 +41,6 @@ def surface_metrics(
     seen: set[str],
 ) -> dict[str, Any]:
     import rasterio
-    import shapely
     from rasterio.features import rasterize
     from rasterio.windows import Window
 
@@ -64,11 +63,13 @@ def surface_metrics(
         from pyproj import Transformer
 
         trf = Transformer.from_crs("EPSG:4326", crs, always_xy=True)
-        shapes = []
-        for f in read_geojson(defects_path)["features"]:
-            ring = np.array(f["geometry"]["coordinates"][0], float)
-            x, y = trf.transform(ring[:, 0], ring[:, 1])
-            shapes.append(shapely.Polygon(np.column_stack([x, y])))
+        from shapely.geometry import shape
+        from shapely.ops import transform
+
+        shapes = [
+            transform(lambda x, y, z=None: trf.transform(x, y), shape(f["geometry"]))
+            for f in read_geojson(defects_path)["features"]
+        ]
         if shapes:
             dmask = rasterize(
                 shapes, out_shape=tshape, transform=tT, fill=0, default_value=1

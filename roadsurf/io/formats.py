@@ -307,14 +307,51 @@ def validate_geojson(fc: dict[str, Any]) -> None:
         raise ValueError("GeoJSON: expected a FeatureCollection with a 'features' list")
     for i, f in enumerate(fc["features"]):
         g = f.get("geometry") or {}
-        where = f"feature {i} ({g.get('type')})"
-        if g.get("type") != "Polygon":
-            _check_lonlat(g.get("coordinates", []), where)
+        kind = g.get("type")
+        where = f"feature {i} ({kind})"
+        coords = g.get("coordinates", [])
+        if kind in ("Polygon", "MultiPolygon"):
+            for poly in coords if kind == "MultiPolygon" else [coords]:
+                for ring in poly:
+                    if len(ring) < 4 or list(ring[0]) != list(ring[-1]):
+                        raise ValueError(
+                            f"{where}: polygon rings must be closed with >= 4 positions"
+                        )
+                    _check_lonlat(ring, where)
+        elif kind == "MultiLineString":
+            for line in coords:
+                _check_lonlat(line, where)
         else:
-            for ring in g["coordinates"]:
-                if len(ring) < 4 or ring[0] != ring[-1]:
-                    raise ValueError(f"{where}: polygon rings must be closed with >= 4 positions")
-                _check_lonlat(ring, where)
+            _check_lonlat(coords, where)
+
+
+def _crosses_antimeridian(geom: dict[str, Any]) -> bool:
+    """True when a (Multi)LineString or (Multi)Polygon has a longitude step over 180°."""
+    kind = geom.get("type")
+    depth = {"LineString": 0, "MultiLineString": 1, "Polygon": 1, "MultiPolygon": 2}.get(str(kind))
+    if depth is None:
+        return False
+    lines = [geom["coordinates"]]
+    for _ in range(depth):
+        lines = [part for line in lines for part in line]
+    return any(
+        len(line) > 1 and np.any(np.abs(np.diff(np.asarray(line, float)[:, 0])) > 180)
+        for line in lines
+    )
+
+
+def split_at_antimeridian(geom: dict[str, Any]) -> dict[str, Any]:
+    """A geometry crossing the antimeridian (a road on Taveuni, Fiji) cut at ±180° as RFC 7946
+    §3.1.9 asks (``antimeridian``: LineString -> MultiLineString, Polygon -> MultiPolygon,
+    parts counter-clockwise); one that does not cross is returned as it is."""
+    if not _crosses_antimeridian(geom):
+        return geom
+    import copy
+
+    import antimeridian
+
+    fixed = antimeridian.fix_geojson(copy.deepcopy(geom), fix_winding=True)
+    return json.loads(json.dumps(fixed))  # tuples -> lists, as the rest of the file
 
 
 def write_geojson(
@@ -323,12 +360,17 @@ def write_geojson(
     properties: dict[str, Any] | None = None,
     vertical_datum: str | None = None,
 ) -> Path:
-    """Write an RFC 7946 FeatureCollection (validated) atomically. Extra top-level members
+    """Write an RFC 7946 FeatureCollection (validated) atomically, geometries that cross the
+    antimeridian cut there (``split_at_antimeridian``). Extra top-level members
     (``properties``) are allowed by RFC 7946 §6.1 and used for provenance; ``vertical_datum``
     (of any heights in it) joins them."""
     if vertical_datum:
         properties = {**(properties or {}), "vertical_datum": vertical_datum}
-    fc: dict[str, Any] = {"type": "FeatureCollection", "features": list(features)}
+    feats = [
+        {**f, "geometry": split_at_antimeridian(f["geometry"])} if f.get("geometry") else f
+        for f in features
+    ]
+    fc: dict[str, Any] = {"type": "FeatureCollection", "features": feats}
     if properties:
         fc["properties"] = json_safe(properties)
     validate_geojson(fc)

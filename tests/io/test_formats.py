@@ -149,3 +149,40 @@ def test_geotiff_local_frame_round_trip(tmp_path):
         assert src.crs is None
     _, g2, _ = read_geotiff(tmp_path / "s.tif")
     assert g2 == grid
+
+
+def test_geojson_cut_at_the_antimeridian(tmp_path):
+    """RFC 7946 §3.1.9: a defect and a trajectory on a road across ±180° (Taveuni, Fiji) are
+    written as parts that do not cross; their area and path are kept, the rest is untouched."""
+    from pyproj import Geod
+    from shapely.geometry import shape
+
+    d = 1e-5  # about 1.1 m
+    ring = np.array(
+        [[180 - d, -16.8], [-180 + d, -16.8], [-180 + d, -16.8 + d], [180 - d, -16.8 + d]]
+    )
+    line = [[180 - 2 * d, -16.8], [180 - d / 2, -16.8 + d], [-180 + d, -16.8 + 3 * d]]
+    home = polygon_geometry(np.array([[-79.38, 43.65], [-79.3799, 43.65], [-79.3799, 43.6501]]))
+    feats = [
+        feature(polygon_geometry(ring), {"id": 1}),
+        feature({"type": "LineString", "coordinates": line}, {"kind": "trajectory"}),
+        feature(home, {"id": 2}),
+    ]
+    write_geojson(tmp_path / "fiji.geojson", feats)
+    fc = read_geojson(tmp_path / "fiji.geojson")
+    poly, path, kept = (f["geometry"] for f in fc["features"])
+    assert poly["type"] == "MultiPolygon" and len(poly["coordinates"]) == 2
+    geod = Geod(ellps="WGS84")
+    parts = [shape({"type": "Polygon", "coordinates": p}) for p in poly["coordinates"]]
+    areas = [geod.geometry_area_perimeter(p)[0] for p in parts]
+    assert all(a > 0 for a in areas)  # counter-clockwise, as RFC 7946 asks
+    whole = 2 * d * 111_320 * np.cos(np.radians(16.8)) * d * 110_600  # about 1.2 m²
+    assert abs(sum(areas) / whole - 1) < 0.02, (areas, whole)
+    for p in parts:
+        lon = np.asarray(p.exterior.coords)[:, 0]
+        assert p.is_valid and np.ptp(lon) < 1e-3  # each part stays on its side
+    assert path["type"] == "MultiLineString" and len(path["coordinates"]) == 2
+    a_end, b_start = path["coordinates"][0][-1], path["coordinates"][1][0]
+    assert abs(a_end[0]) == 180 and a_end[0] == -b_start[0] and a_end[1] == b_start[1]
+    assert -16.8 + d < a_end[1] < -16.8 + 3 * d
+    assert kept == home  # a geometry that does not cross is written as it is
