@@ -56,6 +56,15 @@ EVALUATION_JSON = "evaluation.json"
 EVALUATION_MD = "evaluation.md"
 
 
+def artifact_names() -> frozenset[str]:
+    """Every file or folder name a run writes directly below its folder (``--out`` checks
+    them before writing into a folder that is not yet a run)."""
+    names = {v for k, v in globals().items() if k.isupper() and isinstance(v, str)}
+    stems = (SURFACE, MOSAIC, SURFACE_NOBS, SURFACE_SIGMA)
+    names |= {f"{s}{ext}" for s in stems for ext in (".tif", ".vrt")}
+    return frozenset(names - set(stems))
+
+
 def pair_filename(index_a: int, index_b: int) -> str:
     """``000012_000013.npz``: the pair of frames ``index_a``, ``index_b`` (capture order)."""
     return f"{index_a:06d}_{index_b:06d}.npz"

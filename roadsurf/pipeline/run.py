@@ -35,6 +35,7 @@ from roadsurf.core.errors import ConfigError
 from roadsurf.core.memory import fix_mmap_threshold, limit_malloc_arenas, release_free_memory
 from roadsurf.detection.classifier.config import ClassifierConfig
 from roadsurf.detection.config import DetectionConfig
+from roadsurf.io import drivefolder as df
 from roadsurf.io import runfolder as rf
 from roadsurf.mapping.bundle_camera import later_stage_inputs
 from roadsurf.mapping.config import MappingConfig
@@ -328,6 +329,23 @@ def _check_out_folder(drive_dir: Path, out: Path) -> None:
         )
     if o.exists() and not o.is_dir():
         raise ConfigError(f"--out {out} is an existing file, not a folder. Choose another --out.")
+    if not o.is_dir() or (o / rf.RUN_JSON).is_file() or (o / rf.REPORT_JSON).is_file():
+        return  # new, or a run folder (claim_run_folder checks whose)
+    held = {p.name for p in o.iterdir()}
+    drive_files = sorted(held & {df.CAMERA_YAML, df.FRAMES_DIR, *df.GPS_FILES})
+    if drive_files:
+        raise ConfigError(
+            f"--out {out} holds a drive ({', '.join(drive_files)}), not a roadsurf run: the run "
+            "would overwrite its frames.csv with the run's frame labels. Choose an empty or "
+            f"new folder, e.g. --out {o.parent / (o.name + '_run')}"
+        )
+    clash = sorted(held & rf.artifact_names())
+    if clash:
+        raise ConfigError(
+            f"--out {out} is not a roadsurf run folder (no {rf.RUN_JSON}) but holds "
+            f"{', '.join(clash[:6])}{' ...' if len(clash) > 6 else ''}, which the run would "
+            "overwrite. Move them, or choose an empty or new folder for --out."
+        )
 
 
 # artifacts whose modification time tells whether a stage computed or resumed (run-folder paths)

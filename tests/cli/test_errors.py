@@ -32,6 +32,24 @@ def test_out_inside_the_drive_is_refused_and_the_drive_is_untouched(tmp_path: Pa
     assert not (drive / "run").exists()
 
 
+def test_out_that_is_another_drive_or_holds_our_names_is_refused(tmp_path: Path) -> None:
+    """--out pointing at another drive's folder (or a folder of the user's that holds a file
+    the run writes) is refused before anything is written; other folders are fine."""
+    victim = tmp_path / "victim"
+    shutil.copytree(SAMPLE, victim, ignore=shutil.ignore_patterns("truth", "frames"))
+    (victim / "frames").mkdir()
+    before = (victim / "frames.csv").read_bytes()
+    r = _cli("run", str(SAMPLE), "--out", str(victim))
+    assert r.returncode == 2 and "holds a drive" in r.stderr and "camera.yaml" in r.stderr
+    assert (victim / "frames.csv").read_bytes() == before and not (victim / "run.json").exists()
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "report.html").write_text("my notes")
+    r = _cli("run", str(SAMPLE), "--out", str(mine))
+    assert r.returncode == 2 and "report.html" in r.stderr and "not a roadsurf run" in r.stderr
+    assert (mine / "report.html").read_text() == "my notes"
+
+
 def test_debug_shows_the_traceback(tmp_path: Path) -> None:
     r = _cli("--debug", "run", str(SAMPLE), "--out", str(SAMPLE))
     assert r.returncode != 0 and "Traceback" in r.stderr
