@@ -74,10 +74,13 @@ def write_trajectory_geojson(
     """trajectory.geojson (RFC 7946, WGS84 lon/lat): one LineString of the fused path plus one
     Point per frame with filename, timestamp_s, heading_deg, source (and frame_index, segment,
     easting_m, northing_m, height_m in ``vertical_datum``, named in the collection's
-    properties). Returns None (and writes nothing) without a reference (no GPS)."""
+    properties). Returns None (and writes nothing, removing an earlier run's file) without a
+    reference (no GPS)."""
     ef = traj.export_frame
     if ef is None:
         log.warning("trajectory.geojson not written: no GPS reference (local frame only)")
+        # an earlier run of the folder with GPS left one: its lon/lat would contradict this run
+        Path(path).unlink(missing_ok=True)
         return None
     pos = traj.positions_enu_m
     lonlat = ef.lonlat_from_enu(pos)

@@ -192,6 +192,12 @@ def test_heights_name_their_vertical_datum(tmp_path: Path) -> None:
         tmp_path / "t.geojson", traj, syn.drive, vertical_datum=rep.vertical_datum
     )
     assert read_geojson(gj)["properties"]["vertical_datum"] == GPS_DATUM_DEFAULT
+    # the same folder run again without GPS: no lon/lat of the earlier run is left behind
+    local = make_synthetic(n=5, with_gps=False)
+    traj_local, _ = poses.estimate_trajectory(cfg, local.drive, local.pairs)
+    assert traj_local.export_frame is None
+    assert write_trajectory_geojson(tmp_path / "t.geojson", traj_local, local.drive) is None
+    assert not (tmp_path / "t.geojson").exists()
 
 
 # 0.75 s of frames, fixes 1.5 s either side (like the fault battery's 12-frame drive); RTK fixes
