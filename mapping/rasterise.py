@@ -403,6 +403,7 @@ def rasterise(
             msg = f"dense surface: {st['pairs_failed']} of {st['pairs']} pairs not matched"
             log.warning("globalmap: %s", msg)
             prod.warnings.append(msg)
+    _remove_stale_rasters(prod, {rel for w in writers for _, _, rel in w.tile_files})
     if prod.surface_model_px:
         log.info(
             "globalmap: %d of %d surface cells (%.0f %%) seen by one frame only: the road model "
@@ -415,3 +416,19 @@ def rasterise(
     prev.write(prod.run_dir)
     prod.files["mosaic_preview"] = rf.MOSAIC_PREVIEW
     prod.files["surface_preview"] = rf.SURFACE_PREVIEW
+
+
+def _remove_stale_rasters(prod: MapProducts, tiles_written: set[str]) -> None:
+    """Remove the rasters an earlier run of this folder left that this one did not write (a
+    dense run's surface_nobs / surface_sigma after a switch to the sparse surface, tiles of an
+    older grid): beside this run's files they would be read as its own."""
+    wrote = set(prod.files.values())
+    for stem in (rf.SURFACE, rf.MOSAIC, NOBS, SIGMA):
+        for ext in (".tif", ".vrt"):
+            if f"{stem}{ext}" not in wrote:
+                (prod.run_dir / f"{stem}{ext}").unlink(missing_ok=True)
+    tiles = prod.run_dir / rf.TILES_DIR
+    if tiles.is_dir():
+        for p in tiles.glob("*.tif"):
+            if f"{rf.TILES_DIR}/{p.name}" not in tiles_written:
+                p.unlink(missing_ok=True)

@@ -393,3 +393,22 @@ def test_the_relief_block_is_not_padded_at_a_tile_corner() -> None:
     cells = ~np.isfinite(v)
     got = single_view_heights(v, cells, near_px=8.0, road_m=0.002)
     assert (got == 0).all()
+
+
+def test_switch_to_sparse_removes_the_dense_rasters(
+    drive_maps: dict[str, object], tmp_path: Path
+) -> None:
+    """A run folder mapped densely, then again with the sparse surface: the dense-only rasters
+    (count, σ) and the older grid's tiles are gone, so no reader takes them for this run's."""
+    import shutil
+
+    run = tmp_path / "run"
+    shutil.copytree(drive_maps["root"] / "dense", run)  # type: ignore[operator]
+    assert (run / "surface_nobs.tif").exists() or (run / "surface_nobs.vrt").exists()
+    cfg = MappingConfig(surface_source="sparse")
+    prod = globalmap.run(cfg, drive_maps["drive"], drive_maps["pairs"], drive_maps["traj"], run)  # type: ignore[arg-type]
+    for stem in ("surface_nobs", "surface_sigma"):
+        assert not (run / f"{stem}.tif").exists() and not (run / f"{stem}.vrt").exists()
+    listed = {f for t in prod.tiles for k, f in t.items() if k in ("surface", "mosaic")}
+    on_disk = {f"tiles/{p.name}" for p in (run / "tiles").glob("*.tif")}
+    assert on_disk == listed, on_disk ^ listed
