@@ -15,7 +15,7 @@ from roadsurf.io.formats import read_csv, read_geojson
 
 def frame_labels(path: Path) -> dict[str, int]:
     """frames.csv (a run's or the truth's) -> {filename: 0/1}."""
-    return {r["filename"]: int(float(r["defect"])) for r in read_csv(path)}
+    return {r["filename"]: int(float(r["defect"] or 0)) for r in read_csv(path)}
 
 
 def frame_sources(path: Path) -> dict[str, str]:

@@ -18,7 +18,7 @@ from roadsurf.detection.config import DetectionConfig
 from roadsurf.detection.framemasks import FrameView
 from roadsurf.detection.gsd import NadirView
 from roadsurf.detection.pairs import PairDefects
-from roadsurf.detection.types import FrameLabel
+from roadsurf.detection.types import NOT_ANALYSED, FrameLabel
 from roadsurf.io.drive import Drive
 from roadsurf.reconstruction.types import PairResult
 
@@ -30,7 +30,8 @@ def frame_labels(
     pair_score: dict[str, float],
 ) -> list[FrameLabel]:
     """Deep defect area the frame's image sees of the map's defects (``views``, see
-    ``framemasks``), or the pairs' estimate for a frame without a view."""
+    ``framemasks``), or the pairs' estimate for a frame without a view; a frame with neither
+    (no ok pair, no place on the map) is not analysed (``NOT_ANALYSED``, defect None)."""
     a_min = cfg.map.frame_min_area_m2
     out: list[FrameLabel] = []
     for f in drive.frames:
@@ -38,8 +39,11 @@ def frame_labels(
         if view is not None:
             area = view.deep_area_m2
             p = area / (area + a_min) if area > 0 else 0.0
+        elif f.filename in pair_score:
+            p = pair_score[f.filename]
         else:
-            p = pair_score.get(f.filename, 0.0)
+            out.append(FrameLabel(f.filename, None, None, NOT_ANALYSED))
+            continue
         out.append(FrameLabel(f.filename, int(p >= 0.5), float(p), "3d"))
     return out
 
@@ -109,8 +113,11 @@ def fuse_labels(
     out = []
     for f in frames:
         d = fused[f.filename]
+        if f.defect is None and d.source != "cnn":  # neither 3D nor a confident CNN
+            out.append(f)
+            continue
         p = d.p_defect if d.source == "cnn" else f.p_defect if d.source == "3d" else d.p_defect
-        if not math.isfinite(p):
-            p = f.p_defect
+        if p is None or not math.isfinite(p):
+            p = f.p_defect if f.p_defect is not None else d.p_defect
         out.append(FrameLabel(f.filename, int(d.defect), float(p), d.source))
     return out

@@ -83,7 +83,10 @@ def write_outputs(
     write_csv(
         run.frame_labels,
         FRAME_COLUMNS,
-        [(f.filename, f.defect, round(f.p_defect, 4), f.source) for f in result.frames],
+        [
+            (f.filename, "" if f.defect is None else f.defect, _round(f.p_defect), f.source)
+            for f in result.frames
+        ],
     )
     write_json_atomic(
         run.path(DETECTION_JSON),
@@ -128,7 +131,10 @@ def load_result(run_dir: Path, signature: str) -> DetectionResult | None:
         )
         for d in meta.get("defects", [])
     ]
-    frames = [FrameLabel(str(a), int(b), float(c), str(s)) for a, b, c, s in meta["frames"]]
+    frames = [
+        FrameLabel(str(a), None if b is None else int(b), None if c is None else float(c), str(s))
+        for a, b, c, s in meta["frames"]
+    ]
     res = DetectionResult(
         defects=defects,
         frames=frames,
@@ -148,8 +154,13 @@ def load_result(run_dir: Path, signature: str) -> DetectionResult | None:
 # bump when detection changes its outputs for the same inputs and settings: a resumed run then
 # re-detects instead of keeping the earlier outputs. 2: one pair's dense cells deeper than 2 T_d
 # support a region (windows.segment_windows); 3: the parts of a defect cut by an unknown strip
-# are one (mapbridge.bridged_components); 4: a seed deeper than noise_k x its own cell's σ too
-DETECTION_VERSION = 4
+# are one (mapbridge.bridged_components); 4: a seed deeper than noise_k x its own cell's σ too;
+# 5: frames nothing measured are not analysed (empty defect), not "no defect"
+DETECTION_VERSION = 5
+
+
+def _round(p: float | None) -> float | str:
+    return "" if p is None else round(p, 4)
 
 
 def signature(

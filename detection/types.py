@@ -125,9 +125,14 @@ class FrameLabel:
     """Decision for one frame (a row of frames.csv)."""
 
     filename: str
-    defect: int  # 1 defect, 0 not
-    p_defect: float  # score in [0, 1]
-    source: str  # "3d" | "cnn" | "fused"
+    # 1 defect, 0 not; None: not analysed (no ok pair saw the frame, it has no place on the map
+    # and no CNN screened it), an empty cell in frames.csv, never "no defect"
+    defect: int | None
+    p_defect: float | None  # score in [0, 1]; None when not analysed
+    source: str  # "3d" | "cnn" | "fused" | "none" (NOT_ANALYSED)
+
+
+NOT_ANALYSED = "none"  # FrameLabel.source of a frame nothing measured
 
 
 @dataclass
@@ -152,7 +157,8 @@ class DetectionResult:
         return {
             "defects": len(self.defects),
             "by_type": by_type,
-            "defect_frames": int(sum(f.defect for f in self.frames)),
+            "defect_frames": int(sum(1 for f in self.frames if f.defect)),
+            "frames_not_analysed": int(sum(1 for f in self.frames if f.defect is None)),
             "frames": len(self.frames),
             "noise_m": self.noise_m,
             "seed_threshold_m": self.seed_threshold_m,
@@ -172,7 +178,7 @@ class DetectionResult:
                 f"{d.id:>3} {d.type:8} {d.severity:6} {_mm(d.max_depth_m):>9} "
                 f"{d.area_m2:8.3f} {1000 * d.length_m:5.0f}x{1000 * d.width_m:<5.0f} {d.confidence:5.2f}"
             )
-        n_def = sum(f.defect for f in self.frames)
+        n_def = sum(1 for f in self.frames if f.defect)
         lines.append(
             f"{len(self.defects)} defect(s); {n_def}/{len(self.frames)} defect frame(s); "
             f"noise σ {1000 * self.noise_m:.2f} mm, T_d {1000 * self.seed_threshold_m:.1f} mm"

@@ -159,6 +159,8 @@ def read_physics_labels(run_dir: Path) -> dict[str, tuple[bool, str]] | None:
     out: dict[str, tuple[bool, str]] = {}
     with open(path, newline="", encoding="utf-8") as f:
         for line, row in enumerate(csv.DictReader(f), start=2):
+            if not str(row.get("defect", "x")).strip():
+                continue  # not analysed: no physics label (detection.types.NOT_ANALYSED)
             try:
                 out[row["filename"]] = (
                     str(row["defect"]).strip().lower() in ("1", "true", "yes"),

@@ -313,11 +313,14 @@ def evaluate_detection(run_dir: str | Path, truth_dir: str | Path) -> dict[str, 
     ):
         if not p.exists():
             raise RoadsurfError(f"{p}: missing; run `roadsurf run` / `roadsurf simulate` first")
-    pred = {r["filename"]: int(r["defect"]) for r in read_csv(run_dir / rf.FRAME_LABELS_CSV)}
+    rows = read_csv(run_dir / rf.FRAME_LABELS_CSV)
+    # a frame the run did not analyse (empty defect) is scored as not flagged
+    pred = {r["filename"]: int(r["defect"] or 0) for r in rows}
     truth = {
         r["filename"]: int(r["defect"]) for r in read_csv(truth_dir / df.TRUTH_FRAME_LABELS_CSV)
     }
     out: dict[str, Any] = {"frames": frame_metrics(pred, truth)}
+    out["frames"]["not_analysed"] = sum(1 for r in rows if not str(r["defect"]).strip())
 
     crs = _truth_crs(truth_dir)
     preds, georef = _run_geometries(run_dir, crs)
