@@ -94,6 +94,20 @@ def test_camera_height_in_cm_is_refused_with_the_metre_value(tmp_path: Path) -> 
         load_drive(root)
 
 
+def test_focal_length_in_mm_is_refused_with_the_field_of_view(tmp_path: Path) -> None:
+    """fx typed in mm (6 for a 640 px image's 600 px) gives a 158° view: refused, naming the key,
+    its line and the unit; a wide but real lens (120°) loads."""
+    root = make_drive(tmp_path / "d")
+    (root / "camera.yaml").write_text(camera_yaml(fx=6.0, fy=60.0))
+    with pytest.raises(DriveFormatError, match=r"camera.yaml:\d+.*'fx' = 6 px.*field of view.*px"):
+        load_drive(root)
+    (root / "camera.yaml").write_text(camera_yaml(fx=60.0, fy=2000.0))
+    with pytest.raises(DriveFormatError, match=r"'fy' = 2000 px gives a 1.4° field"):
+        load_drive(root)
+    (root / "camera.yaml").write_text(camera_yaml(fx=0.5 * W / 1.73, fy=60.0))  # 120°
+    assert load_drive(root).camera.fx == pytest.approx(0.5 * W / 1.73)
+
+
 def test_readout_time_loads(tmp_path: Path) -> None:
     """Optional readout_s: the rolling shutter's readout time (s); absent = global shutter."""
     root = make_drive(tmp_path / "d")

@@ -40,6 +40,12 @@ _MOUNT_LIMIT_DEG = {"mount_pitch_deg": 90.0, "mount_roll_deg": 45.0, "mount_yaw_
 MAX_READOUT_S = 0.2  # readout_s is in [0, this): rolling shutters read a frame in 5-50 ms
 
 
+# field of view (deg) a camera.yaml focal length may give over its image side: beyond the
+# widest rectilinear lenses (a fisheye needs another model), narrower than any road camera
+MAX_FOV_DEG = 150.0
+MIN_FOV_DEG = 2.0
+
+
 def _yaml_key_lines(text: str) -> dict[str, int]:
     """1-based line number of each top-level key of a YAML mapping (for error messages)."""
     try:
@@ -200,4 +206,13 @@ def load_camera(path: Path) -> Camera:
             f"{path}: principal point (cx, cy) = ({cam.cx}, {cam.cy}) lies outside the "
             f"{cam.width}x{cam.height} image. Check camera.yaml (pixels, origin top-left)."
         )
+    for key, f, size in (("fx", cam.fx, cam.width), ("fy", cam.fy, cam.height)):
+        fov = 2.0 * math.degrees(math.atan(0.5 * size / f))
+        if not MIN_FOV_DEG <= fov <= MAX_FOV_DEG:
+            raise DriveFormatError(
+                f"{where(key)}: camera.yaml '{key}' = {f:g} px gives a {fov:.1f}° field of view "
+                f"over the image's {size} px; a pinhole camera with OpenCV distortion spans "
+                f"{MIN_FOV_DEG:g}-{MAX_FOV_DEG:g}°. Focal lengths are in pixels (mm typed for "
+                "px? f_px = f_mm / pixel pitch in mm); `roadsurf calibrate` measures them."
+            )
     return cam
