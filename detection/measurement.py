@@ -136,6 +136,7 @@ def measure_regions(
                 m.centroid_xy_m, 1000 * dm.max_depth_m, 1000 * m.max_depth_m, dm.area_m2, m.area_m2,
             )  # fmt: skip
             m.max_depth_m = dm.max_depth_m
+            tracks_ok = True
             if dense_raster:
                 # The fused dense surface saw the floor from every pair (the nearest, least
                 # oblique views too); one pair's tracks of a tilted camera read it shallower
@@ -152,11 +153,15 @@ def measure_regions(
                         1000 * raster_max,
                     )  # fmt: skip
                     m.max_depth_m = raster_max
+                    tracks_ok = False
                 m.max_depth_m = max(m.max_depth_m, raster_max)
-            m.mean_depth_m = dm.mean_depth_m
-            m.volume_m3 = dm.volume_m3
+            if tracks_ok:  # else the raster's own mean and volume: the tracks read too deep
+                m.mean_depth_m = dm.mean_depth_m
+                m.volume_m3 = dm.volume_m3
             if cfg.dense.area:
-                m.area_m2 = dm.area_m2
+                # within the outline it is reported with: on real photographs the noisier
+                # cells of the 3 cm ring read deeper than the rim and doubled some areas
+                m.area_m2 = min(dm.area_m2, float(poly.area))
             # Frame labels count raster cells this deep: the dense depth where pairs tracked
             # the cell, else the raster's (interpolated, it shaves the bottom).
             xy_reg = seg.grid.xy_from_rowcol(reg.rows, reg.cols)
@@ -233,7 +238,7 @@ def measure_regions(
             outline_xy_m=m.outline_xy_m,
             centroid_xy_m=m.centroid_xy_m,
             max_depth_m=m.max_depth_m,
-            mean_depth_m=m.mean_depth_m,
+            mean_depth_m=min(m.mean_depth_m, m.max_depth_m),
             area_m2=m.area_m2,
             volume_m3=m.volume_m3,
             length_m=m.length_m,

@@ -155,7 +155,8 @@ def load_result(run_dir: Path, signature: str) -> DetectionResult | None:
 # re-detects instead of keeping the earlier outputs. 2: one pair's dense cells deeper than 2 T_d
 # support a region (windows.segment_windows); 3: the parts of a defect cut by an unknown strip
 # are one (mapbridge.bridged_components); 4: a seed deeper than noise_k x its own cell's σ too;
-# 5: frames nothing measured are not analysed (empty defect), not "no defect"
+# 5: frames nothing measured are not analysed (empty defect), not "no defect"; the dense area
+# within the outline, the mean depth within the maximum
 DETECTION_VERSION = 5
 
 

@@ -102,6 +102,17 @@ def test_outputs_are_georeferenced_against_truth(sample_run) -> None:
     assert sb.left < tb.right and sb.right > tb.left and sb.bottom < tb.top and sb.top > tb.bottom
     fin = np.isfinite(res)
     assert fin.sum() > 10000 and np.nanmedian(np.abs(res)) < 0.003
+    # each defect's figures agree with each other and with the outline a GIS shows
+    from shapely.geometry import shape
+    from shapely.ops import transform
+
+    to_utm = Transformer.from_crs("EPSG:4326", "EPSG:32617", always_xy=True)
+    for f in read_geojson(out / "defects.geojson")["features"]:
+        p = f["properties"]
+        poly = transform(lambda x, y, z=None: to_utm.transform(x, y), shape(f["geometry"]))
+        assert 0 < p["area_m2"] <= poly.area * 1.001, (p["id"], p["area_m2"], poly.area)
+        if p["mean_depth_m"] is not None:
+            assert p["mean_depth_m"] <= p["max_depth_m"], p
 
 
 @pytest.mark.slow
