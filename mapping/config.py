@@ -155,7 +155,10 @@ class MappingConfig:
     local_fit_inlier_m: float = 0.008  # points further than this from the fit are not road (m)
     align_patches: bool = True  # remove per-pair height offset/tilt against the fused surface
     # ---------------------------------------------------------------- rasters / exports
-    gsd_m: float = 0.005  # ground sampling distance of surface.tif / mosaic.tif (m)
+    # ground sampling distance of surface.tif / mosaic.tif with the sparse surface (m); the
+    # dense surface (the default) uses dense_gsd_m, and only a finer gsd_m than its own cell
+    # lowers it (a coarser one warns and names dense_gsd_m)
+    gsd_m: float = 0.005
     tile_px: int = 1024  # raster tile side (px); tiles exist only where the corridor passes
     tiled_vrt_min_tiles: int = 2  # write per-tile files + VRT index when the grid has >= this
     mosaic_border_px: int = 0  # image border ignored when projecting frames (px); edge pixels

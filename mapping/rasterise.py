@@ -99,6 +99,14 @@ def rasterise(
     allxy = np.concatenate([*samples, pts_grid]) if samples else pts_grid
     dense = cfg.surface_source == "dense" and pairs is not None
     gsd = dense_gsd_m(cfg, cam, traj, road_z) if dense else cfg.gsd_m
+    if dense and cfg.dense_gsd_m == 0 and cfg.gsd_m > gsd and cfg.gsd_m != MappingConfig.gsd_m:
+        msg = (
+            f"mapping.gsd_m = {cfg.gsd_m:g} m sets the sparse surface's cell; the dense surface "
+            f"(surface_source: dense, the default) is rastered at {gsd:g} m from the images. "
+            f"For {cfg.gsd_m:g} m cells set mapping.dense_gsd_m: {cfg.gsd_m:g}"
+        )
+        log.warning("globalmap: %s", msg)
+        prod.warnings.append(msg)
     tags = {
         "units": "m",
         "description": "height above the local road, negative below",
