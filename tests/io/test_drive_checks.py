@@ -43,6 +43,29 @@ def test_obd_disagreeing_with_gps_is_ignored(tmp_path: Path) -> None:
     assert "+40 %" in w and "OBD log is ignored" in w and "OBD 14.00 m/s vs GPS 9.99 m/s" in w
 
 
+def _turning_gps_rows(speed: float, radius: float) -> list[str]:
+    """gps.csv rows at 2 Hz of a receiver turning on a circle (a U-turn and beyond in 7 s)."""
+    rows = []
+    for k in range(15):
+        t = -0.5 + 0.5 * k
+        a = speed * (t + 0.5) / radius  # angle turned (rad)
+        north, east = radius * np.sin(a), radius * (1 - np.cos(a))
+        lon = LON0 + east / (111_195.0 * np.cos(np.radians(LAT0)))
+        rows.append(f"{t:.3f},{LAT0 + north / 111_195.0:.9f},{lon:.9f},100.0,0.8")
+    return rows
+
+
+@pytest.mark.parametrize("speed", [6.0, 6.0 * 3.6])
+def test_obd_on_a_turn_is_judged_along_the_path(tmp_path: Path, speed: float) -> None:
+    """On a U-turn (radius 8 m, 6 m/s) the chords are far shorter than the road driven: a right
+    m/s log was ignored (ratio 2.3), and beyond a U-turn divided by 3.6. Along the path it is
+    used, and a km/h log is still converted."""
+    d = load_drive(_drive(tmp_path, _turning_gps_rows(6.0, 8.0), obd_speed=speed))
+    assert d.obd is not None
+    np.testing.assert_allclose(d.obd.speed_mps, 6.0)
+    assert [w for w in d.warnings if "OBD" in w] == ([] if speed == 6.0 else d.warnings[:1])
+
+
 def _flip(row: str, lat_sign: float = 1.0, dlon: float = 0.0) -> str:
     t, lat, lon, *rest = row.split(",")
     return ",".join([t, f"{lat_sign * float(lat):.9f}", f"{float(lon) + dlon:.9f}", *rest])

@@ -24,7 +24,11 @@ UERE_M = 3.0  # horizontal σ of a fix ≈ HDOP × UERE (consumer receiver)
 SIGMA_NO_HDOP_M = 5.0  # σ of a fix when the log has no HDOP
 STATIC_MIN_S = 5.0  # frames must span this long before a still GPS means something
 STATIC_K = 3.0  # "within the noise": every fix within STATIC_K σ of the median position
-OBD_WINDOW_S = 10.0  # GPS chord windows for the ground speed (noise shrinks with length)
+OBD_WINDOW_S = 10.0  # GPS windows for the ground speed (noise shrinks with length)
+# ... each measured along the fixes at least this far apart in time (s): on a turn a window's
+# chord is far shorter than the road driven (a U-turn of 40 m: 2.3x), a path through 1 s
+# steps within 3 %, and steps long enough that the fixes' noise adds little to their length
+OBD_STEP_S = 1.0
 OBD_TOL = 0.25  # OBD / GPS speed ratio accepted within ±25 %
 KMH_PER_MPS = 3.6
 KMH_TOL = 0.15  # a ratio within ±15 % of 3.6 is km/h typed for m/s
@@ -146,11 +150,24 @@ def check_static(gps: GpsTrack, frames: list[Frame], warnings: list[str]) -> boo
     return True
 
 
+def _path_m(gps: GpsTrack, tg: np.ndarray, i: int, j: int) -> float:
+    """Length (m) of the GPS path from fix i to fix j through fixes ``OBD_STEP_S`` apart."""
+    keep = [i]
+    for k in range(i + 1, j):
+        if tg[k] - tg[keep[-1]] >= OBD_STEP_S and tg[j] - tg[k] >= 0.5 * OBD_STEP_S:
+            keep.append(k)
+    keep.append(j)
+    ks = np.array(keep)
+    lat, lon = gps.lat_deg, gps.lon_deg
+    return float(np.sum(_dist_m(lat[ks[:-1]], lon[ks[:-1]], lat[ks[1:]], lon[ks[1:]])))
+
+
 def check_obd_vs_gps(path: Path, obd: ObdLog, gps: GpsTrack, warnings: list[str]) -> ObdLog | None:
     """Compare OBD speed with the GPS ground speed over their common time span.
 
-    Ground speed: geodesic chords between fixes ``OBD_WINDOW_S`` apart (the whole overlap when it
-    is shorter), against the OBD distance integrated over the same times; the ratio is the median
+    Ground speed: the path (geodesic steps between fixes ``OBD_STEP_S`` apart) over windows
+    ``OBD_WINDOW_S`` long (the whole overlap when it is shorter), against the OBD distance
+    integrated over the same times; the ratio is the median
     over the windows long enough to beat the GPS noise (5 σ). A ratio of 3.6 (±15 %) means km/h
     typed as m/s: the log is divided by 3.6 (the unit slip is unambiguous and the conversion
     exact, and OBD is smoother than GPS-derived speed). Any other ratio beyond ±25 %: the log is
@@ -171,11 +188,12 @@ def check_obd_vs_gps(path: Path, obd: ObdLog, gps: GpsTrack, warnings: list[str]
         ends = [(int(idx[0]), int(idx[-1]))]
     a = np.array([e[0] for e in ends])
     b = np.array([e[1] for e in ends])
-    d_gps = _dist_m(gps.lat_deg[a], gps.lon_deg[a], gps.lat_deg[b], gps.lon_deg[b])
+    chord = _dist_m(gps.lat_deg[a], gps.lon_deg[a], gps.lat_deg[b], gps.lon_deg[b])
+    d_gps = np.array([_path_m(gps, tg, i, j) for i, j in ends])
     d_obd = np.interp(tg[b], to, s_obd) - np.interp(tg[a], to, s_obd)
     sigma = fix_sigma_m(gps.hdop)
     floor = 5.0 * math.sqrt(2.0) * sigma
-    use = (d_gps >= floor) | (d_obd >= floor)
+    use = (chord >= floor) | (d_obd >= floor)
     if not use.any():
         log.info("%s: too little motion over the GPS overlap to compare OBD with GPS speed", path)
         return obd
