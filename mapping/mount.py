@@ -81,6 +81,19 @@ def _unit_median(v: np.ndarray) -> np.ndarray:
     return m / np.linalg.norm(m)
 
 
+def heading_at_a(R_b_from_a: np.ndarray, c_b: np.ndarray) -> np.ndarray:
+    """(3,) unit direction of travel at camera a, in camera a, from camera b's centre c_b (3,)
+    in camera a (m) and the pair's rotation. On a turn the chord a -> b points along the
+    heading half-way through the turn (a circular arc): it is turned back by half the pair's
+    rotation (R_a_from_b = Rot(θ) -> Rot(θ/2)⁻¹), else a one-way turn biased the mount's yaw by
+    half the turn per pair (a 40 m U-turn: 2.5°, and every exported heading with it)."""
+    from scipy.spatial.transform import Rotation
+
+    half = Rotation.from_matrix(np.asarray(R_b_from_a, float).T).as_rotvec() / 2.0
+    f = Rotation.from_rotvec(half).inv().apply(np.asarray(c_b, float))
+    return f / np.linalg.norm(f)
+
+
 def estimate_from_pairs(
     pairs: list[PairResult],
 ) -> tuple[np.ndarray, float, int] | None:
@@ -101,7 +114,7 @@ def estimate_from_pairs(
             continue
         up = np.array([pl[0], pl[1], -1.0])  # plane z = a x + b y + c: normal towards camera
         ups.append(up / np.linalg.norm(up))
-        fwds.append(c_b / np.linalg.norm(c_b))
+        fwds.append(heading_at_a(T[:3, :3], c_b))
     if not ups:
         return None
     U, F = np.array(ups), np.array(fwds)

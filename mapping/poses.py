@@ -61,8 +61,9 @@ log = logging.getLogger(__name__)
 
 # the trajectory's own version, in the stage's fingerprint (a resumed run recomputes after a
 # change): 2: the ENU origin at the fix nearest the middle frame (was the log's first fix), a
-# stopped vehicle's frames (no_motion pairs) held together in the pose graph and the bundle
-POSES_VERSION = 2
+# stopped vehicle's frames (no_motion pairs) held together in the pose graph and the bundle;
+# 3: the mount's direction of travel turned back by half of each pair's turn (mount.heading_at_a)
+POSES_VERSION = 3
 
 # =========================================================================== entry point
 

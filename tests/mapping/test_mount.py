@@ -102,3 +102,31 @@ def test_one_pair_gives_the_mount_with_a_warning() -> None:
     up_est = traj.world_from_cam[0, :3, :3].T @ np.array([0.0, 0.0, 1.0])
     up_true = syn.world_from_cam[0, :3, :3].T @ np.array([0.0, 0.0, 1.0])
     assert np.degrees(np.arccos(np.clip(up_est @ up_true, -1, 1))) < 1.0
+
+
+@pytest.mark.parametrize("mount", [(0.0, 0.0, 0.0), (25.0, 1.0, 3.0), (45.0, 0.0, -2.0)])
+@pytest.mark.parametrize("turn_deg", [-12.0, 0.0, 12.0])
+def test_heading_on_a_turn_is_the_camera_a_heading(mount, turn_deg) -> None:
+    """A vehicle on a circle (8 m radius, turning `turn_deg` between the frames): the chord to
+    camera b points half-way through the turn; the heading at camera a is the mount's own
+    forward axis, whatever the turn's direction (a one-way turn biased the yaw by half of it)."""
+    from roadsurf.core.geometry import forward_in_cam, vehicle_from_cam_rotation, world_from_cam
+    from roadsurf.mapping.mount import heading_at_a
+
+    M = np.eye(4)
+    M[:3, :3] = vehicle_from_cam_rotation(*mount)
+    r, th = 8.0, np.radians(turn_deg)
+
+    def pose(phi: float) -> np.ndarray:  # heading north at phi = 0, turning right for phi > 0
+        if th == 0:
+            c = np.array([0.0, 8.0 * phi, 1.1])
+        else:
+            c = np.array([r * (1 - np.cos(phi)), r * np.sin(phi), 1.1]) * [np.sign(th), 1, 1]
+        return world_from_cam(np.degrees(phi) * np.sign(th), 0.0, 0.0, c) @ M
+
+    Wa, Wb = pose(0.0), pose(abs(th) if th else 0.05)
+    T = np.linalg.inv(Wb) @ Wa  # cam b from cam a
+    c_b = Wa[:3, :3].T @ (Wb[:3, 3] - Wa[:3, 3])
+    f = heading_at_a(T[:3, :3], c_b)
+    want = forward_in_cam(M[:3, :3])
+    assert np.degrees(np.arccos(np.clip(f @ want, -1, 1))) < 0.05
