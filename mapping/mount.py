@@ -190,11 +190,13 @@ def resolve(
             shift = camera.height_m * math.tan(math.radians(abs(roll)))
             warns.append(
                 f"the drive's road planes give a camera roll of {roll:.1f} deg (more than a "
-                f"road's cross-fall; > {disagree_deg} deg), applied: it holds the road's "
-                "cross-fall too (2 %: 1.1 deg, a sideways map error of about "
-                f"{100 * camera.height_m * 0.02:.0f} cm), where "
-                f"ignoring it would move the map {100 * shift:.0f} cm sideways. Measure it "
-                "(`roadsurf calibrate --ground`) and set mount_roll_deg in camera.yaml."
+                f"road's cross-fall; > {disagree_deg} deg), applied. The road planes cannot "
+                "tell a rolled mount from the road's cross-fall: the part of it that is "
+                "cross-fall moves the map sideways (each 1 % of cross-fall 0.57 deg, "
+                f"{100 * camera.height_m * 0.01:.1f} cm at this height; {100 * shift:.0f} cm if "
+                "all of it is, as on a banked curve), while ignoring a real mount roll would "
+                f"move it {100 * shift:.0f} cm. Measure it (`roadsurf calibrate --ground`) and "
+                "set mount_roll_deg in camera.yaml."
             )
     else:
         m = Mount(np.eye(3), "assumed nadir", est_deg, spread, n)
