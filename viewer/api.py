@@ -23,7 +23,7 @@ import rerun.blueprint as rrb
 
 from roadsurf.core.atomic import output_error
 from roadsurf.core.errors import OutputError, RoadsurfError
-from roadsurf.io.runfolder import RECORDING_RRD
+from roadsurf.io.runfolder import RECORDING_RRD, REPORT_JSON
 from roadsurf.viewer.blueprint import layout_for
 from roadsurf.viewer.config import ViewerConfig
 from roadsurf.viewer.recording import APP_ID, log_run
@@ -174,6 +174,13 @@ def viewer_url(web_port: int, grpc_port: int) -> str:
     return f"http://127.0.0.1:{web_port}/?url={quote(proxy, safe='')}"
 
 
+def recording_is_stale(run_dir: str | Path, rrd: Path) -> bool:
+    """True when a run finished in ``run_dir`` after ``rrd`` was written (its report.json is
+    newer), or the run has no report: the recording no longer shows the run."""
+    report = Path(run_dir) / REPORT_JSON
+    return not report.exists() or report.stat().st_mtime > rrd.stat().st_mtime
+
+
 def serve(
     run_dir: str | Path,
     *,
@@ -189,17 +196,24 @@ def serve(
     """Record the run to ``rrd`` (default RUN/run.rrd) and serve it with the Rerun web viewer
     bound to 127.0.0.1 only. Returns with the server running (``result.server``); the caller
     stops it (``terminate()``). ``record=False`` serves an existing ``rrd`` unchanged. An
-    existing recording is never replaced unless ``overwrite`` (OutputError)."""
+    existing recording named by ``rrd`` is never replaced unless ``overwrite`` (OutputError);
+    the run's own RUN/run.rrd (``rrd`` None, as ``make demo`` writes it) is served as it is
+    while no run has finished since it was written, else recorded again."""
     target = Path(rrd) if rrd is not None else Path(run_dir) / RECORDING_RRD
     if record and target.exists() and not overwrite:
-        raise OutputError(
-            f"{target}: a recording already exists; add --overwrite to record the run again "
-            "into it, or --save OTHER.rrd to record elsewhere"
+        if rrd is not None:
+            raise OutputError(
+                f"{target}: a recording already exists; add --overwrite to record the run "
+                "again into it, or --save OTHER.rrd to record elsewhere"
+            )
+        record = recording_is_stale(run_dir, target)
+        log.info(
+            "%s: %s", target, "older than the run: recorded again" if record else "served as it is"
         )
     if record or not target.exists():
         res = save_rrd(run_dir, target, drive_dir=drive_dir, cfg=cfg)
     else:  # serve an existing recording as it is
-        res = ViewResult("serve", Path(rrd), {})
+        res = ViewResult("serve", target, {})
     web_port = web_port or free_port()
     grpc_port = grpc_port or free_port()
     cmd = [

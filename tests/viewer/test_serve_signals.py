@@ -1,10 +1,9 @@
 """`roadsurf view --serve`: SIGTERM ends the Rerun server and its viewer process group (real
-processes), and an existing recording is never replaced without --overwrite."""
+processes), and a recording it was given is never replaced without --overwrite."""
 
 from __future__ import annotations
 
 import os
-import re
 import signal
 import subprocess
 import sys
@@ -87,27 +86,42 @@ def refusal(run: Path, **kw: object) -> str:
     pytest.fail("serve replaced an existing recording")
 
 
-def test_serve_never_overwrites_a_recording(bare_run: Path) -> None:
-    rrd = bare_run / "run.rrd"
-    rrd.write_bytes(b"an earlier recording")
-    assert re.search(r"run\.rrd.*--overwrite", refusal(bare_run))
-    assert rrd.read_bytes() == b"an earlier recording"
+def test_serve_never_overwrites_a_recording_it_was_given(bare_run: Path) -> None:
     other = bare_run / "other.rrd"
     other.write_bytes(b"kept")
     assert "other.rrd" in refusal(bare_run, rrd=other)
     assert other.read_bytes() == b"kept"
     # the CLI: one line, nothing replaced
     r = subprocess.run(
-        [sys.executable, "-m", "roadsurf", "view", str(bare_run), "--serve", "--web-port", "0"],
+        [
+            sys.executable, "-m", "roadsurf", "view", str(bare_run), "--serve", "--save",
+            str(other), "--web-port", "0",
+        ],
         capture_output=True,
         text=True,
         cwd=REPO,
         timeout=60,
-    )
+    )  # fmt: skip
     assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr[-2000:]
     errors = [ln for ln in r.stderr.splitlines() if ln.startswith("error:")]
     assert len(errors) == 1 and "--overwrite" in errors[0], r.stderr[-2000:]
-    assert rrd.read_bytes() == b"an earlier recording"
+    assert other.read_bytes() == b"kept"
+
+
+def test_the_runs_own_recording_is_served_until_a_run_finishes_after_it(bare_run: Path) -> None:
+    """RUN/run.rrd (as `make demo` writes it) is the run's own: served as it is while current,
+    recorded again once a run has finished after it (it refused before, so `roadsurf view OUT
+    --serve` failed right after `make demo`)."""
+    from roadsurf.viewer.api import recording_is_stale
+
+    rrd = bare_run / "run.rrd"
+    rrd.write_bytes(b"a recording")
+    report = bare_run / "report.json"
+    os.utime(report, (1_000_000, 1_000_000))
+    assert not recording_is_stale(bare_run, rrd)
+    os.utime(report, None)
+    os.utime(rrd, (1_000_000, 1_000_000))
+    assert recording_is_stale(bare_run, rrd)
 
 
 @pytest.mark.skipif(
