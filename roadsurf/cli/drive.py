@@ -118,7 +118,10 @@ def run(
     ] = None,
     method: Annotated[
         str | None,
-        typer.Option(help="Reconstruction method: proposed, rotation_aware (default), classic."),
+        typer.Option(
+            help="Reconstruction method: rotation_aware (default), proposed, classic, colmap "
+            "(pycolmap's two-view geometry) or stereo (a rectified rig; docs/reconstruction.md)."
+        ),
     ] = None,
     classifier: Annotated[
         Path | None, typer.Option(help="CNN model file: screen frames, reconstruct only unsure.")
@@ -170,7 +173,8 @@ def evaluate(
     truth: Annotated[Path, typer.Option(help="Simulator truth folder (DRIVE/truth).")],
 ) -> None:
     """Score run folders against simulator truth (trajectory, surface, coverage, seams,
-    detection); writes RUN/evaluation.json and .md and prints a markdown table."""
+    detection); writes RUN/evaluation.json and .md and prints a markdown table. A photo pair's
+    truth (simulate --stereo-pair) is scored by the pair figures, printed as JSON only."""
     from roadsurf.evaluation.report import evaluate_run, markdown_table
 
     if (truth / df.TRUTH_STEREO_PAIR_JSON).is_file():  # a photo pair (simulate --stereo-pair)
