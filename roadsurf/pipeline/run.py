@@ -35,13 +35,17 @@ from roadsurf.core.errors import ConfigError
 from roadsurf.core.memory import fix_mmap_threshold, limit_malloc_arenas, release_free_memory
 from roadsurf.detection.classifier.config import ClassifierConfig
 from roadsurf.detection.config import DetectionConfig
-from roadsurf.io import drivefolder as df
 from roadsurf.io import runfolder as rf
 from roadsurf.mapping.bundle_camera import later_stage_inputs
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.datum import vertical_datum
 from roadsurf.mapping.loops import frame_matcher
-from roadsurf.pipeline.run_checks import check_reconstruction, claim_run_folder, static_pixels
+from roadsurf.pipeline.run_checks import (
+    check_out_folder,
+    check_reconstruction,
+    claim_run_folder,
+    static_pixels,
+)
 from roadsurf.pipeline.run_checks import pair_failures_warning as failures_warning
 from roadsurf.reconstruction.config import ReconstructionConfig
 from roadsurf.reconstruction.types import STATUS_NO_MOTION
@@ -163,7 +167,7 @@ def run_drive(
     artifacts instead of resuming.
     """
     t_start = time.perf_counter()
-    _check_out_folder(Path(drive_dir), Path(out_dir))
+    check_out_folder(Path(drive_dir), Path(out_dir))
     limit_malloc_arenas()  # before the stages' threads allocate (roadsurf.core.memory)
     cfg = load_pipeline_config(config_path)
     job = None
@@ -315,37 +319,6 @@ def _run_drive(
     write_json_atomic(out / rf.REPORT_JSON, report)
     notify("report", report)
     return report
-
-
-def _check_out_folder(drive_dir: Path, out: Path) -> None:
-    """The run never writes inside the drive (its frames.csv would be overwritten by the run's
-    frame labels) nor into an existing file."""
-    d, o = drive_dir.resolve(), out.resolve()
-    if o == d or d in o.parents:
-        raise ConfigError(
-            f"--out {out} is inside the drive folder {drive_dir}: the run would overwrite the "
-            "drive's own files (frames.csv). Choose an output folder outside the drive, e.g. "
-            f"--out {d.parent / (d.name + '_run')}"
-        )
-    if o.exists() and not o.is_dir():
-        raise ConfigError(f"--out {out} is an existing file, not a folder. Choose another --out.")
-    if not o.is_dir() or (o / rf.RUN_JSON).is_file() or (o / rf.REPORT_JSON).is_file():
-        return  # new, or a run folder (claim_run_folder checks whose)
-    held = {p.name for p in o.iterdir()}
-    drive_files = sorted(held & {df.CAMERA_YAML, df.FRAMES_DIR, *df.GPS_FILES})
-    if drive_files:
-        raise ConfigError(
-            f"--out {out} holds a drive ({', '.join(drive_files)}), not a roadsurf run: the run "
-            "would overwrite its frames.csv with the run's frame labels. Choose an empty or "
-            f"new folder, e.g. --out {o.parent / (o.name + '_run')}"
-        )
-    clash = sorted(held & rf.artifact_names())
-    if clash:
-        raise ConfigError(
-            f"--out {out} is not a roadsurf run folder (no {rf.RUN_JSON}) but holds "
-            f"{', '.join(clash[:6])}{' ...' if len(clash) > 6 else ''}, which the run would "
-            "overwrite. Move them, or choose an empty or new folder for --out."
-        )
 
 
 # artifacts whose modification time tells whether a stage computed or resumed (run-folder paths)

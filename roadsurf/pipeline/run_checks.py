@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any
 
 from roadsurf.core.atomic import read_json, write_json_atomic
 from roadsurf.core.errors import ConfigError, RoadsurfError
+from roadsurf.io import drivefolder as df
 from roadsurf.io import runfolder as rf
 from roadsurf.reconstruction.types import STATUS_NO_MOTION
 
@@ -65,6 +66,37 @@ def drive_identity(drive_dir: str | Path) -> dict[str, Any]:
             files[p.name] = f"size={st.st_size},mtime_ns={st.st_mtime_ns}"
     content = hashlib.sha256(repr(sorted(files.items())).encode()).hexdigest()[:16]
     return {"drive": str(d), "content": content, "files": files}
+
+
+def check_out_folder(drive_dir: Path, out: Path) -> None:
+    """The run never writes inside the drive (its frames.csv would be overwritten by the run's
+    frame labels) nor into an existing file."""
+    d, o = drive_dir.resolve(), out.resolve()
+    if o == d or d in o.parents:
+        raise ConfigError(
+            f"--out {out} is inside the drive folder {drive_dir}: the run would overwrite the "
+            "drive's own files (frames.csv). Choose an output folder outside the drive, e.g. "
+            f"--out {d.parent / (d.name + '_run')}"
+        )
+    if o.exists() and not o.is_dir():
+        raise ConfigError(f"--out {out} is an existing file, not a folder. Choose another --out.")
+    if not o.is_dir() or (o / rf.RUN_JSON).is_file() or (o / rf.REPORT_JSON).is_file():
+        return  # new, or a run folder (claim_run_folder checks whose)
+    held = {p.name for p in o.iterdir()}
+    drive_files = sorted(held & {df.CAMERA_YAML, df.FRAMES_DIR, *df.GPS_FILES})
+    if drive_files:
+        raise ConfigError(
+            f"--out {out} holds a drive ({', '.join(drive_files)}), not a roadsurf run: the run "
+            "would overwrite its frames.csv with the run's frame labels. Choose an empty or "
+            f"new folder, e.g. --out {o.parent / (o.name + '_run')}"
+        )
+    clash = sorted(held & rf.artifact_names())
+    if clash:
+        raise ConfigError(
+            f"--out {out} is not a roadsurf run folder (no {rf.RUN_JSON}) but holds "
+            f"{', '.join(clash[:6])}{' ...' if len(clash) > 6 else ''}, which the run would "
+            "overwrite. Move them, or choose an empty or new folder for --out."
+        )
 
 
 def claim_run_folder(drive_dir: str | Path, out: Path, overwrite: bool) -> dict[str, Any]:
