@@ -14,6 +14,7 @@ from roadsurf.core.geometry import EnuReference, enu_from_lla
 from roadsurf.io.drive import Drive, GpsTrack
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.types import PoseReport
+from roadsurf.reconstruction.types import PairResult
 
 log = logging.getLogger(__name__)
 
@@ -75,6 +76,80 @@ def gps_enu(
         orig_index=idx,
     )
     return ref, gps
+
+
+# consecutive pairs at each end of the drive whose turn sets the extrapolation's acceleration
+END_PAIRS = 5
+# fixes within the frames' span that make those beyond a turning end unnecessary (count)
+MIN_INSIDE_FIXES = 5
+# ... and the turn (lateral acceleration, m/s²) beyond which they are left out then: a 36 m
+# radius at 6 m/s. The straight extrapolation's error is a bias every fix beyond that end
+# shares, not noise (½·a·Δt²: 1.1 m at 1.5 s); the default route's gentle curves stay below
+# 0.2 m/s²
+TURN_ACCEL_MPS2 = 1.0
+
+
+def widen_for_turns(
+    cfg: MappingConfig, gps: GpsFixes, t: np.ndarray, pairs: list[tuple[int, PairResult]]
+) -> GpsFixes:
+    """The fixes outside the frames' span (``gps_extrapolate_s``) at an end that turns: a =
+    θ·|t| / Δt_pair², the median of the ``END_PAIRS`` consecutive ``pairs`` ((position of frame
+    a, pair)) there (θ the pair's turn about its road normal, |t| its metric baseline). The end
+    frames are extrapolated on a straight line, and in a turn the road bends away from it (an
+    S-curve at 6.6 m/s², half a second out: 0.8 m, a bias, not noise). With
+    ``MIN_INSIDE_FIXES`` fixes within the frames they are dropped beyond ``TURN_ACCEL_MPS2``
+    (they pulled an RTK drive's whole trajectory 10-14 cm off its fixes; widening their σ by
+    ½·a·Δt² left 9-10 cm); else (a short drive resting on its few fixes) their σ is widened by
+    ½·a·Δt² when a beats ``gap_accel_sigma_mps2``."""
+    if len(t) < 2 or not pairs:
+        return gps
+    a0 = float(cfg.gap_accel_sigma_mps2)
+    sig = gps.sigma_m.copy()
+    keep = np.ones(len(sig), bool)
+    n_inside = int(np.sum((gps.t_s >= t[0]) & (gps.t_s <= t[-1])))
+    for side in (0, 1):
+        ts = gps.t_s
+        out_s = (t[0] - ts) if side == 0 else (ts - t[-1])
+        sel = out_s > 0
+        if not sel.any():
+            continue
+        ordered = sorted(pairs, key=lambda q: q[0], reverse=side == 1)[:END_PAIRS]
+        acc = []
+        for k, p in ordered:
+            dt = float(t[min(k + 1, len(t) - 1)] - t[k])
+            theta = _yaw_rad(p)
+            if dt > 0:
+                acc.append(theta * float(np.linalg.norm(p.t_b_from_a_m)) / dt**2)
+        a = float(np.median(acc)) if acc else 0.0
+        drop = n_inside >= MIN_INSIDE_FIXES and a > TURN_ACCEL_MPS2
+        if not drop and a <= a0:
+            continue
+        if drop:
+            keep &= ~sel
+        else:
+            d = out_s[sel]
+            base2 = np.maximum(sig[sel] ** 2 - (0.5 * a0 * d**2) ** 2, 0.0)
+            sig[sel] = np.sqrt(base2 + (0.5 * a * d**2) ** 2)
+        log.info(
+            "poses: the %s pairs turn at %.1f m/s²: the %d fixes %s the frames are %s",
+            "first" if side == 0 else "last", a, int(sel.sum()),
+            "before" if side == 0 else "after", "not used" if drop else "widened by it",
+        )  # fmt: skip
+    out = GpsFixes(gps.t_s, gps.enu_m, sig, gps.has_alt, gps.orig_index)
+    return out if keep.all() else out.subset(keep)
+
+
+def _yaw_rad(p: PairResult) -> float:
+    """|rotation| of the pair about its road normal (rad): its turn, without the vibration's
+    roll and pitch (0.5-1° a frame, which read as 1-2 m/s² at 15 fps)."""
+    import cv2
+
+    rv = cv2.Rodrigues(np.asarray(p.R_b_from_a, float))[0].ravel()
+    pl = np.asarray(p.plane, float)
+    if pl.shape != (3,) or not np.all(np.isfinite(pl)):
+        return float(np.linalg.norm(rv))
+    up = np.array([pl[0], pl[1], -1.0])
+    return abs(float(rv @ up)) / float(np.linalg.norm(up))
 
 
 def enu_reference(g: GpsTrack, t: np.ndarray) -> EnuReference:

@@ -47,7 +47,7 @@ from roadsurf.mapping.export import write_trajectory_csv, write_trajectory_geojs
 from roadsurf.mapping.grade import GRADE_VERSION, road_grade
 from roadsurf.mapping.mount import resolve
 from roadsurf.mapping.plausibility import CHECKS_VERSION, check, make_chains
-from roadsurf.mapping.pose_gps import GpsFixes, gps_enu, interp_weights
+from roadsurf.mapping.pose_gps import GpsFixes, gps_enu, interp_weights, widen_for_turns
 from roadsurf.mapping.pose_graph import PoseGraph
 from roadsurf.mapping.pose_init import chain, initial_poses, segments
 from roadsurf.mapping.separate import keep_apart, segment_has_gps
@@ -178,6 +178,11 @@ def estimate_trajectory(
 
     # ---------------------------------------------------------------- GPS in ENU
     ref, gps = gps_enu(cfg, drive, t, rep)
+    if gps is not None:
+        ends = [
+            (pos_of[p.index_a], p) for p in ok_pairs if pos_of[p.index_b] == pos_of[p.index_a] + 1
+        ]
+        gps = widen_for_turns(cfg, gps, t, ends)
 
     # ---------------------------------------------------------------- visual components
     comp = np.zeros(n, int)

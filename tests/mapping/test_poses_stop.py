@@ -47,3 +47,47 @@ def test_standing_pairs_as_plain_failures_pull_the_trajectory_apart() -> None:
     old, _, _ = _errors_m("too_few_matches", False)
     new, _, _ = _errors_m(STATUS_NO_MOTION, False)
     assert old.max() > 5 * new.max()
+
+
+def test_fixes_beyond_a_turning_end_weigh_by_its_turn() -> None:
+    """Fixes outside the frames are tied to the end frames' straight extrapolation: at an end
+    that turns faster than gap_accel_sigma_mps2 allows their σ grows by its own ½·a·Δt²; a
+    straight end (vibration only) keeps them as they were."""
+    import cv2
+
+    from roadsurf.mapping.pose_gps import GpsFixes, widen_for_turns
+    from roadsurf.reconstruction.types import PairResult
+
+    cfg = MappingConfig()
+    t = np.arange(20) / 15.0
+    ts = np.array([-1.0, -0.2, 0.5, 1.0, t[-1] + 0.2, t[-1] + 1.0])
+    gps = GpsFixes(ts, np.zeros((6, 3)), np.full(6, 0.05), np.ones(6, bool), np.arange(6))
+
+    def pair(k: int, deg: float) -> tuple[int, PairResult]:
+        R = cv2.Rodrigues(np.array([0.0, 0.0, np.radians(deg)]))[0]  # about the normal
+        return k, PairResult(
+            "a",
+            "b",
+            k,
+            k + 1,
+            "rotation_aware",
+            "ok",
+            R_b_from_a=R,
+            t_b_from_a_m=np.array([0, 0.4, 0]),
+            plane=np.array([0.0, 0.0, 1.1]),
+        )
+
+    straight = [pair(k, 0.5) for k in range(19)]
+    assert np.array_equal(widen_for_turns(cfg, gps, t, straight).sigma_m, gps.sigma_m)
+    turning_end = [pair(k, 0.5 if k < 10 else 10.0) for k in range(19)]  # 15.7 m/s² there
+    s = widen_for_turns(cfg, gps, t, turning_end).sigma_m
+    assert np.array_equal(s[:4], gps.sigma_m[:4])  # the straight start and the fixes inside
+    a = np.radians(10.0) * 0.4 * 15.0**2
+    np.testing.assert_allclose(
+        s[4:], np.hypot(0.05, 0.5 * a * np.array([0.2, 1.0]) ** 2), rtol=0.02
+    )
+    # with enough fixes within the frames, those beyond the turning end are not used at all
+    many = np.array([-1.0, -0.2, *np.linspace(0.0, t[-1], 8), t[-1] + 0.2, t[-1] + 1.0])
+    g8 = GpsFixes(many, np.zeros((12, 3)), np.full(12, 0.05), np.ones(12, bool), np.arange(12))
+    kept = widen_for_turns(cfg, g8, t, turning_end)
+    assert np.array_equal(kept.orig_index, np.arange(10))
