@@ -165,6 +165,25 @@ class Segmentation:
     grid: GridSpec  # grid of the regions' rows/cols (the residual's, cropped to the data)
 
 
+def _within(lab: np.ndarray, objects: list, a: int, b: int, gap_px: float) -> bool:
+    """True when components a and b of ``lab`` have cells at most ``gap_px`` cells apart."""
+    sa, sb = objects[a - 1], objects[b - 1]
+    if sa is None or sb is None:
+        return False
+    g = int(np.ceil(gap_px))
+    r0 = max(min(sa[0].start, sb[0].start), 0)
+    c0 = max(min(sa[1].start, sb[1].start), 0)
+    r1, c1 = max(sa[0].stop, sb[0].stop), max(sa[1].stop, sb[1].stop)
+    # bounding boxes further apart than the gap: no cell can be nearer
+    dr = max(sa[0].start - sb[0].stop, sb[0].start - sa[0].stop, 0)
+    dc = max(sa[1].start - sb[1].stop, sb[1].start - sa[1].stop, 0)
+    if dr > g or dc > g:
+        return False
+    win = lab[r0:r1, c0:c1]
+    dist = ndimage.distance_transform_edt(win != a)
+    return bool(np.any(dist[win == b] <= gap_px + 1.0))
+
+
 def segment(
     surface: Surface,
     cfg: MapSegmentConfig,
@@ -254,22 +273,30 @@ def segment(
         merge_m=0.5 * cfg.mean_shift_window_m,
     )
     comps = np.concatenate([seed_comp, ev_comp])
-    # Union-find: mean-shift clusters and rim components that share points are one defect.
-    n_cl = int(labels.max()) + 1 if len(labels) else 0
-    sets = DisjointSet(range(n_cl))
-    comp_first: dict[int, int] = {}
+    objects = ndimage.find_objects(rim_lab)
+    # Union-find over the rim components: those a mean-shift cluster holds are one defect when
+    # they lie within join_gap_m of each other (pieces of one defect; measured road between
+    # two potholes keeps them apart), and those joined across an unknown strip
+    sets = DisjointSet(range(1, n_rim + 1))
+    in_cluster: dict[int, set[int]] = {}
     for lab, comp in zip(labels.tolist(), comps.tolist(), strict=True):
         if comp > 0:
-            sets.merge(lab, comp_first.setdefault(comp, lab))
-    # rim components joined across an unknown strip (a gap between two pairs' views)
+            in_cluster.setdefault(lab, set()).add(comp)
+    gap_px = cfg.join_gap_m / grid.gsd_m
+    for members in in_cluster.values():
+        ms = sorted(members)
+        for i, a in enumerate(ms):
+            for b in ms[i + 1 :]:
+                if gap_px <= 0 or _within(rim_lab, objects, a, b, gap_px):
+                    sets.merge(a, b)
+    seen_comps = sorted({c for m in in_cluster.values() for c in m})
     first_by_bridge: dict[int, int] = {}
-    for comp, lab in comp_first.items():
-        sets.merge(lab, first_by_bridge.setdefault(int(bridge_of[comp]), lab))
+    for comp in seen_comps:
+        sets.merge(comp, first_by_bridge.setdefault(int(bridge_of[comp]), comp))
     groups: dict[int, set[int]] = {}
-    for comp, lab in comp_first.items():
-        groups.setdefault(sets[lab], set()).add(comp)
+    for comp in seen_comps:
+        groups.setdefault(sets[comp], set()).add(comp)
 
-    objects = ndimage.find_objects(rim_lab)
     regions: list[Region] = []
     for comp_set in groups.values():
         rr, cc = [], []
