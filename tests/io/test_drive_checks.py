@@ -119,3 +119,19 @@ def test_short_or_moving_drives_are_not_static(tmp_path: Path) -> None:
     assert load_drive(_drive(tmp_path / "m", moving_gps_rows(-0.5, 6.5, 3.0))).warnings == []
     rows = [f"{-0.5 + 0.5 * k:.3f},{LAT0},{LON0},100.0,0.9" for k in range(4)]
     assert load_drive(make_drive(tmp_path / "s", gps_rows=rows)).warnings == []
+
+
+def test_frame_times_in_milliseconds_warn_against_the_fps(tmp_path: Path) -> None:
+    """frames.csv in ms (every interval 100 "s" at fps 10) warns, naming the unit; the camera's
+    own rate and frames kept every 5th do not."""
+    root = make_drive(tmp_path / "d", n=N, gps_rows=moving_gps_rows(-0.5, 6.5, 10.0))
+    d = load_drive(root)
+    assert not [w for w in d.warnings if "frame interval" in w]
+    lines = (root / "frames.csv").read_text().splitlines()
+    thinned = [lines[0], *lines[1::5]]
+    (root / "frames.csv").write_text("\n".join(thinned) + "\n")
+    assert not [w for w in load_drive(root).warnings if "frame interval" in w]
+    ms = [lines[0]] + [f"{r.split(',')[0]},{1000 * float(r.split(',')[1]):.1f}" for r in lines[1:]]
+    (root / "frames.csv").write_text("\n".join(ms) + "\n")
+    (w,) = [w for w in load_drive(root).warnings if "frame interval" in w]
+    assert "100 s" in w and "milliseconds" in w and "frames.csv" in w

@@ -128,6 +128,32 @@ def reject_jumps(
     return keep
 
 
+# frames.csv's median interval may be this many times camera.yaml's 1 / fps either way before
+# a warning (−): frames kept every k-th (distance-triggered or thinned) are normal; a factor
+# of 1000 is milliseconds
+FRAME_RATE_FACTOR = 20.0
+
+
+def check_frame_rate(path: Path, frames: list[Frame], fps: float, warnings: list[str]) -> None:
+    """Warn when frames.csv's median frame interval and camera.yaml's ``fps`` disagree by more
+    than ``FRAME_RATE_FACTOR`` (timestamps in ms or µs, or a wrong fps)."""
+    t = np.array([f.timestamp_s for f in frames], float)
+    if len(t) < 2 or fps <= 0:
+        return
+    dt = float(np.median(np.diff(t)))
+    if dt <= 0:
+        return
+    ratio = dt * fps
+    if 1.0 / FRAME_RATE_FACTOR <= ratio <= FRAME_RATE_FACTOR:
+        return
+    unit = " (milliseconds? timestamp_s is in seconds)" if 300 <= ratio <= 3000 else ""
+    warnings.append(
+        f"{path}: the median frame interval is {dt:.4g} s, {ratio:.3g}x camera.yaml's 1 / fps "
+        f"= {1.0 / fps:.4g} s{unit}. Check frames.csv's timestamp_s units and camera.yaml's fps: "
+        "GPS and OBD are matched to the frames by these times."
+    )
+
+
 def check_static(gps: GpsTrack, frames: list[Frame], warnings: list[str]) -> bool:
     """Warn (and return True) when every GPS fix over the frames stays within the noise of one
     position, HDOP-derived, while the frames span at least ``STATIC_MIN_S``."""

@@ -28,7 +28,7 @@ from pathlib import Path
 from roadsurf.core.errors import DriveFormatError
 from roadsurf.io import drivefolder as df
 from roadsurf.io.drive.camera_yaml import load_camera
-from roadsurf.io.drive.checks import check_obd_vs_gps, check_static
+from roadsurf.io.drive.checks import check_frame_rate, check_obd_vs_gps, check_static
 from roadsurf.io.drive.frames import load_frames
 from roadsurf.io.drive.gps import check_overlap, load_gps_csv
 from roadsurf.io.drive.gpx import load_gps_gpx
@@ -54,6 +54,7 @@ def load_drive(root: str | Path, check_images: bool = True) -> Drive:
     if camera.mask is not None and (w := mask_warning(camera.mask)):
         warnings.append(w)
     frames = load_frames(root, camera, check_images, skipped, warnings)
+    check_frame_rate(root / df.FRAMES_CSV, frames, camera.fps, warnings)
 
     present = [name for name in GPS_FILES if (root / name).is_file()]
     gps: GpsTrack | None = None
