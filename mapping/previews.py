@@ -75,9 +75,18 @@ class Previews:
         rgba = colormaps["RdBu"](np.clip(np.nan_to_num(res) / (2 * lim) + 0.5, 0, 1))
         img = (rgba[..., :3] * 255).astype(np.uint8)
         img[~fin] = 235
-        label = f"residual height: red {-lim * 1000:.0f} mm (below) .. blue +{lim * 1000:.0f} mm"
+        mm = lim * 1000
         pad = np.full((28, img.shape[1], 3), 255, np.uint8)
-        cv2.putText(pad, label, (4, 19), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
-        out = np.vstack([img, pad]) if img.shape[1] >= 200 else img
+        # the longest legend that fits the image's width (a two-frame drive's crop is narrow)
+        for label, scale in (
+            (f"residual height: red {-mm:.0f} mm (below) .. blue +{mm:.0f} mm", 0.5),
+            (f"height: red {-mm:.0f} .. blue +{mm:.0f} mm", 0.45),
+            (f"red {-mm:.0f} .. blue +{mm:.0f} mm", 0.4),
+        ):
+            (tw, _), _ = cv2.getTextSize(label, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
+            if tw <= img.shape[1] - 8:
+                break
+        cv2.putText(pad, label, (4, 19), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 1, cv2.LINE_AA)
+        out = np.vstack([img, pad]) if tw <= img.shape[1] - 8 else img
         with atomic_path(run_dir / rf.SURFACE_PREVIEW) as tmp:
             cv2.imwrite(str(tmp), cv2.cvtColor(out, cv2.COLOR_RGB2BGR))

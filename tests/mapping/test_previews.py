@@ -32,3 +32,19 @@ def test_previews_crop_to_the_observed_tile(tmp_path: Path) -> None:
     empty = Previews(lat.full_grid, max_px=512)  # nothing observed: the whole canvas
     empty.write(tmp_path)
     assert cv2.imread(str(tmp_path / rf.MOSAIC_PREVIEW)).shape[:2] == (512, 512)
+
+
+def test_surface_legend_fits_a_narrow_preview(tmp_path: Path) -> None:
+    """A 240 px wide preview keeps its whole legend (the long one was cut at the right edge)."""
+    lat = TileLattice("EPSG:32617", 0.0, 0.0, 0.005, 256, n_rows=1, n_cols=1)
+    prev = Previews(lat.full_grid, max_px=512)
+    res = np.full((256, 256), np.nan, np.float32)
+    res[:, 8:240] = np.linspace(-0.05, 0.05, 232, dtype=np.float32)
+    prev.add((0, 0), lat, res, np.full((256, 256, 3), 90, np.uint8))
+    prev.write(tmp_path)
+    s = cv2.imread(str(tmp_path / rf.SURFACE_PREVIEW))
+    m = cv2.imread(str(tmp_path / rf.MOSAIC_PREVIEW))
+    assert s.shape[0] == m.shape[0] + 28  # the legend strip is there
+    strip = s[-28:]
+    assert strip.min() < 128  # text drawn
+    assert strip[:, -3:].min() == 255  # and none of it reaches the right edge
