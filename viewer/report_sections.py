@@ -26,10 +26,15 @@ def card(value: object, label: str) -> str:
 
 
 def _path_length_m(data: RunData) -> float:
+    """Length of the posed path (m) within its segments: the steps between two segments (their
+    relative placement a guess, no vision nor GPS between them) are not road driven."""
     t = data.trajectory
     if t is None or len(t) < 2:
         return math.nan
-    return float(np.sum(np.linalg.norm(np.diff(t.positions_enu_m[:, :2], axis=0), axis=1)))
+    step = np.linalg.norm(np.diff(t.positions_enu_m[:, :2], axis=0), axis=1)
+    if t.segment is not None:
+        step = step[np.diff(np.asarray(t.segment)) == 0]
+    return float(np.sum(step))
 
 
 def summary_section(data: RunData) -> str:

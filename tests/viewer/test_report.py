@@ -5,6 +5,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from roadsurf.viewer.browser import is_blank, screenshot
@@ -90,3 +91,21 @@ def test_a_crack_without_depth_reads_not_measured(tmp_path: Path) -> None:
     labels = [d.label for d in data.defects if d.type == "crack"]
     assert labels and all("depth not measured" in s for s in labels)
     assert not re.search(r"\bnan\b", summary_markdown(data, {}), re.IGNORECASE)
+
+
+def test_path_length_leaves_out_the_jumps_between_segments() -> None:
+    """spd2: 43 of the 48.5 m 'path length' were steps between segments placed by a guess."""
+    from types import SimpleNamespace
+
+    from roadsurf.viewer.report_sections import _path_length_m
+
+    pos = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [30, 0, 0], [31, 0, 0]], float)
+
+    class T(SimpleNamespace):
+        def __len__(self) -> int:
+            return len(self.positions_enu_m)
+
+    data = SimpleNamespace(trajectory=T(positions_enu_m=pos, segment=np.array([0, 0, 0, 1, 1])))
+    assert _path_length_m(data) == 3.0  # type: ignore[arg-type]
+    data.trajectory.segment = None
+    assert _path_length_m(data) == 31.0  # type: ignore[arg-type]
