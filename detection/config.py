@@ -323,10 +323,12 @@ class MapSegmentConfig:
     fallback_gsd_m: float = 0.01  # grid size when RUN/surface.tif is absent (m)
     mean_shift_window_m: float = 0.30  # w: flat-kernel mean-shift window w x w (m), eq. 5.11
     # outline regions one mean-shift cluster holds are one defect only when at most this far
-    # apart (m; their nearest cells), or joined across an unknown strip (bridge_unknown_m):
-    # measured road wider than this between them is two defects (two potholes 22 cm apart
-    # were one 1.65 m pothole); 0 = every region of a cluster joins, as eq. 5.12 alone
-    join_gap_m: float = 0.06
+    # apart (m; their nearest cells), one inside the other, or with road below road level or
+    # unknown between them (mapseg._joined): measured road wider than this between them is
+    # two defects (two potholes 22 cm apart were one 1.65 m pothole); a real pothole's noisy
+    # floor left pieces 6-12 cm apart (spd2 frames 32-33: 6 cm split it in two); 0 = every
+    # region of a cluster joins, as eq. 5.12 alone
+    join_gap_m: float = 0.12
     mean_shift_max_iter: int = 50  # iterations per window (count)
     mean_shift_tol_m: float = 0.001  # a window has converged when it moves less (m)
     min_area_m2: float = 0.002  # drop defects whose deep area (>= seed threshold) is smaller (m²)

@@ -165,23 +165,51 @@ class Segmentation:
     grid: GridSpec  # grid of the regions' rows/cols (the residual's, cropped to the data)
 
 
-def _within(lab: np.ndarray, objects: list, a: int, b: int, gap_px: float) -> bool:
-    """True when components a and b of ``lab`` have cells at most ``gap_px`` cells apart."""
+def _joined(
+    lab: np.ndarray,
+    objects: list,
+    a: int,
+    b: int,
+    gap_px: float,
+    depth: np.ndarray,
+    unknown: np.ndarray,
+    road_m: float,
+) -> bool:
+    """True when components a and b of ``lab`` are parts of one defect: cells at most
+    ``gap_px`` apart, one inside the other's outline, or the road between their nearest cells
+    is not road level (its median
+    ``depth`` at least ``road_m`` below the road, or mostly ``unknown``): one pothole's floor
+    that noise cut, where two potholes have measured road between them."""
     sa, sb = objects[a - 1], objects[b - 1]
     if sa is None or sb is None:
         return False
-    g = int(np.ceil(gap_px))
-    r0 = max(min(sa[0].start, sb[0].start), 0)
-    c0 = max(min(sa[1].start, sb[1].start), 0)
+    r0, c0 = min(sa[0].start, sb[0].start), min(sa[1].start, sb[1].start)
     r1, c1 = max(sa[0].stop, sb[0].stop), max(sa[1].stop, sb[1].stop)
-    # bounding boxes further apart than the gap: no cell can be nearer
-    dr = max(sa[0].start - sb[0].stop, sb[0].start - sa[0].stop, 0)
-    dc = max(sa[1].start - sb[1].stop, sb[1].start - sa[1].stop, 0)
-    if dr > g or dc > g:
-        return False
     win = lab[r0:r1, c0:c1]
-    dist = ndimage.distance_transform_edt(win != a)
-    return bool(np.any(dist[win == b] <= gap_px + 1.0))
+    dist, (ir, ic) = ndimage.distance_transform_edt(win != a, return_indices=True)
+    rb, cb = np.nonzero(win == b)
+    k = int(np.argmin(dist[rb, cb]))
+    if dist[rb[k], cb[k]] <= gap_px + 1.0:
+        return True
+    # one inside the other's outline (a floor fragment within its wall's ring): one defect
+    if ndimage.binary_fill_holes(win == a)[rb, cb].any():
+        return True
+    ra, ca = np.nonzero(win == a)
+    if ndimage.binary_fill_holes(win == b)[ra, ca].any():
+        return True
+    # the cells on the line between the nearest two, outside both components
+    p, q = np.array([ir[rb[k], cb[k]], ic[rb[k], cb[k]]]), np.array([rb[k], cb[k]])
+    n = int(np.ceil(np.hypot(*(q - p)))) + 1
+    rr = np.round(np.linspace(p[0], q[0], n)).astype(int)
+    cc = np.round(np.linspace(p[1], q[1], n)).astype(int)
+    between = (win[rr, cc] != a) & (win[rr, cc] != b)
+    if not between.any():
+        return True
+    rr, cc = rr[between] + r0, cc[between] + c0
+    unk = unknown[rr, cc]
+    if unk.mean() >= 0.5:
+        return True
+    return bool(np.median(depth[rr[~unk], cc[~unk]]) >= road_m)
 
 
 def segment(
@@ -287,7 +315,9 @@ def segment(
         ms = sorted(members)
         for i, a in enumerate(ms):
             for b in ms[i + 1 :]:
-                if gap_px <= 0 or _within(rim_lab, objects, a, b, gap_px):
+                if gap_px <= 0 or _joined(
+                    rim_lab, objects, a, b, gap_px, depth_s, unknown, 0.5 * rim_t
+                ):
                     sets.merge(a, b)
     seen_comps = sorted({c for m in in_cluster.values() for c in m})
     first_by_bridge: dict[int, int] = {}
