@@ -12,6 +12,7 @@ import numpy as np
 
 from roadsurf.core.geometry import EnuReference, enu_from_lla
 from roadsurf.io.drive import Drive, GpsTrack
+from roadsurf.io.drive.types import NO_GEOREF
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.types import PoseReport
 from roadsurf.reconstruction.types import PairResult
@@ -43,8 +44,11 @@ def gps_enu(
     g = drive.gps
     if g is None or len(g) == 0:
         msg = "no GPS: the map is in a local frame (no reference, no lat/lon or UTM exports)"
-        log.warning("poses: %s", msg)
-        rep.warnings.append(msg)
+        if any(NO_GEOREF in w for w in drive.warnings):  # the loader said it, and why
+            log.info("poses: %s", msg)
+        else:
+            log.warning("poses: %s", msg)
+            rep.warnings.append(msg)
         return None, None
     rep.n_gps_fixes = len(g)
     alt = np.asarray(g.alt_m, float)

@@ -81,6 +81,12 @@ def test_no_gps_gives_a_local_frame_with_the_right_shape(caplog: pytest.LogCaptu
     de = np.linalg.norm(e[:, None] - e[None], axis=2)
     dt = np.linalg.norm(t[:, None] - t[None], axis=2)
     assert np.max(np.abs(de - dt)) < 0.03
+    # the drive loader already said why there is no georeference: said once in report.json
+    from roadsurf.io.drive.types import NO_GEOREF
+
+    syn.drive.warnings.append(f"d: no GPS log (gps.csv, gps.gpx or gps.nmea); {NO_GEOREF}.")
+    _, rep = poses.estimate_trajectory(RTK, syn.drive, syn.pairs)
+    assert not any("no GPS" in w for w in rep.warnings)
 
 
 def test_failed_pair_is_bridged_by_gps() -> None:
