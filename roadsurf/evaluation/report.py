@@ -57,6 +57,25 @@ TARGETS_CONSUMER = [
 ]
 
 
+def _check_frame_names(run_dir: Path, truth: dict[str, Any]) -> None:
+    """A run without a trajectory is matched to the truth by its frames.csv names: another
+    drive's truth (no name in common) is an error, not a table of zeros."""
+    path = run_dir / rf.FRAME_LABELS_CSV
+    if not path.is_file():
+        return
+    from roadsurf.io.formats import read_csv
+
+    names = [r["filename"] for r in read_csv(path)]
+    known = set(truth["filename"])
+    n_known = sum(n in known for n in names)
+    if names and n_known < min(2, len(names)):
+        raise RoadsurfError(
+            f"{path}: {n_known} of the run's {len(names)} frames ({', '.join(names[:2])}, ...) "
+            f"have a row in the truth's poses.csv ({', '.join(list(truth['filename'])[:2])}, ...): "
+            "evaluate a run of this drive against its own truth folder"
+        )
+
+
 def evaluate_run(run_dir: str | Path, truth_dir: str | Path) -> dict[str, Any]:
     """All mapping figures for one run folder; also writes RUN/evaluation.json and .md."""
     run_dir, truth_dir = Path(run_dir), Path(truth_dir)
@@ -77,6 +96,7 @@ def evaluate_run(run_dir: str | Path, truth_dir: str | Path) -> dict[str, Any]:
     if est is None:
         out["warnings"] = ["no georeferenced trajectory.geojson: trajectory figures skipped"]
         align = None
+        _check_frame_names(run_dir, truth)
     else:
         tr = trajectory_metrics(est, truth)
         out.update(tr["metrics"])
