@@ -11,7 +11,8 @@ import logging
 from pathlib import Path
 
 from roadsurf.core.atomic import write_text_atomic
-from roadsurf.io.runfolder import REPORT_HTML
+from roadsurf.core.errors import RoadsurfError
+from roadsurf.io.runfolder import REPORT_HTML, REPORT_JSON, RUN_JSON
 from roadsurf.viewer.config import ViewerConfig
 from roadsurf.viewer.report_figures import evidence_section, figures_section
 from roadsurf.viewer.report_sections import (
@@ -57,6 +58,12 @@ def write_report(
 ) -> Path:
     """Build the HTML report of a run folder; returns its path (default RUN/report.html)."""
     cfg = cfg or ViewerConfig()
+    rd = Path(run_dir)
+    if rd.is_dir() and not any((rd / n).is_file() for n in (REPORT_JSON, RUN_JSON)):
+        raise RoadsurfError(
+            f"{rd}: not a roadsurf run folder (no {REPORT_JSON}, no {RUN_JSON}); give the "
+            "--out folder of `roadsurf run`"
+        )
     data = load_run(run_dir, drive_dir, max_raster_side_px=cfg.max_mosaic_side_px)
     out = Path(out) if out is not None else Path(run_dir) / REPORT_HTML
     write_text_atomic(out, render_report(data, cfg))

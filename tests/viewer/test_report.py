@@ -109,3 +109,12 @@ def test_path_length_leaves_out_the_jumps_between_segments() -> None:
     assert _path_length_m(data) == 3.0  # type: ignore[arg-type]
     data.trajectory.segment = None
     assert _path_length_m(data) == 31.0  # type: ignore[arg-type]
+
+
+def test_report_of_a_folder_that_is_no_run_is_refused(tmp_path: Path) -> None:
+    from roadsurf.core.errors import RoadsurfError
+
+    (tmp_path / "notes.txt").write_text("mine")
+    with pytest.raises(RoadsurfError, match="not a roadsurf run folder"):
+        write_report(tmp_path)
+    assert not (tmp_path / "report.html").exists()
