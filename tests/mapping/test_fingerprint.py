@@ -19,7 +19,8 @@ pairs' stated uncertainty); BUNDLE_VERSION 8 (the poses key, issue 29: the bundl
 steps on dense blocks and one BLAS thread, poses changed at rounding level); BUNDLE_VERSION 9
 (the reduced Jacobian's point products as sparse matrices; rounding level); POSES_VERSION 2 (the
 poses key: the ENU origin at the middle frame, no_motion pairs held together); DENSE_SURFACE_VERSION
-10 (the map key: cloud.ply heights ellipsoidal).
+10 (the map key: cloud.ply heights ellipsoidal); POSES_VERSION 3 (the poses key: the mount's
+direction of travel turned back by half of each pair's turn).
 A change of MappingConfig's fields changes them legitimately. The keys must also
 change with what the outputs depend on (below)."""
 
@@ -35,9 +36,9 @@ from tests.mapping.synth import make_synthetic
 
 def test_poses_fingerprint_is_unchanged() -> None:
     syn = make_synthetic(n=6, seed=3, failed=(2,))
-    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "ac6adda572a2561b"
+    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "b4b15b588b5d1aa2"
     syn = make_synthetic(n=6, seed=3, with_gps=False)
-    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "7f867d15d9e1111c"
+    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "a88a5ad495dcffb1"
 
 
 def test_globalmap_fingerprint_is_unchanged() -> None:
