@@ -325,10 +325,10 @@ class MapSegmentConfig:
     # outline regions one mean-shift cluster holds are one defect only when at most this far
     # apart (m; their nearest cells), one inside the other, or with road below road level or
     # unknown between them (mapseg._joined): measured road wider than this between them is
-    # two defects (two potholes 22 cm apart were one 1.65 m pothole); a real pothole's noisy
-    # floor left pieces 6-12 cm apart (spd2 frames 32-33: 6 cm split it in two); 0 = every
-    # region of a cluster joins, as eq. 5.12 alone
-    join_gap_m: float = 0.12
+    # two defects (two potholes 22 cm apart were one 1.65 m pothole; spd2 frames 12-13 and
+    # 32-33, whose labels hold 2 and 4 separate potholes, read 2 and 2 defects, 1 and 1 with
+    # 12 cm); 0 = every region of a cluster joins, as eq. 5.12 alone
+    join_gap_m: float = 0.06
     mean_shift_max_iter: int = 50  # iterations per window (count)
     mean_shift_tol_m: float = 0.001  # a window has converged when it moves less (m)
     min_area_m2: float = 0.002  # drop defects whose deep area (>= seed threshold) is smaller (m²)

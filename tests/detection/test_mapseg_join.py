@@ -44,7 +44,7 @@ def test_regions_of_one_cluster_join_only_within_the_gap(one_cluster: None) -> N
     assert len(segment(two, cfg).regions) == 2
     assert len(segment(two, dataclasses.replace(cfg, join_gap_m=0.0)).regions) == 1
     assert len(segment(two, dataclasses.replace(cfg, join_gap_m=0.25)).regions) == 1
-    near = _surface([(0.5, 0.5, 0.1), (0.8, 0.5, 0.1)])  # 10 cm apart: pieces of one defect
+    near = _surface([(0.5, 0.5, 0.1), (0.74, 0.5, 0.1)])  # 4 cm apart: pieces of one defect
     assert len(segment(near, cfg).regions) == 1
     # the same 22 cm, but a floor below road level between them (1.5 mm: under the 2 mm rim
     # threshold, as noise leaves a real pothole's shallow part): one defect
