@@ -329,6 +329,10 @@ class MapSegmentConfig:
     # 32-33, whose labels hold 2 and 4 separate potholes, read 2 and 2 defects, 1 and 1 with
     # 12 cm); 0 = every region of a cluster joins, as eq. 5.12 alone
     join_gap_m: float = 0.06
+    # windows also open around groups of the dense surface's measured cells that pass the seed
+    # test (detection.rasterseeds), not only around the pairs' deep sparse points: a shadowed
+    # pothole floor gave the features nothing and was never looked at; False = off
+    raster_seeds: bool = True
     mean_shift_max_iter: int = 50  # iterations per window (count)
     mean_shift_tol_m: float = 0.001  # a window has converged when it moves less (m)
     min_area_m2: float = 0.002  # drop defects whose deep area (>= seed threshold) is smaller (m²)

@@ -100,7 +100,11 @@ def fuse_labels(
     if rule is None:
         rule = FusionRule(threshold=cfg.fusion_threshold)
     covered = {p.frame_a for p in pairs if p.ok} | {p.frame_b for p in pairs if p.ok}
-    labels_3d = {f.filename: bool(f.defect) for f in frames if f.filename in covered}
+    labels_3d = {
+        f.filename: bool(f.defect)
+        for f in frames
+        if f.filename in covered and f.defect is not None  # not analysed: no 3D label
+    }
     fused = fuse_frames(
         frame_probs,
         labels_3d,

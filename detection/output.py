@@ -157,8 +157,8 @@ def load_result(run_dir: Path, signature: str) -> DetectionResult | None:
 # are one (mapbridge.bridged_components); 4: a seed deeper than noise_k x its own cell's σ too;
 # 5: frames nothing measured are not analysed (empty defect), not "no defect"; the dense area
 # within the outline, the mean depth within the maximum; 6: regions of one mean-shift cluster
-# join only within join_gap_m
-DETECTION_VERSION = 6
+# join only within join_gap_m; 7: windows also around the dense surface's deep cells (rasterseeds)
+DETECTION_VERSION = 7
 
 
 def _round(p: float | None) -> float | str:

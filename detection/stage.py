@@ -59,6 +59,7 @@ from roadsurf.detection.mapinputs import (
 from roadsurf.detection.measurement import measure_regions, renumber
 from roadsurf.detection.output import load_result, signature, write_outputs
 from roadsurf.detection.pairs import analyse_pairs
+from roadsurf.detection.rasterseeds import raster_seeds
 from roadsurf.detection.ruts import trace_ruts
 from roadsurf.detection.rutscan import scan_seeds
 from roadsurf.detection.types import Defect, DetectionResult
@@ -151,6 +152,9 @@ def _detect(
             # No pairs: windows around the deep map points (no per-pair evidence to seed them).
             deep = -pts[1] >= cfg.map.depth_threshold_m
             seeds_xy = pts[0][deep]
+        observed = mapped_area(surface, pairs, footprints)
+        if cfg.map.raster_seeds and per_pair and getattr(surface, "count_path", None):
+            seeds_xy = np.vstack([seeds_xy, raster_seeds(surface, cfg.map, observed)])
         try:
             t0 = time.perf_counter()
             seg = segment_windows(
@@ -166,7 +170,7 @@ def _detect(
                 path = np.array([np.asarray(fp.centroid.coords[0]) for fp in footprints.values()])
                 seeds = scan_seeds(
                     surface, path.reshape(-1, 2), cfg.rut, cfg.map,
-                    observed=mapped_area(surface, pairs, footprints),
+                    observed=observed,
                 )  # fmt: skip
                 seg.regions = trace_ruts(
                     surface, seg.regions, cfg.rut, cfg.map, ev_xy, ev_pair, scan_seeds=seeds

@@ -14,6 +14,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import logging
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -23,6 +24,8 @@ from typing import Any
 import numpy as np
 
 from roadsurf.core.atomic import atomic_path, json_safe, write_text_atomic
+
+log = logging.getLogger(__name__)
 
 # --------------------------------------------------------------------------- PLY
 
@@ -350,8 +353,26 @@ def split_at_antimeridian(geom: dict[str, Any]) -> dict[str, Any]:
 
     import antimeridian
 
-    fixed = antimeridian.fix_geojson(copy.deepcopy(geom), fix_winding=True)
+    flat = copy.deepcopy(geom)
+    if _has_height(flat["coordinates"]):  # antimeridian cuts lon/lat only
+        log.warning(
+            "a %s with heights crosses the antimeridian: written without them", geom["type"]
+        )
+        flat["coordinates"] = _lonlat_only(flat["coordinates"])
+    fixed = antimeridian.fix_geojson(flat, fix_winding=True)
     return json.loads(json.dumps(fixed))  # tuples -> lists, as the rest of the file
+
+
+def _has_height(coords: Any) -> bool:
+    while isinstance(coords, list) and coords and isinstance(coords[0], list):
+        coords = coords[0]
+    return isinstance(coords, list) and len(coords) > 2
+
+
+def _lonlat_only(coords: Any) -> Any:
+    if coords and isinstance(coords[0], list):
+        return [_lonlat_only(c) for c in coords]
+    return list(coords[:2])
 
 
 def write_geojson(

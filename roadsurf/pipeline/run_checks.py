@@ -90,7 +90,9 @@ def check_out_folder(drive_dir: Path, out: Path) -> None:
             "would overwrite its frames.csv with the run's frame labels. Choose an empty or "
             f"new folder, e.g. --out {o.parent / (o.name + '_run')}"
         )
-    clash = sorted(held & rf.artifact_names())
+    # live.rrd: `run --rerun`'s own stream, opened before this check on a machine without a
+    # display
+    clash = sorted(held & (rf.artifact_names() - {rf.LIVE_RRD}))
     if clash:
         raise ConfigError(
             f"--out {out} is not a roadsurf run folder (no {rf.RUN_JSON}) but holds "

@@ -76,3 +76,22 @@ def test_an_error_raised_while_a_signal_unwinds_counts_as_the_interruption() -> 
         assert _caused_by_interrupt(e)  # `from None` hides the cause, not the context
     assert not _caused_by_interrupt(ValueError("a real bug"))
     assert not _caused_by_interrupt(SystemExit(1))
+
+
+def test_out_holding_only_the_live_stream_is_not_refused(tmp_path: Path) -> None:
+    """`run --rerun` without a display opens OUT/live.rrd before the folder check: that folder
+    is the run's own, not a user's."""
+    from roadsurf.core.errors import ConfigError
+    from roadsurf.pipeline.run_checks import check_out_folder
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "live.rrd").write_bytes(b"stream")
+    check_out_folder(SAMPLE, out)  # no error
+    (out / "report.html").write_text("mine")
+    try:
+        check_out_folder(SAMPLE, out)
+    except ConfigError as e:
+        assert "report.html" in str(e) and "live.rrd" not in str(e)
+    else:
+        raise AssertionError("a user's report.html was not protected")

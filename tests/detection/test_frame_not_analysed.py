@@ -33,6 +33,14 @@ def test_unmeasured_frame_is_not_analysed(tmp_path: Path) -> None:
     assert fused[2].defect == 1 and fused[2].source == "cnn"
     fused = fuse_labels(cfg, labels, {"000.png": 0.5, "001.png": 0.5}, [])
     assert fused[2].defect is None and fused[2].source == NOT_ANALYSED
+    # an ok pair covers it but gave no 3D label: a confident CNN decides, as without the pair
+    from types import SimpleNamespace
+
+    cover = [SimpleNamespace(ok=True, frame_a="001.png", frame_b="002.png")]
+    fused = fuse_labels(cfg, labels, {"000.png": 0.5, "001.png": 0.5, "002.png": 0.999}, cover)  # type: ignore[arg-type]
+    assert fused[2].defect == 1 and fused[2].source == "cnn"
+    fused = fuse_labels(cfg, labels, {"000.png": 0.5, "001.png": 0.5}, [])
+    assert fused[2].defect is None and fused[2].source == NOT_ANALYSED
 
     run = tmp_path / "run"
     res = DetectionResult(defects=[], frames=labels, run_dir=run)

@@ -135,3 +135,23 @@ def test_frame_times_in_milliseconds_warn_against_the_fps(tmp_path: Path) -> Non
     (root / "frames.csv").write_text("\n".join(ms) + "\n")
     (w,) = [w for w in load_drive(root).warnings if "frame interval" in w]
     assert "100 s" in w and "milliseconds" in w and "frames.csv" in w
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_obd_at_low_speed_with_noisy_gps_is_kept(tmp_path: Path, seed: int) -> None:
+    """2 m/s with fixes scattered by σ 2 m (HDOP 0.8 stated): 1 s steps along the path read the
+    noise as distance (ratio 0.49, the right log ignored); steps 5 σ long at the chord's speed
+    do not."""
+    rng = np.random.default_rng(seed)
+    rows = []
+    for r in moving_gps_rows(-0.5, 30.0, 2.0, rate_hz=1.0):
+        t, lat, lon, *rest = r.split(",")
+        dn, de = rng.normal(0.0, 2.0, 2)
+        lat_n = float(lat) + dn / 111_195.0
+        lon_n = float(lon) + de / (111_195.0 * np.cos(np.radians(LAT0)))
+        rows.append(",".join([t, f"{lat_n:.9f}", f"{lon_n:.9f}", *rest]))
+    root = make_drive(tmp_path / "d", n=301, gps_rows=rows)
+    obd = [f"{0.1 * k:.2f},2.0" for k in range(301)]
+    (root / "obd.csv").write_text("timestamp_s,speed_mps\n" + "\n".join(obd) + "\n")
+    d = load_drive(root)
+    assert d.obd is not None and not [w for w in d.warnings if "OBD" in w], d.warnings

@@ -186,3 +186,15 @@ def test_geojson_cut_at_the_antimeridian(tmp_path):
     assert abs(a_end[0]) == 180 and a_end[0] == -b_start[0] and a_end[1] == b_start[1]
     assert -16.8 + d < a_end[1] < -16.8 + 3 * d
     assert kept == home  # a geometry that does not cross is written as it is
+
+
+def test_a_line_with_heights_across_the_antimeridian_is_cut_without_them(tmp_path):
+    from roadsurf.io.formats import split_at_antimeridian
+
+    line = [[179.9999, -16.8, 10.0], [-179.9999, -16.8, 11.0], [-179.9998, -16.8, 12.0]]
+    g = split_at_antimeridian({"type": "LineString", "coordinates": line})
+    assert g["type"] == "MultiLineString" and all(
+        len(p) == 2 for part in g["coordinates"] for p in part
+    )
+    same = [[10.0, 45.0, 1.0], [10.0001, 45.0, 2.0]]  # no crossing: heights kept as written
+    assert split_at_antimeridian({"type": "LineString", "coordinates": same})["coordinates"] == same
