@@ -81,16 +81,23 @@ def _unit_median(v: np.ndarray) -> np.ndarray:
     return m / np.linalg.norm(m)
 
 
-def heading_at_a(R_b_from_a: np.ndarray, c_b: np.ndarray) -> np.ndarray:
+def heading_at_a(
+    R_b_from_a: np.ndarray, c_b: np.ndarray, up: np.ndarray | None = None
+) -> np.ndarray:
     """(3,) unit direction of travel at camera a, in camera a, from camera b's centre c_b (3,)
     in camera a (m) and the pair's rotation. On a turn the chord a -> b points along the
     heading half-way through the turn (a circular arc): it is turned back by half the pair's
-    rotation (R_a_from_b = Rot(θ) -> Rot(θ/2)⁻¹), else a one-way turn biased the mount's yaw by
-    half the turn per pair (a 40 m U-turn: 2.5°, and every exported heading with it)."""
+    turn (R_a_from_b = Rot(θ) -> Rot(θ/2)⁻¹), else a one-way turn biased the mount's yaw by
+    half the turn per pair (a 40 m U-turn: 2.5°, and every exported heading with it). With
+    ``up`` (3,) (the road normal in camera a) only the turn about it counts: the vibration's
+    pitch and roll between the frames do not bend the path."""
     from scipy.spatial.transform import Rotation
 
-    half = Rotation.from_matrix(np.asarray(R_b_from_a, float).T).as_rotvec() / 2.0
-    f = Rotation.from_rotvec(half).inv().apply(np.asarray(c_b, float))
+    rv = Rotation.from_matrix(np.asarray(R_b_from_a, float).T).as_rotvec()
+    if up is not None:
+        u = np.asarray(up, float) / np.linalg.norm(up)
+        rv = float(rv @ u) * u
+    f = Rotation.from_rotvec(rv / 2.0).inv().apply(np.asarray(c_b, float))
     return f / np.linalg.norm(f)
 
 
@@ -114,7 +121,7 @@ def estimate_from_pairs(
             continue
         up = np.array([pl[0], pl[1], -1.0])  # plane z = a x + b y + c: normal towards camera
         ups.append(up / np.linalg.norm(up))
-        fwds.append(heading_at_a(T[:3, :3], c_b))
+        fwds.append(heading_at_a(T[:3, :3], c_b, up))
     if not ups:
         return None
     U, F = np.array(ups), np.array(fwds)

@@ -127,6 +127,27 @@ def test_heading_on_a_turn_is_the_camera_a_heading(mount, turn_deg) -> None:
     Wa, Wb = pose(0.0), pose(abs(th) if th else 0.05)
     T = np.linalg.inv(Wb) @ Wa  # cam b from cam a
     c_b = Wa[:3, :3].T @ (Wb[:3, 3] - Wa[:3, 3])
-    f = heading_at_a(T[:3, :3], c_b)
     want = forward_in_cam(M[:3, :3])
+    up = M[:3, :3].T @ np.array([0.0, 0.0, -1.0])  # the vehicle's up (-z) in camera a
+    for f in (heading_at_a(T[:3, :3], c_b), heading_at_a(T[:3, :3], c_b, up)):
+        assert np.degrees(np.arccos(np.clip(f @ want, -1, 1))) < 0.05
+
+
+def test_heading_ignores_the_vibrations_pitch_between_the_frames() -> None:
+    """Straight ahead, camera b pitched 2° by the vibration: only the turn about the road normal
+    bends the path, so the heading stays the mount's forward axis."""
+    from roadsurf.core.geometry import forward_in_cam, vehicle_from_cam_rotation, world_from_cam
+    from roadsurf.mapping.mount import heading_at_a
+
+    M = np.eye(4)
+    M[:3, :3] = vehicle_from_cam_rotation(25.0, 0.0, 0.0)
+    Wa = world_from_cam(0.0, 0.0, 0.0, np.array([0.0, 0.0, 1.1])) @ M
+    Wb = world_from_cam(0.0, 0.0, np.radians(2.0), np.array([0.0, 0.4, 1.1])) @ M
+    T = np.linalg.inv(Wb) @ Wa
+    c_b = Wa[:3, :3].T @ (Wb[:3, 3] - Wa[:3, 3])
+    up = M[:3, :3].T @ np.array([0.0, 0.0, -1.0])
+    want = forward_in_cam(M[:3, :3])
+    f = heading_at_a(T[:3, :3], c_b, up)
     assert np.degrees(np.arccos(np.clip(f @ want, -1, 1))) < 0.05
+    g = heading_at_a(T[:3, :3], c_b)  # the whole rotation halved: off by half the pitch
+    assert np.degrees(np.arccos(np.clip(g @ want, -1, 1))) > 0.5
