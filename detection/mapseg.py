@@ -165,6 +165,29 @@ class Segmentation:
     grid: GridSpec  # grid of the regions' rows/cols (the residual's, cropped to the data)
 
 
+def seed_cells(
+    depth: np.ndarray,
+    seed_t: float,
+    cell_sigma: np.ndarray | None,
+    count: np.ndarray | None,
+    noise_k: float,
+) -> np.ndarray:
+    """(H, W) bool: the seed test of ``segment`` on depths (m, positive below the road) with
+    the threshold ``seed_t`` (T_d = max(T_d floor, noise_k σ of the window)). With the dense
+    surface's ``cell_sigma`` also deeper than ``noise_k`` x the cell's own σ (NaN: no test): a
+    steep camera's far field (σ 13-67 mm at 55°) read 17-180 mm "defects" against a window σ
+    of 1-2 mm, the true potholes' cells read 1-3 mm. With its ``count`` also a measured cell:
+    there the dense matching failed, the sparse points' fill reads a steep camera's far field
+    decimetres off (55° at 640 x 480: 80-99 % of the false regions' cells were fills); a
+    hole-filled wall still joins its floor's seeds through the outline."""
+    seed = depth >= seed_t
+    if cell_sigma is not None:
+        seed &= depth >= noise_k * np.nan_to_num(cell_sigma, nan=0.0)
+    if count is not None:
+        seed &= count >= 1
+    return seed
+
+
 def _joined(
     lab: np.ndarray,
     objects: list,
@@ -177,9 +200,9 @@ def _joined(
 ) -> bool:
     """True when components a and b of ``lab`` are parts of one defect: cells at most
     ``gap_px`` apart, one inside the other's outline, or the road between their nearest cells
-    is not road level (its median
-    ``depth`` at least ``road_m`` below the road, or mostly ``unknown``): one pothole's floor
-    that noise cut, where two potholes have measured road between them."""
+    is not road level (its median ``depth`` at least ``road_m`` below the road, or mostly
+    ``unknown``): one pothole's floor that noise cut, where two potholes have measured road
+    between them."""
     sa, sb = objects[a - 1], objects[b - 1]
     if sa is None or sb is None:
         return False
@@ -249,18 +272,8 @@ def segment(
     rim_t = max(cfg.rim_threshold_m, cfg.rim_noise_k * noise)
     sm = smooth_nan(res, cfg.smooth_m / grid.gsd_m, min_support=0.5)
     depth_s = -np.nan_to_num(sm, nan=0.0)
-    seed = depth_s >= seed_t
+    seed = seed_cells(depth_s, seed_t, cell_sigma, count, cfg.noise_k)
     cell_s = None if cell_sigma is None else np.nan_to_num(cell_sigma, nan=0.0)
-    if cell_s is not None:
-        # T_d = max(T_d floor, noise_k σ) with the cell's own σ where it is larger than the
-        # window's: a steep camera's far field (σ 13-67 mm at 55°) read 17-180 mm "defects"
-        # against a window σ of 1-2 mm; the true potholes' cells read 1-3 mm
-        seed &= depth_s >= cfg.noise_k * cell_s
-    if count is not None:
-        # and a measured cell: there the dense matching failed, the sparse points' fill
-        # reads a steep camera's far field decimetres off (55° at 640 x 480: 80-99 % of the
-        # false regions' cells were fills); a hole-filled wall still joins its floor's seeds
-        seed &= count >= 1
     # Outline mask: deeper than the rim threshold, with small unobserved holes closed, and not
     # further from the seeds than a share of their size (no leaking along shallow undulations).
     rim = depth_s >= rim_t

@@ -24,11 +24,13 @@ from scipy import ndimage
 
 from roadsurf.core.fits import robust_sigma
 from roadsurf.detection.config import MapSegmentConfig
+from roadsurf.detection.mapseg import seed_cells
 
 if TYPE_CHECKING:
     from shapely.geometry.base import BaseGeometry
 
     from roadsurf.detection.windows import WindowSource
+    from roadsurf.io.formats import GridSpec
 
 log = logging.getLogger(__name__)
 
@@ -42,7 +44,7 @@ def raster_seeds(
     empty without the dense surface's counts (a sparse raster's cells are interpolations)."""
     grid = source.grid
     out: list[np.ndarray] = []
-    if source.read_count(0, 0, 1, 1) is None:
+    if source.read_count(0, 0, 1, 1) is None:  # no counts: a sparse surface
         return np.zeros((0, 2))
     t0 = time.perf_counter()
     cell_m2 = grid.gsd_m**2
@@ -60,14 +62,8 @@ def raster_seeds(
             n_blocks += 1
             count = source.read_count(r0, c0, h, w)
             sig = source.read_sigma(r0, c0, h, w)
-            noise = robust_sigma(res[fin])
-            t = max(cfg.depth_threshold_m, cfg.noise_k * noise)
-            depth = -np.nan_to_num(res, nan=0.0)
-            deep = fin & (depth >= t)
-            if count is not None:
-                deep &= count >= 1
-            if sig is not None:
-                deep &= depth >= cfg.noise_k * np.nan_to_num(sig, nan=np.inf)
+            t = max(cfg.depth_threshold_m, cfg.noise_k * robust_sigma(res[fin]))
+            deep = fin & seed_cells(-np.nan_to_num(res, nan=0.0), t, sig, count, cfg.noise_k)
             if deep.sum() < min_cells:
                 continue
             lab, n = ndimage.label(deep, structure=np.ones((3, 3), bool))
@@ -85,7 +81,7 @@ def raster_seeds(
     return seeds
 
 
-def _touches(grid, r0: int, c0: int, h: int, w: int, observed: BaseGeometry) -> bool:  # noqa: ANN001
+def _touches(grid: GridSpec, r0: int, c0: int, h: int, w: int, observed: BaseGeometry) -> bool:
     from shapely.geometry import box
 
     (x0, y0), (x1, y1) = grid.xy_from_rowcol(np.array([r0, r0 + h]), np.array([c0, c0 + w]))

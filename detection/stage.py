@@ -152,8 +152,11 @@ def _detect(
             # No pairs: windows around the deep map points (no per-pair evidence to seed them).
             deep = -pts[1] >= cfg.map.depth_threshold_m
             seeds_xy = pts[0][deep]
-        observed = mapped_area(surface, pairs, footprints)
-        if cfg.map.raster_seeds and per_pair and getattr(surface, "count_path", None):
+        dense_seeds = cfg.map.raster_seeds and per_pair and getattr(surface, "count_path", None)
+        observed = (
+            mapped_area(surface, pairs, footprints) if dense_seeds or cfg.rut.enabled else None
+        )
+        if dense_seeds:
             seeds_xy = np.vstack([seeds_xy, raster_seeds(surface, cfg.map, observed)])
         try:
             t0 = time.perf_counter()

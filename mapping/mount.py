@@ -31,6 +31,7 @@ from roadsurf.core.geometry import (
     vehicle_from_cam_rotation,
     vehicle_from_up_forward,
 )
+from roadsurf.reconstruction.consensus import plane_normal_cam
 
 if TYPE_CHECKING:
     from roadsurf.core.camera import Camera
@@ -93,12 +94,24 @@ def heading_at_a(
     pitch and roll between the frames do not bend the path."""
     from scipy.spatial.transform import Rotation
 
-    rv = Rotation.from_matrix(np.asarray(R_b_from_a, float).T).as_rotvec()
-    if up is not None:
+    if up is None:
+        rv = Rotation.from_matrix(np.asarray(R_b_from_a, float).T).as_rotvec()
+    else:
         u = np.asarray(up, float) / np.linalg.norm(up)
-        rv = float(rv @ u) * u
+        rv = turn_about_rad(R_b_from_a, u) * u
     f = Rotation.from_rotvec(rv / 2.0).inv().apply(np.asarray(c_b, float))
     return f / np.linalg.norm(f)
+
+
+def turn_about_rad(R_b_from_a: np.ndarray, axis: np.ndarray) -> float:
+    """Signed angle (rad) of camera b's rotation from camera a (R_a_from_b) about ``axis``
+    (3,) in camera a: a pair's turn about its road normal, without the vibration's roll and
+    pitch between the frames."""
+    from scipy.spatial.transform import Rotation
+
+    rv = Rotation.from_matrix(np.asarray(R_b_from_a, float).T).as_rotvec()
+    u = np.asarray(axis, float)
+    return float(rv @ u) / float(np.linalg.norm(u))
 
 
 def estimate_from_pairs(
@@ -119,8 +132,8 @@ def estimate_from_pairs(
             continue
         if float(np.linalg.norm(c_b)) < MIN_BASELINE_M:
             continue
-        up = np.array([pl[0], pl[1], -1.0])  # plane z = a x + b y + c: normal towards camera
-        ups.append(up / np.linalg.norm(up))
+        up = -plane_normal_cam(pl)  # towards the camera
+        ups.append(up)
         fwds.append(heading_at_a(T[:3, :3], c_b, up))
     if not ups:
         return None

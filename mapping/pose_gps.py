@@ -14,7 +14,9 @@ from roadsurf.core.geometry import EnuReference, enu_from_lla
 from roadsurf.io.drive import Drive, GpsTrack
 from roadsurf.io.drive.types import NO_GEOREF
 from roadsurf.mapping.config import MappingConfig
+from roadsurf.mapping.mount import turn_about_rad
 from roadsurf.mapping.types import PoseReport
+from roadsurf.reconstruction.consensus import plane_normal_cam
 from roadsurf.reconstruction.types import PairResult
 
 log = logging.getLogger(__name__)
@@ -120,7 +122,7 @@ def widen_for_turns(
         ordered = sorted(pairs, key=lambda q: q[0], reverse=side == 1)[:END_PAIRS]
         acc = []
         for k, p in ordered:
-            dt = float(t[min(k + 1, len(t) - 1)] - t[k])
+            dt = float(t[k + 1] - t[k])  # consecutive frames
             theta = _yaw_rad(p)
             if dt > 0:
                 acc.append(theta * float(np.linalg.norm(p.t_b_from_a_m)) / dt**2)
@@ -145,15 +147,12 @@ def widen_for_turns(
 
 def _yaw_rad(p: PairResult) -> float:
     """|rotation| of the pair about its road normal (rad): its turn, without the vibration's
-    roll and pitch (0.5-1° a frame, which read as 1-2 m/s² at 15 fps)."""
-    import cv2
-
-    rv = cv2.Rodrigues(np.asarray(p.R_b_from_a, float))[0].ravel()
+    roll and pitch (0.5-1° a frame, which read as 1-2 m/s² at 15 fps); the whole rotation
+    without a plane."""
     pl = np.asarray(p.plane, float)
     if pl.shape != (3,) or not np.all(np.isfinite(pl)):
-        return float(np.linalg.norm(rv))
-    up = np.array([pl[0], pl[1], -1.0])
-    return abs(float(rv @ up)) / float(np.linalg.norm(up))
+        return float(np.arccos(np.clip((np.trace(p.R_b_from_a) - 1.0) / 2.0, -1.0, 1.0)))
+    return abs(turn_about_rad(p.R_b_from_a, plane_normal_cam(pl)))
 
 
 def enu_reference(g: GpsTrack, t: np.ndarray) -> EnuReference:

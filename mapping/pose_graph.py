@@ -24,6 +24,7 @@ from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.grade import up_axes_in_cam
 from roadsurf.mapping.pose_gps import GpsFixes, interp_weights
 from roadsurf.mapping.types import PoseReport
+from roadsurf.reconstruction.consensus import plane_normal_cam
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
@@ -156,8 +157,7 @@ class PoseGraph:
         for p in ok_pairs if cfg.tilt_prior_axis == "road_normal" else []:
             pl = np.asarray(p.plane, float)
             if np.all(np.isfinite(pl)):
-                v = np.array([pl[0], pl[1], -1.0])
-                n_up[pos_of[p.index_a]] = v / np.linalg.norm(v)
+                n_up[pos_of[p.index_a]] = -plane_normal_cam(pl)
         self.n_up = n_up
         self.s_tilt = math.radians(cfg.tilt_sigma_deg)
 

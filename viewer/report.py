@@ -12,7 +12,7 @@ from pathlib import Path
 
 from roadsurf.core.atomic import write_text_atomic
 from roadsurf.core.errors import RoadsurfError
-from roadsurf.io.runfolder import REPORT_HTML, REPORT_JSON, RUN_JSON
+from roadsurf.io.runfolder import REPORT_HTML, REPORT_JSON, RUN_JSON, is_run_folder
 from roadsurf.viewer.config import ViewerConfig
 from roadsurf.viewer.report_figures import evidence_section, figures_section
 from roadsurf.viewer.report_sections import (
@@ -59,7 +59,7 @@ def write_report(
     """Build the HTML report of a run folder; returns its path (default RUN/report.html)."""
     cfg = cfg or ViewerConfig()
     rd = Path(run_dir)
-    if rd.is_dir() and not any((rd / n).is_file() for n in (REPORT_JSON, RUN_JSON)):
+    if rd.is_dir() and not is_run_folder(rd):
         raise RoadsurfError(
             f"{rd}: not a roadsurf run folder (no {REPORT_JSON}, no {RUN_JSON}); give the "
             "--out folder of `roadsurf run`"

@@ -56,6 +56,13 @@ EVALUATION_JSON = "evaluation.json"
 EVALUATION_MD = "evaluation.md"
 
 
+def is_run_folder(path: str | Path) -> bool:
+    """True when ``path`` holds a roadsurf run: its run.json (written first), or the report.json
+    of a run older than run.json."""
+    p = Path(path)
+    return (p / RUN_JSON).is_file() or (p / REPORT_JSON).is_file()
+
+
 def artifact_names() -> frozenset[str]:
     """Every file or folder name a run writes directly below its folder (``--out`` checks
     them before writing into a folder that is not yet a run)."""

@@ -70,7 +70,8 @@ def drive_identity(drive_dir: str | Path) -> dict[str, Any]:
 
 def check_out_folder(drive_dir: Path, out: Path) -> None:
     """The run never writes inside the drive (its frames.csv would be overwritten by the run's
-    frame labels) nor into an existing file."""
+    frame labels), into an existing file, into another drive's folder, nor into a folder that
+    is not a run and holds a name the run writes (the user's file would be replaced)."""
     d, o = drive_dir.resolve(), out.resolve()
     if o == d or d in o.parents:
         raise ConfigError(
@@ -80,7 +81,7 @@ def check_out_folder(drive_dir: Path, out: Path) -> None:
         )
     if o.exists() and not o.is_dir():
         raise ConfigError(f"--out {out} is an existing file, not a folder. Choose another --out.")
-    if not o.is_dir() or (o / rf.RUN_JSON).is_file() or (o / rf.REPORT_JSON).is_file():
+    if not o.is_dir() or rf.is_run_folder(o):
         return  # new, or a run folder (claim_run_folder checks whose)
     held = {p.name for p in o.iterdir()}
     drive_files = sorted(held & {df.CAMERA_YAML, df.FRAMES_DIR, *df.GPS_FILES})
