@@ -45,6 +45,7 @@ class World:
     base_waves: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
     render_gsd_m: float = 0.001
     _relief: dict = field(default_factory=dict, repr=False)  # pothole index -> relief shadow
+    _lateral_slope: np.ndarray | None = field(default=None, repr=False)  # (T,) d lateral / ds
 
     # ---- derived helpers
     @property
@@ -92,6 +93,10 @@ class World:
         z += c.camera_height_m + float(np.interp(t, tr.t, tr.dh))
         hd = math.degrees(float(self.route.heading_at(np.array([s]))[0]))
         hd += math.degrees(float(np.interp(t, tr.t, tr.yaw)))
+        # the nose follows the path: the lateral wander turns the vehicle by its slope
+        # d(lateral)/ds (+ = moving right = clockwise); without it the vehicle crabbed by that
+        # slope (a 36-frame drive: 0.2-0.3°, which roadsurf reads, rightly, as mount yaw)
+        hd += math.degrees(math.atan(float(np.interp(t, tr.t, self.lateral_slope()))))
         roll = float(np.interp(t, tr.t, tr.roll))
         # a vehicle's body follows the road: pitched nose-up by the road's slope along its
         # heading between its axles (WHEELBASE_M; grade and long-wave undulation), plus the
@@ -106,6 +111,15 @@ class World:
         T = world_from_cam(hd % 360.0, roll, pitch, np.array([xy[0], xy[1], z]))
         R = T[:3, :3] @ c.vehicle_from_cam() if c.mounted else T[:3, :3].copy()
         return Pose(t, T[:3, 3].copy(), R, hd % 360.0, roll, pitch)
+
+    def lateral_slope(self) -> np.ndarray:
+        """(T,) d(lateral)/d(arc length) along the dense trajectory (-), computed once."""
+        if self._lateral_slope is None:
+            tr = self.traj
+            ds, dl = np.gradient(tr.s, tr.t), np.gradient(tr.lateral, tr.t)
+            moving = np.abs(ds) > 1e-6
+            self._lateral_slope = np.where(moving, dl / np.where(moving, ds, 1.0), 0.0)
+        return self._lateral_slope
 
     def camera_path_lateral(self, s: np.ndarray) -> np.ndarray:
         """Lateral offset of the camera where it first passes arc length s (m): a revisit's

@@ -71,8 +71,9 @@ def trajectory_metrics(est: dict[str, Any], truth: dict[str, Any]) -> dict[str, 
     ea = e @ R.T + tr
     err_a = np.linalg.norm(ea - t, axis=1)
     # relative drift (relative pose error): the displacement over windows of 5 m of true travel,
-    # each expressed in its own vehicle frame (heading), so a global heading offset does not
-    # count; UTM grid north vs true north is the same for both and cancels too.
+    # each expressed in its own vehicle frame (heading). A rotation shared by the positions and
+    # the headings cancels (UTM grid north vs true north too); an offset of the headings alone
+    # counts in full: a mount yaw error of e rad reads as e x 100 % drift.
     he = np.radians(est["heading_deg"][[a for a, _ in pairs]])
     ht = np.radians(truth["heading_deg"][[b for _, b in pairs]])
     if not np.all(np.isfinite(he)):
