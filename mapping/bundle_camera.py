@@ -50,6 +50,7 @@ from roadsurf.core.fits import fit_plane_z_trimmed, plane_signed_distance
 from roadsurf.io import runfolder as rf
 from roadsurf.io.drive import Drive
 from roadsurf.mapping.bundle_terms import pair_translation, true_px_from_observed_px
+from roadsurf.mapping.pairscale import rescaled_pairs
 from roadsurf.mapping.types import Trajectory
 
 if TYPE_CHECKING:
@@ -97,11 +98,13 @@ def later_stage_inputs(
     camera on the mount the poses used (given or estimated: ``traj.mount_deg``) and with the
     bundle's refined intrinsics where it estimated them, the pairs re-derived with them
     (``refined_inputs``). ``pipeline.run`` and the benchmarks that re-run a stage on a finished
-    run folder call this one function."""
+    run folder call this one function. Pairs whose scale disagrees with the trajectory's are
+    rescaled to it (``mapping.pairscale``)."""
     if traj.mount_deg is not None and traj.mount_deg != drive.camera.mount_deg:
         camera = dataclasses.replace(drive.camera, mount_deg=traj.mount_deg)
         drive = dataclasses.replace(drive, camera=camera)
-    return refined_inputs(drive, pairs, traj, run_dir, plane_trim_k)
+    drive, pairs = refined_inputs(drive, pairs, traj, run_dir, plane_trim_k)
+    return drive, rescaled_pairs(pairs, traj)
 
 
 def refined_pairs(

@@ -153,6 +153,10 @@ class MappingConfig:
     local_fit_window_m: float = 1.5  # side of the window for the local road-surface fit (m)
     local_fit_cell_m: float = 0.25  # cell size of the local fit's anchor grid (m)
     local_fit_inlier_m: float = 0.008  # points further than this from the fit are not road (m)
+    # side of a coarse window fitted first (m; 0 or <= local_fit_window_m = off): a pothole
+    # wider than the local window fills some windows, whose fits would follow its floor; the
+    # coarse fit spans it and the local fit starts from the points near the coarse road
+    local_fit_bridge_m: float = 4.0
     align_patches: bool = True  # remove per-pair height offset/tilt against the fused surface
     # ---------------------------------------------------------------- rasters / exports
     # ground sampling distance of surface.tif / mosaic.tif with the sparse surface (m); the
@@ -306,6 +310,7 @@ class MappingConfig:
         "local_fit_window_m": "(0, inf)",
         "local_fit_cell_m": "(0, inf)",
         "local_fit_inlier_m": "(0, inf)",
+        "local_fit_bridge_m": "[0, inf); 0 = off",
         "gsd_m": "(0, 1]; a raster cell above 1 m is a unit mistake (cm typed as m?)",
         "tile_px": "[16, 65536]; smaller tiles would be millions of files",
         "tiled_vrt_min_tiles": "[0, inf)",

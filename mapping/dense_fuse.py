@@ -57,6 +57,10 @@ log = logging.getLogger(__name__)
 
 NOBS = rf.SURFACE_NOBS  # raster of the samples kept per cell (count, uint8, 0 = none)
 SIGMA = rf.SURFACE_SIGMA  # raster of the σ of each cell's height (m)
+# a pair levelled on the local road instead of its most populous plane needs this many of its
+# points near the road (and this share of them)
+_MIN_ROAD_POINTS = 200
+_MIN_ROAD_SHARE = 0.03
 
 
 def dense_gsd_m(cfg: MappingConfig, cam: Camera, traj: Trajectory, road_z: np.ndarray) -> float:
@@ -228,13 +232,16 @@ class DenseSurface:
             dh.height_m[vv, uu].astype(float), uu.astype(float), vv.astype(float)
         )
         Xw = X @ R.T + C
+        road = self.surf.height(Xw[:, :2])
         if self.cfg.dense_reference == "pair_plane":
             r = Xw[:, 2]
         else:
-            r = Xw[:, 2] - self.surf.height(Xw[:, :2])
+            r, road = Xw[:, 2] - road, np.zeros_like(road)
         coef, at = _robust_plane(
-            Xw[:, :2], r, self.cfg.local_fit_inlier_m, self.cfg.dense_reference != "pair_plane"
-        )
+            Xw[:, :2], r, self.cfg.local_fit_inlier_m, self.cfg.dense_reference != "pair_plane",
+            road,
+        )  # fmt: skip
+
         v = dh.valid
         return _PairDense(
             k,
@@ -371,15 +378,19 @@ def surface_height_grid(surf: LocalSurface, e: np.ndarray, n: np.ndarray, gsd: f
 
 
 def _robust_plane(
-    xy: np.ndarray, r: np.ndarray, inlier_m: float, near_zero: bool
+    xy: np.ndarray, r: np.ndarray, inlier_m: float, near_zero: bool, road: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """(a, b, c) and the centre (e0, n0) of the road plane r ≈ a + b (e - e0) + c (n - n0) in
     the finite residuals, then refitted to the points within max(3 MAD, 3 mm) of it. The start
     is the plane 0 (``near_zero``: residuals to a surface already fitted across pairs; points
     within ``inlier_m`` of it) or, when that holds too few points or without one, the plane with
     most points within 3 mm among 3-point samples (RANSAC): a least-squares start is pulled
-    off the road by a pothole that fills half the view, and trimming never recovers. Zeros when
-    too few points."""
+    off the road by a pothole that fills half the view, and trimming never recovers. ``road``
+    (N,): the local road surface at xy in r's terms (NaN: none); a start plane that lies more
+    than ``inlier_m`` below it while the points within ``inlier_m`` of it lie more than that over
+    the start (a pothole's floor filling most of the view holds most points within 3 mm of one
+    plane) is replaced by those points, when there are enough, and the refit keeps to them (a
+    pair's own offset moves all its points alike and passes). Zeros when too few points."""
     m = np.isfinite(r)
     if m.sum() < 50:
         return np.zeros(3), np.zeros(2)
@@ -388,20 +399,23 @@ def _robust_plane(
     y = r[m]
     band = 0.003
     keep = np.abs(y) < inlier_m if near_zero else np.zeros(len(y), bool)
+    gate = np.ones(len(y), bool)
     if keep.sum() < 0.2 * len(y):
-        rng = np.random.default_rng(0)
-        sub = rng.choice(len(y), min(len(y), 3000), replace=False)
-        # 200 3-point planes at once; degenerate triples (collinear) score nothing
-        idx = sub[rng.integers(0, len(sub), (200, 3))]
-        M, b = A[idx], y[idx]
-        ok = np.abs(np.linalg.det(M)) > 1e-12
-        coefs = np.zeros((200, 3))
-        coefs[ok] = np.linalg.solve(M[ok], b[ok][..., None])[..., 0]
-        As, ys = A[sub], y[sub]
-        pred = coefs[:, :1] + coefs[:, 1:2] * As[:, 1] + coefs[:, 2:3] * As[:, 2]
-        n_in = np.where(ok, (np.abs(ys - pred) < band).sum(axis=1), -1)
-        best = coefs[int(np.argmax(n_in))]
-        keep = np.abs(y - (best[0] + best[1] * A[:, 1] + best[2] * A[:, 2])) < band
+        keep = _ransac_band(A, y, np.arange(len(y)), band)
+    if road is not None:
+        ry = np.asarray(road, float)[m]
+        fin = np.isfinite(ry)
+        near = fin & (np.abs(y - ry) < inlier_m)
+        if keep.sum() >= 3 and near.sum() >= max(_MIN_ROAD_POINTS, _MIN_ROAD_SHARE * len(y)):
+            c0 = np.linalg.lstsq(A[keep], y[keep], rcond=None)[0]
+            below = np.median((A @ c0 - ry)[fin])  # the start plane under the road (m)
+            over = np.median((y - A @ c0)[near])  # the road's points over the start plane (m)
+            if below < -inlier_m and over > inlier_m:
+                # the densest plane among the points near the road (the upper walls are near
+                # it too), and the refit stays among them: else it takes in the walls and
+                # walks back down into the floor
+                keep = _ransac_band(A, y, np.flatnonzero(near), band)
+                gate = near
     coef = np.zeros(3)
     for _ in range(8):
         if keep.sum() < 20:
@@ -409,8 +423,27 @@ def _robust_plane(
         coef = np.linalg.lstsq(A[keep], y[keep], rcond=None)[0]
         res = y - A @ coef
         mad = MAD_TO_SIGMA * float(np.median(np.abs(res[keep])))
-        new = np.abs(res) < max(3 * mad, band)
+        new = (np.abs(res) < max(3 * mad, band)) & gate
         if np.array_equal(new, keep):
             break
         keep = new
     return coef, at
+
+
+def _ransac_band(A: np.ndarray, y: np.ndarray, among: np.ndarray, band: float) -> np.ndarray:
+    """(N,) bool: the points within ``band`` (m) of the plane y ≈ A coef (A (N, 3): 1, dx, dy)
+    that holds most of the points ``among`` (indices) within it, out of 200 planes through 3
+    of them (a fixed seed: the same pair levels the same way)."""
+    rng = np.random.default_rng(0)
+    sub = rng.choice(among, min(len(among), 3000), replace=False)
+    # 200 3-point planes at once; degenerate triples (collinear) score nothing
+    idx = sub[rng.integers(0, len(sub), (200, 3))]
+    M, b = A[idx], y[idx]
+    ok = np.abs(np.linalg.det(M)) > 1e-12
+    coefs = np.zeros((200, 3))
+    coefs[ok] = np.linalg.solve(M[ok], b[ok][..., None])[..., 0]
+    As, ys = A[sub], y[sub]
+    pred = coefs[:, :1] + coefs[:, 1:2] * As[:, 1] + coefs[:, 2:3] * As[:, 2]
+    n_in = np.where(ok, (np.abs(ys - pred) < band).sum(axis=1), -1)
+    best = coefs[int(np.argmax(n_in))]
+    return np.abs(y - (best[0] + best[1] * A[:, 1] + best[2] * A[:, 2])) < band

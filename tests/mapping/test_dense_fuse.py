@@ -265,6 +265,35 @@ def test_pair_levelling_ignores_a_pothole_filling_a_third_of_the_view() -> None:
     assert abs(lsq[0] - road) > 5e-3  # what the robust start avoids
 
 
+@pytest.mark.parametrize("offset_m", [0.0, 0.004])
+def test_pair_levelling_keeps_to_the_road_when_a_pothole_fills_most_of_the_view(
+    offset_m: float,
+) -> None:
+    """A pothole's flat floor 30 mm down holds 85 % of the pair's points: the most populous
+    plane is the floor, and the trimming from a RANSAC start stays there. With the local road
+    surface (``road``) the levelling keeps to the road's 15 %, whatever the pair's own offset
+    to that surface (a few mm from its scale), and its refit does not creep into the walls."""
+    from roadsurf.mapping.dense_fuse import _robust_plane
+
+    rng = np.random.default_rng(2)
+    xy = rng.uniform(-0.5, 0.5, (20000, 2))
+    road = 0.01 * xy[:, 0]
+    z = road + offset_m + rng.normal(0, 0.0005, len(xy))
+    rr = np.maximum(np.abs(xy[:, 0]), np.abs(xy[:, 1]))  # a square bowl with 10 cm walls
+    z -= 0.03 * np.clip((0.46 - rr) / 0.1, 0, 1)
+    floor_share = float(np.mean(rr < 0.36))
+    assert floor_share > 0.5
+    alone, at = _robust_plane(xy, z, 0.008, near_zero=False)
+    assert alone[0] < -0.02  # the floor: what the road surface prevents
+    coef, at = _robust_plane(xy, z, 0.008, near_zero=False, road=road)
+    assert abs(coef[0] - (0.01 * at[0] + offset_m)) < 5e-4
+    assert abs(coef[1] - 0.01) < 2e-3 and abs(coef[2]) < 2e-3
+    # a pair that is all road but 10 mm off the surface (its own offset) keeps its own plane
+    flat = road + 0.01 + rng.normal(0, 0.0005, len(xy))
+    coef2, at2 = _robust_plane(xy, flat, 0.008, near_zero=False, road=road)
+    assert abs(coef2[0] - (0.01 * at2[0] + 0.01)) < 3e-4
+
+
 def test_cells_the_dense_matching_leaves_empty_take_the_sparse_surface(
     drive_maps: dict[str, object], monkeypatch: pytest.MonkeyPatch
 ) -> None:
