@@ -10,7 +10,7 @@ pair's frames is within 0.1-0.2 % of the drive's typical ratio to the pairs' own
 
 ``rescaled_pairs`` compares every ok pair's baseline |t| with the trajectory's, and rescales a
 pair whose ratio departs from the drive's median ratio by more than ``max(MIN_DEPARTURE,
-K_SIGMA × robust σ)``: its translation, points, plane offset, plane distances and covariances
+K_SIGMA × robust σ)`` and at most ``MAX_DEPARTURE``: its translation, points, plane offset, plane distances and covariances
 scale together (R, H and F do not depend on the scale). Only with GPS: without it the
 trajectory's baselines are the pairs' own. Pure function of the pairs and the trajectory.
 """
@@ -34,6 +34,9 @@ log = logging.getLogger(__name__)
 MIN_DEPARTURE = 0.01  # a ratio within 1 % of the drive's median is left alone (-)
 K_SIGMA = 4.0  # ... and within this many robust σ of the ratios (-)
 MIN_PAIRS = 5  # fewer ok pairs: no median to compare with
+# a pair further off than this is not a plane tilted by a defect (1-5 %) but a trajectory that
+# rests on something else there (a GPS-bridged gap, a scale the fixes disagree with): left alone
+MAX_DEPARTURE = 0.10
 
 
 def scale_ratios(pairs: list[PairResult], traj: Trajectory) -> np.ndarray:
@@ -80,13 +83,13 @@ def rescaled_pairs(pairs: list[PairResult], traj: Trajectory) -> list[PairResult
     limit = max(MIN_DEPARTURE, K_SIGMA * sigma)
     out = list(pairs)
     fixed = []
-    for k in np.flatnonzero(fin & (np.abs(rel) > limit)):
+    for k in np.flatnonzero(fin & (np.abs(rel) > limit) & (np.abs(rel) <= MAX_DEPARTURE)):
         out[k] = rescaled(pairs[k], float(ratio[k] / med))
         fixed.append(f"{pairs[k].frame_a} -> {pairs[k].frame_b} ({100 * rel[k]:+.1f} %)")
     if fixed:
         log.warning(
             "%d pair(s) disagree in scale with the trajectory by more than %.1f %% and are "
-            "rescaled to it (a defect filling the view tilts the pair's road plane): %s",
+            "rescaled to it (a defect filling the view tilts a pair's road plane): %s",
             len(fixed), 100 * limit, "; ".join(fixed[:10]) + (" ..." if len(fixed) > 10 else ""),
         )  # fmt: skip
     return out

@@ -229,3 +229,25 @@ def test_short_drive_swapped_and_static_are_named() -> None:
     )
     _, rep = poses.estimate_trajectory(MappingConfig(), syn.drive, pairs)
     assert any(w.startswith("GPS looks static over frames") for w in rep.warnings), rep.warnings
+
+
+def test_a_scale_error_within_the_height_tolerance_still_warns() -> None:
+    """A 2.5 % scale error (a focal length or camera height that far off) is inside the 5 %
+    height tolerance but many σ off: it warns, naming height_m and the focal length."""
+    syn, pairs = _rtk(scale=1.025)
+    _, rep = poses.estimate_trajectory(MappingConfig(), syn.drive, pairs)
+    msg = [w for w in rep.warnings if "focal length (fx, fy)" in w]
+    assert len(msg) == 1, rep.warnings
+    assert "may be off by -2.4%" in msg[0] or "may be off by -2.5%" in msg[0]
+    assert not any(w.startswith("camera.yaml height_m") for w in rep.warnings)
+
+
+def test_a_log_that_agrees_as_given_is_not_called_a_file_mistake() -> None:
+    """GPS 5 cm noisy logged with a 0.001 HDOP: fixes are rejected, which sends the check to the
+    GPS-file hypotheses. This straight drive mirrored east-west agrees with vision as well as the
+    log itself: no "longitude flipped" (it was named before the log as given was tried)."""
+    syn, pairs = _rtk(hdop=0.001, gps_sigma_m=0.05)
+    _, rep = poses.estimate_trajectory(MappingConfig(), syn.drive, pairs)
+    assert any("rejected as outliers" in w for w in rep.warnings), rep.warnings
+    assert not any("Fix the GPS file" in w for w in rep.warnings), rep.warnings
+    assert "gps_hypothesis" not in rep.checks
