@@ -285,8 +285,9 @@ def check(
         warn.append(
             f"GPS/visual length ratios scatter {scatter:.0f}x their own sigma between the "
             f"{len(ws)} GPS windows over {_frames(names, lo, hi)}, with GPS of "
-            f"{float(np.median(rsig)):.2f} m sigma: vision's scale changes along the drive. "
-            f"Check camera.yaml: {others}"
+            f"{float(np.median(rsig)):.2f} m sigma: either vision's scale changes along the "
+            f"drive (check camera.yaml: {others}) or the GPS clock is off the frames' (a late "
+            "clock with a changing speed; see the bundle's time_offset in poses_report.json)"
         )
     fig["ratio_scatter"] = None if not np.isfinite(scatter) else round(scatter, 2)
     for w, what in bad:

@@ -120,6 +120,10 @@ def _outliers_on_epipolar_lines(
     return float(np.mean(s < cfg.epi_inlier_px))
 
 
+# matches below which a failed pose is put down to too little overlap, not to the motion
+FEW_MATCHES = 100
+
+
 def _check_translation_parallax(
     pa: np.ndarray, pb: np.ndarray, R: np.ndarray, K: np.ndarray, min_px: float
 ) -> None:
@@ -131,11 +135,19 @@ def _check_translation_parallax(
         par = np.linalg.norm(pb - q[:, :2] / q[:, 2:3], axis=1)
     med = float(np.median(par[np.isfinite(par)])) if np.isfinite(par).any() else 0.0
     if med < min_px:
+        turn = float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
+        # few matches and a large turn: more likely a pose fitted to too little overlap (a
+        # dropped frame: 44 matches gave "41°") than a vehicle turning on the spot
+        why = (
+            f"only {len(pa)} matches fit a pose: the frames may barely overlap (a dropped "
+            "frame, a fast stretch), or the camera turned but barely moved"
+            if len(pa) < FEW_MATCHES and turn > 10.0
+            else "the camera turned but barely moved, depth is unobservable"
+        )
         raise PairFailure(
             "geometry_failed",
-            f"median displacement {med:.2f} px after removing the rotation of "
-            f"{np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))):.1f}° "
-            f"< {min_px} px: the camera turned but barely moved, depth is unobservable",
+            f"median displacement {med:.2f} px after removing the rotation of {turn:.1f}° "
+            f"< {min_px} px ({len(pa)} matches): {why}",
         )
 
 

@@ -65,3 +65,15 @@ def test_views_that_do_not_overlap_fail_with_a_status() -> None:
     for method in ("rotation_aware", "proposed"):
         res = reconstruct_matches(p.px_a, px_b, p.camera, ReconstructionConfig(method=method))
         assert res.status in STATUS_FAILED and res.reason, (res.status, res.reason)
+
+
+def test_a_failed_pose_from_few_matches_names_the_overlap() -> None:
+    """A pose fitted to a handful of matches (a dropped frame leaves little overlap) read "the
+    camera turned 41° but barely moved"; with few matches and a large turn the reason now says
+    the frames may barely overlap, and gives the count."""
+    p = make_pair(speed_mps=0.0, fps=FPS, yaw_rate_dps=30.0 * FPS, seed=1, n=60)
+    res = reconstruct_matches(p.px_a, p.px_b, p.camera, ReconstructionConfig(method="proposed"))
+    if res.status == "geometry_failed":
+        assert "matches fit a pose: the frames may barely overlap" in res.reason, res.reason
+    else:  # the displacement test before the pose caught it: also a reason
+        assert res.status in {"no_motion", "too_few_matches"}, (res.status, res.reason)
