@@ -85,11 +85,13 @@ def rescaled_pairs(pairs: list[PairResult], traj: Trajectory) -> list[PairResult
     fixed = []
     for k in np.flatnonzero(fin & (np.abs(rel) > limit) & (np.abs(rel) <= MAX_DEPARTURE)):
         out[k] = rescaled(pairs[k], float(ratio[k] / med))
-        fixed.append(f"{pairs[k].frame_a} -> {pairs[k].frame_b} ({100 * rel[k]:+.1f} %)")
+        how = "short" if rel[k] > 0 else "long"
+        fixed.append(f"{pairs[k].frame_a} -> {pairs[k].frame_b} ({100 * abs(rel[k]):.1f} % {how})")
     if fixed:
         log.warning(
             "%d pair(s) disagree in scale with the trajectory by more than %.1f %% and are "
-            "rescaled to it (a defect filling the view tilts a pair's road plane): %s",
+            "rescaled to it (a pair's scale comes from its road plane, which a defect filling "
+            "its view tilts): %s",
             len(fixed), 100 * limit, "; ".join(fixed[:10]) + (" ..." if len(fixed) > 10 else ""),
         )  # fmt: skip
     return out

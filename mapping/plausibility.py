@@ -270,10 +270,11 @@ def check(
             f"GPS distances are {ratio:.3f}x the visual ones over {_frames(names, lo, hi)} "
             f"(+/- {ratio_s:.3f}, {len(ws)} window(s)): within the {HEIGHT_TOL:.0%} the camera "
             f"height check allows, but {abs(ratio - 1) / ratio_s:.0f} sigma off, and the "
-            f"trajectory follows vision's scale. camera.yaml's height_m ({h:.3f} m; the data "
-            f"imply {h * ratio:.3f} m) or its focal length (fx, fy) may be off by "
-            f"{ratio - 1:+.1%} (mapping: bundle_refine_focal: true estimates the focal), or "
-            f"{others}"
+            f"trajectory follows vision's scale. camera.yaml's height_m may be "
+            f"{abs(1 / ratio - 1):.1%} too {'large' if ratio < 1 else 'small'} (the data imply "
+            f"{h * ratio:.3f} m for {h:.3f} m), or its focal length (fx, fy) "
+            f"{abs(ratio - 1):.1%} too {'short' if ratio < 1 else 'long'} (mapping: "
+            f"bundle_refine_focal: true estimates it), or {others}"
         )
         fig["height_implied_m"] = round(h * ratio, 4)
     if (
@@ -286,7 +287,7 @@ def check(
             f"GPS/visual length ratios scatter {scatter:.0f}x their own sigma between the "
             f"{len(ws)} GPS windows over {_frames(names, lo, hi)}, with GPS of "
             f"{float(np.median(rsig)):.2f} m sigma: either vision's scale changes along the "
-            f"drive (check camera.yaml: {others}) or the GPS clock is off the frames' (a late "
+            f"drive ({others}) or the GPS clock is off the frames' (a late "
             "clock with a changing speed; see the bundle's time_offset in poses_report.json)"
         )
     fig["ratio_scatter"] = None if not np.isfinite(scatter) else round(scatter, 2)
@@ -306,11 +307,11 @@ def _scale_causes(drive: Drive) -> str:
     cam = drive.camera
     out = []
     if not any(float(k) != 0.0 for k in cam.dist):
-        out.append("the lens distortion (dist) is missing")
+        out.append("camera.yaml has no lens distortion (dist) for a lens that has some")
     if float(cam.readout_s) <= 0.0:
-        out.append("a rolling-shutter camera's readout_s is missing")
+        out.append("no readout_s for a rolling-shutter camera")
     if not out:
-        return "dist or readout_s is wrong"
+        return "camera.yaml's dist or readout_s is wrong"
     return " or ".join(out)
 
 

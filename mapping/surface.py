@@ -7,9 +7,11 @@ local road (potholes, cracks, kerbs) are trimmed iteratively (MAD-based, never t
 ``local_fit_inlier_m``; the threshold starts wide and halves each round, so a fit that a large
 defect pulled down is walked back to the majority). A pothole wider than the window fills some
 windows whole, so a coarse fit over ``local_fit_bridge_m`` (4 m) comes first: the local fit
-starts from the points near it, and nodes with no road in their window take its height. The
-surface between nodes is bilinear, so it is continuous: there is no step at window or pair
-boundaries. Only nodes near points exist (a hash, not a bounding box).
+starts from the points near it, and holds its plane as a prior worth a few points, which decides
+only where a window holds little road. (A gate keeping points far below the coarse plane out,
+and a prior worth 2 % of a window's points, bridged 1-3 mm better but read a 4 % sag or a V
+gutter as a 1.6-2.2 m² depression 30-50 mm deep: not kept.) The surface between nodes is bilinear, so it is continuous: there is no step
+at window or pair boundaries. Only nodes near points exist (a hash, not a bounding box).
 """
 
 from __future__ import annotations
@@ -30,8 +32,7 @@ _OFF = 1 << 20  # lattice index offset so keys stay positive
 # grew with its length (135 MB for 3,000 frames at h = 3); a block is ~10 MB at h = 3
 _NODE_BLOCK = 4096
 _ROUNDS = 8  # trimming rounds of one lattice fit
-_GATE_K = 1.5  # below the coarse road by this x its threshold: never road in the local fit
-_PRIOR_SHARE = 0.02  # weight of the coarse plane in a local fit, in a median window's points
+_PRIOR_POINTS = 8.0  # weight of the coarse plane in each local fit (points spread over the window)
 _ANNEAL_START = 8.0  # the first trimming threshold, in local_fit_inlier_m (64 mm by default)
 
 
@@ -68,7 +69,6 @@ class LocalSurface:
         w0 = np.ones(len(z))
         start = _ANNEAL_START * self.inlier_m
         coarse: _Lattice | None = None
-        gate: np.ndarray | None = None
         bridge = float(cfg.local_fit_bridge_m)
         if bridge > cfg.local_fit_window_m:
             # A defect wider than the local window fills some windows: fitted alone they follow
@@ -78,11 +78,8 @@ class LocalSurface:
                                   w0, start, None)  # fmt: skip
             rc = z - coarse.height(rel)
             w0 = np.where(np.isfinite(rc), np.abs(rc) < coarse.thr, True).astype(float)
-            # points well below the coarse road never join: else each round's fit, tilted by a
-            # wall it accepted, accepts deeper points and creeps down into the floor
-            gate = ~(rc < -_GATE_K * coarse.thr)
             start = coarse.thr
-        fine = _fit_lattice(rel, z, self.cell, self.half, self.inlier_m, w0, start, coarse, gate)
+        fine = _fit_lattice(rel, z, self.cell, self.half, self.inlier_m, w0, start, coarse)
         self.node_keys, self.node_z = fine.keys, fine.z + z0
         log.debug("road surface: %d nodes fitted", len(self.node_keys))
 
@@ -120,7 +117,6 @@ def _fit_lattice(
     w0: np.ndarray,
     start_m: float,
     fallback: _Lattice | None,
-    gate: np.ndarray | None = None,
 ) -> _Lattice:
     """Vectorised robust fit on a lattice of spacing ``c`` (m): per-cell weighted moment sums,
     window sums per node by sparse lookups of the (2h)² neighbour cells, a 3×3 solve per node
@@ -129,7 +125,7 @@ def _fit_lattice(
     max(3 MAD, ``inlier_m``) (graduated: a least-squares start that a large pothole pulled down
     is walked back to the majority, the road, instead of being frozen by a wide MAD). rel (N, 2)
     and z (N,) in metres, w0 (N,) the start weights (0/1); ``fallback``'s plane is a weak prior
-    on each node (``_plane_prior``); points where ``gate`` (N,) is False never count."""
+    on each node (``_plane_prior``: it decides only where the window holds few road points)."""
     x, y = rel[:, 0], rel[:, 1]
     keys = _key(np.floor(x / c), np.floor(y / c))
     ukeys, inv = np.unique(keys, return_inverse=True)
@@ -146,9 +142,7 @@ def _fit_lattice(
         pos = np.minimum(np.searchsorted(ukeys, k), len(ukeys) - 1)
         nb_a[:, j] = np.where(ukeys[pos] == k, pos, -1)
     terms = (np.ones_like(x), x, y, x * x, x * y, y * y, z, x * z, y * z)
-    prior = (
-        None if fallback is None else _plane_prior(fallback, xn, yn, c, h, inv, nb_a, len(ukeys))
-    )
+    prior = None if fallback is None else _plane_prior(fallback, xn, yn, c, h)
     w = np.asarray(w0, float)
     anneal = float(start_m)
     out_keys, out_z, thr = nodes[:0], np.zeros(0), float(inlier_m)
@@ -174,8 +168,8 @@ def _fit_lattice(
             axis=1,
         )
         rhs = np.stack([sz, XZ, YZ], -1)
-        if prior is not None:  # the coarse plane as pseudo-points: a window whose road is one
-            pA, prhs = prior  # strip at its edge no longer extrapolates a free slope
+        if prior is not None:  # the coarse plane as a few pseudo-points: a window whose road
+            pA, prhs = prior  # is one strip at its edge does not extrapolate a free slope
             A, rhs = A + pA, rhs + prhs
             ok |= pA[:, 0, 0] > 0
         zn = np.full(len(nodes), np.nan)
@@ -188,9 +182,10 @@ def _fit_lattice(
             break
         used = good & (w > 0)
         mad = MAD_TO_SIGMA * float(np.median(np.abs(r[used]))) if used.any() else 0.0
-        thr = max(3.0 * mad, inlier_m, anneal)
-        w_new = (good & (np.abs(r) < thr) & (True if gate is None else gate)).astype(float)
-        if np.array_equal(w_new, w) and anneal <= inlier_m:
+        floor = max(3.0 * mad, inlier_m)
+        thr = max(floor, anneal)
+        w_new = (good & (np.abs(r) < thr)).astype(float)
+        if np.array_equal(w_new, w) and anneal <= floor:
             break
         w = w_new
         anneal *= 0.5
@@ -203,20 +198,15 @@ def _plane_prior(
     yn: np.ndarray,
     c: float,
     h: int,
-    inv: np.ndarray,
-    nb_a: np.ndarray,
-    n_cells: int,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The coarse fit's plane at each node (height and slopes) as normal-equation terms
-    ((nodes, 3, 3), (nodes, 3)) worth ``_PRIOR_SHARE`` of a median window's points spread over
-    the window; zero where the coarse fit has no height."""
+    ((nodes, 3, 3), (nodes, 3)) worth ``_PRIOR_POINTS`` points spread over the window; zero
+    where the coarse fit has no height."""
     at = np.column_stack([xn, yn])
     zc = coarse.height(at)
     ac = (coarse.height(at + [c, 0.0]) - coarse.height(at - [c, 0.0])) / (2 * c)
     bc = (coarse.height(at + [0.0, c]) - coarse.height(at - [0.0, c])) / (2 * c)
-    counts = np.append(np.bincount(inv, minlength=n_cells).astype(float), 0.0)
-    n_all = _window_sums(counts[None, :], nb_a)[0]
-    lam = max(8.0, _PRIOR_SHARE * float(np.median(n_all)))
+    lam = _PRIOR_POINTS
     has = np.isfinite(zc) & np.isfinite(ac) & np.isfinite(bc)
     lam_n = np.where(has, lam, 0.0)
     s2 = (h * c) ** 2 / 3.0  # variance of a coordinate spread evenly over the window

@@ -142,12 +142,12 @@ def _check_translation_parallax(
             f"only {len(pa)} matches fit a pose: the frames may barely overlap (a dropped "
             "frame, a fast stretch), or the camera turned but barely moved"
             if len(pa) < FEW_MATCHES and turn > 10.0
-            else "the camera turned but barely moved, depth is unobservable"
+            else f"the camera turned but barely moved ({len(pa)} matches), depth is unobservable"
         )
         raise PairFailure(
             "geometry_failed",
             f"median displacement {med:.2f} px after removing the rotation of {turn:.1f}° "
-            f"< {min_px} px ({len(pa)} matches): {why}",
+            f"< {min_px} px: {why}",
         )
 
 

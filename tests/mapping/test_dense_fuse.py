@@ -294,6 +294,22 @@ def test_pair_levelling_keeps_to_the_road_when_a_pothole_fills_most_of_the_view(
     assert abs(coef2[0] - (0.01 * at2[0] + 0.01)) < 3e-4
 
 
+@pytest.mark.parametrize("offset_m", [-0.014, -0.016, -0.02])
+def test_pair_levelling_is_not_taken_by_the_tail_of_a_noisy_offset_pair(offset_m: float) -> None:
+    """An all-road pair 14-20 mm under the local surface with 5 mm of height noise: the upper
+    tail of its own noise lies near the surface and over its plane, but is no density peak; the
+    pair keeps its own plane (a review found it levelled 8-10 mm off)."""
+    from roadsurf.mapping.dense_fuse import _robust_plane
+
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        xy = rng.uniform(-0.5, 0.5, (20000, 2))
+        road = 0.01 * xy[:, 0]
+        z = road + offset_m + rng.normal(0, 0.005, len(xy))
+        coef, at = _robust_plane(xy, z, 0.008, near_zero=False, road=road)
+        assert abs(coef[0] - (0.01 * at[0] + offset_m)) < 5e-4
+
+
 def test_cells_the_dense_matching_leaves_empty_take_the_sparse_surface(
     drive_maps: dict[str, object], monkeypatch: pytest.MonkeyPatch
 ) -> None:

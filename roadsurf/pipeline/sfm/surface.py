@@ -57,6 +57,7 @@ def local_surface(cfg: SfmBaselineConfig, xyz_m: np.ndarray) -> LocalSurface:
         local_fit_cell_m=cfg.local_fit_cell_m,
         local_fit_window_m=cfg.local_fit_window_m,
         local_fit_inlier_m=cfg.local_fit_inlier_m,
+        local_fit_bridge_m=0.0,  # the baseline keeps the surface it was measured with
     )
     return LocalSurface(mcfg, xyz_m, progress=False)
 
