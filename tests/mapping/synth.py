@@ -21,6 +21,7 @@ from roadsurf.core.geometry import (
     world_from_cam,
 )
 from roadsurf.io.drive import Drive, Frame, GpsTrack, ObdLog
+from roadsurf.mapping.types import Trajectory
 from roadsurf.reconstruction.types import PairResult
 
 REF = EnuReference(43.6532, -79.3832, 100.0)  # Toronto: UTM 17N, EPSG:32617
@@ -218,6 +219,20 @@ def make_synthetic(
         obd = ObdLog(timestamp_s=t.copy(), speed_mps=np.full(n, speed_mps) + rng.normal(0, 0.05, n))
     drive = Drive(root=root, camera=cam, frames=frames, gps=gps, obd=obd)
     return Synthetic(drive, pairs, W, REF, g_true)
+
+
+def true_trajectory(syn: Synthetic, reference: EnuReference | None = None) -> Trajectory:
+    """The synthetic drive's true poses as a trajectory (``reference``: its GPS origin, None =
+    a local frame); any drive with ``.drive`` and ``.world_from_cam`` will do."""
+    n = len(syn.drive.frames)
+    return Trajectory(
+        filenames=[f.filename for f in syn.drive.frames],
+        frame_indices=np.arange(n),
+        timestamp_s=np.array([f.timestamp_s for f in syn.drive.frames]),
+        world_from_cam=syn.world_from_cam,
+        source=["fused"] * n,
+        reference=reference,
+    )
 
 
 def _interp_extrap(tq: np.ndarray, t: np.ndarray, v: np.ndarray) -> np.ndarray:

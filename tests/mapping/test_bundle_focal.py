@@ -24,6 +24,7 @@ from roadsurf.mapping.bundle_terms import pair_translation
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.types import Trajectory
 from tests.mapping.bundle_synth import TrackDrive, make_track_drive
+from tests.mapping.synth import true_trajectory
 
 
 def _map_errors(syn: TrackDrive, traj: Trajectory, pairs: list) -> tuple[float, float]:
@@ -68,22 +69,9 @@ def test_a_refined_focal_gives_the_map_its_scale_and_shape() -> None:
     assert refined_camera(syn.drive.camera, rep0.bundle) is syn.drive.camera
 
 
-def _true_trajectory(syn) -> Trajectory:
-    """The synthetic drive's true poses as a trajectory."""
-    n = len(syn.drive.frames)
-    return Trajectory(
-        filenames=[f.filename for f in syn.drive.frames],
-        frame_indices=np.arange(n),
-        timestamp_s=np.array([f.timestamp_s for f in syn.drive.frames]),
-        world_from_cam=syn.world_from_cam,
-        source=["fused"] * n,
-        reference=None,
-    )
-
-
 def test_the_later_stages_get_the_refined_camera_and_pairs_from_the_run_folder(tmp_path) -> None:
     syn = make_track_drive(n=8, seed=1, density_per_m2=60)
-    traj = _true_trajectory(syn)
+    traj = true_trajectory(syn)
     # no refined intrinsics in the report: everything as it was (the same objects)
     (tmp_path / rf.POSES_REPORT).write_text(json.dumps({"bundle": {"n_tracks": 5}}))
     drive, pairs = refined_inputs(syn.drive, syn.pairs, traj, tmp_path, 3.0)
@@ -111,7 +99,7 @@ def test_a_rolling_shutter_pair_is_re_triangulated_from_its_rows_poses() -> None
         n=6, seed=1, density_per_m2=60, readout_s=0.03, px_sigma=0.0, rot_noise_deg=0.0,
         trans_noise_m=0.0, scale_noise=0.0,
     )  # fmt: skip
-    traj = _true_trajectory(syn)
+    traj = true_trajectory(syn)
     cam = syn.drive.camera
     rs = [copy.copy(p) for p in syn.pairs]
     for p in rs:

@@ -8,20 +8,7 @@ import numpy as np
 import pytest
 
 from roadsurf.mapping.pairscale import rescaled_pairs, scale_ratios
-from roadsurf.mapping.types import Trajectory
-from tests.mapping.synth import REF, make_synthetic
-
-
-def _traj(syn, reference) -> Trajectory:  # noqa: ANN001
-    n = len(syn.drive.frames)
-    return Trajectory(
-        filenames=[f.filename for f in syn.drive.frames],
-        frame_indices=np.arange(n),
-        timestamp_s=np.array([f.timestamp_s for f in syn.drive.frames]),
-        world_from_cam=syn.world_from_cam,
-        source=["fused"] * n,
-        reference=reference,
-    )
+from tests.mapping.synth import REF, make_synthetic, true_trajectory
 
 
 def _shrunk(p, s: float):  # noqa: ANN001, ANN202
@@ -34,7 +21,7 @@ def test_a_pair_read_short_is_rescaled_to_the_trajectory(caplog: pytest.LogCaptu
     syn = make_synthetic(n=12, seed=4)
     pairs = list(syn.pairs)
     pairs[5] = _shrunk(pairs[5], 0.971)  # a plane through a pothole: 2.9 % short
-    traj = _traj(syn, REF)
+    traj = true_trajectory(syn, REF)
     with caplog.at_level(logging.WARNING):
         out = rescaled_pairs(pairs, traj)
     ratios = scale_ratios(out, traj)
@@ -54,7 +41,7 @@ def test_without_gps_the_pairs_are_left_alone() -> None:
     syn = make_synthetic(n=12, seed=4)
     pairs = list(syn.pairs)
     pairs[5] = _shrunk(pairs[5], 0.97)
-    out = rescaled_pairs(pairs, _traj(syn, None))
+    out = rescaled_pairs(pairs, true_trajectory(syn))
     assert all(a is b for a, b in zip(out, pairs, strict=True))
 
 
@@ -62,7 +49,7 @@ def test_scale_noise_within_a_percent_is_left_alone() -> None:
     syn = make_synthetic(n=12, seed=4)
     rng = np.random.default_rng(0)
     pairs = [_shrunk(p, 1.0 + 0.002 * rng.standard_normal()) for p in syn.pairs]
-    out = rescaled_pairs(pairs, _traj(syn, REF))
+    out = rescaled_pairs(pairs, true_trajectory(syn, REF))
     assert all(a is b for a, b in zip(out, pairs, strict=True))
 
 
@@ -72,5 +59,5 @@ def test_a_pair_far_off_the_trajectory_is_left_as_solved() -> None:
     syn = make_synthetic(n=12, seed=4)
     pairs = list(syn.pairs)
     pairs[5] = _shrunk(pairs[5], 0.76)
-    out = rescaled_pairs(pairs, _traj(syn, REF))
+    out = rescaled_pairs(pairs, true_trajectory(syn, REF))
     assert all(a is b for a, b in zip(out, pairs, strict=True))
