@@ -389,8 +389,9 @@ def _robust_plane(
     (N,): the local road surface at xy in r's terms (NaN: none); a start plane that lies more
     than ``inlier_m`` below it while the points within ``inlier_m`` of it lie more than that over
     the start (a pothole's floor filling most of the view holds most points within 3 mm of one
-    plane) is replaced by those points, when there are enough, and the refit keeps to them (a
-    pair's own offset moves all its points alike and passes). Zeros when too few points."""
+    plane) is replaced by the densest plane among those points, when there are enough and it is
+    a density peak, and the refit keeps to them (a pair's own offset moves all its points alike
+    and passes). Zeros when too few points."""
     m = np.isfinite(r)
     if m.sum() < 50:
         return np.zeros(3), np.zeros(2)

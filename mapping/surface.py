@@ -10,8 +10,9 @@ windows whole, so a coarse fit over ``local_fit_bridge_m`` (4 m) comes first: th
 starts from the points near it, and holds its plane as a prior worth a few points, which decides
 only where a window holds little road. (A gate keeping points far below the coarse plane out,
 and a prior worth 2 % of a window's points, bridged 1-3 mm better but read a 4 % sag or a V
-gutter as a 1.6-2.2 m² depression 30-50 mm deep: not kept.) The surface between nodes is bilinear, so it is continuous: there is no step
-at window or pair boundaries. Only nodes near points exist (a hash, not a bounding box).
+gutter as a 1.6-2.2 m² depression 30-50 mm deep: not kept.) The surface between nodes is
+bilinear, so it is continuous: there is no step at window or pair boundaries. Only nodes near
+points exist (a hash, not a bounding box). Points with a NaN coordinate are left out.
 """
 
 from __future__ import annotations
@@ -55,6 +56,7 @@ class LocalSurface:
 
     def __init__(self, cfg: MappingConfig, xyz_enu_m: np.ndarray, progress: bool = True) -> None:
         xyz = check_shape("xyz_enu_m", np.asarray(xyz_enu_m, float), (None, 3))
+        xyz = xyz[np.all(np.isfinite(xyz), axis=1)]  # one NaN made the median, and all, NaN
         self.cell = float(cfg.local_fit_cell_m)
         self.half = max(1, int(round(0.5 * cfg.local_fit_window_m / self.cell)))
         self.inlier_m = float(cfg.local_fit_inlier_m)
@@ -73,7 +75,7 @@ class LocalSurface:
         if bridge > cfg.local_fit_window_m:
             # A defect wider than the local window fills some windows: fitted alone they follow
             # its floor. A coarse fit over `bridge` spans it; the local fit starts from the
-            # points near the coarse road, and nodes without road points take the coarse value.
+            # points near the coarse road and holds its plane as a prior of a few points.
             coarse = _fit_lattice(rel, z, bridge / (2 * self.half), self.half, self.inlier_m,
                                   w0, start, None)  # fmt: skip
             rc = z - coarse.height(rel)
@@ -220,10 +222,10 @@ def _plane_prior(
 
 def _bilinear(rel: np.ndarray, cell: float, keys: np.ndarray, zs: np.ndarray) -> np.ndarray:
     """Bilinear height at relative xy (N, 2) from the lattice nodes (keys, zs); NaN where no
-    node around has a height."""
+    node around has a height, or xy is not finite."""
     if len(keys) == 0:
         return np.full(len(rel), np.nan)
-    g = rel / cell
+    g = np.where(np.isfinite(rel), rel, 0.0) / cell  # (NaN rows: no key, read NaN below)
     i0 = np.floor(g[:, 0]).astype(np.int64)
     j0 = np.floor(g[:, 1]).astype(np.int64)
     fx, fy = g[:, 0] - i0, g[:, 1] - j0
@@ -241,6 +243,6 @@ def _bilinear(rel: np.ndarray, cell: float, keys: np.ndarray, zs: np.ndarray) ->
         num[hit] += w[hit] * zs[pos[hit]]
         den[hit] += w[hit]
     out = np.full(len(rel), np.nan)
-    ok = den > 1e-6
+    ok = (den > 1e-6) & np.all(np.isfinite(rel), axis=1)
     out[ok] = num[ok] / den[ok]
     return out

@@ -64,3 +64,10 @@ def test_no_false_depression_at_a_sag_a_gutter_or_a_hump() -> None:
     _, r = _shaped(hump)  # a speed hump 75 mm high, 3.7 m long
     # the hump is 75 mm: the surface follows it to within 25 mm (16 mm before the coarse fit)
     assert np.mean(r < -0.008) * area < 0.6 and np.max(np.abs(r)) < 0.025
+
+
+def test_a_nan_point_does_not_empty_the_surface() -> None:
+    xyz, road, _ = _corridor(1.5)
+    xyz[7] = np.nan
+    h = LocalSurface(MappingConfig(), xyz).height(xyz[:, :2])
+    assert np.isfinite(h[np.arange(len(h)) != 7]).mean() > 0.99 and np.isnan(h[7])
