@@ -211,6 +211,13 @@ def check_reconstruction(
             f"height_m in camera.yaml ({h:g} m is no vehicle camera height: metres expected, "
             "e.g. 1.1)",
         )
+    ro = float(drive.camera.readout_s)
+    if ro > 0:  # a frame's rows are read while the vehicle moves: less road in common
+        checks.append(
+            f"the rolling shutter (camera.yaml readout_s {1000 * ro:.0f} ms): a frame's rows "
+            f"are read over readout_s x speed of travel ({15 * ro:.2f} m at 15 m/s), which "
+            "shrinks the road two frames share; a higher frame rate or a lower speed leaves more"
+        )
     dark = _median_brightness(drive)
     if dark is not None and dark < DARK_FRAMES_DN:
         checks.insert(

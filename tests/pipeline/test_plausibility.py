@@ -102,6 +102,16 @@ def test_camera_height_in_cm_is_named_when_nothing_reconstructs() -> None:
     check_reconstruction([], syn.drive, ReconstructionConfig(), Path("RUN"))  # nothing tried
 
 
+def test_a_rolling_shutter_is_named_when_nothing_reconstructs() -> None:
+    """20 ms of readout at 15 m/s and 30 fps leaves 14 % of the road in common: the stop names
+    the readout, not only the overlap."""
+    syn = make_synthetic(n=4, seed=1)
+    syn.drive.camera = dataclasses.replace(syn.drive.camera, readout_s=0.02)
+    pairs = [failed_pair(i, "no_overlap") for i in range(3)]
+    with pytest.raises(NoReconstructionError, match=r"rolling shutter \(camera.yaml readout_s 20"):
+        check_reconstruction(pairs, syn.drive, ReconstructionConfig(), Path("RUN"))
+
+
 def test_dark_frames_are_named_when_nothing_reconstructs(tmp_path: Path) -> None:
     """Frames too dark for features (median 12 DN) fail as too few matches; the error names
     the exposure first, with the measured brightness, not only the overlap and min_matches."""
