@@ -99,12 +99,12 @@ def later_stage_inputs(
     bundle's refined intrinsics where it estimated them, the pairs re-derived with them
     (``refined_inputs``). ``pipeline.run`` and the benchmarks that re-run a stage on a finished
     run folder call this one function. Pairs whose scale disagrees with the trajectory's are
-    rescaled to it (``mapping.pairscale``)."""
+    rescaled to it (``mapping.pairscale``; its warning joins ``drive.warnings``, the report's)."""
     if traj.mount_deg is not None and traj.mount_deg != drive.camera.mount_deg:
         camera = dataclasses.replace(drive.camera, mount_deg=traj.mount_deg)
         drive = dataclasses.replace(drive, camera=camera)
     drive, pairs = refined_inputs(drive, pairs, traj, run_dir, plane_trim_k)
-    return drive, rescaled_pairs(pairs, traj)
+    return drive, rescaled_pairs(pairs, traj, drive.warnings)
 
 
 def refined_pairs(

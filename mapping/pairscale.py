@@ -68,9 +68,12 @@ def rescaled(p: PairResult, s: float) -> PairResult:
     return q
 
 
-def rescaled_pairs(pairs: list[PairResult], traj: Trajectory) -> list[PairResult]:
+def rescaled_pairs(
+    pairs: list[PairResult], traj: Trajectory, warnings: list[str] | None = None
+) -> list[PairResult]:
     """The pairs, those whose scale departs from the trajectory's (module docstring) rescaled
-    to it; the others the same objects. Unchanged without GPS (``traj.reference`` None)."""
+    to it; the others the same objects. Unchanged without GPS (``traj.reference`` None). The
+    warning naming them is logged and appended to ``warnings`` (the run report's) if given."""
     if traj.reference is None or len(pairs) < MIN_PAIRS:
         return pairs
     ratio = scale_ratios(pairs, traj)
@@ -88,10 +91,13 @@ def rescaled_pairs(pairs: list[PairResult], traj: Trajectory) -> list[PairResult
         how = "short" if rel[k] > 0 else "long"
         fixed.append(f"{pairs[k].frame_a} -> {pairs[k].frame_b} ({100 * abs(rel[k]):.1f} % {how})")
     if fixed:
-        log.warning(
-            "%d pair(s) disagree in scale with the trajectory by more than %.1f %% and are "
-            "rescaled to it (a pair's scale comes from its road plane, which a defect filling "
-            "its view tilts): %s",
-            len(fixed), 100 * limit, "; ".join(fixed[:10]) + (" ..." if len(fixed) > 10 else ""),
+        msg = (
+            f"{len(fixed)} pair(s) disagree in scale with the trajectory by more than "
+            f"{100 * limit:.1f} % and are rescaled to it (a pair's scale comes from its road "
+            "plane, which a defect filling its view tilts): "
+            + "; ".join(fixed[:10]) + (" ..." if len(fixed) > 10 else "")
         )  # fmt: skip
+        log.warning("%s", msg)
+        if warnings is not None:
+            warnings.append(msg)
     return out

@@ -22,8 +22,10 @@ def test_a_pair_read_short_is_rescaled_to_the_trajectory(caplog: pytest.LogCaptu
     pairs = list(syn.pairs)
     pairs[5] = _shrunk(pairs[5], 0.971)  # a plane through a pothole: 2.9 % short
     traj = true_trajectory(syn, REF)
+    report: list[str] = []
     with caplog.at_level(logging.WARNING):
-        out = rescaled_pairs(pairs, traj)
+        out = rescaled_pairs(pairs, traj, report)
+    assert len(report) == 1 and "000005.png -> 000006.png (2." in report[0], report
     ratios = scale_ratios(out, traj)
     assert abs(ratios[5] / np.median(ratios) - 1.0) < 1e-3
     # points, plane offset, distances and covariances scale with the translation
