@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from roadsurf.core.fits import MAD_TO_SIGMA
+from roadsurf.core.fits import robust_sigma
 from roadsurf.mapping.types import Trajectory
 
 if TYPE_CHECKING:
@@ -82,7 +82,7 @@ def rescaled_pairs(
         return pairs
     med = float(np.median(ratio[fin]))
     rel = ratio / med - 1.0
-    sigma = MAD_TO_SIGMA * float(np.median(np.abs(rel[fin])))
+    sigma = robust_sigma(rel)  # (rel is about its median, 0; NaN entries ignored)
     limit = max(MIN_DEPARTURE, K_SIGMA * sigma)
     out = list(pairs)
     fixed = []
