@@ -13,6 +13,7 @@ import numpy as np
 from roadsurf.core.geometry import EnuReference, enu_from_lla
 from roadsurf.io.drive import Drive, GpsTrack
 from roadsurf.io.drive.types import NO_GEOREF
+from roadsurf.mapping.antenna import cam_from_antenna
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.mount import turn_about_rad
 from roadsurf.mapping.types import PoseReport
@@ -58,9 +59,9 @@ def gps_enu(
     ref = enu_reference(g, t)
     alt0 = ref.alt_m
     enu = enu_from_lla(g.lat_deg, g.lon_deg, np.where(has_alt, alt, alt0), ref)
-    hdop = np.asarray(g.hdop, float)
-    sigma = np.where(np.isfinite(hdop), hdop * cfg.gps_sigma_per_hdop_m, cfg.gps_sigma_m)
-    sigma = np.maximum(sigma, cfg.gps_sigma_min_m)
+    sigma = fix_sigma_m(cfg, g)
+    if drive.camera.gps_antenna_m is not None:
+        enu = cam_from_antenna(enu, sigma, has_alt, np.asarray(drive.camera.gps_antenna_m))
     # fixes usable as measurements: inside the frame time span, or close enough to its ends
     # for the end frames' constant-velocity extrapolation (σ inflated by the acceleration)
     margin = gps_margin_s(cfg, t)
@@ -82,6 +83,35 @@ def gps_enu(
         orig_index=idx,
     )
     return ref, gps
+
+
+def fix_sigma_m(cfg: MappingConfig, g: GpsTrack) -> np.ndarray:
+    """(N,) horizontal σ per axis (m) of each fix: with ``gps_sigma_from_log`` the receiver's
+    own (gps.csv 'sigma_m', NMEA GST), else by its fix quality when RTK
+    (``gps_sigma_rtk_fixed_m`` / ``_float_m``); otherwise (the default) HDOP x
+    ``gps_sigma_per_hdop_m``, else ``gps_sigma_m``; at least ``gps_sigma_min_m``."""
+    hdop = np.asarray(g.hdop, float)
+    sigma = np.where(np.isfinite(hdop), hdop * cfg.gps_sigma_per_hdop_m, cfg.gps_sigma_m)
+    if not cfg.gps_sigma_from_log:
+        if g.states_accuracy:
+            log.info(
+                "poses: %s states the fixes' accuracy (median σ %s, %d RTK fixed); weighing "
+                "them by HDOP (mapping.gps_sigma_from_log: false, the default)",
+                g.source, _median_text(g.sigma_m), int(np.sum(g.quality == 4)),
+            )  # fmt: skip
+        return np.maximum(sigma, cfg.gps_sigma_min_m)
+    q = np.asarray(g.quality)
+    sigma = np.where(q == 4, cfg.gps_sigma_rtk_fixed_m, sigma)
+    sigma = np.where(q == 5, cfg.gps_sigma_rtk_float_m, sigma)
+    stated = np.asarray(g.sigma_m, float)
+    sigma = np.where(np.isfinite(stated), stated, sigma)
+    return np.maximum(sigma, cfg.gps_sigma_min_m)
+
+
+def _median_text(a: np.ndarray) -> str:
+    v = np.asarray(a, float)
+    v = v[np.isfinite(v)]
+    return f"{float(np.median(v)):.3f} m" if v.size else "not given"
 
 
 # consecutive pairs at each end of the drive whose turn sets the extrapolation's acceleration

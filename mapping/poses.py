@@ -122,10 +122,14 @@ def _fingerprint(
     fp.add_json({k: v for k, v in to_dict(cfg).items() if k not in NOT_IN_FINGERPRINT})
     fp.add_json([(f.filename, f.timestamp_s) for f in drive.frames], default_str=False)
     fp.add_text(f"mount:{drive.camera.mount_deg}")
+    if drive.camera.gps_antenna_m is not None:
+        fp.add_text(f"antenna:{drive.camera.gps_antenna_m}")
     if drive.gps is not None:
         g = drive.gps
         for a in (g.timestamp_s, g.lat_deg, g.lon_deg, g.hdop):
             fp.add_array(a)
+        if cfg.gps_sigma_from_log and g.states_accuracy:  # else unused: keep the key
+            fp.add_text("accuracy").add_array(g.sigma_m).add_array(g.quality)
         fp.add_text("alt").add_array(g.alt_m)
         fp.add_text(f"datum:{vertical_datum(cfg, drive)}")
     if drive.obd is not None:

@@ -133,6 +133,10 @@ class SimConfig:
     gps_rate_hz: float | None = None  # GPS rate (Hz); None = the profile's
     gps_sigma_m: float | None = None  # GPS white noise per axis σ (m); None = the profile's
     gps_bias_m: float | None = None  # std of the slow random-walk bias after 60 s (m)
+    # the GPS antenna from the camera centre, [forward, left, up] in the vehicle frame (m):
+    # fixes are the antenna's, on the vehicle's pose with its vibration; written to camera.yaml
+    # gps_antenna_m when not all 0 (a survey rig measures it; mapping.antenna)
+    gps_antenna_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
     gps_dropouts: int = 0  # number of GPS outages
     gps_dropout_s: float = 2.0  # length of one GPS outage (s)
     obd_rate_hz: float = 10.0  # OBD speed rate (Hz)
@@ -141,6 +145,7 @@ class SimConfig:
     # valid values (interval notation; see roadsurf.core.config); a tuple's range holds for
     # each of its values. Upper bounds only where a larger value is a unit mistake
     RANGES: ClassVar[dict[str, str]] = {
+        "gps_antenna_m": "[-10, 10]",
         "origin_lat_deg": "[-90, 90]",
         "origin_lon_deg": "[-180, 180]",
         "origin_alt_m": "[-1000, 10000]; roads lie between the Dead Sea and the Andes",

@@ -362,6 +362,8 @@ def write_camera_yaml(cfg: SimConfig, out: Path) -> None:
         text += "".join(f"{k}: {v!r}\n" for k, v in zip(keys, cam.mount_deg, strict=True))
     if cam.readout_s > 0:  # a rolling shutter (docs/formats.md)
         text += f"readout_s: {cam.readout_s!r}\n"
+    if any(cfg.gps_antenna_m):  # the fixes are the antenna's (simulation.sensors)
+        text += f"gps_antenna_m: [{', '.join(repr(float(v)) for v in cfg.gps_antenna_m)}]\n"
     if cfg.write_mask:  # the image mask, relative to camera.yaml's folder (docs/simulator.md)
         text += f"mask: {MASK_NAME}\n"
     write_masks(cfg, out)

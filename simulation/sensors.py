@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 
 from roadsurf.simulation.config import SimConfig
+from roadsurf.simulation.route import Pose
 from roadsurf.simulation.world import World
 
 # GPS profiles: rate (Hz), white noise σ per horizontal axis (m), bias std after 60 s (m), HDOP.
@@ -126,13 +127,17 @@ class GpsLog:
 
 
 def simulate_gps(world: World, rng: np.random.Generator) -> GpsLog:
-    """GPS fixes of the camera centre: truth + random-walk bias + white noise, with outages."""
+    """GPS fixes of the antenna (the camera centre + ``gps_antenna_m`` on the vehicle's pose):
+    truth + random-walk bias + white noise, with outages."""
     cfg = world.cfg
     p = gps_params(cfg)
     tr = world.traj
     period = 1.0 / p["rate_hz"]
     t = np.arange(tr.t[0] + 0.1, tr.t[-1] - 0.05, period)
-    pos = np.array([world.pose(float(ti)).C for ti in t])
+    # [forward, left, up] in the vehicle frame of a nadir camera (x right, y back, z down)
+    f, left, u = (float(v) for v in cfg.gps_antenna_m)
+    arm = np.array([-left, -f, -u])
+    pos = np.array([_antenna(world.pose(float(ti)), arm, world) for ti in t])
     n = len(t)
     q = p["bias_m"] / math.sqrt(60.0)  # random-walk intensity (m / sqrt(s))
     bias = rng.normal(0, p["bias_m"] / 2, 3) + np.cumsum(
@@ -163,6 +168,14 @@ def simulate_gps(world: World, rng: np.random.Generator) -> GpsLog:
         hdop=hdop,
         dropped=dropped,
     )
+
+
+def _antenna(pose: Pose, arm: np.ndarray, world: World) -> np.ndarray:
+    """(3,) the antenna at ``arm`` (the nadir camera's axes, m) on the vehicle's ``pose``."""
+    if not arm.any():
+        return np.asarray(pose.C, float)
+    R_world_from_vehicle = pose.R @ world.cfg.vehicle_from_cam().T if world.cfg.mounted else pose.R
+    return np.asarray(pose.C, float) + R_world_from_vehicle @ arm
 
 
 def simulate_obd(world: World, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:

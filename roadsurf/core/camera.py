@@ -51,11 +51,17 @@ class Camera:
     # pixels that never show the road (a burned-in stamp, the bonnet; camera.yaml 'mask',
     # core.imagemask); None = every pixel may be used
     mask: ImageMask | None = None
+    # the GNSS antenna relative to the camera centre in the vehicle frame: [forward, left, up]
+    # (m; camera.yaml 'gps_antenna_m', mapping.antenna); None = at the camera centre
+    gps_antenna_m: tuple[float, float, float] | None = None
 
     def fingerprint_fields(self) -> dict[str, Any]:
         """The fields as stage fingerprints take them: the mask by its digest, and no 'mask'
-        key at all without one (fingerprints of unmasked cameras are those of before)."""
-        d = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "mask"}
+        key at all without one (fingerprints of unmasked cameras are those of before); not the
+        GPS antenna."""
+        # the antenna moves no pixel: the poses' fingerprint takes it (mapping.poses)
+        skip = ("mask", "gps_antenna_m")
+        d = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in skip}
         if self.mask is not None:
             d["mask"] = self.mask.digest
         return d

@@ -20,7 +20,9 @@ steps on dense blocks and one BLAS thread, poses changed at rounding level); BUN
 (the reduced Jacobian's point products as sparse matrices; rounding level); POSES_VERSION 2 (the
 poses key: the ENU origin at the middle frame, no_motion pairs held together); DENSE_SURFACE_VERSION
 10 (the map key: cloud.ply heights ellipsoidal); POSES_VERSION 3 (the poses key: the mount's
-direction of travel turned back by half of each pair's turn).
+direction of travel turned back by half of each pair's turn); gps_sigma_from_log, gps_sigma_rtk_fixed_m and
+gps_sigma_rtk_float_m (both keys; a log's stated σ / fix quality enter the poses key only when
+gps_sigma_from_log is on, camera.yaml's gps_antenna_m only when given); CHECKS_VERSION 4 (the poses key: the scale note at 2.5 σ).
 A change of MappingConfig's fields changes them legitimately. The keys must also
 change with what the outputs depend on (below)."""
 
@@ -36,9 +38,9 @@ from tests.mapping.synth import make_synthetic
 
 def test_poses_fingerprint_is_unchanged() -> None:
     syn = make_synthetic(n=6, seed=3, failed=(2,))
-    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "c20c794fada53b8c"
+    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "53a89aa3c1f78bac"
     syn = make_synthetic(n=6, seed=3, with_gps=False)
-    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "b855de47c13b4dde"
+    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "28327a9490e04486"
 
 
 def test_globalmap_fingerprint_is_unchanged() -> None:
@@ -52,7 +54,7 @@ def test_globalmap_fingerprint_is_unchanged() -> None:
         reference=None,
         segment=np.zeros(6, int),
     )
-    assert globalmap._fingerprint(MappingConfig(), syn.pairs, traj) == "ea02a23a57563f85"
+    assert globalmap._fingerprint(MappingConfig(), syn.pairs, traj) == "fc8c5dc76f52ecc9"
 
 
 def test_poses_key_follows_the_gps_altitude() -> None:
@@ -61,6 +63,25 @@ def test_poses_key_follows_the_gps_altitude() -> None:
     key = poses._fingerprint(MappingConfig(), syn.drive, syn.pairs)
     syn.drive.gps.alt_m = syn.drive.gps.alt_m + 5.0
     assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) != key
+
+
+def test_poses_key_follows_the_stated_accuracy_and_the_antenna() -> None:
+    import dataclasses
+
+    syn = make_synthetic(n=6, seed=3, gps_hz=20.0)
+    cfg = MappingConfig(gps_sigma_from_log=True)
+    key = poses._fingerprint(cfg, syn.drive, syn.pairs)
+    key_default = poses._fingerprint(MappingConfig(), syn.drive, syn.pairs)
+    g = syn.drive.gps
+    g.quality = np.full(len(g), 4)
+    k_rtk = poses._fingerprint(cfg, syn.drive, syn.pairs)
+    g.sigma_m = np.full(len(g), 0.02)
+    k_sig = poses._fingerprint(cfg, syn.drive, syn.pairs)
+    assert len({key, k_rtk, k_sig}) == 3
+    # unused by default: the default key stays
+    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == key_default
+    syn.drive.camera = dataclasses.replace(syn.drive.camera, gps_antenna_m=(-1.5, 0.0, 0.9))
+    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) != key_default
 
 
 def test_map_key_follows_the_pairs_content(tmp_path) -> None:

@@ -37,3 +37,34 @@ def test_the_heading_follows_the_lateral_wander() -> None:
     cfg = make_config("potholes", yaw_noise_deg=0.0, **SMALL)
     slope = build_world(cfg, 202, 36).lateral_slope()
     assert math.degrees(math.atan(float(np.max(np.abs(slope))))) > 0.2
+
+
+def test_gps_fixes_are_the_antennas_and_camera_yaml_says_where_it_is(tmp_path) -> None:
+    """gps_antenna_m puts the fixes on the vehicle's antenna (1.5 m behind, 0.9 m above the
+    camera: they trail the camera centre along the heading and sit above it), and roadsurf's
+    own correction (mapping.antenna) brings them back onto the camera centre."""
+    from roadsurf.core.geometry import EnuReference, enu_from_lla
+    from roadsurf.mapping.antenna import cam_from_antenna
+    from roadsurf.simulation.scenarios import write_camera_yaml
+    from roadsurf.simulation.sensors import simulate_gps
+
+    arm = (-1.5, 0.3, 0.9)
+    logs = []
+    for a in ((0.0, 0.0, 0.0), arm):
+        cfg = make_config("potholes", gps_sigma_m=0.0, gps_bias_m=0.0, gps_antenna_m=a, **SMALL)
+        world = build_world(cfg, 202, 36)
+        logs.append(simulate_gps(world, np.random.default_rng(1)))
+    ref = EnuReference(float(logs[0].lat_deg[0]), float(logs[0].lon_deg[0]), 0.0)
+    cam, ant = (enu_from_lla(g.lat_deg, g.lon_deg, g.alt_m, ref) for g in logs)
+    d = ant - cam
+    travel = np.gradient(cam[:, :2], axis=0)
+    travel /= np.linalg.norm(travel, axis=1, keepdims=True)
+    along = np.sum(d[:, :2] * travel, axis=1)
+    left = travel[:, 0] * d[:, 1] - travel[:, 1] * d[:, 0]
+    assert np.allclose(along, -1.5, atol=0.03) and np.allclose(left, 0.3, atol=0.03)
+    # the vehicle pitches with the 1 % grade and 0.3° of vibration: 1.5 m behind, 1.5 + 0.8 cm
+    assert np.allclose(d[:, 2], 0.9 - 0.015, atol=0.03)
+    back = cam_from_antenna(ant, np.full(len(ant), 0.02), np.ones(len(ant), bool), np.array(arm))
+    assert np.median(np.linalg.norm(back - cam, axis=1)) < 0.02
+    write_camera_yaml(cfg, tmp_path)
+    assert "gps_antenna_m: [-1.5, 0.3, 0.9]" in (tmp_path / "camera.yaml").read_text()

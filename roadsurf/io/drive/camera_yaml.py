@@ -32,11 +32,13 @@ _CAMERA_KEYS: dict[str, tuple[type, bool]] = {
     "mount_roll_deg": (float, False),
     "mount_yaw_deg": (float, False),
     "readout_s": (float, False),
+    "gps_antenna_m": (tuple, False),  # [forward, left, up] (m), mapping.antenna
     "mask": (Path, False),  # image of the pixels to ignore (io.drive.maskfile)
 }
 MAX_CAMERA_HEIGHT_M = 10.0  # above this, height_m is a unit mistake, not a vehicle mount
 _MOUNT_KEYS = ("mount_pitch_deg", "mount_roll_deg", "mount_yaw_deg")
 _MOUNT_LIMIT_DEG = {"mount_pitch_deg": 90.0, "mount_roll_deg": 45.0, "mount_yaw_deg": 45.0}
+MAX_ANTENNA_M = 10.0  # a GPS antenna further than this from the camera is a unit mistake
 MAX_READOUT_S = 0.2  # readout_s is in [0, this): rolling shutters read a frame in 5-50 ms
 
 
@@ -162,6 +164,19 @@ def load_camera(path: Path) -> Camera:
                     f"coefficients for lens distortion), got {v!r}."
                 )
             v = "pinhole"
+        elif key == "gps_antenna_m":
+            if (
+                not isinstance(v, (list, tuple))
+                or len(v) != 3
+                or not all(_is_finite_number(x) and abs(float(x)) <= MAX_ANTENNA_M for x in v)
+            ):
+                raise DriveFormatError(
+                    f"{where(key)}: camera.yaml 'gps_antenna_m' must be 3 numbers [forward, "
+                    "left, up]: the GPS antenna's position from the camera centre in metres, "
+                    f"each within ±{MAX_ANTENNA_M:g} m (cm typed for m?), got {v!r}. Measure it "
+                    "on the vehicle (tape, or the survey of the rig)."
+                )
+            v = tuple(float(x) for x in v)
         elif key == "dist":
             if v is None:
                 v = []
@@ -194,6 +209,7 @@ def load_camera(path: Path) -> Camera:
         ),
         readout_s=float(vals.get("readout_s", 0.0)),
         mask=vals.get("mask"),
+        gps_antenna_m=vals.get("gps_antenna_m"),
     )
     if cam.readout_s * cam.fps > 1.0 + 1e-9:
         raise DriveFormatError(

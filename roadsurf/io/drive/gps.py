@@ -4,6 +4,7 @@ gps.csv reader, and the check that the track overlaps the frame times."""
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -33,20 +34,29 @@ def valid_latlon(lat: float, lon: float) -> str | None:
     return None
 
 
+Row = (
+    tuple[int | None, float, float, float, float, float]
+    | tuple[int | None, float, float, float, float, float, float, float]
+)
+
+
 def gps_from_lists(
     path: Path,
-    rows: list[tuple[int | None, float, float, float, float, float]],
+    rows: Sequence[Row],
     skipped: list[Skipped],
     n_bad: int,
     n_total: int,
     warnings: list[str],
     alt_datum: str = ALT_ELLIPSOIDAL,
 ) -> GpsTrack | None:
-    """rows: (line, t, lat, lon, alt, hdop) of fixes that passed validation; ``alt_datum``: the
-    vertical datum of their altitudes. Fixes that jump impossibly far are rejected here."""
+    """rows: (line, t, lat, lon, alt, hdop[, sigma_m, quality]) of fixes that passed validation
+    (sigma_m: the receiver's stated horizontal σ, NaN if none; quality: the GGA fix quality, 0 if
+    none); ``alt_datum``: the vertical datum of their altitudes. Fixes that jump impossibly far
+    are rejected here."""
+    rows = [r if len(r) == 8 else (*r, math.nan, 0.0) for r in rows]
     # A row repeated verbatim (same time and position; some loggers write a fix twice) carries
     # no information: drop it. Any other non-increasing time is an error below.
-    dedup: list[tuple[int | None, float, float, float, float, float]] = []
+    dedup: list[Row] = []
     for r in rows:
         if dedup and r[1] == dedup[-1][1] and r[2:4] == dedup[-1][2:4]:
             where = f"line {r[0]}" if r[0] is not None else f"time {r[1]}"
@@ -89,14 +99,18 @@ def gps_from_lists(
         lon_deg=arr[:, 2],
         alt_m=arr[:, 3],
         hdop=arr[:, 4],
+        sigma_m=arr[:, 5],
+        quality=arr[:, 6].astype(np.int64),
         source=path.name,
         alt_datum=datum,
     )
 
 
 def load_gps_csv(path: Path, skipped: list[Skipped], warnings: list[str]) -> GpsTrack | None:
-    _, rows = csv_rows(path, ("timestamp_s", "lat", "lon"), ("alt_m", "hdop"))
-    good: list[tuple[int | None, float, float, float, float, float]] = []
+    _, rows = csv_rows(
+        path, ("timestamp_s", "lat", "lon"), ("alt_m", "hdop", "sigma_m", "fix_quality")
+    )
+    good: list[Row] = []
     n_total = n_bad = 0
     for line, row in rows:
         n_total += 1
@@ -127,7 +141,8 @@ def load_gps_csv(path: Path, skipped: list[Skipped], warnings: list[str]) -> Gps
             hdop = math.nan
         if math.isfinite(hdop) and hdop <= 0:
             hdop = math.nan
-        good.append((line, t, lat, lon, alt, hdop))
+        sigma, quality = _accuracy(path, line, row)
+        good.append((line, t, lat, lon, alt, hdop, sigma, quality))
     return gps_from_lists(path, good, skipped, n_bad, n_total, warnings)
 
 
@@ -179,3 +194,35 @@ def gps_outages(gps: GpsTrack, frames: list[Frame], interval_s: float) -> str:
     if len(parts) > 3:
         return "; ".join(parts[:3]) + f"; and {len(parts) - 3} more outages"
     return "; ".join(parts)
+
+
+MAX_SIGMA_M = 1000.0  # a stated σ above this is a unit mistake (mm typed as m?)
+
+
+def _accuracy(path: Path, line: int | None, row: dict[str, str]) -> tuple[float, float]:
+    """(stated σ (m), NaN if none; fix quality, 0 if none) of one gps.csv row. A value that is
+    not a number, or out of range, is an error naming the line: weighting the fixes by a
+    misread accuracy would bend the whole trajectory without a word."""
+    out = [math.nan, 0.0]
+    for k, (key, lo, hi, what) in enumerate(
+        (
+            ("sigma_m", 0.0, MAX_SIGMA_M, "the receiver's horizontal σ per axis in metres"),
+            ("fix_quality", 0.0, 9.0, "the NMEA GGA fix quality: 4 RTK fixed, 5 RTK float, 1 GPS"),
+        )
+    ):
+        text = (row.get(key) or "").strip()
+        if not text:
+            continue
+        try:
+            v = csv_float(text)
+        except ValueError:
+            v = math.nan
+        ok = math.isfinite(v) and (lo < v <= hi if k == 0 else v == int(v) and lo <= v <= hi)
+        if not ok:
+            raise DriveFormatError(
+                f"{path}:{line}: {key} = {text!r} is not valid: it is {what} "
+                f"({'> 0 and <= ' + format(hi, 'g') if k == 0 else 'an integer 0-9'}). Fix the "
+                "value or leave it empty."
+            )
+        out[k] = v
+    return out[0], out[1]

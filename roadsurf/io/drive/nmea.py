@@ -137,6 +137,7 @@ def _record(msg: Any, kind: str) -> tuple[float, dict[str, Any], dt.date | None]
         "hdop": _num(msg.horizontal_dil),
         "alt": _num(msg.altitude),
         "sep": _num(msg.geo_sep),
+        "quality": float(int(f[5])) if f[5].isdigit() else 0.0,
     }
     for k in ("hdop", "alt", "sep"):
         if not math.isfinite(rec[k]):
@@ -154,9 +155,13 @@ def load_gps_nmea(path: Path, skipped: list[Skipped], warnings: list[str]) -> Gp
     first_day0: float | None = None
     last_tod: float | None = None
     pending_gga: list[tuple[int, float, dict[str, Any]]] = []  # GGA seen before any RMC date
+    gst: dict[float, float] = {}  # seconds of day -> the GST's horizontal σ per axis (m)
     scan = _Scan()
     for line_no, s, whole in scan.sentences(read_bytes(path)):
         kind = s[3:6]
+        if kind == "GST":
+            _read_gst(s, gst, skipped, path.name, line_no)
+            continue
         if kind not in ("RMC", "GGA"):
             continue  # other sentence types are ignored
         n_sent += 1
@@ -238,9 +243,17 @@ def load_gps_nmea(path: Path, skipped: list[Skipped], warnings: list[str]) -> Gp
     order = sorted(fixes.items())
     alt, datum = _ellipsoidal(path, [fx for _, fx in order], warnings)
     good = [
-        (fx["line"], t, fx["lat"], fx["lon"], a, fx.get("hdop", math.nan))
+        (
+            fx["line"], t, fx["lat"], fx["lon"], a, fx.get("hdop", math.nan),
+            gst.get(round(t % 86400.0, 3), math.nan), fx.get("quality", 0.0),
+        )
         for (t, fx), a in zip(order, alt, strict=True)
-    ]
+    ]  # fmt: skip
+    if gst and not any(math.isfinite(g[6]) for g in good):
+        warnings.append(
+            f"{path}: {len(gst)} GST sentence(s) (the receiver's position σ) match no RMC/GGA "
+            "fix time; the fixes are weighted by their fix quality and HDOP instead"
+        )
     if n_bad:
         log.info("%s: %d of %d RMC/GGA sentences skipped", path, n_bad, n_sent)
     if n_unchecked:
@@ -250,6 +263,25 @@ def load_gps_nmea(path: Path, skipped: list[Skipped], warnings: list[str]) -> Gp
             "receiver allows it"
         )
     return gps_from_lists(path, good, skipped, n_bad, n_sent, warnings, alt_datum=datum)
+
+
+def _read_gst(
+    s: str, gst: dict[float, float], skipped: list[Skipped], name: str, line_no: int
+) -> None:
+    """One $xxGST sentence into ``gst`` (seconds of day -> horizontal σ per axis, m: the RMS of
+    its latitude and longitude σ, fields 6 and 7). A GST that does not parse, or states no
+    positive σ, is skipped with its line."""
+    try:
+        msg = pynmea2.parse(s, check=True)
+        tod = _tod(msg)
+        sl, so = float(msg.std_dev_latitude), float(msg.std_dev_longitude)
+    except (pynmea2.ParseError, pynmea2.ChecksumError, ValueError, TypeError, AttributeError):
+        skipped.append(Skipped(name, line_no, "NMEA GST dropped: malformed"))
+        return
+    if not (math.isfinite(sl) and math.isfinite(so) and sl > 0 and so > 0):
+        skipped.append(Skipped(name, line_no, "NMEA GST dropped: no positive position σ"))
+        return
+    gst[round(tod, 3)] = math.sqrt(0.5 * (sl * sl + so * so))
 
 
 def _ellipsoidal(

@@ -36,7 +36,8 @@ class Frame:
 
 @dataclass
 class GpsTrack:
-    """GPS fixes of the camera centre, WGS84. All arrays (N,), sorted by time."""
+    """GPS fixes of the antenna (camera.yaml gps_antenna_m from the camera centre; at it when
+    not given), WGS84. All arrays (N,), sorted by time."""
 
     timestamp_s: np.ndarray
     lat_deg: np.ndarray
@@ -45,9 +46,28 @@ class GpsTrack:
     hdop: np.ndarray  # NaN where the log has no HDOP
     source: str = df.GPS_CSV  # file it came from
     alt_datum: str = ALT_ELLIPSOIDAL  # one of the ALT_* names above
+    # the receiver's own horizontal σ per axis (m): gps.csv 'sigma_m', NMEA GST; NaN where the
+    # log states none (empty: nowhere)
+    sigma_m: np.ndarray = field(default_factory=lambda: np.empty(0))
+    # NMEA GGA fix quality (gps.csv 'fix_quality'): 4 RTK fixed, 5 RTK float, 1 GPS, 2 DGPS...;
+    # 0 where the log gives none (empty: nowhere)
+    quality: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))
+
+    def __post_init__(self) -> None:
+        n = len(self.timestamp_s)
+        if len(self.sigma_m) != n:
+            self.sigma_m = np.full(n, np.nan)
+        if len(self.quality) != n:
+            self.quality = np.zeros(n, np.int64)
 
     def __len__(self) -> int:
         return int(self.timestamp_s.shape[0])
+
+    @property
+    def states_accuracy(self) -> bool:
+        """Whether any fix carries a stated σ or an RTK fix quality (stage fingerprints add
+        them only then, so logs without them keep their fingerprints)."""
+        return bool(np.isfinite(self.sigma_m).any() or (self.quality > 0).any())
 
 
 @dataclass

@@ -1,0 +1,120 @@
+"""A GPS log's own statement of its accuracy: gps.csv 'sigma_m' / 'fix_quality', NMEA GST and
+GGA fix quality, and how the pose graph weighs the fixes by them (mapping.pose_gps)."""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from roadsurf.core.errors import DriveFormatError
+from roadsurf.io.drive import load_drive
+from roadsurf.io.drive.types import GpsTrack
+from roadsurf.mapping.config import MappingConfig
+from roadsurf.mapping.pose_gps import fix_sigma_m
+from tests.io.drive_fixtures import LAT0, LON0, T0, make_drive
+from tests.io.test_drive_gps import _ddmm, _nmea
+
+
+def _csv(root: Path, header: str, rows: list[str]) -> Path:
+    (root / "gps.csv").write_text(header + "\n" + "\n".join(rows) + "\n")
+    return root
+
+
+def test_csv_sigma_and_fix_quality_columns_are_read(tmp_path: Path) -> None:
+    root = make_drive(tmp_path / "d")
+    rows = [
+        f"{-0.5 + 0.5 * k:.1f},{LAT0 + 1e-6 * k:.8f},{LON0},100,0.8,{s},{q}"
+        for k, (s, q) in enumerate([("0.02", "4"), ("", "5"), ("0.5", ""), ("", "")])
+    ]
+    d = load_drive(_csv(root, "timestamp_s,lat,lon,alt_m,hdop,sigma_m,fix_quality", rows))
+    g = d.gps
+    assert g is not None
+    assert g.sigma_m[0] == pytest.approx(0.02) and g.sigma_m[2] == pytest.approx(0.5)
+    assert np.isnan(g.sigma_m[[1, 3]]).all()
+    assert g.quality.tolist() == [4, 5, 0, 0]
+    assert g.states_accuracy
+    # the pose graph's σ with gps_sigma_from_log: stated > RTK quality > HDOP
+    cfg = MappingConfig(gps_sigma_from_log=True)
+    assert fix_sigma_m(cfg, g).tolist() == pytest.approx(
+        [0.02, cfg.gps_sigma_rtk_float_m, 0.5, 0.8 * cfg.gps_sigma_per_hdop_m]
+    )
+    # by default HDOP only (the stated σ is read, not used: docs/mapping.md)
+    assert fix_sigma_m(MappingConfig(), g) == pytest.approx(0.8 * cfg.gps_sigma_per_hdop_m)
+
+
+def test_a_log_without_accuracy_columns_states_none(tmp_path: Path) -> None:
+    d = load_drive(make_drive(tmp_path / "d"))
+    assert d.gps is not None and not d.gps.states_accuracy
+    assert np.isnan(d.gps.sigma_m).all() and (d.gps.quality == 0).all()
+    sig = fix_sigma_m(MappingConfig(), d.gps)
+    assert sig == pytest.approx(0.8 * MappingConfig().gps_sigma_per_hdop_m)
+
+
+@pytest.mark.parametrize(
+    ("col", "value", "what"),
+    [("sigma_m", "-0.1", "horizontal σ"), ("sigma_m", "20000", "horizontal σ"),
+     ("sigma_m", "abc", "horizontal σ"), ("fix_quality", "4.5", "fix quality")],
+)  # fmt: skip
+def test_bad_accuracy_value_names_the_line(tmp_path: Path, col: str, value: str, what: str) -> None:
+    root = make_drive(tmp_path / "d")
+    rows = [f"{-0.5 + 0.5 * k:.1f},{LAT0 + 1e-6 * k:.8f},{LON0},{value if k == 2 else ''}"
+            for k in range(4)]  # fmt: skip
+    _csv(root, f"timestamp_s,lat,lon,{col}", rows)
+    with pytest.raises(DriveFormatError, match=rf"gps.csv:4: {col} = '{value}'.*{what}"):
+        load_drive(root)
+
+
+def _nmea_log(with_gst: bool, quality: int, gst_offset_s: float = 0.0) -> list[str]:
+    dt0 = datetime.fromtimestamp(T0, UTC)
+    lines = []
+    for k in range(4):
+        t = dt0.timestamp() - 0.5 + 0.5 * k
+        dt = datetime.fromtimestamp(t, UTC)
+        hms = dt.strftime("%H%M%S") + f".{dt.microsecond // 10000:02d}"
+        lat, lon = _ddmm(LAT0 + 1e-5 * k, "N", "S", 2), _ddmm(LON0, "E", "W", 3)
+        lines.append(_nmea(f"GPRMC,{hms},A,{lat},{lon},10.0,90.0,{dt:%d%m%y},,"))
+        lines.append(_nmea(f"GPGGA,{hms},{lat},{lon},{quality},08,0.9,120.0,M,-34.0,M,,"))
+        if with_gst:
+            g = datetime.fromtimestamp(t + gst_offset_s, UTC)
+            ghms = g.strftime("%H%M%S") + f".{g.microsecond // 10000:02d}"
+            # rms, semi-major, semi-minor, orientation, σ lat, σ lon, σ alt (m)
+            lines.append(_nmea(f"GPGST,{ghms},0.006,0.023,0.020,273.6,0.030,0.040,0.05"))
+    return lines
+
+
+def test_nmea_gst_gives_each_fix_its_sigma(tmp_path: Path) -> None:
+    root = make_drive(tmp_path / "d", t0=T0, gps=None)
+    lines = _nmea_log(True, 4)
+    lines[5] = lines[5][:-2] + ("00" if lines[5][-2:] != "00" else "11")  # one GST corrupted
+    (root / "gps.nmea").write_text("\n".join(lines) + "\n")
+    d = load_drive(root)
+    g = d.gps
+    assert g is not None and len(g) == 4
+    rms = np.sqrt(0.5 * (0.03**2 + 0.04**2))
+    assert g.sigma_m[[0, 2, 3]] == pytest.approx(rms) and np.isnan(g.sigma_m[1])
+    assert (g.quality == 4).all()
+    # a sentence failing its checksum is garbled data, said with its line
+    assert any("garbled" in w and "(line 6)" in w for w in d.warnings)
+    # the fix without its GST falls back on its RTK fixed quality
+    cfg = MappingConfig(gps_sigma_from_log=True)
+    sig = fix_sigma_m(cfg, g)
+    assert sig[1] == pytest.approx(cfg.gps_sigma_rtk_fixed_m)
+    assert sig[0] == pytest.approx(rms)
+
+
+def test_nmea_gst_at_other_times_warns(tmp_path: Path) -> None:
+    root = make_drive(tmp_path / "d", t0=T0, gps=None)
+    (root / "gps.nmea").write_text("\n".join(_nmea_log(True, 1, gst_offset_s=0.25)) + "\n")
+    d = load_drive(root)
+    assert d.gps is not None and np.isnan(d.gps.sigma_m).all()
+    assert any("GST sentence(s)" in w and "match no RMC/GGA" in w for w in d.warnings)
+
+
+def test_gps_track_without_accuracy_fields_fills_them() -> None:
+    g = GpsTrack(np.arange(3.0), np.full(3, LAT0), np.full(3, LON0), np.full(3, np.nan),
+                 np.full(3, np.nan))  # fmt: skip
+    assert g.sigma_m.shape == (3,) and np.isnan(g.sigma_m).all()
+    assert g.quality.tolist() == [0, 0, 0] and not g.states_accuracy
