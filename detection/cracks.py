@@ -168,11 +168,13 @@ def detect_pair_cracks(
         nn.append(n)
         nb.append(int((d > 0).sum()))
         vv.append(var)
-        # robust max: the second-deepest point (two points must reach it); with fewer points,
-        # the dense reading's 90th percentile (a lower bound, like every dense depth), and a
-        # lone point only when there is nothing else
+        # robust max: the second-deepest point (two points must reach it), or the dense
+        # reading's 90th percentile (a lower bound, like every dense depth) when deeper: points
+        # "on" a narrow groove sit on its rims (a 5 mm deep, 8 mm wide crack confirmed by its
+        # cross-section read 0.0 mm from them); a lone point only when there is nothing else
         if n >= 2:
-            mx.append(float(np.sort(d)[-2]))
+            top = float(np.sort(d)[-2])
+            mx.append(top if dn is None else max(top, float(np.percentile(dn.depth_m, 90))))
         elif dn is not None:
             mx.append(float(np.percentile(dn.depth_m, 90)))
         elif n == 1:

@@ -40,6 +40,11 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
+# a dense surface reading this share of its search depth or more has reached it (the fused,
+# smoothed heights of a floor at the bound read 107-128 mm for a 120 mm search)
+CLIPPED_SHARE = 0.9
+CLIPPED_SLACK_M = 0.015  # ... and at most this beyond it (m): the matching refuses 1 cm beyond
+
 
 def measure_regions(
     cfg: DetectionConfig,
@@ -50,11 +55,16 @@ def measure_regions(
     pair_pts: list[tuple[np.ndarray, np.ndarray]] | None = None,
     dense: DenseContext | None = None,
     dense_raster: bool = False,
+    raster_floor_m: float = math.nan,
+    warnings: list[str] | None = None,
 ) -> tuple[list[Defect], list[DefectCells]]:
     """Veto regions without 3D evidence, measure the rest; ids ordered along the drive.
 
     ``dense_raster``: the map's raster is the fused dense surface (surface.tif with a
-    ``DENSE_FOOTPRINT_M`` tag), whose supported max then also bounds a dense-track reading.
+    ``DENSE_FOOTPRINT_M`` tag), whose supported max then also bounds a dense-track reading -
+    except where it reaches ``raster_floor_m`` (its matching's search depth, the
+    ``DENSE_SEARCH_DEPTH_M`` tag; NaN: unknown), below which it cannot read. Such a defect, and
+    one dropped as deeper than ``plane.max_depth_m``, adds a line to ``warnings``.
 
     Returns the defects and, for each, its map cells (``DefectCells``: the cells deeper than
     the map's T_d that its 2D masks show, a rut's whole trace, and the cells deeper than
@@ -93,6 +103,10 @@ def measure_regions(
             why = f"shallow ({1000 * max_depth:.1f} mm)"
         elif (
             have_pairs
+            # a traced rut is its own evidence (straightedge profiles over metres): its points
+            # are counted below the pairs' T_d, which a rough road lifts above a 10 mm rut
+            # (unevenness 4 mm: T_d 13.9 mm, the rut traced at 11.8 mm and dropped)
+            and rut is None
             and (
                 len(reg.support_pairs) < mc.min_support_pairs
                 or reg.n_support_points < mc.min_support_points
@@ -109,6 +123,11 @@ def measure_regions(
             continue
         m = measure(reg, seg.grid, mc.frame_depth_m)
         raster_max = m.max_depth_m  # the raster's supported max (CELL_SUPPORT cells)
+        # the surface at its search depth reads no deeper: it bounds no deeper reading (a pair
+        # matched again deeper, reconstruction.dense, reads beyond it)
+        clipped = dense_raster and (
+            CLIPPED_SHARE * raster_floor_m <= raster_max <= raster_floor_m + CLIPPED_SLACK_M
+        )
         poly = Polygon(m.outline_xy_m)
         dm = part = None
         if rut is not None:
@@ -146,7 +165,7 @@ def measure_regions(
                 # tracks deeper than the surface supports come from a pair whose tracks failed
                 # over the floor (real photographs turned by 60°: a pair with 3x the others'
                 # dense σ read 65 mm where the surface read 40 mm).
-                if not supported_by(dm.max_depth_m, raster_max):
+                if not clipped and not supported_by(dm.max_depth_m, raster_max):
                     log.debug(
                         "detection: %s dense tracks read %.1f mm, unsupported by the dense "
                         "surface's %.1f mm", m.centroid_xy_m, 1000 * dm.max_depth_m,
@@ -189,7 +208,7 @@ def measure_regions(
             if part is not None:
                 # A partial dense reading still measured the part it saw: the same rules.
                 part_max = part.max_depth_m
-                if dense_raster and not supported_by(part_max, raster_max):
+                if dense_raster and not clipped and not supported_by(part_max, raster_max):
                     part_max = raster_max
                 pt_max = max(part_max, pt_max or 0.0)
             if dense_raster:
@@ -221,11 +240,29 @@ def measure_regions(
             # threshold where the dense tracks or the points measure a flat road)
             _vetoed(seg, reg, f"shallow as measured ({1000 * m.max_depth_m:.1f} mm)")
             continue
+        e, n = (float(v) for v in m.centroid_xy_m)
         if m.max_depth_m > cfg.plane.max_depth_m:
             # Deeper than any defect the plane fit accepts (its mismatch bound): made of a
-            # failed reconstruction's points, as for cracks (``crackmap``)
+            # failed reconstruction's points, as for cracks (``crackmap``) - said, not silent:
+            # a very deep pothole is dropped the same way
             _vetoed(seg, reg, f"deeper than a defect can be ({1000 * m.max_depth_m:.0f} mm)")
+            if warnings is not None:
+                warnings.append(
+                    f"a region at E {e:.2f}, N {n:.2f} m measured {1000 * m.max_depth_m:.0f} mm "
+                    f"deep was dropped: deeper than detection.plane.max_depth_m "
+                    f"({1000 * cfg.plane.max_depth_m:.0f} mm), the bound on mismatched points. "
+                    "If a pothole that deep is plausible there, raise it"
+                )
             continue
+        if clipped and warnings is not None:
+            warnings.append(
+                f"the defect at E {e:.2f}, N {n:.2f} m reaches the dense surface's search depth "
+                f"({1000 * raster_floor_m:.0f} mm below the road, mapping.dense.max_depth_m): "
+                f"the surface reads {1000 * raster_max:.0f} mm, the detector's own reading "
+                f"{1000 * m.max_depth_m:.0f} mm; its depth may be a lower bound and its area and "
+                "volume come from a surface cut flat at that depth. Raise "
+                "mapping.dense.max_depth_m for this road"
+            )
         kind = "rut" if rut is not None else classify(m, mc)
         seen = sorted(fn for fn, fp in footprints.items() if fp.intersects(poly))
         snr = max_depth / max(noise_m, 1e-6)

@@ -94,6 +94,7 @@ def write_outputs(
             "signature": signature,
             **meta,
             "config": config,
+            "warnings": list(result.warnings),
             "defects": [
                 {
                     **d.to_properties(None, exact=True),
@@ -146,6 +147,7 @@ def load_result(run_dir: Path, signature: str) -> DetectionResult | None:
         georeferenced=bool(meta.get("georeferenced", True)),
         crs=str(meta.get("crs_of_e_n", "")),
         surface_source=str(meta.get("surface_source", "")),
+        warnings=[str(w) for w in meta.get("warnings") or []],
     )
     res.files = {n: run_dir / n for n in (*names, DETECTION_JSON)}
     return res

@@ -141,6 +141,7 @@ def _detect(
     noise = seed = float("nan")
     footprints = frame_footprints(drive, traj, mframe)
     cells: list[DefectCells] = []
+    warnings: list[str] = []
     if surface is not None:
         ev_xy = mframe.grid_from_enu(ev_enu) if len(ev_enu) else np.zeros((0, 2))
         if isinstance(surface, PointsSource):  # already read by load_surface
@@ -195,6 +196,7 @@ def _detect(
             sparse_noise = float(np.median([pd.noise_m for pd in per_pair.values()]))
             dense = DenseContext(drive, pairs, grid, sparse_noise, cfg.pair_workers)
         t0 = time.perf_counter()
+        is_dense = isinstance(surface, RasterSource) and math.isfinite(surface.footprint_m)
         defects, cells = measure_regions(
             cfg,
             seg,
@@ -203,7 +205,9 @@ def _detect(
             None if pts is None else pts[:2],
             pair_pts=pair_pts,
             dense=dense,
-            dense_raster=isinstance(surface, RasterSource) and math.isfinite(surface.footprint_m),
+            dense_raster=is_dense,
+            raster_floor_m=surface.search_depth_m if is_dense else math.nan,
+            warnings=warnings,
         )
         steps_s["measurement"] = time.perf_counter() - t0
         # cracks are measured across their centre line on the raster itself (reopened lazily)
@@ -260,7 +264,10 @@ def _detect(
         georeferenced=mframe.georeferenced,
         crs=mframe.crs,
         surface_source=surface.source if surface is not None else "none",
+        warnings=warnings,
     )
+    for w in warnings:
+        log.warning("detection: %s", w)
     write_outputs(result, mframe, sig, to_dict(cfg))
     return result
 

@@ -148,6 +148,8 @@ class DetectionResult:
     crs: str = ""  # grid frame of the outlines: "EPSG:326xx" or "local ENU"
     surface_source: str = ""  # surface.tif | map_points.npz | pairs | none
     files: dict[str, Path] = field(default_factory=dict)
+    # what a user must know about a measurement (report.json "warnings"; kept in detection.json)
+    warnings: list[str] = field(default_factory=list)
 
     def to_report(self) -> dict[str, Any]:
         """Summary for report.json."""
@@ -165,6 +167,7 @@ class DetectionResult:
             "georeferenced": self.georeferenced,
             "crs": self.crs,
             "surface_source": self.surface_source,
+            "warnings": list(self.warnings),
             "files": {k: str(v) for k, v in self.files.items()},
             "table": self.table(),  # printable summary (the CLI shows it after `roadsurf run`)
         }

@@ -40,6 +40,7 @@ class WindowSource(Protocol):
     grid: GridSpec
     source: str
     footprint_m: float  # ground footprint of what one raster value measures (m); NaN: unknown
+    search_depth_m: float  # deepest depth the surface could read (m); NaN: unknown
 
     def read(self, r0: int, c0: int, h: int, w: int) -> np.ndarray:
         """(h, w) float32 residual (m, negative below), NaN where unobserved."""
@@ -89,6 +90,12 @@ class RasterSource:
                 self.footprint_m = float(src.tags().get("DENSE_FOOTPRINT_M", "nan"))
             except ValueError:
                 self.footprint_m = float("nan")
+            # ... and the deepest height its matching searched (m, positive down; NaN: not
+            # written): a cell that deep may be deeper
+            try:
+                self.search_depth_m = float(src.tags().get("DENSE_SEARCH_DEPTH_M", "nan"))
+            except ValueError:
+                self.search_depth_m = float("nan")
         self._src = None
         # the dense surface's per-cell count and σ, written next to it on the same grid
         self.count_path = self._beside(NOBS_NAME, (src.width, src.height))
@@ -172,6 +179,7 @@ class PointsSource:
         self.residual = np.asarray(residual_m, float)
         self.source = source
         self.footprint_m = float("nan")  # one cell per value
+        self.search_depth_m = float("nan")
         lo = np.floor(xy.min(axis=0) / gsd_m) * gsd_m - 2 * gsd_m
         hi = np.ceil(xy.max(axis=0) / gsd_m) * gsd_m + 2 * gsd_m
         width = int(round((hi[0] - lo[0]) / gsd_m))

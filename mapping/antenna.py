@@ -7,14 +7,16 @@ A survey vehicle's antenna sits on the roof, often 1-2 m behind and 0.5-1.5 m ab
 front-mounted camera. Left out, the map lies that far along the track and the heights that much
 high, and on a turn the offset swings with the heading and bends the track.
 
-The vehicle's axes come from the GPS track itself: forward is the antenna's direction of travel
+First pass (``cam_from_antenna``): the vehicle's axes come from the GPS track itself: forward is the antenna's direction of travel
 (the chord of the track over a stretch of path around the fix, long enough for the fixes' noise,
 with the slope from the altitudes where the log has them), up is vertical in the plane of
 travel. That is the vehicle's heading where the antenna rides over the point that does not slide
 sideways (a car's rear axle); an antenna d metres ahead of or behind it moves at d / R off the
 heading on a curve of radius R (1 m on a 50 m curve: 1.1°, 3.6 cm on a 1.8 m arm). The
 vehicle's roll (the road's cross-fall, body roll) is not known here: an antenna 1.5 m above the
-camera on a 2 % cross-fall is placed 3 cm off sideways.
+camera on a 2 % cross-fall is placed 3 cm off sideways. Second pass (``cam_from_antenna_posed``,
+after the pose graph has solved once): the vehicle's axes from the solved camera rotations and
+the mount, wherever on the vehicle the antenna rides.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from __future__ import annotations
 import logging
 
 import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
 
 from roadsurf.core.geometry import check_shape
 
@@ -108,3 +111,31 @@ def cam_from_antenna(
     left /= np.linalg.norm(left, axis=1, keepdims=True)
     up = np.cross(fwd, left)
     return out - (arm[0] * fwd + arm[1] * left + arm[2] * up)
+
+
+def cam_from_antenna_posed(
+    antenna_enu_m: np.ndarray,
+    t_fix_s: np.ndarray,
+    t_s: np.ndarray,
+    world_from_cam: np.ndarray,
+    R_vehicle_from_cam: np.ndarray,
+    arm_flu_m: np.ndarray,
+) -> np.ndarray:
+    """(G, 3) camera centres in ENU (m) from antenna positions antenna_enu_m (G, 3) m at times
+    t_fix_s (G,) s: c = a − R_world_from_vehicle(t) · arm, the vehicle's rotation from the
+    frames' solved poses world_from_cam (N, 4, 4) at times t_s (N,) s (spherical interpolation,
+    held at the ends) and the mount R_vehicle_from_cam (3, 3) (vehicle x right, y backward, z
+    down); arm_flu_m (3,) = [forward, left, up] m. Unlike the track's direction this is the
+    vehicle's heading wherever the antenna rides: on a 12 m-radius curve an antenna 1.5 m
+    behind the point that does not slide moves 7° off it."""
+    A = check_shape("antenna_enu_m", np.asarray(antenna_enu_m, float), (None, 3))
+    W = check_shape("world_from_cam", np.asarray(world_from_cam, float), (None, 4, 4))
+    f, left, u = (float(v) for v in check_shape("arm_flu_m", np.asarray(arm_flu_m), (3,)))
+    arm_vehicle = np.array([-left, -f, -u])
+    t = np.asarray(t_s, float)
+    R_wv = W[:, :3, :3] @ np.asarray(R_vehicle_from_cam, float).T
+    if len(t) == 1:
+        return A - R_wv[0] @ arm_vehicle
+    tq = np.clip(np.asarray(t_fix_s, float), t[0], t[-1])
+    R = Slerp(t, Rotation.from_matrix(R_wv))(tq).as_matrix()
+    return A - R @ arm_vehicle

@@ -13,7 +13,7 @@ import numpy as np
 from roadsurf.core.geometry import EnuReference, enu_from_lla
 from roadsurf.io.drive import Drive, GpsTrack
 from roadsurf.io.drive.types import NO_GEOREF
-from roadsurf.mapping.antenna import cam_from_antenna
+from roadsurf.mapping.antenna import cam_from_antenna, cam_from_antenna_posed
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.mount import turn_about_rad
 from roadsurf.mapping.types import PoseReport
@@ -57,8 +57,7 @@ def gps_enu(
     alt = np.asarray(g.alt_m, float)
     has_alt = np.isfinite(alt)
     ref = enu_reference(g, t)
-    alt0 = ref.alt_m
-    enu = enu_from_lla(g.lat_deg, g.lon_deg, np.where(has_alt, alt, alt0), ref)
+    enu = antenna_enu(g, ref)
     sigma = fix_sigma_m(cfg, g)
     if drive.camera.gps_antenna_m is not None:
         enu = cam_from_antenna(enu, sigma, has_alt, np.asarray(drive.camera.gps_antenna_m))
@@ -83,6 +82,35 @@ def gps_enu(
         orig_index=idx,
     )
     return ref, gps
+
+
+def antenna_enu(g: GpsTrack, ref: EnuReference) -> np.ndarray:
+    """(N, 3) the log's fixes in the local ENU frame ``ref`` (m), as logged (the antenna's);
+    a fix without altitude at the reference's."""
+    alt = np.asarray(g.alt_m, float)
+    alt = np.where(np.isfinite(alt), alt, ref.alt_m)
+    return enu_from_lla(g.lat_deg, g.lon_deg, alt, ref)
+
+
+def refix_antenna(
+    gps: GpsFixes,
+    drive: Drive,
+    ref: EnuReference,
+    t: np.ndarray,
+    world_from_cam: np.ndarray,
+    R_vehicle_from_cam: np.ndarray,
+) -> GpsFixes:
+    """The fixes moved from the antenna onto the camera centre again, now with the vehicle's
+    rotation from the solved poses (``antenna.cam_from_antenna_posed``); unchanged without
+    camera.yaml's gps_antenna_m or GPS."""
+    arm = drive.camera.gps_antenna_m
+    if arm is None or drive.gps is None:
+        return gps
+    raw = antenna_enu(drive.gps, ref)[gps.orig_index]
+    enu = cam_from_antenna_posed(
+        raw, gps.t_s, t, world_from_cam, R_vehicle_from_cam, np.asarray(arm)
+    )
+    return GpsFixes(gps.t_s, enu, gps.sigma_m, gps.has_alt, gps.orig_index)
 
 
 def fix_sigma_m(cfg: MappingConfig, g: GpsTrack) -> np.ndarray:

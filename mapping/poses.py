@@ -47,7 +47,13 @@ from roadsurf.mapping.export import write_trajectory_csv, write_trajectory_geojs
 from roadsurf.mapping.grade import GRADE_VERSION, road_grade
 from roadsurf.mapping.mount import resolve
 from roadsurf.mapping.plausibility import CHECKS_VERSION, check, make_chains
-from roadsurf.mapping.pose_gps import GpsFixes, gps_enu, interp_weights, widen_for_turns
+from roadsurf.mapping.pose_gps import (
+    GpsFixes,
+    gps_enu,
+    interp_weights,
+    refix_antenna,
+    widen_for_turns,
+)
 from roadsurf.mapping.pose_graph import PoseGraph
 from roadsurf.mapping.pose_init import chain, initial_poses, segments
 from roadsurf.mapping.separate import keep_apart, segment_has_gps
@@ -240,6 +246,12 @@ def estimate_trajectory(
         rep.warnings += [w for w in again if w not in mount_warnings]
         init = initial_poses(cfg, t, comp, linked, gps, rep, R_vc)
         problem = PoseGraph(cfg, t, init, ok_pairs, pos_of, gps, drive, comp, R_vc, g_rad, still)
+        world = problem.solve(rep)
+    if gps is not None and ref is not None and drive.camera.gps_antenna_m is not None:
+        # the antenna's fixes moved again with the solved vehicle heading: its own track's
+        # direction is the heading only over the point of the vehicle that does not slide
+        gps = refix_antenna(gps, drive, ref, t, world, R_vc)
+        problem = PoseGraph(cfg, t, world, ok_pairs, pos_of, gps, drive, comp, R_vc, g_rad, still)
         world = problem.solve(rep)
     has_gps = segment_has_gps(segment, t, None if gps is None else gps.t_s)
     names = [f.filename for f in frames]

@@ -44,8 +44,9 @@ def expand_images(paths: Sequence[Path]) -> list[Path]:
 
 
 # camera.yaml keys a calibration does not measure: with --overwrite they are carried over from
-# the camera.yaml being replaced (a rolling shutter's readout time, the image mask)
-CARRIED_KEYS = ("readout_s", "mask")
+# the camera.yaml being replaced (a rolling shutter's readout time, the image mask, the GPS
+# antenna's place on the vehicle)
+CARRIED_KEYS = ("readout_s", "mask", "gps_antenna_m")
 
 
 def carried_over(yaml_path: Path) -> dict[str, object]:

@@ -32,6 +32,7 @@ Pure function of the images, the camera and the pair's R, t and plane (``dense_h
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass, field
@@ -43,7 +44,13 @@ import torch.nn.functional as F
 
 from roadsurf.core.camera import Camera
 from roadsurf.core.errors import RoadsurfError
-from roadsurf.reconstruction.dense.checks import REJECT_GEOMETRY, REJECT_LR, checks
+from roadsurf.reconstruction.dense.checks import (
+    REJECT_GEOMETRY,
+    REJECT_LR,
+    REJECT_OUTSIDE,
+    REJECT_UNMATCHED,
+    checks,
+)
 from roadsurf.reconstruction.dense.config import DenseHeightConfig
 from roadsurf.reconstruction.dense.geometry import PlaneParallax
 from roadsurf.reconstruction.dense.matching import (
@@ -61,6 +68,18 @@ from roadsurf.reconstruction.dense.slanted import plane_fit, slanted_refine
 from roadsurf.reconstruction.dense.warp import overlap_crop, reach_px, resample_pair
 
 log = logging.getLogger(__name__)
+
+# a pair is matched again deeper (DenseHeightConfig.max_depth_limit_m) when more than
+# DEEP_MIN_SHARE of its pixels hold the core of a patch (DEEP_CORE_PX wide) whose sweep starts
+# at DEEP_SHARE of the search depth or deeper: a floor, not the overlap's edge band or stray
+# matches. 36-frame drives: ordinary pairs 0-14 core pixels of ~180,000 (edge band and
+# strays: 1,700-2,500 before the erosion), pairs over a 260-290 mm pothole 1,332 and 2,587
+DEEP_SHARE = 0.9
+DEEP_MIN_SHARE = 0.002
+DEEP_CORE_PX = 9
+# ... and never deeper than this share of the camera's height: weak texture can start a patch
+# at the bottom too (spd2's 0.5 m camera: two of 26 pairs, searched down to 480 mm before)
+DEEP_MAX_HEIGHT_SHARE = 0.5
 
 
 @dataclass
@@ -148,6 +167,20 @@ def dense_height(
     timings: dict[str, float] = {}
     with torch.no_grad(), cpu_threads(dev, cfg.cpu_threads), heap_blocks(dev):
         lv = _match_level(img_a, img_b, camera, pp, s, rs, cfg, dev, timings)
+        deeper = min(
+            2.0 * cfg.max_depth_m, cfg.max_depth_limit_m, DEEP_MAX_HEIGHT_SHARE * camera.height_m
+        )
+        n_deep, n_seen = _deep_pixels(lv, cfg.max_depth_m)
+        if deeper > cfg.max_depth_m and n_deep > DEEP_MIN_SHARE * max(n_seen, 1):
+            log.info(
+                "dense: %d of %d px start at %.0f mm or deeper (search %.0f mm): matched "
+                "again down to %.0f mm", n_deep, n_seen,
+                1000 * DEEP_SHARE * cfg.max_depth_m, 1000 * cfg.max_depth_m, 1000 * deeper,
+            )  # fmt: skip
+            return dense_height(
+                img_a, img_b, camera, R_b_from_a, t_b_from_a_m, plane, H,
+                dataclasses.replace(cfg, max_depth_m=deeper), dev, frame_dt_s,
+            )  # fmt: skip
         level = np.where(lv.valid, 0, -1).astype(np.int8)
         for k in range(1, cfg.fallback_levels + 1):
             sk = s * 0.5**k
@@ -166,6 +199,20 @@ def dense_height(
         np.where(valid, eta, np.nan).astype(np.float32), lv.var_m2, valid, lv.shift_px, lv.ncc,
         ppw, s, {k: round(v, 4) for k, v in timings.items()}, level, lv.reject,
     )  # fmt: skip
+
+
+def _deep_pixels(lv: LevelMatch, max_depth_m: float) -> tuple[int, int]:
+    """(core pixels of the patches whose match starts at DEEP_SHARE of the search depth or
+    deeper, pixels with a start inside both images): the sweep's best height sits at the bottom
+    of its range where the floor lies beyond it (such pixels then fail the checks: a 200 mm
+    pothole searched to 120 mm kept 5 of its 1,528 floor pixels); the final heights when there
+    was no sweep (the DIS init)."""
+    e = lv.init_eta_fwd if lv.init_eta_fwd is not None else lv.height_m
+    fin = np.isfinite(e) & ((lv.reject & (REJECT_OUTSIDE | REJECT_UNMATCHED)) == 0)
+    with np.errstate(invalid="ignore"):
+        deep = (fin & (e <= -DEEP_SHARE * max_depth_m)).astype(np.uint8)
+    core = cv2.erode(deep, np.ones((DEEP_CORE_PX, DEEP_CORE_PX), np.uint8))
+    return int(core.sum()), int(fin.sum())
 
 
 def _match_level(

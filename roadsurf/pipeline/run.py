@@ -481,4 +481,5 @@ def _build_report(
         report["warnings"] += list(report["map"].get("warnings") or [])
     if detections is not None and hasattr(detections, "to_report"):
         report["detection"] = detections.to_report()
+        report["warnings"] += list(report["detection"].get("warnings") or [])
     return report

@@ -11,7 +11,7 @@ import pytest
 
 from roadsurf.core.errors import DriveFormatError
 from roadsurf.io.drive import load_drive
-from roadsurf.mapping.antenna import cam_from_antenna, travel_axes
+from roadsurf.mapping.antenna import cam_from_antenna, cam_from_antenna_posed, travel_axes
 from tests.io.drive_fixtures import camera_yaml, make_drive
 
 ARM = np.array([-1.5, 0.3, 0.9])  # forward, left, up (m): behind, left of and above the camera
@@ -105,3 +105,30 @@ def test_camera_yaml_gps_antenna(tmp_path: Path) -> None:
         (root / "camera.yaml").write_text(camera_yaml(gps_antenna_m=bad))
         with pytest.raises(DriveFormatError, match=r"camera.yaml:\d+: camera.yaml 'gps_antenna_m'"):
             load_drive(root)
+
+
+def test_the_solved_poses_give_the_heading_wherever_the_antenna_rides() -> None:
+    """The simulator's kind of vehicle: the camera's own track is the heading, and the antenna
+    1.5 m behind it crabs on the curve. From the track the lever errs by 1.5 m / R; from the
+    vehicle's solved rotations (and a 20° forward mount) it is exact."""
+    from roadsurf.core.geometry import vehicle_from_cam_rotation
+
+    C, fwd, left = _s_curve()
+    A = _antenna(C, fwd, left, ARM)
+    up = np.cross(fwd, left)
+    # vehicle axes (x right, y backward, z down) in ENU, then the camera on a 20° pitched mount
+    R_wv = np.stack([-left, -fwd, -up], axis=2)
+    R_vc = vehicle_from_cam_rotation(20.0, 0.0, 0.0)
+    W = np.tile(np.eye(4), (len(C), 1, 1))
+    W[:, :3, :3] = R_wv @ R_vc
+    W[:, :3, 3] = C
+    t = np.arange(len(C)) * 0.1
+    got = cam_from_antenna_posed(A, t, t, W, R_vc, ARM)
+    assert np.abs(got - C).max() < 1e-9
+    # a fix between two frames takes the rotation between theirs
+    Am = 0.5 * (A[:-1] + A[1:])
+    mid = cam_from_antenna_posed(Am, t[:-1] + 0.05, t, W, R_vc, ARM)
+    assert np.median(np.linalg.norm(mid - 0.5 * (C[:-1] + C[1:]), axis=1)) < 0.002
+    # the track's first pass errs by the crab (the test above bounds it); this one does not
+    first = cam_from_antenna(A, np.full(len(C), 0.02), np.ones(len(C), bool), ARM)
+    assert np.linalg.norm(first - C, axis=1).max() > 0.05

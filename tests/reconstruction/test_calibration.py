@@ -123,11 +123,12 @@ def test_camera_yaml_without_mount_loads_as_a_drive_camera(calibrated, tmp_path:
     # recalibrating over it keeps what a calibration does not measure
     cv2.imwrite(str(tmp_path / "mask.png"), np.full((480, 640), 255, np.uint8))
     with res.camera_yaml.open("a") as f:
-        f.write("readout_s: 0.02\nmask: mask.png\n")
+        f.write("readout_s: 0.02\nmask: mask.png\ngps_antenna_m: [-1.5, 0.3, 0.9]\n")
     again = calibrate_command(paths[:8], BOARD, tmp_path, height_m=1.1, overwrite=True)
     cam = load_camera(again.camera_yaml)
     assert cam.readout_s == 0.02 and cam.fps == 10.0 and cam.mask is not None
-    assert any("Kept readout_s, mask, fps" in line for line in again.lines)
+    assert cam.gps_antenna_m == (-1.5, 0.3, 0.9)
+    assert any("Kept readout_s, mask, gps_antenna_m, fps" in line for line in again.lines)
 
 
 def test_too_few_images_are_refused(calibrated, tmp_path: Path) -> None:

@@ -144,3 +144,19 @@ def test_cuda_gives_the_cpu_heights(nadir: RenderedPair, nadir_dense: DenseHeigh
     both = dh.valid & nadir_dense.valid
     assert both.sum() > 0.99 * nadir_dense.valid.sum()
     assert np.abs(dh.height_m[both] - nadir_dense.height_m[both]).max() < 2e-4
+
+
+def test_a_pothole_deeper_than_the_search_is_matched_again_deeper() -> None:
+    """A 200 mm pothole against the default 120 mm search: its floor reaches the bound over a
+    patch, and the pair is matched again down to 240 mm (max_depth_limit_m); without the
+    second search the floor is cut at the bound."""
+    pair = synthetic_pair((320, 240), seed=3, pothole_depth_m=0.2, pothole_radius_m=0.25)
+    deep = _run(pair)
+    floor = pair.eta_true < -0.17  # the truth's floor, 50 mm past the first search
+    assert floor.sum() > 200
+    got = deep.height_m[floor & deep.valid]
+    assert got.size > 0.5 * floor.sum()
+    assert np.median(got) == pytest.approx(np.median(pair.eta_true[floor & deep.valid]), abs=0.005)
+    once = _run(pair, dataclasses.replace(CFG, max_depth_limit_m=CFG.max_depth_m))
+    cut = once.height_m[floor & once.valid]
+    assert cut.size == 0 or float(np.nanmin(cut)) > -0.135
