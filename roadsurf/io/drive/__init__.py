@@ -6,7 +6,8 @@ DRIVE/
                  # height_m (camera height above road, metres), fps
   frames/        # images (jpg/png); sorted name order = capture order
   frames.csv     # header: filename,timestamp_s
-  gps.csv        # header: timestamp_s,lat,lon[,alt_m][,hdop]  (or gps.gpx, or gps.nmea)
+  gps.csv        # header: timestamp_s,lat,lon[,alt_m][,hdop][,sigma_m][,fix_quality]
+                 # (or gps.gpx, or gps.nmea)
   obd.csv        # optional, header: timestamp_s,speed_mps
   truth/         # optional, written by the simulator only; ignored by the loader
 ```
