@@ -159,8 +159,10 @@ def load_result(run_dir: Path, signature: str) -> DetectionResult | None:
 # are one (mapbridge.bridged_components); 4: a seed deeper than noise_k x its own cell's σ too;
 # 5: frames nothing measured are not analysed (empty defect), not "no defect"; the dense area
 # within the outline, the mean depth within the maximum; 6: regions of one mean-shift cluster
-# join only within join_gap_m; 7: windows also around the dense surface's deep cells (rasterseeds)
-DETECTION_VERSION = 7
+# join only within join_gap_m; 7: windows also around the dense surface's deep cells (rasterseeds);
+# 8: traced ruts skip the point-support veto, a crack's depth takes its dense reading when
+# deeper, a surface at its search depth bounds no deeper reading, warnings in detection.json
+DETECTION_VERSION = 8
 
 
 def _round(p: float | None) -> float | str:

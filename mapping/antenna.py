@@ -86,7 +86,13 @@ def travel_axes(
     if not ok.any():
         return fwd, ok
     good = np.flatnonzero(ok)
-    nearest = good[np.abs(s[:, None] - s[good][None, :]).argmin(axis=1)]
+    # the nearest fix with a direction along the path (s never decreases: O(N log N) memory-flat)
+    j = np.clip(np.searchsorted(s[good], s), 1, len(good) - 1) if len(good) > 1 else None
+    if j is None:
+        nearest = np.full(n, good[0])
+    else:
+        left_closer = np.abs(s - s[good[j - 1]]) <= np.abs(s[good[j]] - s)
+        nearest = np.where(left_closer, good[j - 1], good[j])
     fwd[~ok] = fwd[nearest[~ok]]
     return fwd, np.ones(n, bool)
 

@@ -58,9 +58,7 @@ def gps_enu(
     has_alt = np.isfinite(alt)
     ref = enu_reference(g, t)
     enu = antenna_enu(g, ref)
-    sigma = fix_sigma_m(cfg, g)
-    if drive.camera.gps_antenna_m is not None:
-        enu = cam_from_antenna(enu, sigma, has_alt, np.asarray(drive.camera.gps_antenna_m))
+    sigma = sigma_fix = fix_sigma_m(cfg, g)
     # fixes usable as measurements: inside the frame time span, or close enough to its ends
     # for the end frames' constant-velocity extrapolation (σ inflated by the acceleration)
     margin = gps_margin_s(cfg, t)
@@ -74,6 +72,9 @@ def gps_enu(
         log.warning("poses: %s", msg)
         rep.warnings.append(msg)
         return None, None
+    if drive.camera.gps_antenna_m is not None:  # only the fixes used: a log may span hours
+        arm = np.asarray(drive.camera.gps_antenna_m)
+        enu[idx] = cam_from_antenna(enu[idx], sigma_fix[idx], has_alt[idx], arm)
     gps = GpsFixes(
         t_s=np.asarray(g.timestamp_s, float)[idx],
         enu_m=enu[idx],

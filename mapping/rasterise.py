@@ -117,9 +117,10 @@ def rasterise(
         tags["DENSE_FOOTPRINT_M"] = (
             f"{cfg.dense.window_px * dense_px_m(cfg, cam, traj, road_z):.6f}"
         )
-        # the matching's first search depth below the road plane: a cell at it may be deeper
-        # (a pair whose floor reaches it over a patch is matched again deeper)
-        tags["DENSE_SEARCH_DEPTH_M"] = f"{cfg.dense.max_depth_m:.6f}"
+        # the deepest search below the road plane (a pair whose floor reaches the first one
+        # over a patch is matched again down to it): a cell at it may be deeper
+        deepest = cfg.dense.deepest_search_m(cam.height_m)
+        tags["DENSE_SEARCH_DEPTH_M"] = f"{deepest:.6f}"
     lat, tiles = corridor_tiles(allxy, crs, gsd, cfg.tile_px)
     # footprint bounding boxes in pixel coordinates of the full grid, and frames per tile
     fg = lat.full_grid

@@ -8,6 +8,11 @@ from typing import ClassVar, Literal
 
 from roadsurf.core.camera import capped_scale
 
+# the second, deeper search never goes below this share of the camera's height: weak texture
+# can start a patch at the bottom too (spd2's 0.5 m camera: two of 26 pairs, searched down to
+# 480 mm before)
+DEEP_MAX_HEIGHT_SHARE = 0.5
+
 
 @dataclass(frozen=True)
 class DenseHeightConfig:
@@ -31,8 +36,8 @@ class DenseHeightConfig:
     sweep_step_px: float = 0.5  # largest parallax step between swept heights (px, sweep grid)
     max_depth_m: float = 0.12  # deepest point below the road plane searched (m)
     # a pair whose sweep starts a patch of pixels at 90 % of max_depth_m or deeper
-    # (``parallax.DEEP_*``) is matched again with the depth doubled, up to this and half the
-    # camera height (m; <= max_depth_m = off): a 240-290 mm pothole read 107-128 mm, cut flat
+    # (``parallax.DEEP_*``) is matched again, once, down to this or half the camera height,
+    # the shallower (m; <= max_depth_m = off): a 240-290 mm pothole read 107-128 mm, cut flat
     # at the search depth; a deeper search on every pair cost the map stage 21 %
     max_depth_limit_m: float = 0.48
     max_height_m: float = 0.06  # highest point above the road plane searched (m)
@@ -121,6 +126,14 @@ class DenseHeightConfig:
     # across it read those cells shallow (potholes drive: 5,163 in-defect cells, MAE 9.6 mm,
     # bias +7.5 mm); 0 = off
     hole_fill_m: float = 0.02
+
+    def deepest_search_m(self, camera_height_m: float) -> float:
+        """The deepest height below the road plane any pair is matched down to (m):
+        ``max_depth_m``, or the second search's when ``max_depth_limit_m`` allows one (at most
+        ``DEEP_MAX_HEIGHT_SHARE`` of the camera height). surface.tif names it: a cell that deep
+        may be deeper."""
+        second = min(self.max_depth_limit_m, DEEP_MAX_HEIGHT_SHARE * camera_height_m)
+        return max(self.max_depth_m, second)
 
     def work_scale(self, width: int, height: int) -> float:
         """The work grid's scale for images of width x height px: ``scale``, lowered so the

@@ -77,9 +77,7 @@ log = logging.getLogger(__name__)
 DEEP_SHARE = 0.9
 DEEP_MIN_SHARE = 0.002
 DEEP_CORE_PX = 9
-# ... and never deeper than this share of the camera's height: weak texture can start a patch
-# at the bottom too (spd2's 0.5 m camera: two of 26 pairs, searched down to 480 mm before)
-DEEP_MAX_HEIGHT_SHARE = 0.5
+DEEP_EDGE_PX = 31  # ... and the patch's core at least half this inside the matched part (px)
 
 
 @dataclass
@@ -167,9 +165,7 @@ def dense_height(
     timings: dict[str, float] = {}
     with torch.no_grad(), cpu_threads(dev, cfg.cpu_threads), heap_blocks(dev):
         lv = _match_level(img_a, img_b, camera, pp, s, rs, cfg, dev, timings)
-        deeper = min(
-            2.0 * cfg.max_depth_m, cfg.max_depth_limit_m, DEEP_MAX_HEIGHT_SHARE * camera.height_m
-        )
+        deeper = cfg.deepest_search_m(camera.height_m)
         n_deep, n_seen = _deep_pixels(lv, cfg.max_depth_m)
         if deeper > cfg.max_depth_m and n_deep > DEEP_MIN_SHARE * max(n_seen, 1):
             log.info(
@@ -177,10 +173,11 @@ def dense_height(
                 "again down to %.0f mm", n_deep, n_seen,
                 1000 * DEEP_SHARE * cfg.max_depth_m, 1000 * cfg.max_depth_m, 1000 * deeper,
             )  # fmt: skip
+            # once, straight to the deepest search (the test is tuned at the first depth)
+            again = dataclasses.replace(cfg, max_depth_m=deeper, max_depth_limit_m=deeper)
             return dense_height(
-                img_a, img_b, camera, R_b_from_a, t_b_from_a_m, plane, H,
-                dataclasses.replace(cfg, max_depth_m=deeper), dev, frame_dt_s,
-            )  # fmt: skip
+                img_a, img_b, camera, R_b_from_a, t_b_from_a_m, plane, H, again, dev, frame_dt_s
+            )
         level = np.where(lv.valid, 0, -1).astype(np.int8)
         for k in range(1, cfg.fallback_levels + 1):
             sk = s * 0.5**k
@@ -212,7 +209,9 @@ def _deep_pixels(lv: LevelMatch, max_depth_m: float) -> tuple[int, int]:
     with np.errstate(invalid="ignore"):
         deep = (fin & (e <= -DEEP_SHARE * max_depth_m)).astype(np.uint8)
     core = cv2.erode(deep, np.ones((DEEP_CORE_PX, DEEP_CORE_PX), np.uint8))
-    return int(core.sum()), int(fin.sum())
+    # away from the overlap's edge, whose band of bottom starts widens with the search depth
+    inner = cv2.erode(fin.astype(np.uint8), np.ones((DEEP_EDGE_PX, DEEP_EDGE_PX), np.uint8))
+    return int((core & inner).sum()), int(fin.sum())
 
 
 def _match_level(

@@ -9,7 +9,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from roadsurf.core.errors import DriveFormatError
 from roadsurf.io.drive import load_drive
 from roadsurf.io.drive.types import GpsTrack
 from roadsurf.mapping.config import MappingConfig
@@ -54,17 +53,23 @@ def test_a_log_without_accuracy_columns_states_none(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize(
-    ("col", "value", "what"),
-    [("sigma_m", "-0.1", "horizontal σ"), ("sigma_m", "20000", "horizontal σ"),
-     ("sigma_m", "abc", "horizontal σ"), ("fix_quality", "4.5", "fix quality")],
+    ("col", "value"), [("sigma_m", "-0.1"), ("sigma_m", "0.000"), ("sigma_m", "20000"),
+                       ("sigma_m", "abc"), ("fix_quality", "4.5")],
 )  # fmt: skip
-def test_bad_accuracy_value_names_the_line(tmp_path: Path, col: str, value: str, what: str) -> None:
+def test_bad_accuracy_value_is_not_stated_and_named(tmp_path: Path, col: str, value: str) -> None:
+    """The columns are optional and unused by default: a log that loaded before they were read
+    still loads; the bad value counts as not stated and one warning names its line."""
     root = make_drive(tmp_path / "d")
-    rows = [f"{-0.5 + 0.5 * k:.1f},{LAT0 + 1e-6 * k:.8f},{LON0},{value if k == 2 else ''}"
+    good = "0.02" if col == "sigma_m" else "4"
+    rows = [f"{-0.5 + 0.5 * k:.1f},{LAT0 + 1e-6 * k:.8f},{LON0},{value if k == 2 else good}"
             for k in range(4)]  # fmt: skip
     _csv(root, f"timestamp_s,lat,lon,{col}", rows)
-    with pytest.raises(DriveFormatError, match=rf"gps.csv:4: {col} = '{value}'.*{what}"):
-        load_drive(root)
+    d = load_drive(root)
+    assert d.gps is not None and len(d.gps) == 4
+    (w,) = [w for w in d.warnings if "not valid" in w]
+    assert "on 1 row(s) (line 4)" in w and "taken as not stated" in w, w
+    if col == "sigma_m":
+        assert np.isnan(d.gps.sigma_m[2]) and np.isfinite(d.gps.sigma_m[[0, 1, 3]]).all()
 
 
 def _nmea_log(with_gst: bool, quality: int, gst_offset_s: float = 0.0) -> list[str]:
@@ -105,12 +110,23 @@ def test_nmea_gst_gives_each_fix_its_sigma(tmp_path: Path) -> None:
     assert sig[0] == pytest.approx(rms)
 
 
+def test_nmea_gst_without_checksum_is_read(tmp_path: Path) -> None:
+    root = make_drive(tmp_path / "d", t0=T0, gps=None)
+    lines = [ln.rsplit("*", 1)[0] if ln.startswith("$GPGST") else ln for ln in _nmea_log(True, 1)]
+    (root / "gps.nmea").write_text("\n".join(lines) + "\n")
+    g = load_drive(root).gps
+    assert g is not None and np.isfinite(g.sigma_m).all()
+    # a GGA quality of 1 (GPS) states no accuracy; a GST does
+    assert g.states_accuracy and (g.quality == 1).all()
+
+
 def test_nmea_gst_at_other_times_warns(tmp_path: Path) -> None:
     root = make_drive(tmp_path / "d", t0=T0, gps=None)
     (root / "gps.nmea").write_text("\n".join(_nmea_log(True, 1, gst_offset_s=0.25)) + "\n")
     d = load_drive(root)
     assert d.gps is not None and np.isnan(d.gps.sigma_m).all()
     assert any("GST sentence(s)" in w and "match no RMC/GGA" in w for w in d.warnings)
+    assert not d.gps.states_accuracy  # GGA quality 1 and no matching GST
 
 
 def test_gps_track_without_accuracy_fields_fills_them() -> None:

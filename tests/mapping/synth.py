@@ -177,13 +177,18 @@ def make_synthetic(
     road_z: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
     mount_deg: tuple[float, float, float] | None = None,
     mount_in_camera: bool = False,
+    gps_antenna_m: tuple[float, float, float] | None = None,
 ) -> Synthetic:
     """mount_deg: the camera's true mount (pitch, roll, yaw) degrees (None = nadir);
-    mount_in_camera: also give it in the Camera (as camera.yaml would)."""
+    mount_in_camera: also give it in the Camera (as camera.yaml would); gps_antenna_m: the
+    fixes are those of an antenna at [forward, left, up] m from the camera (given in the Camera,
+    as camera.yaml would)."""
     rng = np.random.default_rng(seed)
     cam = camera(fps=fps)
     if mount_deg is not None and mount_in_camera:
         cam = replace(cam, mount_deg=mount_deg)
+    if gps_antenna_m is not None:
+        cam = replace(cam, gps_antenna_m=gps_antenna_m)
     t, W = true_poses(n, fps, speed_mps, cam.height_m, rng, mount_deg=mount_deg)
     root = root or Path("/nonexistent-synthetic-drive")
     frames = [
@@ -203,7 +208,16 @@ def make_synthetic(
         # true camera centre at fix time: interpolate the true path (dense frames, tiny error)
         # (outside the frames: extrapolated at the end frames' velocity, i.e. constant speed)
         g_true = np.column_stack([_interp_extrap(tg, t, W[:, j, 3]) for j in range(3)])
-        meas = g_true + rng.normal(0, gps_sigma_m, g_true.shape) * [1, 1, 1.5]
+        ant = g_true
+        if gps_antenna_m is not None:
+            from roadsurf.core.geometry import vehicle_from_cam_rotation
+
+            f, left, u = gps_antenna_m
+            R_vc = vehicle_from_cam_rotation(*(mount_deg or (0.0, 0.0, 0.0)))
+            near = np.clip(np.searchsorted(t, tg), 0, n - 1)  # the frame at or after each fix
+            R_wv = W[near, :3, :3] @ R_vc.T
+            ant = g_true + R_wv @ np.array([-left, -f, -u])
+        meas = ant + rng.normal(0, gps_sigma_m, g_true.shape) * [1, 1, 1.5]
         for k, (de, dn) in (gps_outliers or {}).items():
             meas[k, :2] += [de, dn]
         lla = lla_from_enu(meas, REF)

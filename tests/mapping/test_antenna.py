@@ -132,3 +132,26 @@ def test_the_solved_poses_give_the_heading_wherever_the_antenna_rides() -> None:
     # the track's first pass errs by the crab (the test above bounds it); this one does not
     first = cam_from_antenna(A, np.full(len(C), 0.02), np.ones(len(C), bool), ARM)
     assert np.linalg.norm(first - C, axis=1).max() > 0.05
+
+
+def test_the_pose_stage_puts_the_camera_not_the_antenna_on_the_fixes() -> None:
+    """The wiring: a synthetic drive whose fixes are an antenna 1.5 m behind, 0.3 m left of and
+    0.9 m above a camera on a 25° mount (given, as camera.yaml would). The trajectory is the
+    camera's; without the key it is the antenna's, 1.77 m off."""
+    import dataclasses
+
+    from roadsurf.mapping import poses
+    from roadsurf.mapping.config import MappingConfig
+    from tests.mapping.synth import make_synthetic
+    from tests.mapping.test_poses import _true_frame_positions
+
+    arm = (-1.5, 0.3, 0.9)
+    syn = make_synthetic(n=60, seed=5, gps_hz=5.0, hdop=0.1, mount_deg=(25.0, 0.0, 0.0),
+                         mount_in_camera=True, gps_antenna_m=arm)  # fmt: skip
+    cfg = MappingConfig(bundle_adjust=False, gps_sigma_m=0.02)
+    est, true = _true_frame_positions(poses.estimate_trajectory(cfg, syn.drive, syn.pairs)[0], syn)
+    err = np.linalg.norm(est - true, axis=1)
+    assert np.median(err) < 0.03, np.median(err)
+    syn.drive.camera = dataclasses.replace(syn.drive.camera, gps_antenna_m=None)
+    est, true = _true_frame_positions(poses.estimate_trajectory(cfg, syn.drive, syn.pairs)[0], syn)
+    assert np.median(np.linalg.norm(est - true, axis=1)) > 1.5

@@ -111,6 +111,7 @@ def load_gps_csv(path: Path, skipped: list[Skipped], warnings: list[str]) -> Gps
         path, ("timestamp_s", "lat", "lon"), ("alt_m", "hdop", "sigma_m", "fix_quality")
     )
     good: list[Row] = []
+    bad_acc: list[int | None] = []  # lines whose sigma_m / fix_quality is not a valid value
     n_total = n_bad = 0
     for line, row in rows:
         n_total += 1
@@ -141,8 +142,15 @@ def load_gps_csv(path: Path, skipped: list[Skipped], warnings: list[str]) -> Gps
             hdop = math.nan
         if math.isfinite(hdop) and hdop <= 0:
             hdop = math.nan
-        sigma, quality = _accuracy(path, line, row)
+        sigma, quality = _accuracy(path, line, row, bad_acc)
         good.append((line, t, lat, lon, alt, hdop, sigma, quality))
+    if bad_acc:
+        first = ", ".join(str(n) for n in bad_acc[:5])
+        warnings.append(
+            f"{path}: sigma_m (the receiver's horizontal σ, m, > 0 and <= {MAX_SIGMA_M:g}) or "
+            f"fix_quality (the GGA fix quality, an integer 0-9) is not valid on {len(bad_acc)} "
+            f"row(s) (line {first}{', ...' if len(bad_acc) > 5 else ''}): taken as not stated"
+        )
     return gps_from_lists(path, good, skipped, n_bad, n_total, warnings)
 
 
@@ -199,17 +207,15 @@ def gps_outages(gps: GpsTrack, frames: list[Frame], interval_s: float) -> str:
 MAX_SIGMA_M = 1000.0  # a stated σ above this is a unit mistake (mm typed as m?)
 
 
-def _accuracy(path: Path, line: int | None, row: dict[str, str]) -> tuple[float, float]:
+def _accuracy(
+    path: Path, line: int | None, row: dict[str, str], bad: list[int | None]
+) -> tuple[float, float]:
     """(stated σ (m), NaN if none; fix quality, 0 if none) of one gps.csv row. A value that is
-    not a number, or out of range, is an error naming the line: weighting the fixes by a
-    misread accuracy would bend the whole trajectory without a word."""
+    not a number or out of range counts as not stated, its line appended to ``bad`` (one
+    warning names them): the columns are optional and unused by default, a log that loaded
+    before still loads."""
     out = [math.nan, 0.0]
-    for k, (key, lo, hi, what) in enumerate(
-        (
-            ("sigma_m", 0.0, MAX_SIGMA_M, "the receiver's horizontal σ per axis in metres"),
-            ("fix_quality", 0.0, 9.0, "the NMEA GGA fix quality: 4 RTK fixed, 5 RTK float, 1 GPS"),
-        )
-    ):
+    for k, key in enumerate(("sigma_m", "fix_quality")):
         text = (row.get(key) or "").strip()
         if not text:
             continue
@@ -217,12 +223,12 @@ def _accuracy(path: Path, line: int | None, row: dict[str, str]) -> tuple[float,
             v = csv_float(text)
         except ValueError:
             v = math.nan
-        ok = math.isfinite(v) and (lo < v <= hi if k == 0 else v == int(v) and lo <= v <= hi)
-        if not ok:
-            raise DriveFormatError(
-                f"{path}:{line}: {key} = {text!r} is not valid: it is {what} "
-                f"({'> 0 and <= ' + format(hi, 'g') if k == 0 else 'an integer 0-9'}). Fix the "
-                "value or leave it empty."
-            )
-        out[k] = v
+        if k == 0:
+            ok = math.isfinite(v) and 0 < v <= MAX_SIGMA_M
+        else:
+            ok = math.isfinite(v) and v == int(v) and 0 <= v <= 9
+        if ok:
+            out[k] = v
+        elif not bad or bad[-1] != line:
+            bad.append(line)
     return out[0], out[1]

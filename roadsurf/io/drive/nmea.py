@@ -272,7 +272,12 @@ def _read_gst(
     its latitude and longitude σ, fields 6 and 7). A GST that does not parse, or states no
     positive σ, is skipped with its line."""
     try:
-        msg = pynmea2.parse(s, check=True)
+        try:
+            msg = pynmea2.parse(s, check=True)
+        except pynmea2.ChecksumError as e:
+            if "missing" not in str(e):
+                raise
+            msg = pynmea2.parse(s, check=False)  # no checksum at all: read, as RMC/GGA are
         tod = _tod(msg)
         sl, so = float(msg.std_dev_latitude), float(msg.std_dev_longitude)
     except (pynmea2.ParseError, pynmea2.ChecksumError, ValueError, TypeError, AttributeError):

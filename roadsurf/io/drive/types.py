@@ -65,9 +65,9 @@ class GpsTrack:
 
     @property
     def states_accuracy(self) -> bool:
-        """Whether any fix carries a stated σ or an RTK fix quality (stage fingerprints add
-        them only then, so logs without them keep their fingerprints)."""
-        return bool(np.isfinite(self.sigma_m).any() or (self.quality > 0).any())
+        """Whether any fix carries a stated σ or an RTK fix quality (4 or 5): what
+        ``mapping.gps_sigma_from_log`` weighs by."""
+        return bool(np.isfinite(self.sigma_m).any() or np.isin(self.quality, (4, 5)).any())
 
 
 @dataclass
