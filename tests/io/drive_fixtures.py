@@ -90,9 +90,19 @@ def ddmm(v: float, pos: str, neg: str, width: int) -> str:
     return f"{d:0{width}d}{(a - d) * 60:07.4f},{pos if v >= 0 else neg}"
 
 
-def nmea_lines(t0: float, n: int, dt: float = 0.5, geoid_sep: str = "-34.0") -> list[str]:
-    """RMC + GGA per fix from t0 (UNIX s), moving north 1e-5 deg per fix; GGA altitude 120 m
-    (mean sea level) with the given geoid separation (field 11; "" for none)."""
+def nmea_lines(
+    t0: float,
+    n: int,
+    dt: float = 0.5,
+    geoid_sep: str = "-34.0",
+    quality: int = 1,
+    alt_step_m: float = 0.0,
+    gst_offset_s: float | None = None,
+) -> list[str]:
+    """RMC + GGA per fix from t0 (UNIX s), moving north 1e-5 deg per fix; GGA fix ``quality``,
+    altitude 120 m + k ``alt_step_m`` (mean sea level) with the given geoid separation (field
+    11; "" for none); with ``gst_offset_s`` a GST (σ lat 0.03 m, σ lon 0.04 m) that long after
+    each fix."""
     from datetime import UTC, datetime
 
     out = []
@@ -100,8 +110,14 @@ def nmea_lines(t0: float, n: int, dt: float = 0.5, geoid_sep: str = "-34.0") -> 
         u = datetime.fromtimestamp(t0 + dt * k, UTC)
         hms = u.strftime("%H%M%S") + f".{u.microsecond // 10000:02d}"
         lat, lon = ddmm(LAT0 + 1e-5 * k, "N", "S", 2), ddmm(LON0, "E", "W", 3)
+        alt = 120.0 + alt_step_m * k
         out.append(nmea(f"GPRMC,{hms},A,{lat},{lon},10.0,90.0,{u:%d%m%y},,"))
-        out.append(nmea(f"GPGGA,{hms},{lat},{lon},1,08,0.9,120.0,M,{geoid_sep},M,,"))
+        out.append(nmea(f"GPGGA,{hms},{lat},{lon},{quality},08,0.9,{alt:.1f},M,{geoid_sep},M,,"))
+        if gst_offset_s is not None:
+            g = datetime.fromtimestamp(t0 + dt * k + gst_offset_s, UTC)
+            ghms = g.strftime("%H%M%S") + f".{g.microsecond // 10000:02d}"
+            # rms, semi-major, semi-minor, orientation, σ lat, σ lon, σ alt (m)
+            out.append(nmea(f"GPGST,{ghms},0.006,0.023,0.020,273.6,0.030,0.040,0.05"))
     return out
 
 

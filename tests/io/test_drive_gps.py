@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -11,7 +10,15 @@ import pytest
 
 from roadsurf.core.errors import DriveFormatError
 from roadsurf.io.drive import load_drive
-from tests.io.drive_fixtures import LAT0, LON0, T0, make_drive, moving_gps_rows
+from tests.io.drive_fixtures import (
+    LAT0,
+    LON0,
+    T0,
+    make_drive,
+    moving_gps_rows,
+    nmea,
+    nmea_lines,
+)
 
 # --------------------------------------------------------------------------- GPS csv
 
@@ -128,32 +135,9 @@ def test_gpx_broken_xml(tmp_path: Path) -> None:
 # --------------------------------------------------------------------------- NMEA
 
 
-def _nmea(body: str) -> str:
-    c = 0
-    for ch in body:
-        c ^= ord(ch)
-    return f"${body}*{c:02X}"
-
-
-def _ddmm(v: float, pos: str, neg: str, width: int) -> str:
-    a = abs(v)
-    d = math.floor(a)
-    return f"{d:0{width}d}{(a - d) * 60:07.4f},{pos if v >= 0 else neg}"
-
-
 def test_nmea_rmc_gga_checksum(tmp_path: Path) -> None:
     root = make_drive(tmp_path / "d", t0=T0, gps=None)
-    dt0 = datetime.fromtimestamp(T0, UTC)
-    lines = []
-    for k in range(4):
-        t = dt0.timestamp() - 0.5 + 0.5 * k
-        dt = datetime.fromtimestamp(t, UTC)
-        hms = dt.strftime("%H%M%S") + f".{dt.microsecond // 10000:02d}"
-        lat = _ddmm(LAT0 + 1e-5 * k, "N", "S", 2)
-        lon = _ddmm(LON0, "E", "W", 3)
-        date = dt.strftime("%d%m%y")
-        lines.append(_nmea(f"GPRMC,{hms},A,{lat},{lon},10.0,90.0,{date},,"))
-        lines.append(_nmea(f"GPGGA,{hms},{lat},{lon},1,08,0.9,{120 + k}.0,M,-34.0,M,,"))
+    lines = nmea_lines(T0 - 0.5, 4, alt_step_m=1.0)
     good_rmc = lines[2]
     lines[2] = good_rmc[:-2] + ("00" if good_rmc[-2:] != "00" else "11")  # bad checksum
     lines.append("$GPGSV,3,1,11,03,03,111,00,04,15,270,00,06,01,010,00,13,06,292,00*74")
@@ -175,7 +159,7 @@ def test_nmea_rmc_gga_checksum(tmp_path: Path) -> None:
 def test_nmea_without_rmc_is_an_error(tmp_path: Path) -> None:
     root = make_drive(tmp_path / "d", gps=None)
     (root / "gps.nmea").write_text(
-        _nmea("GPGGA,120000.00,4336.0000,N,07924.0000,W,1,08,0.9,120.0,M,-34.0,M,,") + "\n"
+        nmea("GPGGA,120000.00,4336.0000,N,07924.0000,W,1,08,0.9,120.0,M,-34.0,M,,") + "\n"
     )
     with pytest.raises(DriveFormatError, match="no valid \\$GPRMC"):
         load_drive(root)

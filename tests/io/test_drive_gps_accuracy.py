@@ -3,7 +3,6 @@ GGA fix quality, and how the pose graph weighs the fixes by them (mapping.pose_g
 
 from __future__ import annotations
 
-from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -13,8 +12,7 @@ from roadsurf.io.drive import load_drive
 from roadsurf.io.drive.types import GpsTrack
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.pose_gps import fix_sigma_m
-from tests.io.drive_fixtures import LAT0, LON0, T0, make_drive
-from tests.io.test_drive_gps import _ddmm, _nmea
+from tests.io.drive_fixtures import LAT0, LON0, T0, make_drive, nmea_lines
 
 
 def _csv(root: Path, header: str, rows: list[str]) -> Path:
@@ -72,27 +70,9 @@ def test_bad_accuracy_value_is_not_stated_and_named(tmp_path: Path, col: str, va
         assert np.isnan(d.gps.sigma_m[2]) and np.isfinite(d.gps.sigma_m[[0, 1, 3]]).all()
 
 
-def _nmea_log(with_gst: bool, quality: int, gst_offset_s: float = 0.0) -> list[str]:
-    dt0 = datetime.fromtimestamp(T0, UTC)
-    lines = []
-    for k in range(4):
-        t = dt0.timestamp() - 0.5 + 0.5 * k
-        dt = datetime.fromtimestamp(t, UTC)
-        hms = dt.strftime("%H%M%S") + f".{dt.microsecond // 10000:02d}"
-        lat, lon = _ddmm(LAT0 + 1e-5 * k, "N", "S", 2), _ddmm(LON0, "E", "W", 3)
-        lines.append(_nmea(f"GPRMC,{hms},A,{lat},{lon},10.0,90.0,{dt:%d%m%y},,"))
-        lines.append(_nmea(f"GPGGA,{hms},{lat},{lon},{quality},08,0.9,120.0,M,-34.0,M,,"))
-        if with_gst:
-            g = datetime.fromtimestamp(t + gst_offset_s, UTC)
-            ghms = g.strftime("%H%M%S") + f".{g.microsecond // 10000:02d}"
-            # rms, semi-major, semi-minor, orientation, σ lat, σ lon, σ alt (m)
-            lines.append(_nmea(f"GPGST,{ghms},0.006,0.023,0.020,273.6,0.030,0.040,0.05"))
-    return lines
-
-
 def test_nmea_gst_gives_each_fix_its_sigma(tmp_path: Path) -> None:
     root = make_drive(tmp_path / "d", t0=T0, gps=None)
-    lines = _nmea_log(True, 4)
+    lines = nmea_lines(T0 - 0.5, 4, quality=4, gst_offset_s=0.0)
     lines[5] = lines[5][:-2] + ("00" if lines[5][-2:] != "00" else "11")  # one GST corrupted
     (root / "gps.nmea").write_text("\n".join(lines) + "\n")
     d = load_drive(root)
@@ -112,7 +92,10 @@ def test_nmea_gst_gives_each_fix_its_sigma(tmp_path: Path) -> None:
 
 def test_nmea_gst_without_checksum_is_read(tmp_path: Path) -> None:
     root = make_drive(tmp_path / "d", t0=T0, gps=None)
-    lines = [ln.rsplit("*", 1)[0] if ln.startswith("$GPGST") else ln for ln in _nmea_log(True, 1)]
+    lines = [
+        ln.rsplit("*", 1)[0] if ln.startswith("$GPGST") else ln
+        for ln in nmea_lines(T0 - 0.5, 4, gst_offset_s=0.0)
+    ]
     (root / "gps.nmea").write_text("\n".join(lines) + "\n")
     g = load_drive(root).gps
     assert g is not None and np.isfinite(g.sigma_m).all()
@@ -122,7 +105,7 @@ def test_nmea_gst_without_checksum_is_read(tmp_path: Path) -> None:
 
 def test_nmea_gst_at_other_times_warns(tmp_path: Path) -> None:
     root = make_drive(tmp_path / "d", t0=T0, gps=None)
-    (root / "gps.nmea").write_text("\n".join(_nmea_log(True, 1, gst_offset_s=0.25)) + "\n")
+    (root / "gps.nmea").write_text("\n".join(nmea_lines(T0 - 0.5, 4, gst_offset_s=0.25)) + "\n")
     d = load_drive(root)
     assert d.gps is not None and np.isnan(d.gps.sigma_m).all()
     assert any("GST sentence(s)" in w and "match no RMC/GGA" in w for w in d.warnings)
