@@ -241,10 +241,18 @@ def measure_regions(
             _vetoed(seg, reg, f"shallow as measured ({1000 * m.max_depth_m:.1f} mm)")
             continue
         e, n = (float(v) for v in m.centroid_xy_m)
-        if m.max_depth_m > cfg.plane.max_depth_m:
+        # the fused dense surface itself reads it that deep, having searched that deep (a pair
+        # over a deep floor is matched again deeper): a pothole, not the points of a failed
+        # reconstruction (the battery's 288 mm pothole, read 262 mm by the surface, was dropped)
+        surface_deep = (
+            dense_raster
+            and raster_floor_m > cfg.plane.max_depth_m
+            and supported_by(m.max_depth_m, raster_max)
+        )
+        if m.max_depth_m > cfg.plane.max_depth_m and not surface_deep:
             # Deeper than any defect the plane fit accepts (its mismatch bound): made of a
             # failed reconstruction's points, as for cracks (``crackmap``) - said, not silent:
-            # a very deep pothole is dropped the same way
+            # a very deep pothole whose surface does not read it is dropped the same way
             _vetoed(seg, reg, f"deeper than a defect can be ({1000 * m.max_depth_m:.0f} mm)")
             if warnings is not None:
                 warnings.append(

@@ -83,3 +83,18 @@ def test_a_region_deeper_than_any_defect_is_dropped_with_a_warning() -> None:
     assert defects == []
     assert len(warns) == 1 and "detection.plane.max_depth_m (250 mm)" in warns[0], warns
     assert "300 mm deep was dropped" in warns[0]
+
+
+def test_a_region_the_dense_surface_reads_that_deep_is_kept() -> None:
+    """A 260 mm floor on a fused dense surface searched to 480 mm: the surface's own reading,
+    not a failed reconstruction's points. Searched to 120 mm only (or on a sparse raster) the
+    same region is the mismatch bound's."""
+    grid, reg = _bowl(0.26)
+    seg = Segmentation(0.001, 0.008, 0.0015, [reg], grid)
+    warns: list[str] = []
+    kw = {"have_pairs": False, "dense_raster": True, "warnings": warns}
+    defects, _ = measure_regions(DetectionConfig(), seg, {}, raster_floor_m=0.48, **kw)
+    assert len(defects) == 1 and defects[0].max_depth_m == pytest.approx(0.26)
+    assert warns == []
+    defects, _ = measure_regions(DetectionConfig(), seg, {}, raster_floor_m=0.12, **kw)
+    assert defects == [] and "260 mm deep was dropped" in warns[0]
