@@ -62,7 +62,7 @@ def measure_regions(
 
     ``dense_raster``: the map's raster is the fused dense surface (surface.tif with a
     ``DENSE_FOOTPRINT_M`` tag), whose supported max then also bounds a dense-track reading -
-    except where it reaches ``raster_floor_m`` (its matching's search depth, the
+    except where it reaches ``raster_floor_m`` (its matching's deepest search, the
     ``DENSE_SEARCH_DEPTH_M`` tag; NaN: unknown), below which it cannot read. Such a defect, and
     one dropped as deeper than ``plane.max_depth_m``, adds a line to ``warnings``.
 
@@ -264,12 +264,14 @@ def measure_regions(
             continue
         if clipped and warnings is not None:
             warnings.append(
-                f"the defect at E {e:.2f}, N {n:.2f} m reaches the dense surface's search depth "
-                f"({1000 * raster_floor_m:.0f} mm below the road, mapping.dense.max_depth_m): "
+                f"the defect at E {e:.2f}, N {n:.2f} m reaches the dense surface's deepest search depth "
+                f"({1000 * raster_floor_m:.0f} mm below the road: mapping.dense.max_depth_m, or "
+                "mapping.dense.max_depth_limit_m for a pair whose floor reached it, at most half "
+                "the camera height): "
                 f"the surface reads {1000 * raster_max:.0f} mm, the detector's own reading "
                 f"{1000 * m.max_depth_m:.0f} mm; its depth may be a lower bound and its area and "
-                "volume come from a surface cut flat at that depth. Raise "
-                "mapping.dense.max_depth_m for this road"
+                "volume come from a surface cut flat at that depth. Raise those settings for "
+                "this road"
             )
         kind = "rut" if rut is not None else classify(m, mc)
         seen = sorted(fn for fn, fp in footprints.items() if fp.intersects(poly))

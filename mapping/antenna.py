@@ -26,7 +26,7 @@ import logging
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from roadsurf.core.geometry import check_shape
+from roadsurf.core.geometry import check_shape, vehicle_from_flu
 
 log = logging.getLogger(__name__)
 
@@ -136,8 +136,7 @@ def cam_from_antenna_posed(
     behind the point that does not slide moves 7° off it."""
     A = check_shape("antenna_enu_m", np.asarray(antenna_enu_m, float), (None, 3))
     W = check_shape("world_from_cam", np.asarray(world_from_cam, float), (None, 4, 4))
-    f, left, u = (float(v) for v in check_shape("arm_flu_m", np.asarray(arm_flu_m), (3,)))
-    arm_vehicle = np.array([-left, -f, -u])
+    arm_vehicle = vehicle_from_flu(arm_flu_m)
     t = np.asarray(t_s, float)
     R_wv = W[:, :3, :3] @ np.asarray(R_vehicle_from_cam, float).T
     if len(t) == 1:

@@ -85,12 +85,13 @@ def gps_enu(
     return ref, gps
 
 
-def antenna_enu(g: GpsTrack, ref: EnuReference) -> np.ndarray:
-    """(N, 3) the log's fixes in the local ENU frame ``ref`` (m), as logged (the antenna's);
-    a fix without altitude at the reference's."""
-    alt = np.asarray(g.alt_m, float)
+def antenna_enu(g: GpsTrack, ref: EnuReference, idx: np.ndarray | None = None) -> np.ndarray:
+    """(N, 3) the log's fixes (those at ``idx``, None = all) in the local ENU frame ``ref`` (m),
+    as logged (the antenna's); a fix without altitude at the reference's."""
+    sel = slice(None) if idx is None else idx
+    alt = np.asarray(g.alt_m, float)[sel]
     alt = np.where(np.isfinite(alt), alt, ref.alt_m)
-    return enu_from_lla(g.lat_deg, g.lon_deg, alt, ref)
+    return enu_from_lla(np.asarray(g.lat_deg)[sel], np.asarray(g.lon_deg)[sel], alt, ref)
 
 
 def refix_antenna(
@@ -107,7 +108,7 @@ def refix_antenna(
     arm = drive.camera.gps_antenna_m
     if arm is None or drive.gps is None:
         return gps
-    raw = antenna_enu(drive.gps, ref)[gps.orig_index]
+    raw = antenna_enu(drive.gps, ref, gps.orig_index)
     enu = cam_from_antenna_posed(
         raw, gps.t_s, t, world_from_cam, R_vehicle_from_cam, np.asarray(arm)
     )

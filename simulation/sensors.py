@@ -10,6 +10,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
+from roadsurf.core.geometry import vehicle_from_flu
 from roadsurf.simulation.config import SimConfig
 from roadsurf.simulation.route import Pose
 from roadsurf.simulation.world import World
@@ -134,9 +135,7 @@ def simulate_gps(world: World, rng: np.random.Generator) -> GpsLog:
     tr = world.traj
     period = 1.0 / p["rate_hz"]
     t = np.arange(tr.t[0] + 0.1, tr.t[-1] - 0.05, period)
-    # [forward, left, up] in the vehicle frame of a nadir camera (x right, y back, z down)
-    f, left, u = (float(v) for v in cfg.gps_antenna_m)
-    arm = np.array([-left, -f, -u])
+    arm = vehicle_from_flu(cfg.gps_antenna_m)
     pos = np.array([_antenna(world.pose(float(ti)), arm, world) for ti in t])
     n = len(t)
     q = p["bias_m"] / math.sqrt(60.0)  # random-walk intensity (m / sqrt(s))
@@ -174,7 +173,7 @@ def _antenna(pose: Pose, arm: np.ndarray, world: World) -> np.ndarray:
     """(3,) the antenna at ``arm`` (the nadir camera's axes, m) on the vehicle's ``pose``."""
     if not arm.any():
         return np.asarray(pose.C, float)
-    R_world_from_vehicle = pose.R @ world.cfg.vehicle_from_cam().T if world.cfg.mounted else pose.R
+    R_world_from_vehicle = pose.R @ world.cfg.vehicle_from_cam().T  # identity mount: nadir
     return np.asarray(pose.C, float) + R_world_from_vehicle @ arm
 
 

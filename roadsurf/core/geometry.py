@@ -200,6 +200,13 @@ def vehicle_from_cam_rotation(pitch_deg: float, roll_deg: float, yaw_deg: float)
     )
 
 
+def vehicle_from_flu(v_flu: np.ndarray | tuple[float, float, float]) -> np.ndarray:
+    """(3,) a vector given as [forward, left, up] (ISO 8855 axes, as camera.yaml's
+    gps_antenna_m) in the vehicle frame (a nadir camera's: x right, y backward, z down)."""
+    f, left, u = (float(x) for x in check_shape("v_flu", np.asarray(v_flu, float), (3,)))
+    return np.array([-left, -f, -u])
+
+
 def mount_angles_deg(R_vehicle_from_cam: np.ndarray) -> tuple[float, float, float]:
     """(pitch, roll, yaw) degrees of a (3, 3) R_vehicle_from_cam (inverse of
     ``vehicle_from_cam_rotation``; roll within ±90°)."""

@@ -210,13 +210,12 @@ def make_synthetic(
         g_true = np.column_stack([_interp_extrap(tg, t, W[:, j, 3]) for j in range(3)])
         ant = g_true
         if gps_antenna_m is not None:
-            from roadsurf.core.geometry import vehicle_from_cam_rotation
+            from roadsurf.core.geometry import vehicle_from_cam_rotation, vehicle_from_flu
 
-            f, left, u = gps_antenna_m
             R_vc = vehicle_from_cam_rotation(*(mount_deg or (0.0, 0.0, 0.0)))
             near = np.clip(np.searchsorted(t, tg), 0, n - 1)  # the frame at or after each fix
             R_wv = W[near, :3, :3] @ R_vc.T
-            ant = g_true + R_wv @ np.array([-left, -f, -u])
+            ant = g_true + R_wv @ vehicle_from_flu(gps_antenna_m)
         meas = ant + rng.normal(0, gps_sigma_m, g_true.shape) * [1, 1, 1.5]
         for k, (de, dn) in (gps_outliers or {}).items():
             meas[k, :2] += [de, dn]

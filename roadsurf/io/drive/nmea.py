@@ -252,7 +252,7 @@ def load_gps_nmea(path: Path, skipped: list[Skipped], warnings: list[str]) -> Gp
     if gst and not any(math.isfinite(g[6]) for g in good):
         warnings.append(
             f"{path}: {len(gst)} GST sentence(s) (the receiver's position σ) match no RMC/GGA "
-            "fix time; the fixes are weighted by their fix quality and HDOP instead"
+            "fix time; the fixes carry no stated σ"
         )
     if n_bad:
         log.info("%s: %d of %d RMC/GGA sentences skipped", path, n_bad, n_sent)
