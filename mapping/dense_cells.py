@@ -24,9 +24,10 @@ import numpy as np
 # sweep's unscored band along the overlap's edge starts from its swept neighbours; 6: the
 # shifted windows, the step test and no coarse fill of left-right or step refusals; 7: a
 # rolling-shutter pair measured on image b
-DENSE_SURFACE_VERSION = 10  # 8: the sweep's pixels outside the overlap start from its neighbours;
+DENSE_SURFACE_VERSION = 11  # 8: the sweep's pixels outside the overlap start from its neighbours;
 # 9: the single-view fill judges relief on a 5 x 5 block (rasterfill.RELIEF_BLOCK_HALF); 10:
-# cloud.ply heights ellipsoidal (GridToEnu.height_lift: the tangent plane's rise, d² / 2R)
+# cloud.ply heights ellipsoidal (GridToEnu.height_lift: the tangent plane's rise, d² / 2R);
+# 11: a hole across a pothole wall ramps from rim to floor (rasterfill.fill_inward)
 FIXED_POINT_STEPS = 3  # cell -> pixel projections at the sampled height (nadir: 2 suffice)
 # ... then, on the cells whose last step moved by more than FIXED_POINT_TOL_M, up to this
 # many in all (a cell still jumping by FIXED_POINT_FLIP_M then keeps its FIXED_POINT_STEPS

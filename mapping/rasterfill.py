@@ -17,9 +17,15 @@ def fill_inward(
     """Fill the NaN cells of (H, W) ``values`` within ``max_px`` cells (L2) of finite ones ring
     by ring from the border of the measured cells inwards, each ring with the mean of its
     already known 8-neighbours: a hole continues the cells at its own edge, where a wide
-    smoothing kernel would mix in the road around a pothole and read its floor shallow. A cell
-    whose known neighbours span more than ``max_spread`` (a step such as a pothole wall, where
-    the hole's value is unknown by that much) stays NaN and fills nothing further.
+    smoothing kernel would mix in the road around a pothole and read its floor shallow.
+
+    A hole whose rings meet across a step (a cell whose known neighbours span more than
+    ``max_spread``: the band of a pothole wall the matching left empty, the rim on one side,
+    the floor on the other) is filled instead by harmonic interpolation between its edges
+    (``_harmonic_fill``): a ramp from rim to floor. Where the band is occluded, every ray that
+    passed over it reached the floor beyond, so the true surface lies at or below that ramp;
+    the flat continuation put the step in the band's middle and cut a small deep pothole's
+    area by 19-55 % (session 33's battery).
 
     Returns the float32 filled copy and the (H, W) bool mask of the cells within ``max_px`` of
     the measured ones (filled or not): the holes the measured surface itself answers for."""
@@ -50,7 +56,80 @@ def fill_inward(
         out[ok] = ssum[ok] / cnt[ok]
         known |= ok
         todo &= ~ring
+    holes = near & ~np.isfinite(np.asarray(values, np.float32))
+    # a step: a cell left empty, or two filled cells side by side whose rings came from
+    # either side of it (an even band's fronts meet without an empty cell between them)
+    f = np.where(holes & known, out, np.nan).astype(np.float32)
+    hi = cv2.dilate(np.where(np.isfinite(f), f, -np.inf).astype(np.float32), ones)
+    lo = cv2.erode(np.where(np.isfinite(f), f, np.inf).astype(np.float32), ones)
+    with np.errstate(invalid="ignore", over="ignore"):
+        blocked = holes & (~known | (hi - lo > max_spread))
+    if blocked.any():
+        n_lab, lab = cv2.connectedComponents(holes.astype(np.uint8), connectivity=8)
+        steps = np.zeros(n_lab, bool)
+        steps[np.unique(lab[blocked])] = True
+        cells = steps[lab] & holes
+        out[cells] = _harmonic_fill(np.where(cells, np.nan, out), cells)
     return out, near
+
+
+def _harmonic_fill(values: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """Harmonic interpolation of the (H, W) bool ``cells`` of ``values`` (finite cells are
+    fixed, NaN cells outside ``cells`` are left out): each cell the mean of its 8 neighbours
+    that are finite or in ``cells``, solved as one sparse system. Between two levels it is a
+    ramp; it never leaves the range of the edge values (the maximum principle). Returns the
+    (K,) float32 values of ``cells`` in row-major order; NaN for a component with no finite
+    neighbour."""
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.linalg import spsolve
+
+    h, w = values.shape
+    iy, ix = np.nonzero(cells)
+    k = iy.size
+    index = np.full((h, w), -1, np.int64)
+    index[iy, ix] = np.arange(k)
+    rows, cols, diag = [], [], np.zeros(k)
+    rhs = np.zeros(k)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            if dy == 0 and dx == 0:
+                continue
+            y, x = iy + dy, ix + dx
+            inside = (y >= 0) & (y < h) & (x >= 0) & (x < w)
+            yc, xc = np.clip(y, 0, h - 1), np.clip(x, 0, w - 1)
+            v = values[yc, xc]
+            fixed = inside & np.isfinite(v)
+            free = inside & (index[yc, xc] >= 0)
+            diag += fixed | free
+            rhs[fixed] += v[fixed]
+            rows.append(np.flatnonzero(free))
+            cols.append(index[yc, xc][free])
+    r = np.concatenate(rows)
+    c = np.concatenate(cols)
+    idx = np.arange(k)
+    a = csr_matrix(
+        (
+            np.concatenate([diag, -np.ones(r.size)]),
+            (np.concatenate([idx, r]), np.concatenate([idx, c])),
+        ),
+        shape=(k, k),
+    )
+    # a component with no fixed neighbour is singular: anchor it at NaN afterwards
+    n_lab, lab = cv2.connectedComponents(cells.astype(np.uint8), connectivity=8)
+    anchored = np.zeros(n_lab, bool)
+    touch = np.zeros(k, bool)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            y, x = np.clip(iy + dy, 0, h - 1), np.clip(ix + dx, 0, w - 1)
+            touch |= np.isfinite(values[y, x])
+    anchored[lab[iy, ix][touch]] = True
+    ok = anchored[lab[iy, ix]]
+    out = np.full(k, np.nan, np.float32)
+    if ok.any():
+        sel = np.flatnonzero(ok)
+        sol = spsolve(a[sel][:, sel].tocsc(), rhs[sel])
+        out[sel] = np.asarray(sol, np.float32)
+    return out
 
 
 # half-side of the block of cells whose median judges a known cell as road or relief for the

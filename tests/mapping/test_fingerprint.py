@@ -23,6 +23,7 @@ poses key: the ENU origin at the middle frame, no_motion pairs held together); D
 direction of travel turned back by half of each pair's turn); gps_sigma_from_log, gps_sigma_rtk_fixed_m and
 gps_sigma_rtk_float_m (both keys; a log's stated σ / fix quality enter the poses key only when
 gps_sigma_from_log is on, camera.yaml's gps_antenna_m only when given); CHECKS_VERSION 4 (the poses key: the scale note at 2.5 σ); DenseHeightConfig.max_depth_limit_m (the map key).
+DENSE_SURFACE_VERSION 11 (the map key: a hole across a pothole wall ramps).
 A change of MappingConfig's fields changes them legitimately. The keys must also
 change with what the outputs depend on (below)."""
 
@@ -54,7 +55,7 @@ def test_globalmap_fingerprint_is_unchanged() -> None:
         reference=None,
         segment=np.zeros(6, int),
     )
-    assert globalmap._fingerprint(MappingConfig(), syn.pairs, traj) == "4e91f9f7c7bbb749"
+    assert globalmap._fingerprint(MappingConfig(), syn.pairs, traj) == "47e3f26be0ea20dd"
 
 
 def test_poses_key_follows_the_gps_altitude() -> None:

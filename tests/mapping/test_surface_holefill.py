@@ -1,5 +1,5 @@
-"""The dense surface's hole fill (``mapping.rasterise.fill_inward``): holes in the measured
-heights continue the cells at their own edge, steps (pothole walls) stay holes."""
+"""The dense surface's hole fill (``mapping.rasterfill.fill_inward``): holes in the measured
+heights continue the cells at their own edge; across a step (a pothole wall) they ramp."""
 
 from __future__ import annotations
 
@@ -40,27 +40,34 @@ def test_holes_on_the_road_and_floor_continue_their_edge() -> None:
     assert np.array_equal(out[np.isfinite(v)], v[np.isfinite(v)])  # measured cells unchanged
 
 
-def test_a_hole_across_a_pothole_wall_stays_a_hole() -> None:
-    """A band of the wall the matching left empty: its edge cells continue their own side flat,
-    ring by ring, only from neighbours that agree within the spread (measured here: within
-    2.3 cells' relief of the truth); the cells whose neighbours straddle the wall stay holes
-    (and are ``near``, so the sparse surface does not fill them either)."""
+def test_a_hole_across_a_pothole_wall_is_a_ramp_from_rim_to_floor() -> None:
+    """A band of the wall the matching left empty: the flat continuation of each side would
+    meet in the band's middle (a step there: the pothole's outline half a band inside its
+    rim); it is filled by harmonic interpolation between rim and floor instead, which on this
+    straight wall is the wall itself."""
     z, band, r = _pothole()
     band[:, :30] = False  # part of the wall is missing
     v = z.copy()
     v[band] = np.nan
-    spread = 0.003
-    out, near = fill_inward(v, 3.0, spread)
-    assert near[band].all()
-    got = band & np.isfinite(out)
-    per_cell = 0.03 / WALL
-    assert np.abs(out[got] - z[got]).max() < spread + 2 * per_cell
-    mid = band & (r > 20.5) & (r < 21.5)
-    assert np.isnan(out[mid]).mean() > 0.8  # measured 0.87
-    # with a spread above the wall's depth every cell is filled, between rim and floor
-    out2, _ = fill_inward(v, 3.0, 0.05)
-    assert np.isfinite(out2[band]).all()
-    assert (out2[band] < -0.002).mean() > 0.8 and (out2[band] > -0.028).mean() > 0.8
+    out, near = fill_inward(v, 3.0, 0.003)
+    assert near[band].all() and np.isfinite(out[band]).all()
+    err = out[band] - z[band]
+    assert np.abs(err).max() < 4e-3 and np.abs(err).mean() < 1.5e-3  # wall 5 mm per cell
+    assert out[band].max() <= np.nanmax(v) and out[band].min() >= np.nanmin(v)
+    # the outline at T_d = 5 mm: at the truth's radius (23.0 cells), not the band's middle
+    td = band & (r > 22.0) & (r < 23.0)
+    assert (out[td] < -0.002).mean() > 0.9
+    # a hole on one level keeps that level (the ring fill), the step's fill is local
+    assert np.array_equal(out[np.isfinite(v)], v[np.isfinite(v)])
+
+
+def test_harmonic_fill_of_a_gap_between_two_levels_is_linear() -> None:
+    v = np.full((5, 12), np.nan, np.float32)
+    v[:, :2] = 0.0
+    v[:, 10:] = -0.08
+    out, _ = fill_inward(v, 5.0, 0.003)
+    ramp = np.interp(np.arange(2, 10), [1, 10], [0.0, -0.08])
+    assert np.allclose(out[:, 2:10], ramp[None, :], atol=1e-4)
 
 
 def test_nothing_to_fill() -> None:
