@@ -104,9 +104,10 @@ def evaluate_run(run_dir: str | Path, truth_dir: str | Path) -> dict[str, Any]:
         gps_noise = gps_noise_m(truth_dir, scen)
         if gps_noise:
             out["gps_sigma_m"] = gps_noise
-        gps_rmse = gps_rmse_m(truth_dir, crs)
+        arm = scen.get("params", {}).get("gps_antenna_m")
+        gps_rmse = gps_rmse_m(truth_dir, crs, tuple(arm) if arm else None)
         if gps_rmse:
-            # the raw fixes' own error against the true camera centres (noise + bias + jumps)
+            # the raw fixes' own error against the true antenna (noise + bias + jumps)
             out["gps_rmse_m"] = gps_rmse
             out["trajectory_rmse_vs_gps_noise"] = out["trajectory_rmse_m"] / gps_rmse
     # the imaged corridor is that of the frames the run placed (all frames without a trajectory)

@@ -153,8 +153,13 @@ def _body(d: np.ndarray, heading_rad: float) -> np.ndarray:
     return np.array([d[0] * c - d[1] * s, d[0] * s + d[1] * c])
 
 
-def gps_rmse_m(truth_dir: Path, crs: str | None) -> float | None:
-    """RMSE of the drive's GPS fixes against the true path interpolated at the fix times."""
+def gps_rmse_m(
+    truth_dir: Path, crs: str | None, antenna_flu: tuple[float, float, float] | None = None
+) -> float | None:
+    """RMSE (m, horizontal) of the drive's GPS fixes against the true path of the antenna
+    interpolated at the fix times: the camera centre plus ``antenna_flu`` ([forward, left, up]
+    m, the simulator's ``gps_antenna_m``) turned by the true heading. Without it a lever arm
+    counts as GPS error (1.5 m on a drive whose antenna rides 1.5 m behind the camera)."""
     gps = truth_dir.parent / df.GPS_CSV
     if crs is None or not gps.is_file():
         return None
@@ -178,6 +183,12 @@ def gps_rmse_m(truth_dir: Path, crs: str | None) -> float | None:
     )
     ex = np.interp(t[inside], tt, txy[:, 0])
     ey = np.interp(t[inside], tt, txy[:, 1])
+    if antenna_flu is not None and any(antenna_flu[:2]):
+        head = np.unwrap(np.radians([float(r["heading_deg"]) for r in rows]))
+        hd = np.interp(t[inside], tt, head)  # compass: 0 north, clockwise
+        fwd, left = float(antenna_flu[0]), float(antenna_flu[1])
+        ex = ex + fwd * np.sin(hd) - left * np.cos(hd)
+        ey = ey + fwd * np.cos(hd) + left * np.sin(hd)
     return float(np.sqrt(np.mean((np.asarray(x) - ex) ** 2 + (np.asarray(y) - ey) ** 2)))
 
 

@@ -70,3 +70,30 @@ def test_a_run_whose_frame_names_the_truth_lacks_is_a_clear_error() -> None:
         trajectory_metrics(est, truth)
     est["filename"] = truth["filename"]
     assert trajectory_metrics(est, truth)["metrics"]["trajectory_rmse_m"] == 0.0
+
+
+def test_gps_rmse_is_measured_against_the_antenna_not_the_camera(tmp_path) -> None:
+    """Fixes exact at an antenna 1.5 m behind and 0.4 m left of the camera, on a drive heading
+    east: 0 against the antenna's path, 1.55 m against the camera's."""
+    from pyproj import Transformer
+
+    from roadsurf.evaluation.trajectory import gps_rmse_m
+
+    crs = "EPSG:32617"
+    truth = tmp_path / "truth"
+    truth.mkdir()
+    t = np.arange(0.0, 10.0, 0.5)
+    e, n = 630000.0 + 2.0 * t, np.full_like(t, 4834000.0)
+    rows = ["filename,timestamp_s,easting_m,northing_m,heading_deg"]
+    rows += [
+        f"f{i}.jpg,{ti},{ei},{ni},90.0" for i, (ti, ei, ni) in enumerate(zip(t, e, n, strict=True))
+    ]
+    (truth / "poses.csv").write_text("\n".join(rows) + "\n")
+    # heading east: forward = +E, left = +N
+    lon, lat = Transformer.from_crs(crs, "EPSG:4326", always_xy=True).transform(e - 1.5, n + 0.4)
+    g = ["timestamp_s,lat,lon"] + [
+        f"{ti},{la:.10f},{lo:.10f}" for ti, la, lo in zip(t, lat, lon, strict=True)
+    ]
+    (tmp_path / "gps.csv").write_text("\n".join(g) + "\n")
+    assert gps_rmse_m(truth, crs, (-1.5, 0.4, 0.9)) < 1e-3
+    assert gps_rmse_m(truth, crs) == pytest.approx(math.hypot(1.5, 0.4), abs=1e-3)
