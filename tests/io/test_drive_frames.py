@@ -65,7 +65,9 @@ def test_non_increasing_frame_timestamps(tmp_path: Path) -> None:
     lines = (root / "frames.csv").read_text().splitlines()
     lines[3] = lines[3].split(",")[0] + ",0.1"  # same as line 3 (file line numbers are 1-based)
     (root / "frames.csv").write_text("\n".join(lines) + "\n")
-    with pytest.raises(DriveFormatError, match=r"frames.csv:4: frame timestamp 0.1 is not after"):
+    with pytest.raises(
+        DriveFormatError, match=r"frames.csv:4: frame timestamp 0.1 is not after.*stereo rig"
+    ):
         load_drive(root)
 
 
@@ -152,8 +154,29 @@ def test_empty_drive(tmp_path: Path) -> None:
         load_drive(tmp_path / "nope")
     (tmp_path / "e").mkdir()
     (tmp_path / "e" / "camera.yaml").write_text(camera_yaml())
-    with pytest.raises(DriveFormatError, match="frames.csv not found"):
+    with pytest.raises(DriveFormatError, match="frames/ folder is missing"):
         load_drive(tmp_path / "e")
+    (tmp_path / "e" / "frames").mkdir()
+    with pytest.raises(DriveFormatError, match="no .* images, and no frames.csv"):
+        load_drive(tmp_path / "e")
+
+
+def test_a_drive_without_frames_csv_or_gps_takes_the_images_in_name_order(
+    tmp_path: Path,
+) -> None:
+    """A photo pair or series (two frames and camera.yaml, issue 29): sorted names, 1 / fps
+    apart, with a warning; with a GPS log the times are needed to match it, so it is refused,
+    naming the log."""
+    root = make_drive(tmp_path / "d", n=3, gps=None)
+    (root / "frames.csv").unlink()
+    d = load_drive(root)
+    assert [f.filename for f in d.frames] == sorted(f.filename for f in d.frames)
+    assert np.allclose([f.timestamp_s for f in d.frames], np.arange(3) / d.camera.fps)
+    assert any("frames.csv: not found" in w and "sorted name order" in w for w in d.warnings)
+    with_gps = make_drive(tmp_path / "g", n=3)
+    (with_gps / "frames.csv").unlink()
+    with pytest.raises(DriveFormatError, match="frames.csv not found, and gps.csv needs"):
+        load_drive(with_gps)
 
 
 @pytest.mark.parametrize("ext", [".jpg", ".png"])

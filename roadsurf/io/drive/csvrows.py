@@ -74,8 +74,15 @@ def check_increasing(t: np.ndarray, lines: list[int], path: Path, what: str) -> 
     bad = np.flatnonzero(np.diff(t) <= 0)
     if bad.size:
         i = int(bad[0])
+        same = ""
+        if what == "frame" and t[i + 1] == t[i]:
+            same = (
+                " Two shots at once (a stereo rig's left and right images) are a pair in capture "
+                "order: give the second a later time, or, without a GPS log, leave frames.csv "
+                "out (the images are then taken in name order)."
+            )
         raise DriveFormatError(
             f"{path}:{lines[i + 1]}: {what} timestamp {float(t[i + 1])!r} is not after the previous one "
             f"({float(t[i])!r} on line {lines[i]}). Timestamps must strictly increase; sort the file "
-            f"and remove duplicate rows."
+            f"and remove duplicate rows.{same}"
         )

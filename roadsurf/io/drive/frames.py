@@ -33,13 +33,13 @@ def load_frames(
 ) -> list[Frame]:
     csv_path = root / df.FRAMES_CSV
     img_dir = root / df.FRAMES_DIR
-    if not csv_path.is_file():
-        raise DriveFormatError(
-            f"{csv_path}: frames.csv not found. Write it with the header filename,timestamp_s "
-            f"and one row per image in frames/. {FORMAT_HINT}"
-        )
     if not img_dir.is_dir():
         raise DriveFormatError(f"{img_dir}: the frames/ folder is missing. {FORMAT_HINT}")
+    if not csv_path.is_file():
+        names, t_arr = _frames_by_name(root, img_dir, camera, warnings)
+        return _present_frames(
+            root, img_dir, csv_path, camera, check_images, skipped, warnings, names, t_arr, None
+        )
     _, rows = csv_rows(csv_path, ("filename", "timestamp_s"))
     names: list[str] = []
     times: list[float] = []
@@ -92,21 +92,69 @@ def load_frames(
             f"{csv_path}: filenames are not in sorted order; capture order is taken from "
             f"frames.csv timestamps. Rename the files so sorted name order = capture order."
         )
+    return _present_frames(
+        root, img_dir, csv_path, camera, check_images, skipped, warnings, names, t_arr, lines
+    )
 
-    # Which rows have an image at all.
+
+def _frames_by_name(
+    root: Path, img_dir: Path, camera: Camera, warnings: list[str]
+) -> tuple[list[str], np.ndarray]:
+    """A drive without frames.csv: the images of ``img_dir`` in sorted name order, 1 / fps
+    apart (s). Only a drive without a GPS or OBD log may leave the times out (a photo pair, a
+    photo series): with one, the images cannot be placed on its clock."""
+    csv_path = root / df.FRAMES_CSV
+    logs = [n for n in (*df.GPS_FILES, df.OBD_CSV) if (root / n).is_file()]
+    if logs:
+        raise DriveFormatError(
+            f"{csv_path}: frames.csv not found, and {logs[0]} needs the frames' times to be "
+            f"matched to it. Write frames.csv with the header filename,timestamp_s and one row "
+            f"per image in frames/, on the same clock as {logs[0]}. {FORMAT_HINT}"
+        )
+    names = sorted(
+        p.name for p in img_dir.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and _is_file(p)
+    )
+    if not names:
+        raise DriveFormatError(
+            f"{img_dir}: empty drive: no {_SUFFIXES_TEXT} images, and no frames.csv. {FORMAT_HINT}"
+        )
+    warnings.append(
+        f"{csv_path}: not found; the {len(names)} images of frames/ are taken in sorted name "
+        f"order, 1 / fps = {1.0 / camera.fps:.4g} s apart (camera.yaml fps). Without a GPS log "
+        f"only their order is used. Write frames.csv (filename,timestamp_s) to give the "
+        f"capture times."
+    )
+    return names, np.arange(len(names), dtype=float) / camera.fps
+
+
+def _present_frames(
+    root: Path,
+    img_dir: Path,
+    csv_path: Path,
+    camera: Camera,
+    check_images: bool,
+    skipped: list[Skipped],
+    warnings: list[str],
+    names: list[str],
+    t_arr: np.ndarray,
+    lines: list[int] | None,
+) -> list[Frame]:
+    """The listed images that exist and decode, as Frames (``lines``: their frames.csv line
+    numbers; None when they were read from the folder)."""
     n_skip0 = len(skipped)
     present: list[int] = []
     for k, name in enumerate(names):
         p = img_dir / name
+        line = lines[k] if lines is not None else None
         if not _is_file(p):
             skipped.append(
-                Skipped(df.FRAMES_CSV, lines[k], f"image frames/{name} does not exist; row skipped")
+                Skipped(df.FRAMES_CSV, line, f"image frames/{name} does not exist; row skipped")
             )
         elif p.suffix.lower() not in IMAGE_SUFFIXES:
             skipped.append(
                 Skipped(
                     df.FRAMES_CSV,
-                    lines[k],
+                    line,
                     f"frames/{name} is not a {_SUFFIXES_TEXT} image; row skipped",
                 )
             )
@@ -149,9 +197,10 @@ def load_frames(
             skipped.append(Skipped(f"frames/{names[k]}", None, f"unreadable image: {why}"))
             continue
         if size is not None and size != (camera.width, camera.height):
+            where = f" (frames.csv line {lines[k]})" if lines is not None else ""
             raise DriveFormatError(
                 f"{p}: image is {size[0]}x{size[1]} px but camera.yaml says "
-                f"{camera.width}x{camera.height} (frames.csv line {lines[k]}). All frames must "
+                f"{camera.width}x{camera.height}{where}. All frames must "
                 f"have the calibrated size: fix camera.yaml or re-export the images."
             )
         frames.append(Frame(len(frames), names[k], p, float(t_arr[k])))
@@ -164,6 +213,11 @@ def load_frames(
             first = skipped[n_skip0]
             where = f"{first.file}:{first.line}" if first.line is not None else first.file
             why = f" E.g. {where}: {first.reason}."
+        if lines is None:
+            raise DriveFormatError(
+                f"{img_dir}: empty drive: none of its {len(names)} images is readable.{why} "
+                f"Check the files ({_SUFFIXES_TEXT})."
+            )
         raise DriveFormatError(
             f"{root}: empty drive: none of the {len(names)} rows of frames.csv has a readable "
             f"image in frames/.{why} Check the folder and the filenames in frames.csv (names "
