@@ -132,7 +132,9 @@ def refine_poses(
     d_down = -up_in_cam(R_vehicle_from_cam)  # the road's normal (down) in the camera: d·X = h
     plane_nominal = np.array([-d_down[0], -d_down[1], cam.height_m]) / d_down[2]
     # per frame, the camera axis the tilt prior holds on world up (the grade tips it)
-    n_up = up_axes_in_cam(R_vehicle_from_cam, np.zeros(n) if grade_rad is None else grade_rad)
+    n_up = up_axes_in_cam(
+        R_vehicle_from_cam, np.zeros(n) if grade_rad is None else grade_rad, cfg.cross_fall_rad
+    )
     used = np.ones(0 if gps is None else len(gps.t_s), bool)
     if gps is not None and gps_used is not None:
         used = gps_used.copy()

@@ -6,6 +6,7 @@ Every field gives its unit and, where the dissertation names it, its symbol. Loa
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import ClassVar, Literal
 
@@ -78,6 +79,13 @@ class MappingConfig:
     # on a straight drive; an error of θ shifts the map by camera height × tan θ (2 %
     # cross-fall, 1.1 m: 22 mm)
     tilt_prior_axis: Literal["mount", "road_normal"] = "mount"
+    # φ: the road's cross-fall the vehicle rolls with (%, + = the road falls to the right of
+    # travel), which tips the tilt prior's axis as the grade does. Roll is not observable from
+    # a camera and GPS (no IMU): 0 places the map for a level vehicle, and a real cross-fall c
+    # then moves it height × c sideways and drops c from its heights across the road. Set the
+    # design value where it is known (a crowned road driven in its outer lane: about +2 where
+    # traffic keeps right, −2 where it keeps left)
+    cross_fall_pct: float = 0.0
     # estimate the camera's mount (pitch, roll, yaw) from the pairs' road normals and
     # directions of travel when camera.yaml does not give it (mapping.mount); off: nadir
     estimate_mount: bool = True
@@ -276,6 +284,11 @@ class MappingConfig:
 
     # valid values (interval notation; see roadsurf.core.config). Upper bounds only where a
     # larger value is a unit mistake
+    @property
+    def cross_fall_rad(self) -> float:
+        """φ = atan(cross_fall_pct / 100) (rad)."""
+        return math.atan(self.cross_fall_pct / 100.0)
+
     RANGES: ClassVar[dict[str, str]] = {
         "gps_sigma_m": "(0, 100]; a GPS σ above 100 m is a unit mistake",
         "gps_sigma_per_hdop_m": "(0, 100]",
@@ -291,6 +304,7 @@ class MappingConfig:
         "tilt_sigma_deg": "(0, 90]",
         "grade_window_m": "[0, inf); 0 = a level road",
         "grade_sigma_pct": "(0, 100]; 100 % = 45 deg",
+        "cross_fall_pct": "[-20, 20]; % (a superelevated curve reaches 8-12 %)",
         "mount_disagree_deg": "(0, 90]",
         "mount_min_pitch_deg": "[0, 90]",
         "gps_bridge_s": "[0, inf)",

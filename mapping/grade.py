@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from roadsurf.core.geometry import forward_in_cam, up_in_cam
+from roadsurf.core.geometry import forward_in_cam, right_in_cam, up_in_cam
 from roadsurf.mapping.pose_gps import GpsFixes
 
 MIN_FIXES = 5  # fewer fixes with a height than this: no grade (a level road)
@@ -313,12 +313,17 @@ def _line(x: np.ndarray, z: np.ndarray, w: np.ndarray) -> tuple[float, float, fl
     return m, sxx, zm, float((w * (x - m) * (z - zm)).sum()) / sxx
 
 
-def up_axes_in_cam(R_vehicle_from_cam: np.ndarray, grade_rad: np.ndarray) -> np.ndarray:
+def up_axes_in_cam(
+    R_vehicle_from_cam: np.ndarray, grade_rad: np.ndarray, cross_fall_rad: float = 0.0
+) -> np.ndarray:
     """(n, 3) the camera-frame axes the tilt prior holds on world up: the mount's up axis tipped
-    towards its forward axis by each frame's grade (world up seen from the road is
-    sin γ · forward + cos γ · up)."""
+    towards its forward axis by each frame's grade γ and away from its right axis by the road's
+    cross-fall φ (+ = the road falls to the right, and the vehicle rolls with it): world up seen
+    from the road is sin γ · forward + cos γ (cos φ · up − sin φ · right)."""
     up = up_in_cam(R_vehicle_from_cam)
     fwd = forward_in_cam(R_vehicle_from_cam)
+    right = right_in_cam(R_vehicle_from_cam)
     g = np.asarray(grade_rad, float)[:, None]
-    v = np.cos(g) * up[None, :] + np.sin(g) * fwd[None, :]
+    across = math.cos(cross_fall_rad) * up - math.sin(cross_fall_rad) * right
+    v = np.cos(g) * across[None, :] + np.sin(g) * fwd[None, :]
     return v / np.linalg.norm(v, axis=1, keepdims=True)

@@ -153,7 +153,9 @@ class PoseGraph:
         # road-normal (tilt) prior per frame, in camera coordinates (pointing up, at the camera):
         # the mount's up axis tipped by the road's grade (mapping.grade; world up seen from a
         # climbing road leans forward), or each pair's own road normal
-        n_up = up_axes_in_cam(R_vc, np.zeros(self.n) if grade_rad is None else grade_rad)
+        n_up = up_axes_in_cam(
+            R_vc, np.zeros(self.n) if grade_rad is None else grade_rad, cfg.cross_fall_rad
+        )
         for p in ok_pairs if cfg.tilt_prior_axis == "road_normal" else []:
             pl = np.asarray(p.plane, float)
             if np.all(np.isfinite(pl)):

@@ -221,6 +221,10 @@ def estimate_trajectory(
         )
         rep.mount = mount.to_dict()
         rep.mount.update(grade.to_dict())
+        # roll is not observable from a camera and GPS: the map is placed for this cross-fall,
+        # and each 1 % the road differs by moves it this far sideways
+        rep.mount["cross_fall_pct_assumed"] = cfg.cross_fall_pct
+        rep.mount["sideways_m_per_pct_cross_fall"] = round(0.01 * drive.camera.height_m, 4)
         return mount.R_vehicle_from_cam, grade.grade_rad, mount.warnings
 
     R_vc, g_rad, mount_warnings = grade_and_mount(gps)

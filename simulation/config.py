@@ -62,6 +62,10 @@ class SimConfig:
     yaw_noise_deg: float = 0.15  # std of yaw noise θz about the road heading (deg)
     height_noise_m: float = 0.003  # std of camera height noise δ_h (m)
     vibration_hz: float = 3.0  # dominant frequency of the vibration (Hz)
+    # the vehicle's body rolls with the road across its wheels (TRACK_M; cross slope and
+    # long-wave undulation), as a real one does: a 2 % cross slope rolls it 1.15°. Off by
+    # default: the reference drives keep a level body (docs/simulator.md)
+    roll_with_road: bool = False
     revisit_after_s: float = 0.0  # > 0: a revisit (a survey that comes back along the same
     # lane): the second half of the frames drives the first half's road again, starting this
     # long (s) after the first half ends (between the passes no frames; the logs follow the

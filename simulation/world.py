@@ -24,6 +24,7 @@ from roadsurf.simulation.noise import fractal_noise, value_noise
 from roadsurf.simulation.route import Pose, Route, Trajectory
 from roadsurf.simulation.texture import TextureField
 
+TRACK_M = 1.6  # wheel track of the simulated vehicle (m): its body's roll on the road
 WHEELBASE_M = 2.8  # axle distance of the simulated vehicle (m): its body's pitch on the road
 
 
@@ -107,6 +108,11 @@ class World:
         front = float(self.base(np.array(xy[0] + dx), np.array(xy[1] + dy)))
         rear = float(self.base(np.array(xy[0] - dx), np.array(xy[1] - dy)))
         pitch = float(np.interp(t, tr.t, tr.pitch)) + math.atan((front - rear) / WHEELBASE_M)
+        if c.roll_with_road:  # the right wheels lower: roll < 0 (world_from_cam's sign)
+            rx, ry = 0.5 * TRACK_M * math.cos(h), -0.5 * TRACK_M * math.sin(h)
+            right = float(self.base(np.array(xy[0] + rx), np.array(xy[1] + ry)))
+            left = float(self.base(np.array(xy[0] - rx), np.array(xy[1] - ry)))
+            roll += math.atan((right - left) / TRACK_M)
         # The vehicle's pose (a nadir camera's) times the mount; the centre stays at C.
         T = world_from_cam(hd % 360.0, roll, pitch, np.array([xy[0], xy[1], z]))
         R = T[:3, :3] @ c.vehicle_from_cam() if c.mounted else T[:3, :3].copy()

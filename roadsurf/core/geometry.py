@@ -227,6 +227,11 @@ def forward_in_cam(R_vehicle_from_cam: np.ndarray) -> np.ndarray:
     return np.asarray(R_vehicle_from_cam, float).T @ np.array([0.0, -1.0, 0.0])
 
 
+def right_in_cam(R_vehicle_from_cam: np.ndarray) -> np.ndarray:
+    """(3,) unit vehicle right (vehicle +x) in camera coordinates."""
+    return np.asarray(R_vehicle_from_cam, float).T @ np.array([1.0, 0.0, 0.0])
+
+
 def vehicle_from_up_forward(up_cam: np.ndarray, forward_cam: np.ndarray) -> np.ndarray:
     """(3, 3) R_vehicle_from_cam from 'up' and an approximate driving direction, both (3,) in
     camera coordinates: forward is made orthogonal to up (Gram-Schmidt)."""

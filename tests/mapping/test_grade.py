@@ -292,3 +292,28 @@ def test_a_stop_does_not_widen_the_first_window_along_the_track() -> None:
     assert _typical_mass(with_stop, 10.0) == pytest.approx(_typical_mass(sa, 10.0), rel=0.02)
     mass = _typical_mass(with_stop, 10.0)
     assert _window_holding(with_stop - 100.0, mass, 10.0, 800.0) == pytest.approx(10.0, rel=1e-3)
+
+
+def test_the_tilt_axis_is_world_up_seen_from_a_vehicle_rolled_by_the_cross_fall() -> None:
+    """On a road falling φ to the right the vehicle rolls with it: world up, in the camera of
+    any mount, is the axis ``up_axes_in_cam`` gives for that cross-fall (and grade)."""
+    from scipy.spatial.transform import Rotation
+
+    from roadsurf.core.geometry import world_from_cam
+    from roadsurf.mapping.grade import up_axes_in_cam
+
+    R_vc = Rotation.from_euler("xyz", [25.0, 2.0, -3.0], degrees=True).as_matrix()
+    for fall in (0.03, -0.02):
+        for grade in (0.0, 0.04):
+            # world_from_cam's roll: the right wheels lower is a negative roll; pitch nose up
+            R_wv = world_from_cam(37.0, -math.atan(fall), math.atan(grade))[:3, :3]
+            want = R_vc.T @ R_wv.T @ np.array([0.0, 0.0, 1.0])
+            got = up_axes_in_cam(R_vc, np.array([math.atan(grade)]), math.atan(fall))[0]
+            # exact for each alone; together the Euler order differs at second order (γ φ)
+            tol = 1e-9 if grade == 0.0 else 1e-4
+            assert np.allclose(got, want, atol=tol), (fall, grade, got, want)
+    # the test can fail: without the cross-fall the axis is 1.7° off
+    level = up_axes_in_cam(R_vc, np.zeros(1))[0]
+    R_wv = world_from_cam(37.0, -math.atan(0.03), 0.0)[:3, :3]
+    want = R_vc.T @ R_wv.T @ np.array([0.0, 0.0, 1.0])
+    assert math.degrees(math.acos(float(np.clip(level @ want, -1, 1)))) > 1.5
