@@ -53,7 +53,7 @@ def write_outputs(
     """Write defects.geojson, defects.csv, frames.csv and detection.json into result.run_dir."""
     run = RunFolder(result.run_dir)
     run.root.mkdir(parents=True, exist_ok=True)
-    feats, rows = [], []
+    feats, rows, cents = [], [], []
     for d in result.defects:
         if mframe.georeferenced:
             ring = mframe.lonlat_from_grid(d.outline_xy_m)
@@ -61,6 +61,7 @@ def write_outputs(
         else:
             ring, c = np.asarray(d.outline_xy_m, float), None
         props = d.to_properties(c)
+        cents.append(c)
         feats.append(feature(polygon_geometry(ring), props))
         rows.append([props[k] if k != "frames" else ";".join(d.frames) for k in DEFECT_COLUMNS])
     meta = {
@@ -97,10 +98,10 @@ def write_outputs(
             "warnings": list(result.warnings),
             "defects": [
                 {
-                    **d.to_properties(None, exact=True),
+                    **d.to_properties(c, exact=True),
                     "outline_xy_m": np.asarray(d.outline_xy_m).tolist(),
                 }
-                for d in result.defects
+                for d, c in zip(result.defects, cents, strict=True)
             ],
             "frames": [[f.filename, f.defect, f.p_defect, f.source] for f in result.frames],
         },

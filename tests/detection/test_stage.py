@@ -111,6 +111,11 @@ def test_geojson_is_rfc7946_and_reads_back(tmp_path):
         assert poly.contains(
             shapely.geometry.Point(f["properties"]["centroid_lon"], f["properties"]["centroid_lat"])
         )
+    # detection.json (the resume record) holds the same lon/lat as the GeoJSON
+    saved = json.loads((run_dir / "detection.json").read_text())["defects"]
+    for f, d in zip(fc["features"], saved, strict=True):
+        assert d["centroid_lon"] == pytest.approx(f["properties"]["centroid_lon"], abs=1e-9)
+        assert d["centroid_lat"] == pytest.approx(f["properties"]["centroid_lat"], abs=1e-9)
     rows = read_csv(run_dir / "defects.csv")
     assert [int(r["id"]) for r in rows] == [1, 2]
     assert float(rows[0]["centroid_e_m"]) > 100000  # UTM easting
