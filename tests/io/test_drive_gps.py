@@ -171,3 +171,6 @@ def test_gps_verbatim_duplicate_row_is_dropped_not_fatal(tmp_path: Path) -> None
     assert d.gps is not None and len(d.gps) == 3
     (s,) = [s for s in d.skipped if s.file == "gps.csv"]
     assert s.line == 4 and "duplicate" in s.reason
+    # the warning says what they were (it read "bad or out-of-range values")
+    assert any("repeat the previous one verbatim" in w for w in d.warnings)
+    assert not any("bad or out-of-range" in w for w in d.warnings)

@@ -116,3 +116,25 @@ def test_nmea_without_checksums_is_read_with_a_warning(tmp_path: Path) -> None:
     (w,) = [w for w in d.warnings if "no checksum" in w]
     assert "8 of 8 RMC/GGA sentences" in w
     assert not [s for s in d.skipped if s.file == "gps.nmea"]
+
+
+def test_nmea_gga_before_midnight_logged_before_the_first_rmc_keeps_its_day(
+    tmp_path: Path,
+) -> None:
+    """A log whose RMC output starts only after 00:00 UTC: the GGA fixes before midnight take
+    the day before the first RMC's date, not its date (they were put 24 h late, a helper's
+    battery: half the fixes off the frames' clock)."""
+    import calendar
+    from datetime import datetime
+
+    from roadsurf.io.drive.nmea import load_gps_nmea
+
+    t0 = calendar.timegm(datetime(2026, 6, 16).timetuple()) - 2.0  # 23:59:58 on 15 June
+    lines = nmea_lines(t0, 10)
+    # the RMC sentences of the fixes before midnight are missing (RMC output enabled late)
+    lines = [s for k, s in enumerate(lines) if not (k % 2 == 0 and k // 2 < 4)]
+    p = tmp_path / "gps.nmea"
+    p.write_text("\n".join(lines) + "\n")
+    g = load_gps_nmea(p, [], [])
+    assert g is not None
+    assert np.allclose(g.timestamp_s, t0 + 0.5 * np.arange(10), atol=1e-3)

@@ -81,6 +81,11 @@ def check_increasing(t: np.ndarray, lines: list[int], path: Path, what: str) -> 
                 "order: give the second a later time, or, without a GPS log, leave frames.csv "
                 "out (the images are then taken in name order)."
             )
+        elif t[i + 1] < t[i]:
+            same = (
+                " If the clock stepped back (the times fall by more than a row or two), sorting "
+                "interleaves two stretches: cut the file at the step instead."
+            )
         raise DriveFormatError(
             f"{path}:{lines[i + 1]}: {what} timestamp {float(t[i + 1])!r} is not after the previous one "
             f"({float(t[i])!r} on line {lines[i]}). Timestamps must strictly increase; sort the file "

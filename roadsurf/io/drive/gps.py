@@ -57,11 +57,12 @@ def gps_from_lists(
     # A row repeated verbatim (same time and position; some loggers write a fix twice) carries
     # no information: drop it. Any other non-increasing time is an error below.
     dedup: list[Row] = []
+    n_dup = 0
     for r in rows:
         if dedup and r[1] == dedup[-1][1] and r[2:4] == dedup[-1][2:4]:
             where = f"line {r[0]}" if r[0] is not None else f"time {r[1]}"
             skipped.append(Skipped(path.name, r[0], f"duplicate GPS fix ({where}) dropped"))
-            n_bad += 1
+            n_dup += 1
             continue
         dedup.append(r)
     rows = dedup
@@ -69,6 +70,11 @@ def gps_from_lists(
         warnings.append(
             f"{path}: dropped {n_bad} of {n_total} GPS record(s) (bad or out-of-range values; "
             f"see report skipped list)."
+        )
+    if n_dup:  # harmless, but a logger writing each fix twice is worth knowing of
+        warnings.append(
+            f"{path}: {n_dup} of {n_total} GPS record(s) repeat the previous one verbatim (same "
+            "time and position) and were dropped."
         )
     if not rows:
         warnings.append(

@@ -153,6 +153,7 @@ def load_gps_nmea(path: Path, skipped: list[Skipped], warnings: list[str]) -> Gp
     n_bad = n_sent = n_unchecked = 0
     day0: float | None = None  # UNIX seconds at 00:00 UTC of the current date
     first_day0: float | None = None
+    first_tod = 0.0  # the first dated sentence's seconds of day
     last_tod: float | None = None
     pending_gga: list[tuple[int, float, dict[str, Any]]] = []  # GGA seen before any RMC date
     gst: dict[float, float] = {}  # seconds of day -> the GST's horizontal σ per axis (m)
@@ -203,7 +204,7 @@ def load_gps_nmea(path: Path, skipped: list[Skipped], warnings: list[str]) -> Gp
         if date is not None:
             day0 = float(calendar.timegm(date.timetuple()))
             if first_day0 is None:
-                first_day0 = day0
+                first_day0, first_tod = day0, tod
         if day0 is None:
             pending_gga.append((line_no, tod, rec))
             continue
@@ -230,9 +231,10 @@ def load_gps_nmea(path: Path, skipped: list[Skipped], warnings: list[str]) -> Gp
                 f"{path}: NMEA log has $GPGGA but no valid $GPRMC sentence, so the date is "
                 f"unknown and GPS times cannot be matched to frames.csv. Log RMC sentences too."
             )
-        # GGA sentences before the first RMC: use the first RMC's date.
-        d0 = first_day0
+        # GGA sentences before the first RMC: the first RMC's date, or the day before for a
+        # time of day half a day after the RMC's (23:59:58 logged before an RMC at 00:00:01)
         for line_no, tod, rec in pending_gga:
+            d0 = first_day0 - (86400.0 if tod - first_tod > 43200.0 else 0.0)
             fx = fixes.setdefault(round(d0 + tod, 3), {"line": line_no})
             for k2, v2 in rec.items():
                 fx.setdefault(k2, v2)
