@@ -34,6 +34,11 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 
+# a fix the visual consensus left out (mapping.gps_consensus: at least 0.3 m off) rejoins only
+# when the solution comes this close to it (m)
+HELD_READMIT_M = 0.15
+
+
 def _robust_weights(r: np.ndarray, loss: str, c: float) -> np.ndarray:
     """IRLS weights w(r) = ρ'(r²)/1 for the named robust loss with scale c (σ units)."""
     z = (r / c) ** 2
@@ -94,7 +99,12 @@ class PoseGraph:
         R_vehicle_from_cam: np.ndarray | None = None,
         grade_rad: np.ndarray | None = None,
         still: Sequence[PairResult] = (),
+        gps_used: np.ndarray | None = None,
     ) -> None:
+        """``gps_used`` (G,) bool: the fixes of the first solve (None: all). The outlier test
+        after it judges every fix again; one left out here (off the visual consensus,
+        ``mapping.gps_consensus``) comes back only within ``HELD_READMIT_M`` of the solution:
+        the test's 5 σ of an RTK log's HDOP-based σ is 2 m."""
         self.cfg, self.t, self.n = cfg, t, len(t)
         R_vc = np.eye(3) if R_vehicle_from_cam is None else np.asarray(R_vehicle_from_cam, float)
         self.fwd_cam = forward_in_cam(R_vc)  # the vehicle's forward axis in camera coordinates
@@ -102,6 +112,10 @@ class PoseGraph:
         self.p0 = init[:, :3, 3].copy()
         self.gps = gps
         self.gps_used = np.ones(0 if gps is None else len(gps.t_s), bool)
+        self.gps_held = np.zeros_like(self.gps_used)
+        if gps is not None and gps_used is not None:
+            self.gps_used = np.asarray(gps_used, bool).copy()
+            self.gps_held = ~self.gps_used
         self.gps_scale = 1.0
         self.vis_scale = 1.0
 
@@ -407,7 +421,7 @@ class PoseGraph:
             if s > 3.0:
                 self.gps_scale = float(np.clip(s, 1.0, 20.0))
         thr = self.cfg.gps_outlier_sigmas * self.gps_scale
-        self.gps_used = e <= thr
+        self.gps_used = (e <= thr) & (~self.gps_held | (e * self.gps.sigma_m <= HELD_READMIT_M))
         if self.gps_used.sum() < min(2, len(e)):
             self.gps_used = old_used
         return (

@@ -44,12 +44,14 @@ from roadsurf.io.runfolder import RunFolder
 from roadsurf.mapping.config import NOT_IN_FINGERPRINT, MappingConfig
 from roadsurf.mapping.datum import vertical_datum
 from roadsurf.mapping.export import write_trajectory_csv, write_trajectory_geojson
+from roadsurf.mapping.gps_consensus import consensus_keep
 from roadsurf.mapping.grade import GRADE_VERSION, road_grade
 from roadsurf.mapping.mount import resolve
 from roadsurf.mapping.plausibility import CHECKS_VERSION, check, make_chains
 from roadsurf.mapping.pose_gps import (
     GpsFixes,
     gps_enu,
+    gps_margin_s,
     interp_weights,
     refix_antenna,
     widen_for_turns,
@@ -68,8 +70,9 @@ log = logging.getLogger(__name__)
 # the trajectory's own version, in the stage's fingerprint (a resumed run recomputes after a
 # change): 2: the ENU origin at the fix nearest the middle frame (was the log's first fix), a
 # stopped vehicle's frames (no_motion pairs) held together in the pose graph and the bundle;
-# 3: the mount's direction of travel turned back by half of each pair's turn (mount.heading_at_a)
-POSES_VERSION = 3
+# 3: the mount's direction of travel turned back by half of each pair's turn (mount.heading_at_a);
+# 4: fixes off their window's consensus left out of the first solve (mapping.gps_consensus)
+POSES_VERSION = 4
 # the antenna's fixes are moved with the solved rotations and solved again at most this many
 # times, until no fix moves by ANTENNA_SETTLED_M (m)
 ANTENNA_PASSES = 6
@@ -229,7 +232,24 @@ def estimate_trajectory(
 
     R_vc, g_rad, mount_warnings = grade_and_mount(gps)
     rep.warnings += mount_warnings
-    init = initial_poses(cfg, t, comp, linked, gps, rep, R_vc)
+    # runs of fixes off the chained motion's local consensus (a multipath step) are left out
+    # of the first solve, and of the grade and the initial placement
+    keep = None
+    if gps is not None and len(gps.t_s):
+        chain_xy = [
+            chain(np.flatnonzero(comp == c), linked, R_vc)[:, :2, 3]
+            for c in range(int(comp.max()) + 1)
+        ]
+        keep = consensus_keep(
+            t, comp, chain_xy, gps, gps_margin_s(cfg, t), cfg.heading_min_baseline_m
+        )
+        if keep.all():
+            keep = None
+        else:
+            log.info("poses: %d GPS fix(es) off the visual consensus", int((~keep).sum()))
+            R_vc, g_rad, again = grade_and_mount(gps.subset(keep))
+            rep.warnings += [w for w in again if w not in mount_warnings]
+    init = initial_poses(cfg, t, comp, linked, gps if keep is None else gps.subset(keep), rep, R_vc)
 
     # ---------------------------------------------------------------- segments
     segment, bridged_gaps = segments(t, comp, gps, cfg.gps_bridge_s)
@@ -243,17 +263,22 @@ def estimate_trajectory(
         rep.warnings.append(msg)
 
     # ---------------------------------------------------------------- robust fusion
-    problem = PoseGraph(cfg, t, init, ok_pairs, pos_of, gps, drive, comp, R_vc, g_rad, still)
+    problem = PoseGraph(
+        cfg, t, init, ok_pairs, pos_of, gps, drive, comp, R_vc, g_rad, still, gps_used=keep
+    )
     world = problem.solve(rep)
     if gps is not None and rep.gps_outliers:
         # The grade was fitted on every fix before the fusion found some wrong: a fix moved
         # metres sideways lengthens the track the heights are measured along and flattens the
         # slope (3 fixes moved 6 m: 0.16° kept of 0.45°, the camera 0.3° off in pitch). Fit it
         # again on the fixes kept, and solve again with it.
-        R_vc, g_rad, again = grade_and_mount(gps.subset(problem.gps_used))
+        used = problem.gps_used
+        R_vc, g_rad, again = grade_and_mount(gps.subset(used))
         rep.warnings += [w for w in again if w not in mount_warnings]
-        init = initial_poses(cfg, t, comp, linked, gps, rep, R_vc)
-        problem = PoseGraph(cfg, t, init, ok_pairs, pos_of, gps, drive, comp, R_vc, g_rad, still)
+        init = initial_poses(cfg, t, comp, linked, gps.subset(used), rep, R_vc)
+        problem = PoseGraph(
+            cfg, t, init, ok_pairs, pos_of, gps, drive, comp, R_vc, g_rad, still, gps_used=used
+        )
         world = problem.solve(rep)
     if gps is not None and ref is not None and drive.camera.gps_antenna_m is not None:
         # the antenna's fixes moved again with the solved vehicle heading, until they settle:

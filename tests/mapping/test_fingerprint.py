@@ -23,7 +23,8 @@ poses key: the ENU origin at the middle frame, no_motion pairs held together); D
 direction of travel turned back by half of each pair's turn); gps_sigma_from_log, gps_sigma_rtk_fixed_m and
 gps_sigma_rtk_float_m (both keys; a log's stated σ / fix quality enter the poses key only when
 gps_sigma_from_log is on, camera.yaml's gps_antenna_m only when given); CHECKS_VERSION 4 (the poses key: the scale note at 2.5 σ); DenseHeightConfig.max_depth_limit_m (the map key).
-DENSE_SURFACE_VERSION 11 (the map key: a hole across a pothole wall ramps); cross_fall_pct (both keys).
+DENSE_SURFACE_VERSION 11 (the map key: a hole across a pothole wall ramps); cross_fall_pct (both keys);
+POSES_VERSION 4 (the poses key: fixes off the visual consensus held out).
 A change of MappingConfig's fields changes them legitimately. The keys must also
 change with what the outputs depend on (below)."""
 
@@ -39,9 +40,9 @@ from tests.mapping.synth import make_synthetic
 
 def test_poses_fingerprint_is_unchanged() -> None:
     syn = make_synthetic(n=6, seed=3, failed=(2,))
-    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "53f156b125bbd108"
+    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "43f6ce5d3fb26a1e"
     syn = make_synthetic(n=6, seed=3, with_gps=False)
-    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "88d59350784e4ad4"
+    assert poses._fingerprint(MappingConfig(), syn.drive, syn.pairs) == "87faf849237ed5bb"
 
 
 def test_globalmap_fingerprint_is_unchanged() -> None:

@@ -1,0 +1,123 @@
+"""GPS fixes that leave the visual chain's local consensus, found before the pose graph.
+
+A multipath or a wrong RTK fix moves a run of consecutive fixes together, metres off for a
+second or two. The pose graph's robust loss and its outlier test judge each fix against a
+solution those fixes already pulled: a 1.5 m step over 1 s of a 36-frame drive (5 of 26
+fixes) left the trajectory 0.26 m off with no fix rejected, and the defects there misplaced
+(a helper's battery, session 34). Vision sees no step: the frames' chained motion (each
+visual component's ``pose_init.chain``) is smooth. So within a sliding time window every fix
+is compared with the similarity (rotation, scale, shift: the chain's metric scale rests on the
+camera height, a few % off) that most of the window's fixes agree on (least median of squares
+over pairs of fixes), and a fix further than max(``STEP_SPREADS`` × the majority's own
+spread, ``MIN_STEP_M``) from it is left out of the pose graph's first solve. The spread is
+measured, not the log's stated σ: an RTK log's HDOP says 0.3-0.5 m where its fixes scatter
+by 2 cm, and its 5 σ let a 1.5 m step through. The graph's own test then judges every fix again against its
+solution, so a fix wrongly left out here comes back.
+
+The window is short (``WINDOW_S``) so that the chain's drift inside it stays far below the
+step (0.05-0.1 % of the distance: centimetres over a window at speed), and a window whose
+fixes do not agree by a clear majority (``MAJORITY``) decides nothing: an episode longer than
+half a window is left to the pose graph. Pure function of the chain and the fixes.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from roadsurf.mapping.pose_gps import GpsFixes, interp_weights
+
+WINDOW_S = 10.0  # a window's length (s): longer than a multipath episode, short for drift
+MIN_FIXES = 6  # fewer fixes in a window: it decides nothing
+MAJORITY = 0.6  # the share of a window's fixes the consensus needs, or it decides nothing
+FLOOR_M = 0.01  # the smallest spread of the consensus (m): the chain's own noise
+STEP_SPREADS = 6.0  # a fix this many spreads (and MIN_STEP_M) off the consensus is out
+MIN_STEP_M = 0.3  # ... (m): smaller disagreements are the pose graph's to weigh
+SCALE_RANGE = (0.8, 1.25)  # the chain's scale against the GPS a candidate may have (-)
+MAX_CANDIDATES = 300  # pairs of fixes tried per window
+
+
+def consensus_keep(
+    t: np.ndarray,
+    comp: np.ndarray,
+    chain_xy: list[np.ndarray],
+    gps: GpsFixes,
+    margin_s: float,
+    min_baseline_m: float,
+) -> np.ndarray:
+    """(G,) bool: the fixes of ``gps`` that agree with their window's consensus (True also
+    for fixes no window judged). ``t`` (N,) frame times (s); ``comp`` (N,) each frame's visual
+    component; ``chain_xy[c]`` (M_c, 2) the chained horizontal positions of component c's
+    frames (any frame of reference, m); ``margin_s`` how far (s) outside the drive's first and
+    last frame a fix still belongs to the end components; ``min_baseline_m`` the shortest
+    chain distance between two fixes a candidate is fitted on (m)."""
+    keep = np.ones(len(gps.t_s), bool)
+    rng = np.random.default_rng(0)
+    n = len(t)
+    for c in range(int(comp.max()) + 1 if n else 0):
+        fr = np.flatnonzero(comp == c)
+        if len(fr) < 2:
+            continue
+        lo = margin_s if fr[0] == 0 else 0.0
+        hi = margin_s if fr[-1] == n - 1 else 0.0
+        idx = np.flatnonzero((gps.t_s >= t[fr[0]] - lo) & (gps.t_s <= t[fr[-1]] + hi))
+        if len(idx) < MIN_FIXES:
+            continue
+        k, w = interp_weights(t[fr], gps.t_s[idx])
+        xy = np.asarray(chain_xy[c], float)
+        src = (1 - w)[:, None] * xy[k] + w[:, None] * xy[k + 1]
+        src_c = src[:, 0] + 1j * src[:, 1]
+        dst_c = gps.enu_m[idx, 0] + 1j * gps.enu_m[idx, 1]
+        ts = gps.t_s[idx]
+        # windows every quarter window; each judges the fixes of its middle half
+        for t0 in np.arange(ts[0], ts[-1] + WINDOW_S / 4, WINDOW_S / 4):
+            win = np.flatnonzero(np.abs(ts - t0) <= WINDOW_S / 2)
+            mid = win[np.abs(ts[win] - t0) <= WINDOW_S / 4]
+            if len(win) < MIN_FIXES or not len(mid):
+                continue
+            got = _consensus_residuals(src_c[win], dst_c[win], min_baseline_m, rng)
+            if got is None:
+                continue
+            r, spread = got
+            r_mid = r[np.searchsorted(win, mid)]
+            keep[idx[mid[r_mid > max(STEP_SPREADS * spread, MIN_STEP_M)]]] = False
+    return keep
+
+
+def _consensus_residuals(
+    src: np.ndarray, dst: np.ndarray, min_baseline_m: float, rng: np.random.Generator
+) -> tuple[np.ndarray, float] | None:
+    """The distances (m) of the fixes ``dst`` (complex E + iN) from the similarity of the chain
+    positions ``src`` (complex) that most of them agree on, and the robust spread (m) of that
+    majority's distances: (residuals (m,), spread). Least median of squares over pairs of
+    fixes, so no stated σ enters (an RTK log's HDOP-based σ is 0.3-0.5 m where its fixes
+    scatter by 2 cm). None when no candidate has a clear majority (``MAJORITY``)."""
+    m = len(src)
+    ii, jj = np.triu_indices(m, 1)
+    if len(ii) > MAX_CANDIDATES:
+        pick = rng.choice(len(ii), MAX_CANDIDATES, replace=False)
+        ii, jj = ii[pick], jj[pick]
+    ds = src[jj] - src[ii]
+    ok = np.abs(ds) >= min_baseline_m
+    ii, jj, ds = ii[ok], jj[ok], ds[ok]
+    if not len(ii):
+        return None
+    a = (dst[jj] - dst[ii]) / ds  # rotation and scale
+    ok = (np.abs(a) >= SCALE_RANGE[0]) & (np.abs(a) <= SCALE_RANGE[1])
+    ii, a = ii[ok], a[ok]
+    if not len(ii):
+        return None
+    b = dst[ii] - a * src[ii]
+    res = np.abs(a[:, None] * src[None, :] + b[:, None] - dst[None, :])  # (candidates, m)
+    best = int(np.argmin(np.median(res, axis=1)))
+    # the LMedS scale (Rousseeuw & Leroy), then the majority within 2.5 of it, refitted
+    s0 = 1.4826 * (1.0 + 5.0 / max(m - 2, 1)) * float(np.median(res[best]))
+    inl = res[best] <= max(2.5 * s0, FLOOR_M)
+    if inl.sum() < MAJORITY * m or inl.sum() < 3:
+        return None
+    c_s, c_d = src[inl].mean(), dst[inl].mean()
+    sc, dc = src[inl] - c_s, dst[inl] - c_d
+    den = float(np.sum(np.abs(sc) ** 2))
+    a_fit = np.sum(np.conj(sc) * dc) / den if den > 0 else a[best]
+    r = np.abs(a_fit * (src - c_s) + c_d - dst)
+    spread = max(1.4826 * float(np.median(r[inl])), FLOOR_M)
+    return np.asarray(r), spread
