@@ -82,7 +82,8 @@ class MappingConfig:
     # φ: the road's cross-fall the vehicle rolls with (%, + = the road falls to the right of
     # travel), which tips the tilt prior's axis as the grade does. Roll is not observable from
     # a camera and GPS (no IMU): 0 places the map for a level vehicle, and a real cross-fall c
-    # then moves it height × c sideways and drops c from its heights across the road. Set the
+    # then moves it (camera height + the GPS antenna's height above the camera) × c sideways
+    # and drops c from its heights across the road. Set the
     # design value where it is known (a crowned road driven in its outer lane: about +2 where
     # traffic keeps right, −2 where it keeps left)
     cross_fall_pct: float = 0.0

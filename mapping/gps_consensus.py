@@ -83,6 +83,76 @@ def consensus_keep(
     return keep
 
 
+def altitude_keep(
+    t: np.ndarray, comp: np.ndarray, chain_xyz: list[np.ndarray], gps: GpsFixes, margin_s: float
+) -> np.ndarray:
+    """(G,) bool: the fixes whose altitude agrees with their window's consensus (True also for
+    fixes without one or no window judged): the altitude minus the chain's height, a level
+    plus a grade along the chain's path (least median of squares over pairs of fixes), out
+    beyond max(``STEP_SPREADS`` × the majority's spread, ``MIN_STEP_M``). A 2 m altitude step
+    mid-drive (a helper's battery) otherwise went into the grade and the map's heights, 1.1 m
+    off, with no word. Arguments as ``consensus_keep``, ``chain_xyz[c]`` (M_c, 3)."""
+    keep = np.ones(len(gps.t_s), bool)
+    rng = np.random.default_rng(0)
+    n = len(t)
+    for c in range(int(comp.max()) + 1 if n else 0):
+        fr = np.flatnonzero(comp == c)
+        if len(fr) < 2:
+            continue
+        lo = margin_s if fr[0] == 0 else 0.0
+        hi = margin_s if fr[-1] == n - 1 else 0.0
+        sel = (gps.t_s >= t[fr[0]] - lo) & (gps.t_s <= t[fr[-1]] + hi) & gps.has_alt
+        idx = np.flatnonzero(sel)
+        if len(idx) < MIN_FIXES:
+            continue
+        xyz = np.asarray(chain_xyz[c], float)
+        path = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(xyz[:, :2], axis=0), axis=1))]
+        k, w = interp_weights(t[fr], gps.t_s[idx])
+        along = (1 - w) * path[k] + w * path[k + 1]
+        y = gps.enu_m[idx, 2] - ((1 - w) * xyz[k, 2] + w * xyz[k + 1, 2])
+        ts = gps.t_s[idx]
+        for t0 in np.arange(ts[0], ts[-1] + WINDOW_S / 4, WINDOW_S / 4):
+            win = np.flatnonzero(np.abs(ts - t0) <= WINDOW_S / 2)
+            mid = win[np.abs(ts[win] - t0) <= WINDOW_S / 4]
+            if len(win) < MIN_FIXES or not len(mid):
+                continue
+            got = _line_residuals(along[win], y[win], rng)
+            if got is None:
+                continue
+            r, spread = got
+            r_mid = r[np.searchsorted(win, mid)]
+            keep[idx[mid[r_mid > max(STEP_SPREADS * spread, MIN_STEP_M)]]] = False
+    return keep
+
+
+def _line_residuals(
+    x: np.ndarray, y: np.ndarray, rng: np.random.Generator
+) -> tuple[np.ndarray, float] | None:
+    """(m,) distances of ``y`` from the line y = p + q x most points agree on (least median of
+    squares over pairs, a level where x barely varies), and the majority's spread; None
+    without a clear majority."""
+    m = len(x)
+    ii, jj = np.triu_indices(m, 1)
+    if len(ii) > MAX_CANDIDATES:
+        pick = rng.choice(len(ii), MAX_CANDIDATES, replace=False)
+        ii, jj = ii[pick], jj[pick]
+    dx = x[jj] - x[ii]
+    ok = np.abs(dx) > 1e-6
+    q = np.zeros(len(ii))
+    q[ok] = (y[jj][ok] - y[ii][ok]) / dx[ok]
+    p = y[ii] - q * x[ii]
+    res = np.abs(p[:, None] + q[:, None] * x[None, :] - y[None, :])
+    best = int(np.argmin(np.median(res, axis=1)))
+    s0 = 1.4826 * (1.0 + 5.0 / max(m - 2, 1)) * float(np.median(res[best]))
+    inl = res[best] <= max(2.5 * s0, FLOOR_M)
+    if inl.sum() < MAJORITY * m or inl.sum() < 3:
+        return None
+    A = np.c_[np.ones(int(inl.sum())), x[inl]]
+    coef = np.linalg.lstsq(A, y[inl], rcond=None)[0]
+    r = np.abs(coef[0] + coef[1] * x - y)
+    return r, max(1.4826 * float(np.median(r[inl])), FLOOR_M)
+
+
 def _consensus_residuals(
     src: np.ndarray, dst: np.ndarray, min_baseline_m: float, rng: np.random.Generator
 ) -> tuple[np.ndarray, float] | None:

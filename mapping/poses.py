@@ -39,12 +39,12 @@ from roadsurf.core.atomic import read_json, write_json_atomic
 from roadsurf.core.config import to_dict
 from roadsurf.core.fingerprint import Fingerprint
 from roadsurf.io import runfolder as rf
-from roadsurf.io.drive import Drive
+from roadsurf.io.drive import Drive, Frame
 from roadsurf.io.runfolder import RunFolder
 from roadsurf.mapping.config import NOT_IN_FINGERPRINT, MappingConfig
 from roadsurf.mapping.datum import vertical_datum
 from roadsurf.mapping.export import write_trajectory_csv, write_trajectory_geojson
-from roadsurf.mapping.gps_consensus import consensus_keep
+from roadsurf.mapping.gps_consensus import altitude_keep, consensus_keep
 from roadsurf.mapping.grade import GRADE_VERSION, road_grade
 from roadsurf.mapping.mount import resolve
 from roadsurf.mapping.plausibility import CHECKS_VERSION, check, make_chains
@@ -79,6 +79,12 @@ ANTENNA_PASSES = 6
 ANTENNA_SETTLED_M = 0.001
 
 # =========================================================================== entry point
+
+
+def _frames(frames: list[Frame], lo: int, hi: int) -> str:
+    """Frames lo..hi by name, for a warning."""
+    a, b = frames[lo].filename, frames[hi].filename
+    return f"frames {a}-{b}" if hi > lo else f"frame {a}"
 
 
 def run(
@@ -225,9 +231,12 @@ def estimate_trajectory(
         rep.mount = mount.to_dict()
         rep.mount.update(grade.to_dict())
         # roll is not observable from a camera and GPS: the map is placed for this cross-fall,
-        # and each 1 % the road differs by moves it this far sideways
+        # and each 1 % the road differs by moves it this far sideways (the rig turns about the
+        # antenna, which the fixes hold: the camera's height plus the antenna's above it)
+        arm = drive.camera.gps_antenna_m
+        lever = drive.camera.height_m + (float(arm[2]) if arm is not None else 0.0)
         rep.mount["cross_fall_pct_assumed"] = cfg.cross_fall_pct
-        rep.mount["sideways_m_per_pct_cross_fall"] = round(0.01 * drive.camera.height_m, 4)
+        rep.mount["sideways_m_per_pct_cross_fall"] = round(0.01 * lever, 4)
         return mount.R_vehicle_from_cam, grade.grade_rad, mount.warnings
 
     R_vc, g_rad, mount_warnings = grade_and_mount(gps)
@@ -236,12 +245,28 @@ def estimate_trajectory(
     # of the first solve, and of the grade and the initial placement
     keep = None
     if gps is not None and len(gps.t_s):
-        chain_xy = [
-            chain(np.flatnonzero(comp == c), linked, R_vc)[:, :2, 3]
+        chain_xyz = [
+            chain(np.flatnonzero(comp == c), linked, R_vc)[:, :3, 3]
             for c in range(int(comp.max()) + 1)
         ]
+        margin = gps_margin_s(cfg, t)
+        alt_ok = altitude_keep(t, comp, chain_xyz, gps, margin)
+        if not alt_ok.all():
+            # heights only: a vertical jump leaves the fix's horizontal position usable
+            bad = np.flatnonzero(~alt_ok)
+            k = np.clip(np.searchsorted(t, gps.t_s[bad]), 0, n - 1)
+            msg = (
+                f"{len(bad)} GPS altitude(s) jump by more than 0.3 m where the frames show no "
+                f"such rise, near {_frames(frames, int(k.min()), int(k.max()))}: their heights "
+                "are left out (the map's heights and grade rest on the others)"
+            )
+            log.warning("poses: %s", msg)
+            rep.warnings.append(msg)
+            gps = dataclasses.replace(gps, has_alt=gps.has_alt & alt_ok)
+            R_vc, g_rad, again = grade_and_mount(gps)
+            rep.warnings += [w for w in again if w not in mount_warnings]
         keep = consensus_keep(
-            t, comp, chain_xy, gps, gps_margin_s(cfg, t), cfg.heading_min_baseline_m
+            t, comp, [c[:, :2] for c in chain_xyz], gps, margin, cfg.heading_min_baseline_m
         )
         if keep.all():
             keep = None

@@ -10,6 +10,10 @@ import math
 import cv2
 import numpy as np
 
+# the largest hole (cells) solved as a ramp (``fill_inward``): a 12 cm wall band around a
+# 40 cm pothole at 2 mm cells is ~10,000
+MAX_RAMP_CELLS = 40_000
+
 
 def fill_inward(
     values: np.ndarray, max_px: float, max_spread: float
@@ -68,6 +72,10 @@ def fill_inward(
         n_lab, lab = cv2.connectedComponents(holes.astype(np.uint8), connectivity=8)
         steps = np.zeros(n_lab, bool)
         steps[np.unique(lab[blocked])] = True
+        # a wall's band is thousands of cells; a component beyond this is a fragmented
+        # tile's web of holes (a sparse solve of seconds and a GB), left to the ring fill
+        steps &= np.bincount(lab.ravel(), minlength=n_lab) <= MAX_RAMP_CELLS
+        steps[0] = False  # the known cells' label
         cells = steps[lab] & holes
         out[cells] = _harmonic_fill(np.where(cells, np.nan, out), cells)
     return out, near

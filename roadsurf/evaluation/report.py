@@ -104,8 +104,10 @@ def evaluate_run(run_dir: str | Path, truth_dir: str | Path) -> dict[str, Any]:
         gps_noise = gps_noise_m(truth_dir, scen)
         if gps_noise:
             out["gps_sigma_m"] = gps_noise
-        arm = scen.get("params", {}).get("gps_antenna_m")
-        gps_rmse = gps_rmse_m(truth_dir, crs, tuple(arm) if arm else None)
+        par = scen.get("params", {})
+        arm = par.get("gps_antenna_m")
+        mount = tuple(float(par.get(f"mount_{k}_deg", 0.0)) for k in ("pitch", "roll", "yaw"))
+        gps_rmse = gps_rmse_m(truth_dir, crs, tuple(arm) if arm else None, mount)  # type: ignore[arg-type]
         if gps_rmse:
             # the raw fixes' own error against the true antenna (noise + bias + jumps)
             out["gps_rmse_m"] = gps_rmse

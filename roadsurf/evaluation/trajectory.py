@@ -12,6 +12,7 @@ import numpy as np
 
 from roadsurf.core.errors import InputError
 from roadsurf.core.fits import fit_rigid_2d
+from roadsurf.core.geometry import vehicle_from_cam_rotation, vehicle_from_flu
 from roadsurf.io import drivefolder as df
 from roadsurf.io import runfolder as rf
 from roadsurf.io.formats import read_csv, read_geojson
@@ -154,12 +155,17 @@ def _body(d: np.ndarray, heading_rad: float) -> np.ndarray:
 
 
 def gps_rmse_m(
-    truth_dir: Path, crs: str | None, antenna_flu: tuple[float, float, float] | None = None
+    truth_dir: Path,
+    crs: str | None,
+    antenna_flu: tuple[float, float, float] | None = None,
+    mount_deg: tuple[float, float, float] = (0.0, 0.0, 0.0),
 ) -> float | None:
     """RMSE (m, horizontal) of the drive's GPS fixes against the true path of the antenna
     interpolated at the fix times: the camera centre plus ``antenna_flu`` ([forward, left, up]
-    m, the simulator's ``gps_antenna_m``) turned by the true heading. Without it a lever arm
-    counts as GPS error (1.5 m on a drive whose antenna rides 1.5 m behind the camera)."""
+    m, the simulator's ``gps_antenna_m``) on the vehicle, turned by each true camera rotation
+    (the poses' quaternion, grid axes) back through the mount ``mount_deg`` (pitch, roll, yaw;
+    the simulator's ``mount_*_deg``). Without it a lever arm counts as GPS error (1.5 m on a
+    drive whose antenna rides 1.5 m behind the camera)."""
     gps = truth_dir.parent / df.GPS_CSV
     if crs is None or not gps.is_file():
         return None
@@ -181,14 +187,15 @@ def gps_rmse_m(
     x, y = Transformer.from_crs("EPSG:4326", crs, always_xy=True).transform(
         lon[inside], lat[inside]
     )
+    if antenna_flu is not None and any(antenna_flu):
+        from scipy.spatial.transform import Rotation
+
+        q = np.array([[float(r[k]) for k in ("qx", "qy", "qz", "qw")] for r in rows])
+        R_vc = vehicle_from_cam_rotation(*mount_deg)
+        arm = Rotation.from_quat(q).as_matrix() @ R_vc.T @ vehicle_from_flu(antenna_flu)
+        txy = txy + arm[:, :2]
     ex = np.interp(t[inside], tt, txy[:, 0])
     ey = np.interp(t[inside], tt, txy[:, 1])
-    if antenna_flu is not None and any(antenna_flu[:2]):
-        head = np.unwrap(np.radians([float(r["heading_deg"]) for r in rows]))
-        hd = np.interp(t[inside], tt, head)  # compass: 0 north, clockwise
-        fwd, left = float(antenna_flu[0]), float(antenna_flu[1])
-        ex = ex + fwd * np.sin(hd) - left * np.cos(hd)
-        ey = ey + fwd * np.cos(hd) + left * np.sin(hd)
     return float(np.sqrt(np.mean((np.asarray(x) - ex) ** 2 + (np.asarray(y) - ey) ** 2)))
 
 

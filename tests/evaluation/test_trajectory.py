@@ -84,9 +84,16 @@ def test_gps_rmse_is_measured_against_the_antenna_not_the_camera(tmp_path) -> No
     truth.mkdir()
     t = np.arange(0.0, 10.0, 0.5)
     e, n = 630000.0 + 2.0 * t, np.full_like(t, 4834000.0)
-    rows = ["filename,timestamp_s,easting_m,northing_m,heading_deg"]
+    from scipy.spatial.transform import Rotation
+
+    from roadsurf.core.geometry import world_from_cam
+
+    # the truth's camera rotation (a nadir camera, vehicle heading east) as its quaternion
+    qx, qy, qz, qw = Rotation.from_matrix(world_from_cam(90.0)[:3, :3]).as_quat()
+    rows = ["filename,timestamp_s,easting_m,northing_m,heading_deg,qw,qx,qy,qz"]
     rows += [
-        f"f{i}.jpg,{ti},{ei},{ni},90.0" for i, (ti, ei, ni) in enumerate(zip(t, e, n, strict=True))
+        f"f{i}.jpg,{ti},{ei},{ni},90.0,{qw},{qx},{qy},{qz}"
+        for i, (ti, ei, ni) in enumerate(zip(t, e, n, strict=True))
     ]
     (truth / "poses.csv").write_text("\n".join(rows) + "\n")
     # heading east: forward = +E, left = +N

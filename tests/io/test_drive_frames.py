@@ -172,7 +172,16 @@ def test_a_drive_without_frames_csv_or_gps_takes_the_images_in_name_order(
     d = load_drive(root)
     assert [f.filename for f in d.frames] == sorted(f.filename for f in d.frames)
     assert np.allclose([f.timestamp_s for f in d.frames], np.arange(3) / d.camera.fps)
-    assert any("frames.csv: not found" in w and "sorted name order" in w for w in d.warnings)
+    assert any("frames.csv: not found" in w and "name order" in w for w in d.warnings)
+    # numbers by value (a camera's unpadded IMG_2 ... IMG_10), hidden files left out
+    series = make_drive(tmp_path / "s", n=0, gps=None)
+    (series / "frames.csv").unlink()
+    src = next((root / "frames").iterdir())
+    for k in (1, 2, 10):
+        (series / "frames" / f"IMG_{k}.png").write_bytes(src.read_bytes())
+    (series / "frames" / "._IMG_3.png").write_bytes(b"not an image")
+    d = load_drive(series)
+    assert [f.filename for f in d.frames] == ["IMG_1.png", "IMG_2.png", "IMG_10.png"]
     with_gps = make_drive(tmp_path / "g", n=3)
     (with_gps / "frames.csv").unlink()
     with pytest.raises(DriveFormatError, match="frames.csv not found, and gps.csv needs"):

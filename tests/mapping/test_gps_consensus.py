@@ -69,3 +69,22 @@ def test_a_window_without_a_clear_majority_decides_nothing() -> None:
     half = g.t_s > 1.1  # half the log 1.5 m off: no majority, left to the pose graph
     g.enu_m[half, 1] += 1.5
     assert _keep(t, chain_xy, g).all()
+
+
+def test_an_altitude_jump_the_frames_do_not_show_is_left_out() -> None:
+    from roadsurf.mapping.gps_consensus import altitude_keep
+
+    t, chain_xy, g, _ = _drive(60, 8.0, 5.0, 0.02, seed=5)
+    rng = np.random.default_rng(5)
+    # the chain climbs a 1 % grade in its own frame; the fixes 2 % (the first frame's pitch)
+    along = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(chain_xy, axis=0), axis=1))]
+    chain_xyz = np.c_[chain_xy, 0.01 * along]
+    fix_along = np.interp(g.t_s, t, along)
+    g.enu_m[:, 2] = 95.0 + 0.02 * fix_along + rng.normal(0.0, 0.03, len(g.t_s))
+    comp = np.zeros(len(t), int)
+    assert altitude_keep(t, comp, [chain_xyz], g, 1.5).all()
+    jump = (g.t_s > 3.0) & (g.t_s < 4.5)  # 1.5 s of fixes 2 m up
+    g.enu_m[jump, 2] += 2.0
+    assert np.array_equal(altitude_keep(t, comp, [chain_xyz], g, 1.5), ~jump)
+    g.has_alt[:] = False  # no altitudes: nothing to judge
+    assert altitude_keep(t, comp, [chain_xyz], g, 1.5).all()

@@ -79,3 +79,18 @@ def test_nothing_to_fill() -> None:
     assert np.isnan(out).all() and not near.any()
     out, near = fill_inward(z, 0.0, 0.003)
     assert np.array_equal(out, z)
+
+
+def test_a_hole_beyond_the_ramp_cap_keeps_the_ring_fill(monkeypatch) -> None:
+    """A fragmented tile's web of holes is not one huge sparse solve: beyond MAX_RAMP_CELLS a
+    component keeps the ring fill, its step cells empty."""
+    import roadsurf.mapping.rasterfill as rf
+
+    z, band, r = _pothole()
+    band[:, :30] = False
+    v = z.copy()
+    v[band] = np.nan
+    monkeypatch.setattr(rf, "MAX_RAMP_CELLS", 10)
+    out, near = fill_inward(v, 3.0, 0.003)
+    mid = band & (r > 20.5) & (r < 21.5)
+    assert np.isnan(out[mid]).mean() > 0.5

@@ -78,7 +78,7 @@ def check_increasing(t: np.ndarray, lines: list[int], path: Path, what: str) -> 
         if what == "frame" and t[i + 1] == t[i]:
             same = (
                 " Two shots at once (a stereo rig's left and right images) are a pair in capture "
-                "order: give the second a later time, or, without a GPS log, leave frames.csv "
+                "order: give the second a later time, or, without a GPS or OBD log, leave frames.csv "
                 "out (the images are then taken in name order)."
             )
         elif t[i + 1] < t[i]:

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import math
+import re
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -36,10 +38,11 @@ def load_frames(
     if not img_dir.is_dir():
         raise DriveFormatError(f"{img_dir}: the frames/ folder is missing. {FORMAT_HINT}")
     if not csv_path.is_file():
-        names, t_arr = _frames_by_name(root, img_dir, camera, warnings)
+        by_name, t_by_name = _frames_by_name(root, img_dir, camera, warnings)
         return _present_frames(
-            root, img_dir, csv_path, camera, check_images, skipped, warnings, names, t_arr, None
-        )
+            root, img_dir, csv_path, camera, check_images, skipped, warnings, by_name,
+            t_by_name, None,
+        )  # fmt: skip
     _, rows = csv_rows(csv_path, ("filename", "timestamp_s"))
     names: list[str] = []
     times: list[float] = []
@@ -97,12 +100,25 @@ def load_frames(
     )
 
 
+def natural_key(name: str) -> list[Any]:
+    """Sort key reading runs of digits as numbers: IMG_2 before IMG_10 (a camera's unpadded
+    numbering), as a file manager orders them."""
+    return [int(p) if p.isdigit() else p.lower() for p in re.split(r"(\d+)", name)]
+
+
+def _is_image(p: Path) -> bool:
+    """An image file of frames/ by its suffix, not hidden (macOS's ._ resource forks carry the
+    image's suffix)."""
+    return p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".") and _is_file(p)
+
+
 def _frames_by_name(
     root: Path, img_dir: Path, camera: Camera, warnings: list[str]
 ) -> tuple[list[str], np.ndarray]:
     """A drive without frames.csv: the images of ``img_dir`` in sorted name order, 1 / fps
-    apart (s). Only a drive without a GPS or OBD log may leave the times out (a photo pair, a
-    photo series): with one, the images cannot be placed on its clock."""
+    apart (s), numbers in names by value (``natural_key``), hidden files left out. Only a drive
+    without a GPS or OBD log may leave the times out (a photo pair, a photo series): with one,
+    the images cannot be placed on its clock."""
     csv_path = root / df.FRAMES_CSV
     logs = [n for n in (*df.GPS_FILES, df.OBD_CSV) if (root / n).is_file()]
     if logs:
@@ -111,16 +127,14 @@ def _frames_by_name(
             f"matched to it. Write frames.csv with the header filename,timestamp_s and one row "
             f"per image in frames/, on the same clock as {logs[0]}. {FORMAT_HINT}"
         )
-    names = sorted(
-        p.name for p in img_dir.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and _is_file(p)
-    )
+    names = sorted((p.name for p in img_dir.iterdir() if _is_image(p)), key=natural_key)
     if not names:
         raise DriveFormatError(
             f"{img_dir}: empty drive: no {_SUFFIXES_TEXT} images, and no frames.csv. {FORMAT_HINT}"
         )
     warnings.append(
-        f"{csv_path}: not found; the {len(names)} images of frames/ are taken in sorted name "
-        f"order, 1 / fps = {1.0 / camera.fps:.4g} s apart (camera.yaml fps). Without a GPS log "
+        f"{csv_path}: not found; the {len(names)} images of frames/ are taken in name order "
+        f"(numbers by value: {names[0]}, {names[1] if len(names) > 1 else '...'}, ...), 1 / fps = {1.0 / camera.fps:.4g} s apart (camera.yaml fps). Without a GPS log "
         f"only their order is used. Write frames.csv (filename,timestamp_s) to give the "
         f"capture times."
     )
@@ -167,11 +181,7 @@ def _present_frames(
             f"and were skipped (see report skipped list)."
         )
     listed = set(names)
-    unlisted = [
-        p.name
-        for p in img_dir.iterdir()
-        if p.suffix.lower() in IMAGE_SUFFIXES and p.name not in listed
-    ]
+    unlisted = [p.name for p in img_dir.iterdir() if _is_image(p) and p.name not in listed]
     if unlisted:
         warnings.append(
             f"{img_dir}: {len(unlisted)} image(s) are not listed in frames.csv and are ignored "
