@@ -22,6 +22,9 @@ half a window is left to the pose graph. Pure function of the chain and the fixe
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
+from typing import Any
+
 import numpy as np
 
 from roadsurf.mapping.pose_gps import GpsFixes, interp_weights
@@ -50,36 +53,18 @@ def consensus_keep(
     frames (any frame of reference, m); ``margin_s`` how far (s) outside the drive's first and
     last frame a fix still belongs to the end components; ``min_baseline_m`` the shortest
     chain distance between two fixes a candidate is fitted on (m)."""
-    keep = np.ones(len(gps.t_s), bool)
     rng = np.random.default_rng(0)
-    n = len(t)
-    for c in range(int(comp.max()) + 1 if n else 0):
-        fr = np.flatnonzero(comp == c)
-        if len(fr) < 2:
-            continue
-        lo = margin_s if fr[0] == 0 else 0.0
-        hi = margin_s if fr[-1] == n - 1 else 0.0
-        idx = np.flatnonzero((gps.t_s >= t[fr[0]] - lo) & (gps.t_s <= t[fr[-1]] + hi))
-        if len(idx) < MIN_FIXES:
-            continue
-        k, w = interp_weights(t[fr], gps.t_s[idx])
+    keep = np.ones(len(gps.t_s), bool)
+    for c, idx, k, w in _component_fixes(t, comp, gps, margin_s, need_alt=False):
         xy = np.asarray(chain_xy[c], float)
         src = (1 - w)[:, None] * xy[k] + w[:, None] * xy[k + 1]
         src_c = src[:, 0] + 1j * src[:, 1]
         dst_c = gps.enu_m[idx, 0] + 1j * gps.enu_m[idx, 1]
-        ts = gps.t_s[idx]
-        # windows every quarter window; each judges the fixes of its middle half
-        for t0 in np.arange(ts[0], ts[-1] + WINDOW_S / 4, WINDOW_S / 4):
-            win = np.flatnonzero(np.abs(ts - t0) <= WINDOW_S / 2)
-            mid = win[np.abs(ts[win] - t0) <= WINDOW_S / 4]
-            if len(win) < MIN_FIXES or not len(mid):
-                continue
-            got = _consensus_residuals(src_c[win], dst_c[win], min_baseline_m, rng)
-            if got is None:
-                continue
-            r, spread = got
-            r_mid = r[np.searchsorted(win, mid)]
-            keep[idx[mid[r_mid > max(STEP_SPREADS * spread, MIN_STEP_M)]]] = False
+
+        def similarity(win: np.ndarray, a: np.ndarray = src_c, b: np.ndarray = dst_c) -> Any:
+            return _consensus_residuals(a[win], b[win], min_baseline_m, rng)
+
+        _judge(gps.t_s[idx], idx, keep, similarity)
     return keep
 
 
@@ -92,8 +77,27 @@ def altitude_keep(
     beyond max(``STEP_SPREADS`` × the majority's spread, ``MIN_STEP_M``). A 2 m altitude step
     mid-drive (a helper's battery) otherwise went into the grade and the map's heights, 1.1 m
     off, with no word. Arguments as ``consensus_keep``, ``chain_xyz[c]`` (M_c, 3)."""
-    keep = np.ones(len(gps.t_s), bool)
     rng = np.random.default_rng(0)
+    keep = np.ones(len(gps.t_s), bool)
+    for c, idx, k, w in _component_fixes(t, comp, gps, margin_s, need_alt=True):
+        xyz = np.asarray(chain_xyz[c], float)
+        path = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(xyz[:, :2], axis=0), axis=1))]
+        along = (1 - w) * path[k] + w * path[k + 1]
+        y = gps.enu_m[idx, 2] - ((1 - w) * xyz[k, 2] + w * xyz[k + 1, 2])
+
+        def line(win: np.ndarray, x: np.ndarray = along, z: np.ndarray = y) -> Any:
+            return _line_residuals(x[win], z[win], rng)
+
+        _judge(gps.t_s[idx], idx, keep, line)
+    return keep
+
+
+def _component_fixes(
+    t: np.ndarray, comp: np.ndarray, gps: GpsFixes, margin_s: float, need_alt: bool
+) -> Iterator[tuple[int, np.ndarray, np.ndarray, np.ndarray]]:
+    """Per visual component with at least ``MIN_FIXES`` fixes in its time span (the end
+    components ``margin_s`` beyond it; with ``need_alt`` only fixes with an altitude): (c, the
+    fixes' indices, the component's frame k before each fix and the weight w of frame k + 1)."""
     n = len(t)
     for c in range(int(comp.max()) + 1 if n else 0):
         fr = np.flatnonzero(comp == c)
@@ -101,28 +105,51 @@ def altitude_keep(
             continue
         lo = margin_s if fr[0] == 0 else 0.0
         hi = margin_s if fr[-1] == n - 1 else 0.0
-        sel = (gps.t_s >= t[fr[0]] - lo) & (gps.t_s <= t[fr[-1]] + hi) & gps.has_alt
-        idx = np.flatnonzero(sel)
-        if len(idx) < MIN_FIXES:
+        sel = (gps.t_s >= t[fr[0]] - lo) & (gps.t_s <= t[fr[-1]] + hi)
+        idx = np.flatnonzero(sel & gps.has_alt if need_alt else sel)
+        if len(idx) >= MIN_FIXES:
+            k, w = interp_weights(t[fr], gps.t_s[idx])
+            yield c, idx, k, w
+
+
+def _judge(
+    ts: np.ndarray,
+    idx: np.ndarray,
+    keep: np.ndarray,
+    residuals: Callable[[np.ndarray], tuple[np.ndarray, float] | None],
+) -> None:
+    """Windows of ``WINDOW_S`` every quarter window over the fix times ``ts``; each judges the
+    fixes of its middle half by ``residuals(window) -> (distances (m), spread) | None`` and
+    clears ``keep[idx[...]]`` of those beyond max(``STEP_SPREADS`` spreads, ``MIN_STEP_M``)."""
+    for t0 in np.arange(ts[0], ts[-1] + WINDOW_S / 4, WINDOW_S / 4):
+        win = np.flatnonzero(np.abs(ts - t0) <= WINDOW_S / 2)
+        mid = win[np.abs(ts[win] - t0) <= WINDOW_S / 4]
+        if len(win) < MIN_FIXES or not len(mid):
             continue
-        xyz = np.asarray(chain_xyz[c], float)
-        path = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(xyz[:, :2], axis=0), axis=1))]
-        k, w = interp_weights(t[fr], gps.t_s[idx])
-        along = (1 - w) * path[k] + w * path[k + 1]
-        y = gps.enu_m[idx, 2] - ((1 - w) * xyz[k, 2] + w * xyz[k + 1, 2])
-        ts = gps.t_s[idx]
-        for t0 in np.arange(ts[0], ts[-1] + WINDOW_S / 4, WINDOW_S / 4):
-            win = np.flatnonzero(np.abs(ts - t0) <= WINDOW_S / 2)
-            mid = win[np.abs(ts[win] - t0) <= WINDOW_S / 4]
-            if len(win) < MIN_FIXES or not len(mid):
-                continue
-            got = _line_residuals(along[win], y[win], rng)
-            if got is None:
-                continue
-            r, spread = got
-            r_mid = r[np.searchsorted(win, mid)]
-            keep[idx[mid[r_mid > max(STEP_SPREADS * spread, MIN_STEP_M)]]] = False
-    return keep
+        got = residuals(win)
+        if got is None:
+            continue
+        r, spread = got
+        r_mid = r[np.searchsorted(win, mid)]
+        keep[idx[mid[r_mid > max(STEP_SPREADS * spread, MIN_STEP_M)]]] = False
+
+
+def _pairs(m: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Index pairs (i < j) of m fixes: all of them, or ``MAX_CANDIDATES`` drawn at random."""
+    ii, jj = np.triu_indices(m, 1)
+    if len(ii) > MAX_CANDIDATES:
+        pick = rng.choice(len(ii), MAX_CANDIDATES, replace=False)
+        ii, jj = ii[pick], jj[pick]
+    return ii, jj
+
+
+def _majority(res: np.ndarray) -> np.ndarray | None:
+    """(m,) bool: the fixes within 2.5 LMedS scales (Rousseeuw & Leroy) of the best candidate,
+    whose distances are ``res`` (m,); None when they are not a clear majority (``MAJORITY``)."""
+    m = len(res)
+    s0 = 1.4826 * (1.0 + 5.0 / max(m - 2, 1)) * float(np.median(res))
+    inl = res <= max(2.5 * s0, FLOOR_M)
+    return inl if inl.sum() >= max(MAJORITY * m, 3) else None
 
 
 def _line_residuals(
@@ -132,10 +159,7 @@ def _line_residuals(
     squares over pairs, a level where x barely varies), and the majority's spread; None
     without a clear majority."""
     m = len(x)
-    ii, jj = np.triu_indices(m, 1)
-    if len(ii) > MAX_CANDIDATES:
-        pick = rng.choice(len(ii), MAX_CANDIDATES, replace=False)
-        ii, jj = ii[pick], jj[pick]
+    ii, jj = _pairs(m, rng)
     dx = x[jj] - x[ii]
     ok = np.abs(dx) > 1e-6
     q = np.zeros(len(ii))
@@ -143,9 +167,8 @@ def _line_residuals(
     p = y[ii] - q * x[ii]
     res = np.abs(p[:, None] + q[:, None] * x[None, :] - y[None, :])
     best = int(np.argmin(np.median(res, axis=1)))
-    s0 = 1.4826 * (1.0 + 5.0 / max(m - 2, 1)) * float(np.median(res[best]))
-    inl = res[best] <= max(2.5 * s0, FLOOR_M)
-    if inl.sum() < MAJORITY * m or inl.sum() < 3:
+    inl = _majority(res[best])
+    if inl is None:
         return None
     A = np.c_[np.ones(int(inl.sum())), x[inl]]
     coef = np.linalg.lstsq(A, y[inl], rcond=None)[0]
@@ -162,10 +185,7 @@ def _consensus_residuals(
     fixes, so no stated σ enters (an RTK log's HDOP-based σ is 0.3-0.5 m where its fixes
     scatter by 2 cm). None when no candidate has a clear majority (``MAJORITY``)."""
     m = len(src)
-    ii, jj = np.triu_indices(m, 1)
-    if len(ii) > MAX_CANDIDATES:
-        pick = rng.choice(len(ii), MAX_CANDIDATES, replace=False)
-        ii, jj = ii[pick], jj[pick]
+    ii, jj = _pairs(m, rng)
     ds = src[jj] - src[ii]
     ok = np.abs(ds) >= min_baseline_m
     ii, jj, ds = ii[ok], jj[ok], ds[ok]
@@ -179,10 +199,8 @@ def _consensus_residuals(
     b = dst[ii] - a * src[ii]
     res = np.abs(a[:, None] * src[None, :] + b[:, None] - dst[None, :])  # (candidates, m)
     best = int(np.argmin(np.median(res, axis=1)))
-    # the LMedS scale (Rousseeuw & Leroy), then the majority within 2.5 of it, refitted
-    s0 = 1.4826 * (1.0 + 5.0 / max(m - 2, 1)) * float(np.median(res[best]))
-    inl = res[best] <= max(2.5 * s0, FLOOR_M)
-    if inl.sum() < MAJORITY * m or inl.sum() < 3:
+    inl = _majority(res[best])
+    if inl is None:
         return None
     c_s, c_d = src[inl].mean(), dst[inl].mean()
     sc, dc = src[inl] - c_s, dst[inl] - c_d
