@@ -297,12 +297,15 @@ def estimate_trajectory(
         # metres sideways lengthens the track the heights are measured along and flattens the
         # slope (3 fixes moved 6 m: 0.16° kept of 0.45°, the camera 0.3° off in pitch). Fit it
         # again on the fixes kept, and solve again with it.
-        used = problem.gps_used
-        R_vc, g_rad, again = grade_and_mount(gps.subset(used))
+        R_vc, g_rad, again = grade_and_mount(gps.subset(problem.gps_used))
         rep.warnings += [w for w in again if w not in mount_warnings]
-        init = initial_poses(cfg, t, comp, linked, gps.subset(used), rep, R_vc)
+        # every fix judged again from the start (a frozen receiver: its σ inflated, not 14 of
+        # 19 fixes rejected and 5 kept pinning the drive), except those off the consensus
+        init = initial_poses(
+            cfg, t, comp, linked, gps if keep is None else gps.subset(keep), rep, R_vc
+        )
         problem = PoseGraph(
-            cfg, t, init, ok_pairs, pos_of, gps, drive, comp, R_vc, g_rad, still, gps_used=used
+            cfg, t, init, ok_pairs, pos_of, gps, drive, comp, R_vc, g_rad, still, gps_used=keep
         )
         world = problem.solve(rep)
     if gps is not None and ref is not None and drive.camera.gps_antenna_m is not None:
