@@ -118,20 +118,48 @@ def _judge(
     keep: np.ndarray,
     residuals: Callable[[np.ndarray], tuple[np.ndarray, float] | None],
 ) -> None:
-    """Windows of ``WINDOW_S`` every quarter window over the fix times ``ts``; each judges the
-    fixes of its middle half by ``residuals(window) -> (distances (m), spread) | None`` and
-    clears ``keep[idx[...]]`` of those beyond max(``STEP_SPREADS`` spreads, ``MIN_STEP_M``)."""
+    """Windows of ``WINDOW_S`` every quarter window over the (sorted) fix times ``ts``; each
+    judges the fixes of its middle half by ``residuals(window) -> (residuals (m; complex E +
+    iN, or real), spread) | None`` and clears ``keep[idx[...]]`` of those beyond
+    max(``STEP_SPREADS`` spreads, ``MIN_STEP_M``) in a run that starts or ends with a jump
+    of that size (``_abrupt``)."""
     for t0 in np.arange(ts[0], ts[-1] + WINDOW_S / 4, WINDOW_S / 4):
-        win = np.flatnonzero(np.abs(ts - t0) <= WINDOW_S / 2)
-        mid = win[np.abs(ts[win] - t0) <= WINDOW_S / 4]
-        if len(win) < MIN_FIXES or not len(mid):
+        lo = int(np.searchsorted(ts, t0 - WINDOW_S / 2, side="left"))
+        hi = int(np.searchsorted(ts, t0 + WINDOW_S / 2, side="right"))
+        win = np.arange(lo, hi)
+        if len(win) < MIN_FIXES:
             continue
         got = residuals(win)
         if got is None:
             continue
         r, spread = got
-        r_mid = r[np.searchsorted(win, mid)]
-        keep[idx[mid[r_mid > max(STEP_SPREADS * spread, MIN_STEP_M)]]] = False
+        out = _abrupt(r, max(STEP_SPREADS * spread, MIN_STEP_M))
+        mid = np.abs(ts[win] - t0) <= WINDOW_S / 4
+        keep[idx[win[out & mid]]] = False
+
+
+def _abrupt(r: np.ndarray, thr: float) -> np.ndarray:
+    """(m,) bool: the residuals ``r`` (m,) beyond ``thr`` whose run of such (consecutive
+    fixes) begins or ends with a jump beyond ``thr`` from its neighbour. A multipath step
+    appears and vanishes between two fixes; the residual of a smooth disagreement (a clock
+    offset on a turn, a lever arm corrected with a poor heading) grows fix by fix and is the
+    pose graph's to weigh (a 0.3 s offset on a 40 m S-curve: 10 good fixes held and the
+    shape 6.9 → 39.9 mm, a review helper)."""
+    far = np.abs(r) > thr
+    out = np.zeros(len(r), bool)
+    k = 0
+    while k < len(r):
+        if not far[k]:
+            k += 1
+            continue
+        e = k
+        while e + 1 < len(r) and far[e + 1]:
+            e += 1
+        onset = k > 0 and abs(r[k] - r[k - 1]) > thr
+        end = e + 1 < len(r) and abs(r[e + 1] - r[e]) > thr
+        out[k : e + 1] = onset or end
+        k = e + 1
+    return out
 
 
 def _pairs(m: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -172,8 +200,8 @@ def _line_residuals(
         return None
     A = np.c_[np.ones(int(inl.sum())), x[inl]]
     coef = np.linalg.lstsq(A, y[inl], rcond=None)[0]
-    r = np.abs(coef[0] + coef[1] * x - y)
-    return r, max(1.4826 * float(np.median(r[inl])), FLOOR_M)
+    r = y - (coef[0] + coef[1] * x)
+    return r, max(1.4826 * float(np.median(np.abs(r[inl]))), FLOOR_M)
 
 
 def _consensus_residuals(
@@ -206,6 +234,6 @@ def _consensus_residuals(
     sc, dc = src[inl] - c_s, dst[inl] - c_d
     den = float(np.sum(np.abs(sc) ** 2))
     a_fit = np.sum(np.conj(sc) * dc) / den if den > 0 else a[best]
-    r = np.abs(a_fit * (src - c_s) + c_d - dst)
-    spread = max(1.4826 * float(np.median(r[inl])), FLOOR_M)
+    r = dst - (a_fit * (src - c_s) + c_d)
+    spread = max(1.4826 * float(np.median(np.abs(r[inl]))), FLOOR_M)
     return np.asarray(r), spread

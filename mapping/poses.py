@@ -256,21 +256,25 @@ def estimate_trajectory(
             bad = np.flatnonzero(~alt_ok)
             k = np.clip(np.searchsorted(t, gps.t_s[bad]), 0, n - 1)
             msg = (
-                f"{len(bad)} GPS altitude(s) jump by more than 0.3 m where the frames show no "
-                f"such rise, near {_frames(frames, int(k.min()), int(k.max()))}: their heights "
-                "are left out (the map's heights and grade rest on the others)"
+                f"{len(bad)} GPS altitude(s) jump (by more than 0.3 m and 6 times the other "
+                "fixes' scatter) where the frames show no such rise, near "
+                f"{_frames(frames, int(k.min()), int(k.max()))}: their heights are left out "
+                "(the map's heights and grade rest on the others)"
             )
             log.warning("poses: %s", msg)
             rep.warnings.append(msg)
             gps = dataclasses.replace(gps, has_alt=gps.has_alt & alt_ok)
             R_vc, g_rad, again = grade_and_mount(gps)
             rep.warnings += [w for w in again if w not in mount_warnings]
-        keep = consensus_keep(
-            t, comp, [c[:, :2] for c in chain_xyz], gps, margin, cfg.heading_min_baseline_m
-        )
-        if keep.all():
-            keep = None
-        else:
+        chain_xy = [c[:, :2] for c in chain_xyz]
+
+        def off_consensus(g: GpsFixes) -> np.ndarray | None:
+            """The fixes to keep (None: all) by ``gps_consensus.consensus_keep``."""
+            k = consensus_keep(t, comp, chain_xy, g, margin, cfg.heading_min_baseline_m)
+            return None if k.all() else k
+
+        keep = off_consensus(gps)
+        if keep is not None:
             log.info("poses: %d GPS fix(es) off the visual consensus", int((~keep).sum()))
             R_vc, g_rad, again = grade_and_mount(gps.subset(keep))
             rep.warnings += [w for w in again if w not in mount_warnings]
@@ -319,9 +323,13 @@ def estimate_trajectory(
             gps = moved
             if step < ANTENNA_SETTLED_M:
                 break
+            # judged again on the fixes moved with the solved heading (the first pass's track
+            # heading is poor at the log's ends and on curves)
+            keep = off_consensus(gps)
             problem = PoseGraph(
-                cfg, t, world, ok_pairs, pos_of, gps, drive, comp, R_vc, g_rad, still
-            )
+                cfg, t, world, ok_pairs, pos_of, gps, drive, comp, R_vc, g_rad, still,
+                gps_used=keep,
+            )  # fmt: skip
             world = problem.solve(rep)
     has_gps = segment_has_gps(segment, t, None if gps is None else gps.t_s)
     names = [f.filename for f in frames]
@@ -342,8 +350,9 @@ def estimate_trajectory(
         rep.bundle["loops"] = [[pos_of[p.index_a], pos_of[p.index_b]] for p in loops]
         if loops:
             problem = PoseGraph(
-                cfg, t, world, ok_pairs + loops, pos_of, gps, drive, comp, R_vc, g_rad, still
-            )
+                cfg, t, world, ok_pairs + loops, pos_of, gps, drive, comp, R_vc, g_rad, still,
+                gps_used=keep,
+            )  # fmt: skip
             world = problem.solve(rep)
     else:
         loops = []
@@ -359,8 +368,9 @@ def estimate_trajectory(
             # frame-to-frame motions and the loop pairs puts the passes back together
             refined = with_motions_of(ok_pairs, pos_of, world) + loops
             problem = PoseGraph(
-                cfg, t, world, refined, pos_of, gps, drive, comp, R_vc, g_rad, still
-            )
+                cfg, t, world, refined, pos_of, gps, drive, comp, R_vc, g_rad, still,
+                gps_used=keep,
+            )  # fmt: skip
             world = problem.solve(rep)
 
     # ---------------------------------------------------------------- plausibility

@@ -88,3 +88,17 @@ def test_an_altitude_jump_the_frames_do_not_show_is_left_out() -> None:
     assert np.array_equal(altitude_keep(t, comp, [chain_xyz], g, 1.5), ~jump)
     g.has_alt[:] = False  # no altitudes: nothing to judge
     assert altitude_keep(t, comp, [chain_xyz], g, 1.5).all()
+
+
+def test_a_smooth_disagreement_is_not_a_step(monkeypatch) -> None:
+    """A residual that grows fix by fix (a clock offset on a turn, a lever arm corrected with a
+    poor heading) is the pose graph's to weigh: nothing held, though it reaches metres."""
+    import roadsurf.mapping.gps_consensus as gc
+
+    t, chain_xy, g, _ = _drive(36, 2.33, 20.0, 0.02)
+    u = (g.t_s - g.t_s[0]) / np.ptp(g.t_s)
+    g.enu_m[:, 1] += 2.0 * (2.0 * u - 1.0) ** 2  # a bow of 2 m, at most 19 cm per fix
+    assert _keep(t, chain_xy, g).all()
+    # the test can fail: judged by distance alone, the bow's end is held
+    monkeypatch.setattr(gc, "_abrupt", lambda r, thr: np.abs(r) > thr)
+    assert not _keep(t, chain_xy, g).all()
