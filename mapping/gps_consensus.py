@@ -8,11 +8,13 @@ fixes) left the trajectory 0.26 m off with no fix rejected, and the defects ther
 visual component's ``pose_init.chain``) is smooth. So within a sliding time window every fix
 is compared with the similarity (rotation, scale, shift: the chain's metric scale rests on the
 camera height, a few % off) that most of the window's fixes agree on (least median of squares
-over pairs of fixes), and a fix further than max(``STEP_SPREADS`` × the majority's own
-spread, ``MIN_STEP_M``) from it is left out of the pose graph's first solve. The spread is
-measured, not the log's stated σ: an RTK log's HDOP says 0.3-0.5 m where its fixes scatter
-by 2 cm, and its 5 σ let a 1.5 m step through. The graph's own test then judges every fix again against its
-solution, so a fix wrongly left out here comes back.
+over pairs of fixes). A fix further than max(``STEP_SPREADS`` × the majority's own spread,
+``MIN_STEP_M``) from it, in a run of such fixes that begins or ends with a jump of that size
+(``_abrupt``: a smooth disagreement such as a clock offset on a turn is no step), is held out
+of the pose graph (``PoseGraph(gps_used=...)``), and rejoins only where the solution comes
+within ``pose_graph.HELD_READMIT_M`` of it. The spread is measured, not the log's stated σ:
+an RTK log's HDOP says 0.3-0.5 m where its fixes scatter by 2 cm, and its 5 σ let a 1.5 m
+step through.
 
 The window is short (``WINDOW_S``) so that the chain's drift inside it stays far below the
 step (0.05-0.1 % of the distance: centimetres over a window at speed), and a window whose
@@ -183,9 +185,9 @@ def _majority(res: np.ndarray) -> np.ndarray | None:
 def _line_residuals(
     x: np.ndarray, y: np.ndarray, rng: np.random.Generator
 ) -> tuple[np.ndarray, float] | None:
-    """(m,) distances of ``y`` from the line y = p + q x most points agree on (least median of
-    squares over pairs, a level where x barely varies), and the majority's spread; None
-    without a clear majority."""
+    """(m,) signed residuals (m) of ``y`` from the line y = p + q x most points agree on
+    (least median of squares over pairs, a level where x barely varies), refitted on that
+    majority, and the majority's robust spread (m); None without a clear majority."""
     m = len(x)
     ii, jj = _pairs(m, rng)
     dx = x[jj] - x[ii]
@@ -207,11 +209,12 @@ def _line_residuals(
 def _consensus_residuals(
     src: np.ndarray, dst: np.ndarray, min_baseline_m: float, rng: np.random.Generator
 ) -> tuple[np.ndarray, float] | None:
-    """The distances (m) of the fixes ``dst`` (complex E + iN) from the similarity of the chain
-    positions ``src`` (complex) that most of them agree on, and the robust spread (m) of that
-    majority's distances: (residuals (m,), spread). Least median of squares over pairs of
-    fixes, so no stated σ enters (an RTK log's HDOP-based σ is 0.3-0.5 m where its fixes
-    scatter by 2 cm). None when no candidate has a clear majority (``MAJORITY``)."""
+    """The residuals (m; complex E + iN) of the fixes ``dst`` (complex) from the similarity of
+    the chain positions ``src`` (complex) that most of them agree on, refitted on that
+    majority, and the robust spread (m) of its distances: (residuals (m,), spread). Least
+    median of squares over pairs of fixes, so no stated σ enters (an RTK log's HDOP-based σ
+    is 0.3-0.5 m where its fixes scatter by 2 cm). None when no candidate has a clear
+    majority (``MAJORITY``)."""
     m = len(src)
     ii, jj = _pairs(m, rng)
     ds = src[jj] - src[ii]

@@ -75,7 +75,7 @@ def fill_inward(
         # a wall's band is thousands of cells; a component beyond this is a fragmented
         # tile's web of holes (a sparse solve of seconds and a GB), left to the ring fill
         steps &= np.bincount(lab.ravel(), minlength=n_lab) <= MAX_RAMP_CELLS
-        steps[0] = False  # the known cells' label
+        steps[0] = False  # label 0: not a hole
         cells = steps[lab] & holes
         out[cells] = _harmonic_fill(np.where(cells, np.nan, out), cells)
     return out, near
@@ -98,6 +98,7 @@ def _harmonic_fill(values: np.ndarray, cells: np.ndarray) -> np.ndarray:
     index[iy, ix] = np.arange(k)
     rows, cols, diag = [], [], np.zeros(k)
     rhs = np.zeros(k)
+    touch = np.zeros(k, bool)  # a cell with a fixed neighbour
     for dy in (-1, 0, 1):
         for dx in (-1, 0, 1):
             if dy == 0 and dx == 0:
@@ -110,6 +111,7 @@ def _harmonic_fill(values: np.ndarray, cells: np.ndarray) -> np.ndarray:
             free = inside & (index[yc, xc] >= 0)
             diag += fixed | free
             rhs[fixed] += v[fixed]
+            touch |= fixed
             rows.append(np.flatnonzero(free))
             cols.append(index[yc, xc][free])
     r = np.concatenate(rows)
@@ -122,14 +124,9 @@ def _harmonic_fill(values: np.ndarray, cells: np.ndarray) -> np.ndarray:
         ),
         shape=(k, k),
     )
-    # a component with no fixed neighbour is singular: anchor it at NaN afterwards
+    # a component with no fixed neighbour is singular: it stays NaN
     n_lab, lab = cv2.connectedComponents(cells.astype(np.uint8), connectivity=8)
     anchored = np.zeros(n_lab, bool)
-    touch = np.zeros(k, bool)
-    for dy in (-1, 0, 1):
-        for dx in (-1, 0, 1):
-            y, x = np.clip(iy + dy, 0, h - 1), np.clip(ix + dx, 0, w - 1)
-            touch |= np.isfinite(values[y, x])
     anchored[lab[iy, ix][touch]] = True
     ok = anchored[lab[iy, ix]]
     out = np.full(k, np.nan, np.float32)
