@@ -184,7 +184,8 @@ def true_footprints(
     (truth/height.tif, ``road_xy_from_rays``) when the truth has heights and camera heights
     (``truth["up"]``) and ``road`` is on; else onto a flat road ``height_m`` below the camera."""
     import shapely
-    from scipy.spatial.transform import Rotation
+
+    from roadsurf.evaluation.trajectory import truth_rotations
 
     cam_yaml = truth_dir.parent / df.CAMERA_YAML
     if not cam_yaml.is_file():
@@ -193,9 +194,8 @@ def true_footprints(
     rays, rows = _border_rays_cam(cam)
     hmap = _truth_heights(truth_dir) if road and "up" in truth else None
     q = truth["q"]
-    Rs = Rotation.from_quat(np.column_stack([q[:, 1], q[:, 2], q[:, 3], q[:, 0]])).as_matrix()
     W = np.tile(np.eye(4), (len(q), 1, 1))
-    W[:, :3, :3] = Rs
+    W[:, :3, :3] = truth_rotations(truth)
     W[:, :2, 3] = truth["xy"]
     W[:, 2, 3] = truth["up"] if "up" in truth else 0.0
     t_s = truth.get("t", np.full(len(q), np.nan))

@@ -33,6 +33,14 @@ def truth_poses(truth_dir: Path) -> dict[str, Any]:
     }
 
 
+def truth_rotations(truth: dict[str, Any]) -> np.ndarray:
+    """(N, 3, 3) world_from_cam rotations (grid axes) of ``truth_poses``' quaternions."""
+    from scipy.spatial.transform import Rotation
+
+    q = truth["q"]  # (N, 4) w, x, y, z
+    return np.asarray(Rotation.from_quat(q[:, [1, 2, 3, 0]]).as_matrix())
+
+
 def run_trajectory(run_dir: Path, crs: str | None) -> dict[str, Any] | None:
     path = run_dir / rf.TRAJECTORY_GEOJSON
     if not path.is_file() or crs is None:
@@ -171,9 +179,8 @@ def gps_rmse_m(
         return None
     from pyproj import Transformer
 
-    rows = read_csv(truth_dir / df.TRUTH_POSES_CSV)
-    tt = np.array([float(r["timestamp_s"]) for r in rows])
-    txy = np.array([[float(r["easting_m"]), float(r["northing_m"])] for r in rows])
+    tp = truth_poses(truth_dir)
+    tt, txy = tp["t"], tp["xy"]
     g = read_csv(gps)
     try:
         t = np.array([float(r["timestamp_s"]) for r in g])
@@ -188,11 +195,8 @@ def gps_rmse_m(
         lon[inside], lat[inside]
     )
     if antenna_flu is not None and any(antenna_flu):
-        from scipy.spatial.transform import Rotation
-
-        q = np.array([[float(r[k]) for k in ("qx", "qy", "qz", "qw")] for r in rows])
         R_vc = vehicle_from_cam_rotation(*mount_deg)
-        arm = Rotation.from_quat(q).as_matrix() @ R_vc.T @ vehicle_from_flu(antenna_flu)
+        arm = truth_rotations(tp) @ R_vc.T @ vehicle_from_flu(antenna_flu)
         txy = txy + arm[:, :2]
     ex = np.interp(t[inside], tt, txy[:, 0])
     ey = np.interp(t[inside], tt, txy[:, 1])

@@ -90,9 +90,9 @@ def test_gps_rmse_is_measured_against_the_antenna_not_the_camera(tmp_path) -> No
 
     # the truth's camera rotation (a nadir camera, vehicle heading east) as its quaternion
     qx, qy, qz, qw = Rotation.from_matrix(world_from_cam(90.0)[:3, :3]).as_quat()
-    rows = ["filename,timestamp_s,easting_m,northing_m,heading_deg,qw,qx,qy,qz"]
+    rows = ["filename,timestamp_s,easting_m,northing_m,up_m,heading_deg,qw,qx,qy,qz"]
     rows += [
-        f"f{i}.jpg,{ti},{ei},{ni},90.0,{qw},{qx},{qy},{qz}"
+        f"f{i}.jpg,{ti},{ei},{ni},100.0,90.0,{qw},{qx},{qy},{qz}"
         for i, (ti, ei, ni) in enumerate(zip(t, e, n, strict=True))
     ]
     (truth / "poses.csv").write_text("\n".join(rows) + "\n")
