@@ -184,7 +184,8 @@ def make_chains(cfg: MappingConfig, comp: np.ndarray, steps: dict[tuple[int, int
     return Chains(pos, var, comp)
 
 
-def _frames(names: list[str], lo: int, hi: int) -> str:
+def frame_span(names: list[str], lo: int, hi: int) -> str:
+    """Frames lo..hi by name, for a warning."""
     return f"frames {names[lo]}-{names[hi]}" if hi > lo else f"frame {names[lo]}"
 
 
@@ -233,7 +234,7 @@ def check(
         warn.append(
             f"{len(bad)} of {len(used)} GPS fixes disagree with the visual trajectory by up to "
             f"{float(np.max(e[bad])):.2f} m ({why}) near "
-            f"{_frames(names, int(k.min()), int(k.max()))}; rejected as outliers"
+            f"{frame_span(names, int(k.min()), int(k.max()))}; rejected as outliers"
         )
     rot = math.radians(cfg.visual_sigma_rot_deg)
     rsig = receiver_sigma(gps.t_s, gps.enu_m, stated)
@@ -272,14 +273,14 @@ def check(
     if off:
         warn.append(
             f"camera.yaml height_m {h:.2f} m disagrees with the GPS baseline over "
-            f"{_frames(names, lo, hi)}: GPS distances are {ratio:.3f}x the visual ones "
+            f"{frame_span(names, lo, hi)}: GPS distances are {ratio:.3f}x the visual ones "
             f"(+/- {ratio_s:.3f}, {len(ws)} window(s)); the data imply {h * ratio:.2f} m "
             f"+/- {h * ratio_s:.2f} m ({ratio - 1:+.0%}); fix height_m, unless {others}"
         )
         fig["height_implied_m"] = round(h * ratio, 4)
     elif abs(ratio - 1.0) > SCALE_NOTE and abs(ratio - 1.0) > SCALE_NOTE_SIGMAS * ratio_s:
         warn.append(
-            f"GPS distances are {ratio:.3f}x the visual ones over {_frames(names, lo, hi)} "
+            f"GPS distances are {ratio:.3f}x the visual ones over {frame_span(names, lo, hi)} "
             f"(+/- {ratio_s:.3f}, {len(ws)} window(s)): within the {HEIGHT_TOL:.0%} the camera "
             f"height check allows, but {abs(ratio - 1) / ratio_s:.0f} sigma off, and the "
             f"trajectory follows vision's scale. camera.yaml's height_m may be "
@@ -297,7 +298,7 @@ def check(
     ):
         warn.append(
             f"GPS/visual length ratios scatter {scatter:.0f}x their own sigma between the "
-            f"{len(ws)} GPS windows over {_frames(names, lo, hi)}, with GPS of "
+            f"{len(ws)} GPS windows over {frame_span(names, lo, hi)}, with GPS of "
             f"{float(np.median(rsig)):.2f} m sigma: either vision's scale changes along the "
             f"drive ({others}) or the GPS clock is off the frames' (a late "
             "clock with a changing speed; see the bundle's time_offset in poses_report.json)"
@@ -307,7 +308,7 @@ def check(
         v_g = np.linalg.norm(w.gps_m) / max(w.dt_s, 1e-9)
         v_v = np.linalg.norm(w.vis_m) * ratio / max(w.dt_s, 1e-9)
         warn.append(
-            f"GPS disagrees with vision in {what} over {_frames(names, w.frame_lo, w.frame_hi)}:"
+            f"GPS disagrees with vision in {what} over {frame_span(names, w.frame_lo, w.frame_hi)}:"
             f" GPS {v_g:.2f} m/s vs visual {v_v:.2f} m/s ({v_g / max(v_v, 1e-9) - 1:+.0%}), "
             f"window sigma {w.rel_sigma:.1%}"
         )
@@ -416,6 +417,6 @@ def _static(t: np.ndarray, chains: Chains, gps: GpsFixes, stated: np.ndarray,
         return None
     vis, radius, m, lo, hi = worst
     return (
-        f"GPS looks static over {_frames(names, lo, hi)}: {m} fixes stay within {radius:.2f} m "
+        f"GPS looks static over {frame_span(names, lo, hi)}: {m} fixes stay within {radius:.2f} m "
         f"while vision travels {vis:.1f} m; check the receiver (frozen or no fix)"
     )

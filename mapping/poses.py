@@ -39,7 +39,7 @@ from roadsurf.core.atomic import read_json, write_json_atomic
 from roadsurf.core.config import to_dict
 from roadsurf.core.fingerprint import Fingerprint
 from roadsurf.io import runfolder as rf
-from roadsurf.io.drive import Drive, Frame
+from roadsurf.io.drive import Drive
 from roadsurf.io.runfolder import RunFolder
 from roadsurf.mapping.config import NOT_IN_FINGERPRINT, MappingConfig
 from roadsurf.mapping.datum import vertical_datum
@@ -47,7 +47,7 @@ from roadsurf.mapping.export import write_trajectory_csv, write_trajectory_geojs
 from roadsurf.mapping.gps_consensus import altitude_keep, consensus_keep
 from roadsurf.mapping.grade import GRADE_VERSION, road_grade
 from roadsurf.mapping.mount import resolve
-from roadsurf.mapping.plausibility import CHECKS_VERSION, check, make_chains
+from roadsurf.mapping.plausibility import CHECKS_VERSION, check, frame_span, make_chains
 from roadsurf.mapping.pose_gps import (
     GpsFixes,
     gps_enu,
@@ -79,12 +79,6 @@ ANTENNA_PASSES = 6
 ANTENNA_SETTLED_M = 0.001
 
 # =========================================================================== entry point
-
-
-def _frames(frames: list[Frame], lo: int, hi: int) -> str:
-    """Frames lo..hi by name, for a warning."""
-    a, b = frames[lo].filename, frames[hi].filename
-    return f"frames {a}-{b}" if hi > lo else f"frame {a}"
 
 
 def run(
@@ -258,7 +252,7 @@ def estimate_trajectory(
             msg = (
                 f"{len(bad)} GPS altitude(s) jump (by more than 0.3 m and 6 times the other "
                 "fixes' scatter) where the frames show no such rise, near "
-                f"{_frames(frames, int(k.min()), int(k.max()))}: their heights are left out "
+                f"{frame_span([f.filename for f in frames], int(k.min()), int(k.max()))}: their heights are left out "
                 "(the map's heights and grade rest on the others)"
             )
             log.warning("poses: %s", msg)
