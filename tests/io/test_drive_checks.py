@@ -121,6 +121,20 @@ def test_short_or_moving_drives_are_not_static(tmp_path: Path) -> None:
     assert load_drive(make_drive(tmp_path / "s", gps_rows=rows)).warnings == []
 
 
+def test_slow_vehicles_are_not_static(tmp_path: Path) -> None:
+    """1 m/s for 6 s stays within HDOP's 3 σ (8 m) but the fixes progress; an RTK log's stated
+    σ of 2 cm is its noise, not HDOP's metres. A frozen RTK receiver still warns."""
+    assert load_drive(_drive(tmp_path / "c", moving_gps_rows(-0.5, 6.5, 1.0))).warnings == []
+    rtk = [f"{r},0.02" for r in moving_gps_rows(-0.5, 6.5, 0.3, rate_hz=10.0)]
+    root = make_drive(tmp_path / "r", n=N)
+    (root / "gps.csv").write_text("timestamp_s,lat,lon,alt_m,hdop,sigma_m\n" + "\n".join(rtk))
+    assert load_drive(root).warnings == []
+    frozen = [f"{-0.5 + 0.1 * k:.3f},{LAT0},{LON0},100.0,0.9,0.02" for k in range(71)]
+    (root / "gps.csv").write_text("timestamp_s,lat,lon,alt_m,hdop,sigma_m\n" + "\n".join(frozen))
+    (w,) = load_drive(root).warnings
+    assert "static receiver" in w and "stated by the log" in w
+
+
 def test_frame_times_in_milliseconds_warn_against_the_fps(tmp_path: Path) -> None:
     """frames.csv in ms (every interval 100 "s" at fps 10) warns, naming the unit; the camera's
     own rate and frames kept every 5th do not."""

@@ -156,7 +156,8 @@ def check_frame_rate(path: Path, frames: list[Frame], fps: float, warnings: list
 
 def check_static(gps: GpsTrack, frames: list[Frame], warnings: list[str]) -> bool:
     """Warn (and return True) when every GPS fix over the frames stays within the noise of one
-    position, HDOP-derived, while the frames span at least ``STATIC_MIN_S``."""
+    position (the log's stated σ, else HDOP-derived) and the fixes do not progress, while the
+    frames span at least ``STATIC_MIN_S``."""
     t0, t1 = frames[0].timestamp_s, frames[-1].timestamp_s
     inside = (gps.timestamp_s >= t0) & (gps.timestamp_s <= t1)
     if t1 - t0 < STATIC_MIN_S or inside.sum() < 3:
@@ -164,12 +165,26 @@ def check_static(gps: GpsTrack, frames: list[Frame], warnings: list[str]) -> boo
     lat, lon = gps.lat_deg[inside], gps.lon_deg[inside]
     n = len(lat)
     d = _dist_m(np.full(n, np.median(lat)), np.full(n, np.median(lon)), lat, lon)
-    radius = STATIC_K * fix_sigma_m(gps.hdop[inside])
+    stated = gps.sigma_m[inside]
+    stated = stated[np.isfinite(stated) & (stated > 0)]
+    # the receiver's own σ where it states one (an RTK log's cm, not HDOP's metres)
+    sigma = float(np.median(stated)) if stated.size else fix_sigma_m(gps.hdop[inside])
+    radius = STATIC_K * sigma
     if float(d.max()) > radius:
         return False
+    # A slow vehicle stays within HDOP's metres for seconds, but its fixes progress: the first
+    # and last thirds' medians lie apart by more than one fix's σ (a still receiver's wander
+    # over seconds is well below it).
+    m = max(n // 3, 1)
+    net = _dist_m(
+        np.median(lat[:m]), np.median(lon[:m]), np.median(lat[-m:]), np.median(lon[-m:])
+    )
+    if float(net[0]) > sigma:
+        return False
+    source = "stated by the log" if stated.size else "from HDOP"
     warnings.append(
         f"{gps.source}: the GPS position stays within {d.max():.1f} m (the fixes' noise is "
-        f"{radius:.1f} m, {STATIC_K:.0f} σ from HDOP) over {t1 - t0:.1f} s of frames "
+        f"{radius:.1f} m, {STATIC_K:.0f} σ {source}) over {t1 - t0:.1f} s of frames "
         f"({len(frames)} frames, {n} fixes): a static receiver (frozen, or not on the vehicle) or "
         f"a vehicle that never moved. Check the GPS log; the map scale cannot come from it."
     )
