@@ -69,6 +69,17 @@ def test_gps_outage_within_the_frames_warns_naming_times_and_frames(tmp_path: Pa
     assert not [w for w in d.warnings if "no fix for" in w], d.warnings
 
 
+def test_a_drive_between_sparse_fixes_warns(tmp_path: Path) -> None:
+    """A 0.2 Hz log around a 2.3 s drive: one fix inside, the others 2.7 and 5 s beyond its ends."""
+    rows = moving_gps_rows(-5.0, 10.0, 5.0, rate_hz=0.2)
+    d = load_drive(make_drive(tmp_path / "d", n=24, gps_rows=rows))
+    (w,) = [w for w in d.warnings if "fall within" in w]
+    assert "only 1 fix(es) fall within the frames' 2.3 s" in w and "up to 5.0 s" in w
+    # a 1 Hz log around the same drive: three fixes inside, nothing to say
+    d = load_drive(make_drive(tmp_path / "e", n=24, gps_rows=moving_gps_rows(-1, 4, 5.0, 1.0)))
+    assert not [w for w in d.warnings if "fall within" in w], d.warnings
+
+
 def test_gps_partial_overlap_warns(tmp_path: Path) -> None:
     rows = [f"{0.3 + 0.05 * k:.3f},{LAT0},{LON0}" for k in range(5)]
     d = load_drive(make_drive(tmp_path / "d", n=20, gps_rows=rows))

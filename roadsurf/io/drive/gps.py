@@ -175,6 +175,9 @@ def check_overlap(gps: GpsTrack, frames: list[Frame], warnings: list[str]) -> Gp
             f"{gps.source}: GPS covers only {100 * max(covered, 0):.0f}% of the frame time span; "
             f"frames outside it are placed by visual chaining."
         )
+    sparse = few_fixes_inside(gps, frames)
+    if sparse:
+        warnings.append(f"{gps.source}: {sparse}")
     outage = gps_outages(gps, frames, slack)
     if outage:
         warnings.append(
@@ -182,6 +185,30 @@ def check_overlap(gps: GpsTrack, frames: list[Frame], warnings: list[str]) -> Gp
             "frames there are placed by visual chaining alone, which drifts with its length"
         )
     return gps
+
+
+# a drive with fewer fixes than this within its frames' span, whose nearest fixes beyond its
+# ends lie further than EXTRAPOLATE_WARN_S away, is placed by extrapolating the visual
+# trajectory to them: ½·a·Δt² on a curve (a 0.2 Hz log around a 2.3 s drive: 131 mm off)
+MIN_FIXES_INSIDE = 2
+EXTRAPOLATE_WARN_S = 1.0
+
+
+def few_fixes_inside(gps: GpsTrack, frames: list[Frame]) -> str:
+    """What to say when the drive's position rests on fixes well beyond its ends (text), or ""."""
+    ts = np.asarray(gps.timestamp_s, float)
+    t0, t1 = frames[0].timestamp_s, frames[-1].timestamp_s
+    n_in = int(np.sum((ts >= t0) & (ts <= t1)))
+    before, after = ts[ts < t0], ts[ts > t1]
+    reach = max(t0 - before[-1] if before.size else 0.0, after[0] - t1 if after.size else 0.0)
+    if n_in >= MIN_FIXES_INSIDE or reach <= EXTRAPOLATE_WARN_S:
+        return ""
+    return (
+        f"only {n_in} fix(es) fall within the frames' {t1 - t0:.1f} s, and the nearest others lie "
+        f"up to {reach:.1f} s beyond its ends: the drive's position and heading come from "
+        "extrapolating the visual trajectory to them, centimetres to decimetres off on a curve. "
+        "A log of 1 Hz or more (or a longer drive) avoids it."
+    )
 
 
 # an outage is a gap between fixes longer than this many of the log's median intervals, and at
