@@ -4,7 +4,8 @@ contract).
 - ``defects.geojson``: RFC 7946 FeatureCollection in WGS84 lon/lat, one Polygon per defect with
   properties id, type, severity, max_depth_m, mean_depth_m, area_m2, volume_m3, length_m,
   width_m, confidence, frames (+ centroid_lon/lat, centroid_e_m/n_m). Without GPS the same
-  layout holds local ENU metres and says so in the top-level ``properties`` (not RFC 7946).
+  layout holds local metres (``formats.write_local_geojson``: not RFC 7946, and says so in a
+  legacy "crs" member GIS readers honour).
 - ``defects.csv``: the same, one row per defect, frames joined with ';'.
 - ``frames.csv``: filename,defect,p_defect,source for every frame.
 - ``detection.json``: provenance (config, noise, thresholds, crs) and the resume signature.
@@ -25,7 +26,14 @@ from roadsurf.core.fingerprint import Fingerprint
 from roadsurf.detection.config import DetectionConfig
 from roadsurf.detection.mapframe import MapFrame
 from roadsurf.detection.types import DEFECT_COLUMNS, Defect, DetectionResult, FrameLabel
-from roadsurf.io.formats import feature, polygon_geometry, write_csv, write_geojson
+from roadsurf.io.formats import (
+    LOCAL_FRAME_TEXT,
+    feature,
+    polygon_geometry,
+    write_csv,
+    write_geojson,
+    write_local_geojson,
+)
 from roadsurf.io.runfolder import (
     DEFECTS_CSV,
     DEFECTS_GEOJSON,
@@ -75,11 +83,8 @@ def write_outputs(
     if mframe.georeferenced:
         write_geojson(gj, feats, {"generator": "roadsurf detection", **meta})
     else:
-        # No GPS: the file keeps the GeoJSON layout but holds local ENU metres (not RFC 7946).
-        meta["coordinates"] = "local ENU metres (east, north); the drive had no GPS, no lon/lat"
-        fc = {"type": "FeatureCollection", "features": feats, "properties": meta}
-        write_json_atomic(gj, fc, indent=1)
-        log.warning("detection: no GPS reference; defects are written in local ENU metres")
+        write_local_geojson(gj, feats, {"generator": "roadsurf detection", **meta})
+        log.warning("detection: no GPS reference; defects are written in %s", LOCAL_FRAME_TEXT)
     write_csv(run.path(DEFECTS_CSV), DEFECT_COLUMNS, rows)
     write_csv(
         run.frame_labels,
@@ -162,8 +167,9 @@ def load_result(run_dir: Path, signature: str) -> DetectionResult | None:
 # within the outline, the mean depth within the maximum; 6: regions of one mean-shift cluster
 # join only within join_gap_m; 7: windows also around the dense surface's deep cells (rasterseeds);
 # 8: traced ruts skip the point-support veto, a crack's depth takes its dense reading when
-# deeper, a surface at its search depth bounds no deeper reading, warnings in detection.json
-DETECTION_VERSION = 8
+# deeper, a surface at its search depth bounds no deeper reading, warnings in detection.json;
+# 9: a crack's centroid is its outline's, defects.geojson without GPS names its local frame
+DETECTION_VERSION = 9
 
 
 def _round(p: float | None) -> float | str:

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from roadsurf.core.geometry import ExportFrame
-from roadsurf.io.formats import feature, write_csv, write_geojson, write_ply
+from roadsurf.io.formats import LOCAL_FRAME_TEXT, feature, write_csv, write_geojson, write_ply
 from roadsurf.mapping.datum import RESIDUAL_DATUM
 from roadsurf.mapping.types import Trajectory
 
@@ -52,7 +52,7 @@ def write_cloud_ply(
     xyz = export_xyz(xyz_enu_m, export_frame)
     comments = []
     if vertical_datum:
-        crs = export_frame.crs if export_frame is not None else "local ENU (no GPS reference)"
+        crs = export_frame.crs if export_frame is not None else LOCAL_FRAME_TEXT
         comments = [f"crs: {crs}", f"residual_m: {RESIDUAL_DATUM}"]
     return write_ply(
         path,

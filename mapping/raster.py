@@ -346,6 +346,7 @@ class TiledWriter:
                 self.count,
                 self.dtype,
                 self.nodata,
+                self.tags,
             )
 
     def abort(self) -> None:
@@ -363,8 +364,10 @@ def write_vrt(
     count: int,
     dtype: str,
     nodata: float | None,
+    tags: dict[str, str] | None = None,
 ) -> Path:
-    """A GDAL VRT mosaic of the tile files (paths relative to the VRT)."""
+    """A GDAL VRT mosaic of the tile files (paths relative to the VRT), with the tiles'
+    dataset tags (units, datums) as its own metadata."""
     from rasterio.crs import CRS
 
     g = lat.full_grid
@@ -374,6 +377,13 @@ def write_vrt(
         srs.rstrip("\n") if srs else "",
         f"  <GeoTransform>{g.x0_m!r}, {g.gsd_m!r}, 0.0, {g.y0_m!r}, 0.0, {-g.gsd_m!r}</GeoTransform>",
     ]
+    if tags:
+        lines.append("  <Metadata>")
+        lines += [
+            f'    <MDI key="{escape(k, {chr(34): "&quot;"})}">{escape(str(v))}</MDI>'
+            for k, v in tags.items()
+        ]
+        lines.append("  </Metadata>")
     colour = ["Red", "Green", "Blue", "Alpha"]
     for b in range(1, count + 1):
         lines.append(f'  <VRTRasterBand dataType="{_GDAL_TYPES[dtype]}" band="{b}">')

@@ -17,7 +17,7 @@ from roadsurf.core.memory import release_free_memory
 from roadsurf.core.parallel import ordered_map
 from roadsurf.io import runfolder as rf
 from roadsurf.io.drive import Drive, Frame
-from roadsurf.io.formats import GridSpec
+from roadsurf.io.formats import LOCAL_FRAME_TEXT, GridSpec
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.datum import RESIDUAL_DATUM, vertical_datum
 from roadsurf.mapping.dense_cloud import DenseCloudWriter, cloud_stride
@@ -107,11 +107,14 @@ def rasterise(
         )
         log.warning("globalmap: %s", msg)
         prod.warnings.append(msg)
+    # without GPS the rasters carry no CRS: every one says what its metres are
+    frame_tags = {"COORDINATES": LOCAL_FRAME_TEXT} if ef is None else {}
     tags = {
         "units": "m",
         "description": "height above the local road, negative below",
         "VERTICAL_DATUM": RESIDUAL_DATUM,
         "ROAD_HEIGHT_DATUM": vertical_datum(cfg, drive, traj.reference is not None),
+        **frame_tags,
     }
     if dense:  # the matching window's ground footprint: what the raster resolves (detection)
         tags["DENSE_FOOTPRINT_M"] = (
@@ -182,7 +185,9 @@ def rasterise(
             tags=tags,
         )
         writers.append(sw)
-        mw = TiledWriter(prod.run_dir, rf.MOSAIC, lat, 3, "uint8", 0, write_tiles, write_full)
+        mw = TiledWriter(
+            prod.run_dir, rf.MOSAIC, lat, 3, "uint8", 0, write_tiles, write_full, frame_tags
+        )
         writers.append(mw)
         prev = Previews(fg, cfg.preview_max_px)
         workers = max(1, int(cfg.raster_workers))
@@ -199,17 +204,33 @@ def rasterise(
             cloud = DenseCloudWriter(
                 prod.run_dir / rf.CLOUD_PLY,
                 [
-                    f"crs: {ef.crs if ef is not None else 'local ENU (no GPS reference)'}",
+                    f"crs: {ef.crs if ef is not None else LOCAL_FRAME_TEXT}",
                     f"residual_m: {RESIDUAL_DATUM}",
                     f"vertical_datum: {datum}",
                 ],
             )
             stride = cloud_stride(gsd, cfg.dense_cloud_spacing_m)
             alt0 = float(ef.ref.alt_m) if ef is not None else 0.0
-            nw = TiledWriter(prod.run_dir, NOBS, lat, 1, "uint8", 0, write_tiles, write_full)
+            nobs_tags = {"description": "pairs observing the cell (dense surface)", **frame_tags}
+            nw = TiledWriter(
+                prod.run_dir, NOBS, lat, 1, "uint8", 0, write_tiles, write_full, nobs_tags
+            )
             writers.append(nw)
+            sigma_tags = {
+                "units": "m",
+                "description": "standard deviation of the cell's fused height",
+                **frame_tags,
+            }
             gw = TiledWriter(
-                prod.run_dir, SIGMA, lat, 1, "float32", NODATA_SURFACE, write_tiles, write_full
+                prod.run_dir,
+                SIGMA,
+                lat,
+                1,
+                "float32",
+                NODATA_SURFACE,
+                write_tiles,
+                write_full,
+                sigma_tags,
             )
             writers.append(gw)
         # each thread works on its own tile, a few frames apart in drive order

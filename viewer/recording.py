@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import rerun as rr
 
+from roadsurf.io.formats import LOCAL_FRAME_TEXT
 from roadsurf.viewer.config import ViewerConfig
 from roadsurf.viewer.rundata import RunData, depth_text
 from roadsurf.viewer.scene import log_cloud, log_defects, log_mosaic, log_trajectory
@@ -42,7 +43,7 @@ def summary_markdown(data: RunData, counts: dict[str, int]) -> str:
         "# roadsurf run",
         f"- run folder: `{data.run_dir}`",
         f"- drive: `{r.get('drive', '?')}`",
-        f"- CRS: {data.crs or 'local ENU (no GPS)'}",
+        f"- CRS: {data.crs or LOCAL_FRAME_TEXT}",
         f"- frames: {c.get('frames', '?')}, posed: {counts.get('posed_frames', 0)}, "
         f"pairs ok/failed: {c.get('pairs_ok', '?')}/{c.get('pairs_failed', '?')}"
         + (f" ({c['pairs_still']} standing still)" if c.get("pairs_still") else ""),

@@ -8,6 +8,7 @@ import math
 
 import numpy as np
 
+from roadsurf.io.formats import LOCAL_FRAME_TEXT
 from roadsurf.io.runfolder import DEFECTS_CSV, DEFECTS_GEOJSON, REPORT_JSON
 from roadsurf.viewer.config import ViewerConfig
 from roadsurf.viewer.rundata import RunData, severity_rank, severity_rgb
@@ -57,7 +58,7 @@ def summary_section(data: RunData) -> str:
     rows = [
         ("Drive", r.get("drive", "unknown")),
         ("Method", r.get("method", "?")),
-        ("CRS of exports", data.crs or "none: local ENU metres (no GPS)"),
+        ("CRS of exports", data.crs or f"none: {LOCAL_FRAME_TEXT}"),
         (
             "ENU reference",
             f"lat {ref.lat_deg:.7f}, lon {ref.lon_deg:.7f}, alt {ref.alt_m:.2f} m"

@@ -247,12 +247,34 @@ def _load_defects(
             DefectView(
                 **Defect.fields_from_properties(p, default_id=i + 1),
                 outline_xy_m=enu[:-1] if len(enu) > 1 else enu,
-                centroid_xy_m=enu[:-1].mean(axis=0) if len(enu) > 1 else enu[0],
+                centroid_xy_m=_centroid_enu(p, ring, enu, georef, reference),
                 ring_enu_m=enu,
                 ring_lonlat=ring[:, :2] if georef else None,
             )
         )
     return sort_defects(out)
+
+
+def _centroid_enu(
+    props: dict[str, Any],
+    ring: np.ndarray,
+    enu: np.ndarray,
+    georef: bool,
+    reference: EnuReference | None,
+) -> np.ndarray:
+    """(2,) the defect's stored centroid in the viewer's ENU (what defects.csv and the GeoJSON
+    say; a crack's outline vertices average elsewhere), else the outline vertices' mean."""
+    keys = ("centroid_lon", "centroid_lat") if georef else ("centroid_e_m", "centroid_n_m")
+    try:
+        c = np.array([float(props[keys[0]]), float(props[keys[1]])])
+    except (KeyError, TypeError, ValueError):
+        c = np.array([np.nan, np.nan])
+    if not np.isfinite(c).all():
+        return enu[:-1].mean(axis=0) if len(enu) > 1 else enu[0]
+    if not georef:
+        return c
+    # with the ring's first vertex ahead of it, a missing reference falls back to the same one
+    return _ring_enu(np.vstack([ring[:1, :2], c[None]]), True, reference)[1]
 
 
 def _load_frame_labels(run: RunFolder, missing: list[str]) -> dict[str, dict[str, str]]:

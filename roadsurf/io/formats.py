@@ -156,6 +156,22 @@ class GridSpec:
 LOCAL_CRS = (
     "LOCAL_ENU"  # GridSpec.crs of a run without GPS: written without a CRS, read back as this
 )
+# What a run without GPS writes its coordinates in (mapping.pose_init.chain: the first frame's
+# vehicle level at heading 0); named in report.json, the PLY comment and the files' tags.
+LOCAL_FRAME_TEXT = (
+    "local metric frame (no GPS, not georeferenced): metres from the first frame's camera "
+    "centre, y along its direction of travel, x to its right, z up; never lon/lat"
+)
+# The same as an engineering CRS (WKT2), for GeoJSON's legacy "crs" member: GDAL (QGIS,
+# pyogrio, ogr2ogr) then reads the file as metres in a local frame instead of taking the
+# numbers for WGS84 lon/lat, which RFC 7946 would otherwise imply.
+LOCAL_FRAME_WKT = (
+    'ENGCRS["roadsurf local metric frame (no GPS)",'
+    'EDATUM["the first frame\'s camera centre"],CS[Cartesian,3],'
+    'AXIS["x (right of travel)",east,ORDER[1],LENGTHUNIT["metre",1]],'
+    'AXIS["y (along travel)",north,ORDER[2],LENGTHUNIT["metre",1]],'
+    'AXIS["z (up)",up,ORDER[3],LENGTHUNIT["metre",1]]]'
+)
 
 
 def geotiff_profile(grid: GridSpec, count: int, dtype: str, nodata: float | None) -> dict[str, Any]:
@@ -395,6 +411,21 @@ def write_geojson(
     if properties:
         fc["properties"] = json_safe(properties)
     validate_geojson(fc)
+    return write_text_atomic(path, json.dumps(fc, indent=1, allow_nan=False) + "\n")
+
+
+def write_local_geojson(
+    path: str | Path, features: Iterable[dict[str, Any]], properties: dict[str, Any]
+) -> Path:
+    """A FeatureCollection in the local metric frame of a run without GPS (not RFC 7946): the
+    legacy "crs" member names ``LOCAL_FRAME_WKT`` so GIS readers do not place it as lon/lat,
+    and ``properties.coordinates`` says the same in words."""
+    fc = {
+        "type": "FeatureCollection",
+        "crs": {"type": "name", "properties": {"name": LOCAL_FRAME_WKT}},
+        "properties": json_safe({**properties, "coordinates": LOCAL_FRAME_TEXT}),
+        "features": list(features),
+    }
     return write_text_atomic(path, json.dumps(fc, indent=1, allow_nan=False) + "\n")
 
 

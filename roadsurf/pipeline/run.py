@@ -36,6 +36,7 @@ from roadsurf.core.memory import fix_mmap_threshold, limit_malloc_arenas, releas
 from roadsurf.detection.classifier.config import ClassifierConfig
 from roadsurf.detection.config import DetectionConfig
 from roadsurf.io import runfolder as rf
+from roadsurf.io.formats import LOCAL_FRAME_TEXT
 from roadsurf.mapping.bundle_camera import later_stage_inputs
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.datum import vertical_datum
@@ -446,7 +447,7 @@ def _build_report(
         "coordinates": (
             f"georeferenced: {ef.crs} (UTM metres), GeoJSON in WGS84 lon/lat"
             if ef is not None
-            else "local ENU metres (no GPS: not georeferenced; no lon/lat is written)"
+            else LOCAL_FRAME_TEXT
         ),
         # the datum of every absolute height (cloud.ply z, trajectory heights); residuals and
         # defect depths are relative to the local road surface

@@ -27,6 +27,12 @@ def test_crack_is_detected_once_and_typed(tmp_path):
     assert c.width_m < 0.03
     assert 0.0 < c.max_depth_m < 0.008
     assert c.severity in ("low", "medium", "high") and c.frames
+    # its centroid is its outline's, as for every defect type: on a straight groove, inside it
+    import shapely
+
+    outline = shapely.Polygon(c.outline_xy_m)
+    assert np.allclose(c.centroid_xy_m, outline.centroid.coords[0])
+    assert outline.contains(shapely.Point(c.centroid_xy_m))
     # Cracks shallower than the frame-label depth do not make defect frames by themselves.
     assert [d.type for d in res.defects].count("pothole") == 1
 

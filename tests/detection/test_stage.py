@@ -116,6 +116,11 @@ def test_geojson_is_rfc7946_and_reads_back(tmp_path):
     for f, d in zip(fc["features"], saved, strict=True):
         assert d["centroid_lon"] == pytest.approx(f["properties"]["centroid_lon"], abs=1e-9)
         assert d["centroid_lat"] == pytest.approx(f["properties"]["centroid_lat"], abs=1e-9)
+    # as a GIS reads it: GDAL's GeoJSON driver, WGS84 lon/lat
+    import pyogrio
+
+    info = pyogrio.read_info(run_dir / "defects.geojson")
+    assert info["crs"] == "EPSG:4326" and info["features"] == 2
     rows = read_csv(run_dir / "defects.csv")
     assert [int(r["id"]) for r in rows] == [1, 2]
     assert float(rows[0]["centroid_e_m"]) > 100000  # UTM easting
@@ -127,7 +132,15 @@ def test_no_gps_writes_local_coordinates(tmp_path, caplog):
     res, run_dir, _ = _run(tmp_path, scene, georeferenced=False)
     assert not res.georeferenced and len(res.defects) == 1
     fc = json.loads((run_dir / "defects.geojson").read_text())
-    assert "local ENU" in fc["properties"]["coordinates"]
+    assert "never lon/lat" in fc["properties"]["coordinates"]
+    # a GIS must not take the local metres for lon/lat: GDAL reads the legacy crs member as a
+    # local engineering frame in metres (without it, EPSG:4326)
+    import pyogrio
+    import pyproj
+
+    crs = pyproj.CRS.from_user_input(pyogrio.read_info(run_dir / "defects.geojson")["crs"])
+    assert crs.type_name == "Engineering CRS" and not crs.is_geographic
+    assert {a.unit_name for a in crs.axis_info} == {"metre"}
     row = read_csv(run_dir / "defects.csv")[0]
     assert row["centroid_lon"] == "" and row["centroid_lat"] == ""
     assert float(row["centroid_e_m"]) == pytest.approx(0.1, abs=0.02)

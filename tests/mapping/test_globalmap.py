@@ -127,6 +127,8 @@ def test_vrt_and_tiles_cover_the_same_data(mapped) -> None:
             assert np.allclose(list(ts.bounds), t["bounds"])
     with rasterio.open(run / "surface.vrt") as v, rasterio.open(run / "surface.tif") as s:
         assert v.shape == s.shape and v.transform == s.transform and v.crs == s.crs
+        assert v.tags()["VERTICAL_DATUM"] == s.tags()["VERTICAL_DATUM"]  # the VRT's own tags
+        assert v.tags()["units"] == "m"
         a, b = v.read(1), s.read(1)
     np.testing.assert_array_equal(np.isfinite(a), np.isfinite(b))
     np.testing.assert_allclose(a[np.isfinite(a)], b[np.isfinite(b)])
@@ -236,6 +238,12 @@ def test_no_gps_map_stays_in_the_local_frame(tmp_path: Path) -> None:
     with rasterio.open(run / "surface.tif") as s:
         assert s.crs is None
         assert np.isfinite(s.read(1)).sum() > 1000
+    # no CRS: every raster says in a tag what its metres are
+    for name in ("surface", "mosaic", "surface_nobs", "surface_sigma"):
+        for path in [run / f"{name}.tif", run / f"{name}.vrt"]:
+            if path.exists():
+                with rasterio.open(path) as r:
+                    assert "never lon/lat" in r.tags().get("COORDINATES", ""), path
     v = PlyData.read(str(run / "cloud.ply"))["vertex"].data
     # local ENU metres around the first camera, not UTM
     assert np.max(np.abs(v["x"])) < 50 and np.max(np.abs(v["y"])) < 50

@@ -167,3 +167,23 @@ def test_defects_without_gps_are_local_enu_metres(tmp_path: Path) -> None:
     s = summarize_rrd(save_rrd(syn.run).rrd)
     assert s.instances("/world/defects", "LineStrips3D:strips") == 2
     assert not s.under("/map")
+
+
+@pytest.mark.parametrize("gps", [True, False])
+def test_defect_centroids_are_the_stored_ones(tmp_path: Path, gps: bool) -> None:
+    """The viewer (and the HTML report) place a defect at the centroid detection stored (what
+    defects.csv says), not at its outline vertices' mean: put it on the first vertex."""
+    import json
+
+    syn = make_synthetic_run(tmp_path, gps=gps, defects=True, n_frames=4)
+    fc = json.loads((syn.run / "defects.geojson").read_text())
+    keys = ("centroid_lon", "centroid_lat") if gps else ("centroid_e_m", "centroid_n_m")
+    for f in fc["features"]:
+        first = f["geometry"]["coordinates"][0][0]
+        f["properties"].update(dict(zip(keys, first[:2], strict=True)))
+    (syn.run / "defects.geojson").write_text(json.dumps(fc))
+    data = load_run(syn.run, with_pairs=False)
+    assert len(data.defects) == 2
+    for d in data.defects:
+        assert np.allclose(d.centroid_enu_m, d.ring_enu_m[0], atol=1e-6)
+        assert not np.allclose(d.centroid_enu_m, d.ring_enu_m[:-1].mean(axis=0), atol=1e-3)

@@ -46,7 +46,7 @@ def test_report_without_gps_or_defects(tmp_path: Path) -> None:
     text = write_report(syn.run).read_text()
     assert "no defects were found" in text
     assert "No mosaic.tif" in text
-    assert "local ENU" in text
+    assert "never lon/lat" in text
 
 
 def test_report_renders_in_headless_chromium(

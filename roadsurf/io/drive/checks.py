@@ -176,9 +176,7 @@ def check_static(gps: GpsTrack, frames: list[Frame], warnings: list[str]) -> boo
     # and last thirds' medians lie apart by more than one fix's σ (a still receiver's wander
     # over seconds is well below it).
     m = max(n // 3, 1)
-    net = _dist_m(
-        np.median(lat[:m]), np.median(lon[:m]), np.median(lat[-m:]), np.median(lon[-m:])
-    )
+    net = _dist_m(np.median(lat[:m]), np.median(lon[:m]), np.median(lat[-m:]), np.median(lon[-m:]))
     if float(net[0]) > sigma:
         return False
     source = "stated by the log" if stated.size else "from HDOP"
