@@ -71,7 +71,8 @@ def write_outputs(
         props = d.to_properties(c)
         cents.append(c)
         feats.append(feature(polygon_geometry(ring), props))
-        rows.append([props[k] if k != "frames" else ";".join(d.frames) for k in DEFECT_COLUMNS])
+        row = [props[k] if k != "frames" else ";".join(d.frames) for k in DEFECT_COLUMNS]
+        rows.append([*row, result.crs if result.georeferenced else LOCAL_CRS_CSV])
     meta = {
         "crs_of_e_n": result.crs,
         "georeferenced": result.georeferenced,
@@ -85,7 +86,8 @@ def write_outputs(
     else:
         write_local_geojson(gj, feats, {"generator": "roadsurf detection", **meta})
         log.warning("detection: no GPS reference; defects are written in %s", LOCAL_FRAME_TEXT)
-    write_csv(run.path(DEFECTS_CSV), DEFECT_COLUMNS, rows)
+    # the CRS of centroid_e_m/n_m on every row (the GeoJSON has it once, as crs_of_e_n)
+    write_csv(run.path(DEFECTS_CSV), (*DEFECT_COLUMNS, "crs_of_e_n"), rows)
     write_csv(
         run.frame_labels,
         FRAME_COLUMNS,
@@ -170,6 +172,7 @@ def load_result(run_dir: Path, signature: str) -> DetectionResult | None:
 # deeper, a surface at its search depth bounds no deeper reading, warnings in detection.json;
 # 9: a crack's centroid is its outline's, defects.geojson without GPS names its local frame
 DETECTION_VERSION = 9
+LOCAL_CRS_CSV = "local (no GPS)"  # defects.csv crs_of_e_n without GPS
 
 
 def _round(p: float | None) -> float | str:

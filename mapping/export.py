@@ -124,13 +124,14 @@ def write_trajectory_csv(path: str | Path, traj: Trajectory) -> Path:
     header = ["filename", "timestamp_s", "east_m", "north_m", "up_m", "heading_deg", "source"]
     utm = lonlat = None
     if ef is not None:
-        header += ["easting_m", "northing_m", "lon_deg", "lat_deg"]
+        # the zone rides on every row: a drive on a zone border is in one of two
+        header += ["easting_m", "northing_m", "lon_deg", "lat_deg", "crs"]
         utm, lonlat = ef.utm_from_enu(pos), ef.lonlat_from_enu(pos)
     rows = []
     for i in range(len(traj)):
         r: list[Any] = [traj.filenames[i], float(traj.timestamp_s[i]), *pos[i].tolist()]
         r += [float(heading[i]), traj.source[i]]
         if utm is not None and lonlat is not None:
-            r += [utm[i, 0], utm[i, 1], lonlat[i, 0], lonlat[i, 1]]
+            r += [utm[i, 0], utm[i, 1], lonlat[i, 0], lonlat[i, 1], ef.crs]
         rows.append(r)
     return write_csv(path, header, rows)

@@ -90,8 +90,14 @@ def lla_from_enu(enu_m: np.ndarray, ref: EnuReference) -> np.ndarray:
 
 
 def utm_epsg_for(lat_deg: float, lon_deg: float) -> int:
-    """EPSG code of the WGS84 UTM zone holding (lat, lon), e.g. 32617 for 17N."""
+    """EPSG code of the WGS84 UTM zone holding (lat, lon), e.g. 32617 for 17N, with the grid's
+    two exceptions: south-west Norway (56-64°N, 3-12°E) is in zone 32, and Svalbard (72-84°N,
+    0-42°E) in zones 31, 33, 35 and 37 only (the zones Norwegian agencies and MGRS use)."""
     zone = int((lon_deg + 180.0) // 6.0) % 60 + 1
+    if 56.0 <= lat_deg < 64.0 and 3.0 <= lon_deg < 12.0:
+        zone = 32
+    elif 72.0 <= lat_deg < 84.0 and 0.0 <= lon_deg < 42.0:
+        zone = 31 + 2 * int(min((lon_deg + 3.0) // 12.0, 3))
     return (32600 if lat_deg >= 0 else 32700) + zone
 
 

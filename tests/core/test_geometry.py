@@ -34,6 +34,12 @@ def test_enu_round_trip_and_scale():
 def test_utm_zone_and_export_distances():
     assert utm_epsg_for(43.65, -79.38) == 32617
     assert utm_epsg_for(-33.9, 151.2) == 32756
+    # the grid's exceptions: Bergen is in 32N, Svalbard has only the odd zones 31-37
+    assert utm_epsg_for(60.39, 5.32) == 32632 and utm_epsg_for(60.39, 2.9) == 32631
+    assert utm_epsg_for(55.9, 5.32) == 32631
+    svalbard = [(8.9, 32631), (9.0, 32633), (20.5, 32633), (21.0, 32635), (33.0, 32637)]
+    assert [utm_epsg_for(78.2, lon) for lon, _ in svalbard] == [e for _, e in svalbard]
+    assert utm_epsg_for(78.2, 42.5) == 32638
     ef = ExportFrame.for_reference(EnuReference(43.65, -79.38, 0.0))
     pts = np.array([[0.0, 0.0, 0.0], [30.0, 40.0, 0.0]])
     utm = ef.utm_from_enu(pts)

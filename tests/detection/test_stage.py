@@ -124,6 +124,7 @@ def test_geojson_is_rfc7946_and_reads_back(tmp_path):
     rows = read_csv(run_dir / "defects.csv")
     assert [int(r["id"]) for r in rows] == [1, 2]
     assert float(rows[0]["centroid_e_m"]) > 100000  # UTM easting
+    assert {r["crs_of_e_n"] for r in rows} == {"EPSG:32617"}
     assert rows[0]["frames"].split(";") == res.defects[0].frames
 
 
@@ -143,6 +144,7 @@ def test_no_gps_writes_local_coordinates(tmp_path, caplog):
     assert {a.unit_name for a in crs.axis_info} == {"metre"}
     row = read_csv(run_dir / "defects.csv")[0]
     assert row["centroid_lon"] == "" and row["centroid_lat"] == ""
+    assert row["crs_of_e_n"] == "local (no GPS)"
     assert float(row["centroid_e_m"]) == pytest.approx(0.1, abs=0.02)
     assert float(row["centroid_n_m"]) == pytest.approx(1.0, abs=0.02)
 

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from roadsurf.core.geometry import enu_from_lla, lla_from_enu
-from roadsurf.io.formats import read_geojson
+from roadsurf.io.formats import read_csv, read_geojson
 from roadsurf.mapping import poses
 from roadsurf.mapping.config import MappingConfig
 from roadsurf.mapping.types import load_trajectory
@@ -191,6 +191,7 @@ def test_run_writes_artifacts_and_resumes(tmp_path) -> None:
     np.testing.assert_allclose(back.world_from_cam, traj.world_from_cam)
     ref = json.loads((tmp_path / "reference.json").read_text())["reference"]
     assert ref["crs"] == "EPSG:32617"
+    assert {r["crs"] for r in read_csv(tmp_path / "trajectory.csv")} == {"EPSG:32617"}
     fc = read_geojson(tmp_path / "trajectory.geojson")
     kinds = [f["geometry"]["type"] for f in fc["features"]]
     assert kinds.count("LineString") == 1 and kinds.count("Point") == 40
