@@ -13,6 +13,7 @@ from roadsurf.io.drive.staticpx import MIN_REGION_SHARE, static_pixels
 from roadsurf.io.drive.types import Frame
 
 W, H = 1280, 720  # above the 640 px work width: the σ map is downscaled
+BORDER = 20  # px of black round every frame (border=True)
 
 
 def _road(rng: np.random.Generator, contrast: float, grain_px: int) -> np.ndarray:
@@ -47,6 +48,11 @@ def _drive(tmp: Path, n: int = 12, **kind: bool) -> tuple[list[Frame], np.ndarra
             truth[:100] = True
         if kind.get("stop"):
             img = _road(np.random.default_rng(1), 25.0, 3)
+        if kind.get("border"):  # a letterbox / undistortion border: black, JPEG-noisy
+            ring = np.ones((H, W), bool)
+            ring[BORDER:-BORDER, BORDER:-BORDER] = False
+            img[ring] = rng.integers(0, 6, int(ring.sum()))
+            truth |= ring
         p = tmp / f"f{k:02d}.png"
         cv2.imwrite(str(p), img)
         frames.append(Frame(k, p.name, p, 0.1 * k))
@@ -103,3 +109,44 @@ def test_too_few_or_unreadable_frames_say_nothing(tmp_path: Path) -> None:
     for f in frames[:3]:
         f.path.write_bytes(b"junk")
     assert static_pixels(frames, W, H) is None
+
+
+def test_a_black_border_is_its_own_not_a_static_ring_round_everything(tmp_path: Path) -> None:
+    """A black frame round every image (letterbox, undistortion): found as the black border,
+    left out of the static pixels; it used to close into a ring whose filled inside made the
+    whole image 'static' (100 %, a suggested mask hiding everything). A stamp inside still is."""
+    frames, truth = _drive(tmp_path, border=True, box=True)
+    sp = static_pixels(frames, W, H)
+    assert sp is not None
+    ring = np.ones((H, W), bool)
+    ring[BORDER:-BORDER, BORDER:-BORDER] = False
+    assert sp.black_border[ring].mean() > 0.99 and not sp.black_border[~truth].any()
+    # the stamp's black box touches the border and joins it; its text is static
+    assert (sp.static | sp.black_border)[truth].mean() > 0.95
+    assert sp.static[~truth].mean() < 0.005 and sp.share < 0.05
+
+
+def test_a_border_the_mask_names_is_not_judged(tmp_path: Path) -> None:
+    """With camera.yaml's mask naming the border, the static test looks inside it only (it
+    reported 90 % with the mask's edge closed into a ring on the work grid)."""
+    frames, _ = _drive(tmp_path, border=True)
+    usable = np.zeros((H, W), bool)
+    usable[BORDER:-BORDER, BORDER:-BORDER] = True
+    sp = static_pixels(frames, W, H, usable)
+    assert sp is not None and sp.share < 0.005 and not sp.black_border.any()
+
+
+def test_the_pipeline_masks_a_black_border(tmp_path: Path) -> None:
+    from roadsurf.core.camera import Camera
+    from roadsurf.io.drive.types import Drive
+    from roadsurf.pipeline.run_checks import static_pixels as check
+
+    frames, truth = _drive(tmp_path, border=True)
+    cam = Camera(W, H, 900.0, 900.0, W / 2, H / 2, 1.5, 10.0)
+    drive = Drive(tmp_path, cam, frames, None, None)
+    assert check(drive, tmp_path) is None  # nothing else static: no suggestion
+    assert drive.camera.mask is not None
+    assert (~drive.camera.mask.usable == truth).mean() > 0.99
+    (w,) = drive.warnings
+    assert "black in every frame along its edges" in w and "rows 0-719" in w
+    assert not (tmp_path / "suggested_mask.png").exists()

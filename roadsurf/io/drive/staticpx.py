@@ -12,7 +12,7 @@ writes a suggested mask (camera.yaml ``mask``, docs/formats.md) for the user to 
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -37,6 +37,9 @@ STATIC_REL = 0.15
 # stopped vehicle or a textureless road, where nothing can be told apart
 MIN_MEDIAN_DN = 6.0
 SATURATED_DN = 250  # at or above this in every frame: over-exposed (sky), not a stamp (DN)
+# at or below this in every frame, and reaching the image's edge: no image there (a letterbox,
+# the black edges undistortion leaves, a fisheye's corners), not road (DN; JPEG rings to ~10)
+BLACK_DN = 12
 # static regions smaller than this share of the image are noise (−): a one-line text stamp
 # without a box is ~0.4 % of a 1280 x 720 frame, a stuck pixel or dust far below
 MIN_REGION_SHARE = 0.002
@@ -51,6 +54,9 @@ class StaticPixels:
     saturated: np.ndarray  # (height, width) bool: ... of them, over-exposed in every frame
     n_frames: int  # frames compared
     grow_px: int  # the suggested mask grows the regions by this (px): the work grid's pixel + 3
+    # (height, width) bool: black in every frame and reaching the image's edge (``BLACK_DN``);
+    # left out of ``static`` (the pipeline masks it: no image there); empty: none found
+    black_border: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), bool))
 
     @property
     def share(self) -> float:
@@ -60,7 +66,9 @@ class StaticPixels:
     def outside(self, usable: np.ndarray) -> StaticPixels:
         """The static pixels within ``usable`` (a camera mask's usable pixels) only."""
         keep = usable & self.static
-        return StaticPixels(keep, keep & self.saturated, self.n_frames, self.grow_px)
+        return StaticPixels(
+            keep, keep & self.saturated, self.n_frames, self.grow_px, self.black_border
+        )
 
     def suggested_mask(self) -> np.ndarray:
         """(height, width) uint8 in camera.yaml's mask convention: 0 = ignore (the static
@@ -84,16 +92,20 @@ class StaticPixels:
         )
 
 
-def static_pixels(frames: list[Frame], width: int, height: int) -> StaticPixels | None:
+def static_pixels(
+    frames: list[Frame], width: int, height: int, usable: np.ndarray | None = None
+) -> StaticPixels | None:
     """The static pixels of ``frames`` (a camera of ``width`` x ``height``), from up to
-    ``N_FRAMES`` frames spread over the drive; None when the drive cannot tell (too few
-    readable frames, a road that does not vary)."""
+    ``N_FRAMES`` frames spread over the drive, among the ``usable`` ones (camera.yaml's mask,
+    (height, width) bool; None = all) and apart from a black border (``black_border``); None
+    when the drive cannot tell (too few readable frames, a road that does not vary)."""
     if len(frames) < MIN_FRAMES:
         return None
     pick = np.unique(np.linspace(0, len(frames) - 1, min(N_FRAMES, len(frames))).round())
     s1 = np.zeros((height, width), np.float64)
     s2 = np.zeros((height, width), np.float64)
     lo = np.full((height, width), 255, np.uint8)
+    hi = np.zeros((height, width), np.uint8)
     n = 0
     for i in pick.astype(int):
         try:
@@ -106,16 +118,23 @@ def static_pixels(frames: list[Frame], width: int, height: int) -> StaticPixels 
         s1 += g
         s2 += np.square(g, dtype=np.float64)
         np.minimum(lo, g, out=lo)
+        np.maximum(hi, g, out=hi)
         n += 1
     if n < MIN_FRAMES:
         return None
     sd = np.sqrt(np.maximum(s2 / n - np.square(s1 / n), 0.0)).astype(np.float32)
-    med = float(np.median(sd))
+    inside = np.ones((height, width), bool) if usable is None else np.asarray(usable, bool)
+    border = _black_border(hi, inside)
+    inside = inside & ~border
+    if not inside.any():
+        return None
+    med = float(np.median(sd[inside]))
     if med < MIN_MEDIAN_DN:
         return None
     # judged per full-resolution pixel (a stamp's strokes are a few pixels wide), then a work
-    # pixel is static when any of its pixels is
-    low = (sd < max(STATIC_DN, STATIC_REL * med)).astype(np.float32)
+    # pixel is static when any of its pixels is; what a mask or the border leaves out is not
+    # judged (a ring round the image would enclose, and fill, everything)
+    low = ((sd < max(STATIC_DN, STATIC_REL * med)) & inside).astype(np.float32)
     s = min(1.0, WORK_PX / width)
     size = (max(1, round(width * s)), max(1, round(height * s)))
     if s < 1:
@@ -138,16 +157,37 @@ def static_pixels(frames: list[Frame], width: int, height: int) -> StaticPixels 
     small = (keep[lab] & (small > 0)).astype(np.uint8)
     static = cv2.resize(small, (width, height), interpolation=cv2.INTER_NEAREST) > 0
     saturated = static & (lo >= SATURATED_DN)
-    return StaticPixels(static, saturated, n, int(np.ceil(1.0 / s)) + 3)
+    return StaticPixels(static, saturated, n, int(np.ceil(1.0 / s)) + 3, border)
+
+
+def _black_border(hi: np.ndarray, usable: np.ndarray) -> np.ndarray:
+    """(h, w) bool: the usable pixels at or below ``BLACK_DN`` in every frame (``hi``, their
+    maximum) in regions that reach the image's edge and hold ``MIN_REGION_SHARE`` of it."""
+    dark = ((hi <= BLACK_DN) & usable).astype(np.uint8)
+    count, lab, stats, _ = cv2.connectedComponentsWithStats(dark, connectivity=8)
+    h, w = dark.shape
+    x, y, bw, bh, area = (stats[:, k] for k in range(5))
+    edge = (x == 0) | (y == 0) | (x + bw == w) | (y + bh == h)
+    keep = edge & (area >= MIN_REGION_SHARE * dark.size)
+    keep[0] = False
+    return np.asarray(keep[lab] & (dark > 0))
+
+
+# a hole a static region encloses joins it up to this share of the image (−): a stamp box's
+# changing digits (~1 %), not the whole road inside a static ring along the image's edges
+MAX_HOLE_SHARE = 0.05
 
 
 def _fill_holes(region: np.ndarray) -> np.ndarray:
     """(h, w) uint8 0/1 ``region`` with the background it encloses (not connected to the
-    image border) added."""
+    image border) added, each hole up to ``MAX_HOLE_SHARE`` of the image."""
     h, w = region.shape
     pad = np.zeros((h + 2, w + 2), np.uint8)
     pad[1:-1, 1:-1] = region
     flood = pad.copy()
     cv2.floodFill(flood, np.zeros((h + 4, w + 4), np.uint8), (0, 0), 1)
-    holes = flood[1:-1, 1:-1] == 0
-    return np.asarray(region | holes, np.uint8)
+    holes = (flood[1:-1, 1:-1] == 0).astype(np.uint8)
+    count, lab, stats, _ = cv2.connectedComponentsWithStats(holes, connectivity=4)
+    small = stats[:, cv2.CC_STAT_AREA] <= MAX_HOLE_SHARE * h * w
+    small[0] = False
+    return np.asarray(region | small[lab], np.uint8)
