@@ -452,6 +452,13 @@ def _build_report(
         # the datum of every absolute height (cloud.ply z, trajectory heights); residuals and
         # defect depths are relative to the local road surface
         "vertical_datum": vertical_datum(cfg.mapping, drive, ef is not None),
+        # what every length and depth is scaled by (α = h / d_c): with GPS the fixes check it
+        "metric_scale": (
+            "camera.yaml height_m, checked against the GPS track"
+            if ef is not None
+            else f"camera.yaml height_m ({drive.camera.height_m:g} m) alone (no GPS): every "
+            "length, area and depth scales with it (5 % off in height_m is 5 % off in depth)"
+        ),
         "reference": traj.reference.to_dict() if traj is not None and traj.reference else None,
         "counts": {
             "frames": len(drive.frames),

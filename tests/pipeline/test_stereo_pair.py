@@ -30,6 +30,8 @@ def test_a_tilted_photo_pair_without_gps_measures_its_pothole(pair) -> None:
     mount = rep["poses"]["mount"]
     assert mount["source"] == "estimated" and mount["pitch_deg"] == pytest.approx(45.0, abs=2.0)
     assert not (run / "trajectory.geojson").exists()  # local metres are never lon/lat
+    assert rep["crs"] is None and "never lon/lat" in rep["coordinates"]
+    assert "height_m (0.5 m) alone" in rep["metric_scale"]  # nothing checks the scale
     s = score_pair(run, drive)
     assert s["found"]
     assert abs(s["depth_error_m"]) <= 0.003
