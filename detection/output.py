@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from roadsurf.core.atomic import read_json, write_json_atomic
+from roadsurf.core.atomic import UNREADABLE, read_json_object, write_json_atomic
 from roadsurf.core.config import to_dict
 from roadsurf.core.fingerprint import Fingerprint
 from roadsurf.detection.config import DetectionConfig
@@ -127,8 +127,9 @@ def load_result(run_dir: Path, signature: str) -> DetectionResult | None:
     if not meta_p.exists() or not all((run_dir / n).exists() for n in names):
         return None
     try:
-        meta = read_json(meta_p)
-    except (OSError, ValueError):
+        meta = read_json_object(meta_p)
+    except UNREADABLE as e:
+        log.warning("detection: %s unreadable (%s); detecting again", meta_p, e)
         return None
     if meta.get("signature") != signature:
         return None

@@ -65,7 +65,7 @@ from roadsurf.detection.rutscan import scan_seeds
 from roadsurf.detection.types import Defect, DetectionResult
 from roadsurf.detection.windows import PointsSource, RasterSource, segment_windows
 from roadsurf.io.drive import Drive
-from roadsurf.io.runfolder import RunFolder
+from roadsurf.io.runfolder import DETECTION_JSON, RunFolder
 from roadsurf.mapping.raster import bounded_block_cache
 from roadsurf.mapping.types import Trajectory
 from roadsurf.reconstruction.types import PairResult
@@ -105,6 +105,9 @@ def run(
         if cached is not None:
             log.info("detection: outputs in %s are up to date, skipping", run_dir)
             return cached
+    # the record goes first: a run stopped while rewriting leaves no record of the old result
+    # beside new defect files and masks (a resume would trust them)
+    (Path(run_dir) / DETECTION_JSON).unlink(missing_ok=True)
     with bounded_block_cache():  # surface.tif is read window by window: memory stays flat
         return _detect(cfg, drive, pairs, traj, run_dir, sig, frame_probs, fusion)
 

@@ -32,7 +32,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from roadsurf.core.atomic import read_json, write_json_atomic, write_npz_atomic
+from roadsurf.core.atomic import (
+    UNREADABLE,
+    read_json_object,
+    write_json_atomic,
+    write_npz_atomic,
+)
 from roadsurf.core.config import to_dict
 from roadsurf.core.fingerprint import Fingerprint
 from roadsurf.core.fits import robust_sigma
@@ -65,18 +70,41 @@ def run(
     rep_path = run_dir / rf.MAP_REPORT
     if not cfg.overwrite and rep_path.is_file():
         try:
-            rep = read_json(rep_path)
-            files = rep.get("files", {})
-            if rep.get("fingerprint") == key and all(
-                (run_dir / f).exists() for f in files.values()
-            ):
-                log.info("globalmap: inputs unchanged, reusing the map in %s", run_dir)
-                return MapProducts.from_report(rep)
-        except (OSError, ValueError, KeyError, TypeError) as e:
-            log.info("globalmap: cached report unreadable (%s); rebuilding", e)
+            rep = read_json_object(rep_path)
+            if rep.get("fingerprint") == key:
+                changed = _changed_files(run_dir, rep)
+                if not changed:
+                    log.info("globalmap: inputs unchanged, reusing the map in %s", run_dir)
+                    return MapProducts.from_report(rep)
+                log.warning(
+                    "globalmap: %s missing or changed since the map was built; rebuilding", changed
+                )
+        except UNREADABLE as e:
+            log.warning("globalmap: cached report unreadable (%s); rebuilding", e)
+    # the record goes first: a run stopped while rewriting the map leaves no record of the old
+    # map beside new files (a resume would trust a sparse cloud or rasters on two grids)
+    rep_path.unlink(missing_ok=True)
     prod = build_map(cfg, drive, pairs, traj, run_dir)
-    write_json_atomic(rep_path, {"fingerprint": key, **prod.to_report()})
+    rep = {"fingerprint": key, **prod.to_report()}
+    rep["file_bytes"] = {
+        f: (run_dir / f).stat().st_size
+        for f in rep.get("files", {}).values()
+        if (run_dir / f).is_file()
+    }
+    write_json_atomic(rep_path, rep)
     return prod
+
+
+def _changed_files(run_dir: Path, rep: dict) -> str:
+    """The map's files (``files`` of map_report.json) that are missing, or whose size differs
+    from the one recorded (``file_bytes``; a truncated raster), as text; "" when none."""
+    sizes = rep.get("file_bytes") or {}
+    bad = []
+    for f in rep.get("files", {}).values():
+        p = run_dir / f
+        if not p.exists() or (f in sizes and p.is_file() and p.stat().st_size != sizes[f]):
+            bad.append(str(f))
+    return ", ".join(bad[:5]) + (f" and {len(bad) - 5} more" if len(bad) > 5 else "")
 
 
 def _fingerprint(

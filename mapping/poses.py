@@ -35,7 +35,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from roadsurf.core.atomic import read_json, write_json_atomic
+from roadsurf.core.atomic import UNREADABLE, read_json_object, write_json_atomic
 from roadsurf.core.config import to_dict
 from roadsurf.core.fingerprint import Fingerprint
 from roadsurf.io import runfolder as rf
@@ -99,15 +99,18 @@ def run(
     geojson = run.path(rf.TRAJECTORY_GEOJSON)
     if not cfg.overwrite and run.poses_npz.is_file() and rep_path.is_file():
         try:
-            if read_json(rep_path).get("fingerprint") == key:
+            if read_json_object(rep_path).get("fingerprint") == key:
                 log.info("poses: inputs unchanged, reusing %s", run.poses_npz)
                 traj = load_trajectory(run.root)
                 if not geojson.is_file():
                     datum = vertical_datum(cfg, drive, traj.reference is not None)
                     write_trajectory_geojson(geojson, traj, drive, vertical_datum=datum)
                 return traj
-        except (OSError, ValueError, KeyError) as e:
-            log.info("poses: cached result unreadable (%s); recomputing", e)
+        except UNREADABLE as e:
+            log.warning("poses: cached result unreadable (%s); recomputing", e)
+    # the record goes first: a run stopped while rewriting leaves no record of the old poses
+    # beside new files (a resume would trust them)
+    rep_path.unlink(missing_ok=True)
     t0 = time.perf_counter()
     traj, report = estimate_trajectory(cfg, drive, pairs, loop_match=loop_match)
     save_trajectory(run.root, traj)

@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from roadsurf.core.atomic import write_text_atomic
+from roadsurf.core.atomic import UNREADABLE, write_text_atomic
 from roadsurf.core.camera import Camera
 from roadsurf.core.errors import FrameReadError
 from roadsurf.core.fingerprint import Fingerprint
@@ -192,7 +192,7 @@ def run(
         if path.is_file() and not cfg.overwrite and read_fingerprint(path) == fingerprint:
             try:
                 return load_pair(path)
-            except (OSError, ValueError, KeyError) as e:
+            except UNREADABLE as e:
                 log.warning("%s: unreadable cached probe (%s); recomputing", path, e)
         try:
             res = probe_pair(

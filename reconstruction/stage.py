@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from roadsurf.core.atomic import write_text_atomic
+from roadsurf.core.atomic import UNREADABLE, write_text_atomic
 from roadsurf.core.camera import Camera
 from roadsurf.core.errors import FrameReadError, OutputError
 from roadsurf.core.fingerprint import Fingerprint
@@ -103,7 +103,7 @@ def frame_features(
     if path.is_file() and not cfg.overwrite:
         try:
             return feat.load_features(path), 0.0
-        except (OSError, ValueError, KeyError) as e:
+        except UNREADABLE as e:
             log.warning("%s: unreadable feature cache (%s); recomputing", path, e)
     t0 = time.perf_counter()
     f = feat.detect(read_gray(frame), cfg.features, mask)
@@ -211,7 +211,7 @@ def run(
                 continue
             try:
                 cached[key] = stored(load_pair(path), path)
-            except (OSError, ValueError, KeyError) as e:
+            except UNREADABLE as e:
                 log.warning("%s: unreadable cached pair (%s); recomputing", path, e)
     if stale:
         log.info("reconstruction: %d cached pair(s) made from other inputs; recomputing", stale)

@@ -13,6 +13,8 @@ import math
 import os
 import shutil
 import tempfile
+import zipfile
+import zlib
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -170,6 +172,30 @@ def write_json_atomic(path: str | os.PathLike[str], obj: Any, indent: int = 2) -
 def read_json(path: str | os.PathLike[str]) -> Any:
     with open(path, encoding="utf-8") as f:
         return json.load(f)
+
+
+# What reading a cached artifact back can raise when a kill, a full disk or a user truncated
+# or overwrote it (np.load of a cut .npz: BadZipFile; of a damaged one: zlib.error; a JSON
+# record that is not an object: TypeError / AttributeError on its fields): the stages then
+# recompute it instead of stopping with a traceback.
+UNREADABLE = (
+    OSError,
+    ValueError,
+    KeyError,
+    TypeError,
+    AttributeError,
+    EOFError,
+    zipfile.BadZipFile,
+    zlib.error,
+)
+
+
+def read_json_object(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """A JSON file that must hold an object (a stage's record); ValueError when it does not."""
+    d = read_json(path)
+    if not isinstance(d, dict):
+        raise ValueError(f"{path}: holds a JSON {type(d).__name__}, not an object")
+    return d
 
 
 def write_npz_atomic(

@@ -27,3 +27,7 @@ class OutputError(RoadsurfError):
 
 class InputError(RoadsurfError):
     """An input file is unreadable (encoding, truncation, bad content) outside the drive format."""
+
+
+class RunFolderBusyError(OutputError):
+    """Another roadsurf run is working in the same output folder."""

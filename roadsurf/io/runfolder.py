@@ -7,8 +7,12 @@ file names. docs/formats.md describes each file's content.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+
+from roadsurf.core.errors import RunFolderBusyError
 
 # reconstruction
 PAIRS_DIR = "pairs"  # one .npz per frame pair (PairResult)
@@ -45,6 +49,7 @@ DETECTION_JSON = "detection.json"
 SCREENING_JSON = "screening.json"  # fused run: CNN screening per frame
 # run level
 RUN_JSON = "run.json"  # which drive the run folder belongs to (refused for another drive)
+RUN_LOCK = ".roadsurf.lock"  # held (flock) while a run works in the folder: one at a time
 # written when the frames hold pixels that never change outside camera.yaml's mask
 # (io.drive.staticpx): a suggestion in camera.yaml's mask convention, 0 = ignore
 SUGGESTED_MASK_PNG = "suggested_mask.png"
@@ -182,3 +187,32 @@ class RunFolder:
     @property
     def map_points(self) -> Path:
         return self.root / MAP_POINTS
+
+
+@contextmanager
+def run_folder_lock(root: str | Path) -> Iterator[None]:
+    """Hold ``root``'s RUN_LOCK (an exclusive flock, released when the process ends, even by
+    SIGKILL) while a run works there; RunFolderBusyError when another process holds it (two
+    runs in one folder deleted each other's temporary files and did all the work twice)."""
+    import fcntl
+    import os
+
+    path = Path(root) / RUN_LOCK
+    with open(path, "a+", encoding="utf-8") as f:
+        try:
+            fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            f.seek(0)
+            holder = f.read().strip() or "another process"
+            raise RunFolderBusyError(
+                f"{root}: another roadsurf run is working in this folder ({holder}); wait for "
+                "it to finish (then run again to resume) or choose another --out"
+            ) from None
+        f.seek(0)
+        f.truncate()
+        f.write(f"pid {os.getpid()}")
+        f.flush()
+        try:
+            yield
+        finally:
+            fcntl.flock(f.fileno(), fcntl.LOCK_UN)

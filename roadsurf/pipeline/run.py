@@ -179,10 +179,15 @@ def run_drive(
 
         job = ScreeningJob(Path(classifier), cfg.classifier)
     try:
-        return _run_drive(
-            drive_dir, Path(out_dir), cfg, method, classifier, overwrite, observers, job,
-            t_start,
-        )  # fmt: skip
+        try:
+            Path(out_dir).mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise output_error(e, Path(out_dir)) from e
+        with rf.run_folder_lock(out_dir):  # one run per folder (its temporaries are its own)
+            return _run_drive(
+                drive_dir, Path(out_dir), cfg, method, classifier, overwrite, observers, job,
+                t_start,
+            )  # fmt: skip
     finally:
         if job is not None:
             job.close()  # kills the worker if the run stopped before its result

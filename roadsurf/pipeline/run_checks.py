@@ -93,7 +93,7 @@ def check_out_folder(drive_dir: Path, out: Path) -> None:
         )
     # live.rrd: `run --rerun`'s own stream, opened before this check on a machine without a
     # display
-    clash = sorted(held & (rf.artifact_names() - {rf.LIVE_RRD}))
+    clash = sorted(held & (rf.artifact_names() - {rf.LIVE_RRD, rf.RUN_LOCK}))
     if clash:
         raise ConfigError(
             f"--out {out} is not a roadsurf run folder (no {rf.RUN_JSON}) but holds "

@@ -191,6 +191,27 @@ def test_resume_and_overwrite(tmp_path):
     assert (run_dir / "detection.json").stat().st_mtime_ns != stamp
 
 
+def test_a_stopped_rewrite_leaves_no_record_and_garbage_is_redetected(tmp_path, monkeypatch):
+    """detection.json goes before the outputs are rewritten (a rewrite stopped half way left
+    the old record beside 6 of 7 defects and a third of the masks, and a resume reused them);
+    a detection.json that is not an object is detected again (it stopped with a traceback)."""
+    scene = Scene(potholes=[Pothole(0.1, 1.0, 0.15, 0.03)])
+    drive, pairs, traj = build(scene, tmp_path / "drive")
+    run_dir = tmp_path / "run"
+    first = stage.run(CFG, drive, pairs, traj, run_dir)
+    (run_dir / "detection.json").write_text("[1, 2]")
+    assert stage.run(CFG, drive, pairs, traj, run_dir).table() == first.table()
+
+    def stopped(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(stage, "_detect", stopped)
+    other = dataclasses.replace(CFG, fusion_threshold=0.9)
+    with pytest.raises(KeyboardInterrupt):
+        stage.run(other, drive, pairs, traj, run_dir)
+    assert not (run_dir / "detection.json").exists()
+
+
 def test_cnn_probabilities_are_fused(tmp_path):
     """frames.csv follows detection.classifier.fusion applied to the 3D labels (Fig. 5.6)."""
     from roadsurf.detection.classifier.fusion import fuse_frames

@@ -170,6 +170,42 @@ def test_resume_skips_and_overwrite_rebuilds(mapped) -> None:
     assert os.stat(run / "surface.tif").st_mtime_ns == m0
 
 
+def test_a_stopped_rewrite_or_a_truncated_raster_is_rebuilt(
+    mapped, tmp_path: Path, monkeypatch
+) -> None:
+    """map_report.json goes before the map is rewritten (a rewrite stopped half way left the
+    old record beside a sparse cloud and rasters on two grids, and a resume reused them); a
+    raster truncated since is rebuilt (detection crashed reading it)."""
+    import dataclasses
+    import shutil
+
+    from roadsurf.mapping.types import load_trajectory
+
+    run0, syn, _ = mapped
+    run = tmp_path / "run"
+    shutil.copytree(run0, run)
+    traj = load_trajectory(run)
+    surf = run / "surface.tif"
+    surf.write_bytes(surf.read_bytes()[: surf.stat().st_size // 2])
+    globalmap.run(CFG, syn.drive, syn.pairs, traj, run)
+    with rasterio.open(surf) as a, rasterio.open(run0 / "surface.tif") as b:
+        np.testing.assert_array_equal(a.read(), b.read())
+
+    def stopped(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(globalmap, "build_map", stopped)
+    other = dataclasses.replace(CFG, gsd_m=CFG.gsd_m * 1.25)
+    with pytest.raises(KeyboardInterrupt):
+        globalmap.run(other, syn.drive, syn.pairs, traj, run)
+    assert not (run / "map_report.json").exists()
+    (run / "map_report.json").write_text("[1, 2]")  # valid JSON, not a record: rebuilt
+    monkeypatch.undo()
+    m0 = surf.stat().st_mtime_ns
+    globalmap.run(CFG, syn.drive, syn.pairs, traj, run)
+    assert surf.stat().st_mtime_ns != m0
+
+
 def test_raster_tiles_on_one_or_more_threads_are_identical(mapped, tmp_path: Path) -> None:
     """raster_workers only changes who computes a tile: the files are the same, bit for bit."""
     import dataclasses

@@ -176,6 +176,30 @@ def test_obd_speed_constraint_runs() -> None:
     assert abs(np.linalg.norm(e[-1] - e[0]) - np.linalg.norm(t[-1] - t[0])) < 0.05
 
 
+def test_a_stopped_rewrite_or_damaged_poses_are_recomputed(tmp_path, monkeypatch) -> None:
+    """poses_report.json goes before the poses are rewritten; a truncated poses.npz or a
+    record that is not an object is recomputed (both stopped the run with a traceback)."""
+    import dataclasses
+
+    syn = make_synthetic(n=12, seed=10, gps_hz=5.0)
+    traj = poses.run(RTK, syn.drive, syn.pairs, tmp_path)
+    npz = tmp_path / "poses.npz"
+    npz.write_bytes(npz.read_bytes()[:200])
+    again = poses.run(RTK, syn.drive, syn.pairs, tmp_path)
+    np.testing.assert_allclose(again.world_from_cam, traj.world_from_cam)
+    (tmp_path / "poses_report.json").write_text("[]")
+    again = poses.run(RTK, syn.drive, syn.pairs, tmp_path)
+    np.testing.assert_allclose(again.world_from_cam, traj.world_from_cam)
+
+    def stopped(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(poses, "estimate_trajectory", stopped)
+    with pytest.raises(KeyboardInterrupt):
+        poses.run(dataclasses.replace(RTK, gps_sigma_m=0.03), syn.drive, syn.pairs, tmp_path)
+    assert not (tmp_path / "poses_report.json").exists()
+
+
 def test_run_writes_artifacts_and_resumes(tmp_path) -> None:
     syn = make_synthetic(n=40, seed=10, gps_hz=5.0)
     traj = poses.run(RTK, syn.drive, syn.pairs, tmp_path)

@@ -145,3 +145,20 @@ def test_feature_cache_name_follows_settings_and_image_file(tmp_path, cam) -> No
     before = stage._feature_path(tmp_path, f0, CFG)
     os.utime(f0.path, ns=(st.st_atime_ns, st.st_mtime_ns + 1))
     assert stage._feature_path(tmp_path, f0, CFG) != before
+
+
+def test_truncated_caches_are_recomputed_not_failed(tmp_path, cam) -> None:
+    """A killed or damaged .npz (a cut zip: BadZipFile; damaged bytes: zlib.error) is
+    recomputed: it stopped the run with a traceback (a pair file) or made the pair a
+    permanent geometry_failed (a feature file)."""
+    drive = _drive(tmp_path / "d", cam)
+    run_dir = tmp_path / "run"
+    first = stage.run(CFG, drive, run_dir)
+    pair = RunFolder(run_dir).pair(1, 2)
+    pair.write_bytes(pair.read_bytes()[: pair.stat().st_size // 2])
+    feats = sorted((run_dir / "features").glob("*.npz"))
+    feats[2].write_bytes(feats[2].read_bytes()[:1000])
+    RunFolder(run_dir).pair(2, 3).unlink()  # needs frame 2's features again
+    again = stage.run(CFG, drive, run_dir)
+    assert [r.status for r in again] == ["ok"] * 3
+    np.testing.assert_allclose(again[1].points_cam_a_m, first[1].points_cam_a_m)
