@@ -41,6 +41,7 @@ from roadsurf.core.atomic import (
 from roadsurf.core.config import to_dict
 from roadsurf.core.fingerprint import Fingerprint
 from roadsurf.core.fits import robust_sigma
+from roadsurf.core.geometry import utm_exception_key
 from roadsurf.io import runfolder as rf
 from roadsurf.io.drive import Drive
 from roadsurf.io.runfolder import RunFolder, read_fingerprint
@@ -129,6 +130,9 @@ def _fingerprint(
 
         fp.add_text(f"dense_surface:{DENSE_SURFACE_VERSION}")  # the code, not only its settings
     fp.add_array(traj.world_from_cam)
+    ref = traj.reference
+    if ref is not None and (utm := utm_exception_key(ref.lat_deg, ref.lon_deg)):
+        fp.add_text(utm)  # the grid's CRS
     run = RunFolder(run_dir) if run_dir is not None else None
     for p in pairs:
         fp.add_text(f"{p.index_a},{p.index_b},{p.status},{p.n_points}")

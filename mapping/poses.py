@@ -38,6 +38,7 @@ import numpy as np
 from roadsurf.core.atomic import UNREADABLE, read_json_object, write_json_atomic
 from roadsurf.core.config import to_dict
 from roadsurf.core.fingerprint import Fingerprint
+from roadsurf.core.geometry import utm_exception_key
 from roadsurf.io import runfolder as rf
 from roadsurf.io.drive import Drive
 from roadsurf.io.runfolder import RunFolder
@@ -148,6 +149,10 @@ def _fingerprint(
             fp.add_text("accuracy").add_array(g.sigma_m).add_array(g.quality)
         fp.add_text("alt").add_array(g.alt_m)
         fp.add_text(f"datum:{vertical_datum(cfg, drive)}")
+        if len(g) and (
+            utm := utm_exception_key(float(np.median(g.lat_deg)), float(np.median(g.lon_deg)))
+        ):
+            fp.add_text(utm)
     if drive.obd is not None:
         fp.add_text("obd").add_array(drive.obd.timestamp_s).add_array(drive.obd.speed_mps)
     for p in pairs:

@@ -49,11 +49,20 @@ class LiveObserver:
         self.drive_dir: Path | None = None
         self.counts: dict[str, int] = {}
         self.rrd: Path | None = None
-        if rec is None:
+        self._spawn = spawn
+        # connected at the first stage, once the run holds its folder: a run refused there
+        # (another works in it) must not truncate that run's live.rrd
+        self.rec: rr.RecordingStream | None = rec
+        if rec is not None:
+            log_setup(rec)
+
+    def _stream(self) -> rr.RecordingStream:
+        if self.rec is None:
             rec = rr.RecordingStream(APP_ID)
-            self._connect(rec, spawn)
-        self.rec = rec
-        log_setup(rec)
+            self._connect(rec, self._spawn)
+            log_setup(rec)
+            self.rec = rec
+        return self.rec
 
     def _connect(self, rec: rr.RecordingStream, spawn: bool) -> None:
         from roadsurf.viewer.api import spawn_native
@@ -82,7 +91,7 @@ class LiveObserver:
     def __call__(self, stage: str, result: Any) -> None:
         # ``result`` is the stage's own output (the pipeline's Observer protocol); only the
         # drive's root is read here, everything else comes from the run folder
-        rec, cfg = self.rec, self.cfg
+        rec, cfg = self._stream(), self.cfg
         if stage == "drive":
             self.drive_dir = Path(result.root)
         elif stage == "reconstruction":

@@ -44,6 +44,7 @@ from roadsurf.detection.classifier.selflabel import (
     skip_for_cnn,
 )
 from roadsurf.io.drive import load_drive, read_image
+from roadsurf.io.drive.staticpx import static_pixels_of_drive
 
 log = logging.getLogger(__name__)
 
@@ -130,6 +131,7 @@ def label_run(
     rows: list[dict[str, Any]] = []
     dropped: dict[str, int] = {}
     drive = load_drive(drive_dir)
+    static_pixels_of_drive(drive)  # a black border masked as the run masked it
     names = [f.filename for f in drive.frames]
     figs = frame_figures(run_dir, names, drive.camera.height_m, cfg)
     phys = read_physics_labels(run_dir)

@@ -158,7 +158,7 @@ def run(
     resumed = report.get("resumed_stages") or []
     note = f"; resumed: {', '.join(resumed)}" if resumed else ""
     typer.echo(f"Outputs in {out}/ ({this_run['total']:.1f} s{note}):")
-    for name in sorted(p.name for p in Path(out).iterdir() if p.is_file()):
+    for name in sorted(p.name for p in Path(out).iterdir() if p.is_file() and p.name[0] != "."):
         typer.echo(f"  {name}")
     warnings = report.get("warnings") or []
     if warnings:

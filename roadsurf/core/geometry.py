@@ -101,6 +101,15 @@ def utm_epsg_for(lat_deg: float, lon_deg: float) -> int:
     return (32600 if lat_deg >= 0 else 32700) + zone
 
 
+def utm_exception_key(lat_deg: float, lon_deg: float) -> str:
+    """ "" where ``utm_epsg_for`` gives the plain 6° zone, else "utm:<EPSG>": the resume keys
+    of outputs in the export CRS hold it, so runs made before the exceptions (Bergen in 31N)
+    are redone in the zone now named, and every other run keeps its key."""
+    plain = int((lon_deg + 180.0) // 6.0) % 60 + 1 + (32600 if lat_deg >= 0 else 32700)
+    epsg = utm_epsg_for(lat_deg, lon_deg)
+    return "" if epsg == plain else f"utm:{epsg}"
+
+
 @lru_cache(maxsize=16)
 def _utm_transformer(epsg: int) -> Transformer:
     return Transformer.from_crs(CRS.from_epsg(4326), CRS.from_epsg(epsg), always_xy=True)

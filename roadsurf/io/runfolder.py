@@ -189,30 +189,73 @@ class RunFolder:
         return self.root / MAP_POINTS
 
 
+# folders this process holds the lock of (the CLI takes it before opening a live recording
+# there, then the pipeline again): flock conflicts between two opens of one process
+_HELD: set[str] = set()
+
+
 @contextmanager
 def run_folder_lock(root: str | Path) -> Iterator[None]:
     """Hold ``root``'s RUN_LOCK (an exclusive flock, released when the process ends, even by
     SIGKILL) while a run works there; RunFolderBusyError when another process holds it (two
-    runs in one folder deleted each other's temporary files and did all the work twice)."""
-    import fcntl
+    runs in one folder deleted each other's temporary files and did all the work twice).
+    Re-entrant within a process. Where no lock can be taken (no fcntl, a file system without
+    locks, a lock file another user owns in a shared folder, a read-only folder) the run goes
+    on unlocked with a warning, as before locks: its own writes report what fails."""
+    import errno
+    import logging
     import os
 
+    key = str(Path(root).resolve())
+    if key in _HELD:
+        yield
+        return
+    log = logging.getLogger(__name__)
     path = Path(root) / RUN_LOCK
-    with open(path, "a+", encoding="utf-8") as f:
+    try:
+        import fcntl
+    except ImportError:  # not a POSIX system
+        log.warning("%s: no file locks on this system; make sure one run at a time uses it", root)
+        yield
+        return
+    fd = -1
+    for flags in (os.O_RDWR | os.O_CREAT, os.O_RDONLY):  # flock needs no write access
         try:
-            fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+            fd = os.open(path, flags, 0o664)
+            break
+        except OSError:
+            continue
+    if fd < 0:
+        log.warning("%s: cannot open %s; running without the one-run lock", root, RUN_LOCK)
+        yield
+        return
+    try:
+        locked = True
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            f.seek(0)
-            holder = f.read().strip() or "another process"
+            holder = os.pread(fd, 200, 0).decode(errors="replace").strip() or "another process"
             raise RunFolderBusyError(
                 f"{root}: another roadsurf run is working in this folder ({holder}); wait for "
                 "it to finish (then run again to resume) or choose another --out"
             ) from None
-        f.seek(0)
-        f.truncate()
-        f.write(f"pid {os.getpid()}")
-        f.flush()
+        except OSError as e:
+            if e.errno not in (errno.ENOLCK, errno.EOPNOTSUPP, errno.EINVAL):
+                raise
+            log.warning("%s: the file system has no locks (%s); one run at a time, please", root, e)
+            locked = False
+        if locked:
+            try:
+                os.ftruncate(fd, 0)
+                os.pwrite(fd, f"pid {os.getpid()}".encode(), 0)
+            except OSError:
+                pass  # a read-only descriptor: the lock holds, the holder goes unnamed
+            _HELD.add(key)
         try:
             yield
         finally:
-            fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+            if locked:
+                _HELD.discard(key)
+                fcntl.flock(fd, fcntl.LOCK_UN)
+    finally:
+        os.close(fd)

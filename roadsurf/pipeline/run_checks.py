@@ -275,23 +275,17 @@ def static_pixels(drive: Drive, out: Path) -> str | None:
     when the frames hold pixels that never change (``io.drive.staticpx``) that camera.yaml's
     mask does not already name; else None (and an old suggestion in ``out`` is removed).
 
-    A black border in every frame (a letterbox, the edges undistortion leaves) is no image:
-    it joins the camera's mask (``drive.camera``, with a warning). Its edge's corners are the
-    same in every frame, so they matched shots of different places with no motion, and a
-    failed pair between them no longer kept the two apart (real photographs: two potholes on
-    one spot of the map, a crack along the image's top edge)."""
+    A black border in every frame joins the camera's mask on the way
+    (``staticpx.static_pixels_of_drive``)."""
     import cv2
 
     from roadsurf.core.atomic import atomic_path
-    from roadsurf.io.drive.staticpx import static_pixels as find_static
+    from roadsurf.io.drive.staticpx import static_pixels_of_drive as find_static
 
     path = Path(out) / rf.SUGGESTED_MASK_PNG
+    own_mask = drive.camera.mask is not None  # camera.yaml's, before a black border joins it
+    sp = find_static(drive)
     cam = drive.camera
-    usable = cam.mask.usable if cam.mask is not None else None
-    sp = find_static(drive.frames, cam.width, cam.height, usable)
-    if sp is not None and sp.black_border.any():
-        _mask_black_border(drive, sp.black_border)
-        cam = drive.camera
     if sp is not None and cam.mask is not None:  # what the mask leaves, off its edge's blur
         sp = sp.outside(cam.mask.eroded(sp.grow_px))
     if sp is None or not sp.static.any():
@@ -303,31 +297,7 @@ def static_pixels(drive: Drive, out: Path) -> str | None:
     with atomic_path(path) as tmp:
         if not cv2.imwrite(str(tmp), suggestion):
             log.warning("%s: could not be written", path)
-    msg = sp.warning(str(path), outside_mask=cam.mask is not None)
+    msg = sp.warning(str(path), outside_mask=own_mask)
     log.warning(msg)
     drive.warnings.append(msg)
     return msg
-
-
-def _mask_black_border(drive: Drive, border: Any) -> None:
-    """Add ``border`` ((height, width) bool) to the camera's mask, and say so."""
-    import dataclasses
-
-    import numpy as np
-
-    from roadsurf.core.imagemask import ImageMask
-
-    cam = drive.camera
-    usable = ~border if cam.mask is None else cam.mask.usable & ~border
-    src = f"{cam.mask.source} + " if cam.mask is not None else ""
-    mask = ImageMask(usable, f"{src}black border found in every frame")
-    drive.camera = dataclasses.replace(cam, mask=mask)
-    ys, xs = np.nonzero(border)
-    msg = (
-        f"{border.mean():.1%} of the image is black in every frame along its edges (rows "
-        f"{ys.min()}-{ys.max()}, columns {xs.min()}-{xs.max()}): no image there (a letterbox, "
-        "the edges undistortion leaves); left out as camera.yaml's mask would. Name it in "
-        "camera.yaml's mask (docs/formats.md) to say so yourself."
-    )
-    log.warning(msg)
-    drive.warnings.append(msg)

@@ -14,6 +14,7 @@ from roadsurf.core.geometry import (
     skew,
     transform_points,
     utm_epsg_for,
+    utm_exception_key,
     world_from_cam,
 )
 
@@ -40,6 +41,9 @@ def test_utm_zone_and_export_distances():
     svalbard = [(8.9, 32631), (9.0, 32633), (20.5, 32633), (21.0, 32635), (33.0, 32637)]
     assert [utm_epsg_for(78.2, lon) for lon, _ in svalbard] == [e for _, e in svalbard]
     assert utm_epsg_for(78.2, 42.5) == 32638
+    # the resume keys change only where the exceptions apply
+    assert utm_exception_key(43.65, -79.38) == "" and utm_exception_key(78.2, 15.6) == ""
+    assert utm_exception_key(60.39, 5.32) == "utm:32632"
     ef = ExportFrame.for_reference(EnuReference(43.65, -79.38, 0.0))
     pts = np.array([[0.0, 0.0, 0.0], [30.0, 40.0, 0.0]])
     utm = ef.utm_from_enu(pts)

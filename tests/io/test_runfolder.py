@@ -49,3 +49,42 @@ def test_one_run_at_a_time_holds_the_folder(tmp_path) -> None:
     assert (tmp_path / RUN_LOCK).exists()
     with run_folder_lock(tmp_path):  # the killed holder's lock went with it
         pass
+
+
+def test_the_lock_never_stops_a_run_it_cannot_take(tmp_path, monkeypatch, caplog) -> None:
+    """A lock file only readable (another user's, in a shared folder) is locked read-only; a
+    file system without locks, or a folder that cannot hold the file, runs unlocked with a
+    warning (each was a traceback); the lock is re-entrant within a process."""
+    import errno
+    import fcntl
+    import os
+
+    from roadsurf.io.runfolder import RUN_LOCK, run_folder_lock
+
+    (tmp_path / RUN_LOCK).write_text("pid 1")
+    real_open = os.open
+
+    def no_write(path, flags, *a):
+        if flags & (os.O_RDWR | os.O_WRONLY):
+            raise PermissionError(errno.EACCES, "Permission denied", str(path))
+        return real_open(path, flags, *a)
+
+    monkeypatch.setattr(os, "open", no_write)
+    with run_folder_lock(tmp_path):
+        with run_folder_lock(tmp_path):  # re-entrant: the CLI and the pipeline both take it
+            pass
+    monkeypatch.setattr(os, "open", real_open)
+
+    def no_locks(fd, op):
+        raise OSError(errno.ENOLCK, "No locks available")
+
+    monkeypatch.setattr(fcntl, "flock", no_locks)
+    with run_folder_lock(tmp_path):
+        pass
+    assert "has no locks" in caplog.text
+    monkeypatch.undo()
+    (tmp_path / RUN_LOCK).unlink()
+    monkeypatch.setattr(os, "open", lambda *a: (_ for _ in ()).throw(PermissionError("ro")))
+    with run_folder_lock(tmp_path):
+        pass
+    assert "running without the one-run lock" in caplog.text

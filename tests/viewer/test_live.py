@@ -17,10 +17,13 @@ def test_live_observer_streams_stage_by_stage(synthetic_run: SyntheticRun, tmp_p
     run.mkdir()
     src = synthetic_run.run
     obs = LiveObserver(run, spawn=False)  # no display in CI: the stream goes to RUN/live.rrd
-    assert obs.rrd == run / "live.rrd"
+    # nothing opened before the run's first stage (a run refused at the folder's lock must
+    # not truncate the live.rrd of the run holding it)
+    assert obs.rrd is None and not (run / "live.rrd").exists()
 
     # replay a pipeline: copy each stage's files into the run folder, then notify
     obs("drive", load_drive(synthetic_run.drive))
+    assert obs.rrd == run / "live.rrd"
     shutil.copytree(src / "pairs", run / "pairs")
     obs("reconstruction", [])
     for f in ("poses.npz", "reference.json"):

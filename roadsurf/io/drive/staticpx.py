@@ -11,6 +11,7 @@ writes a suggested mask (camera.yaml ``mask``, docs/formats.md) for the user to 
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass, field
 
@@ -18,8 +19,9 @@ import cv2
 import numpy as np
 
 from roadsurf.core.errors import FrameReadError
+from roadsurf.core.imagemask import ImageMask
 from roadsurf.io.drive.images import read_gray
-from roadsurf.io.drive.types import Frame
+from roadsurf.io.drive.types import Drive, Frame
 
 log = logging.getLogger(__name__)
 
@@ -191,3 +193,32 @@ def _fill_holes(region: np.ndarray) -> np.ndarray:
     small = stats[:, cv2.CC_STAT_AREA] <= MAX_HOLE_SHARE * h * w
     small[0] = False
     return np.asarray(region | small[lab], np.uint8)
+
+
+def static_pixels_of_drive(drive: Drive) -> StaticPixels | None:
+    """``static_pixels`` of the drive's frames within camera.yaml's mask; a black border found
+    there joins ``drive.camera``'s mask, with a warning in ``drive.warnings`` (every stage and
+    the classifier's thumbnails then see the same pixels).
+
+    A black border in every frame (a letterbox, the edges undistortion leaves) is no image.
+    Its corners are the same in every frame, so they matched shots of different places with
+    no motion, and a pair failing between them no longer kept the two apart (real
+    photographs: two potholes on one spot of the map, a crack along the image's top edge)."""
+    cam = drive.camera
+    usable = cam.mask.usable if cam.mask is not None else None
+    sp = static_pixels(drive.frames, cam.width, cam.height, usable)
+    if sp is None or not sp.black_border.any():
+        return sp
+    border = sp.black_border
+    usable = ~border if cam.mask is None else cam.mask.usable & ~border
+    src = f"{cam.mask.source} + " if cam.mask is not None else ""
+    mask = ImageMask(usable, f"{src}black border found in every frame")
+    drive.camera = dataclasses.replace(cam, mask=mask)
+    msg = (
+        f"{border.mean():.1%} of the image is black in every frame along its edges: no image "
+        "there (a letterbox, the edges undistortion leaves); left out as camera.yaml's mask "
+        "would. Name it in camera.yaml's mask (docs/formats.md) to say so yourself."
+    )
+    log.warning(msg)
+    drive.warnings.append(msg)
+    return sp
