@@ -10,7 +10,8 @@ against the unchanged drive (``base``) run the same way in the same call.
     make bench-real_photo_variants ARGS="--cases base,frame20,barrel"
 
 Cases (``--cases``, default all):
-- ``base``: the drive as it is (the control);
+- ``base``: the drive as it is, the same files (the control); every case that changes the
+  pixels writes JPEG q92 again (re-encoding alone moves single depths by a few %);
 - ``frame20``: a 20 px black frame round every image (a letterbox);
 - ``barrel``: barrel distortion k1 = -0.1 applied and written to camera.yaml, with the black
   edges such a remap leaves (what undistorting in reverse would leave);
@@ -74,13 +75,16 @@ def _make(
     for i, r in enumerate(_frames(src)):
         stem = Path(r["filename"]).stem
         name = stem + (ext or Path(r["filename"]).suffix)
-        img = cv2.imread(str(src / "frames" / r["filename"]), cv2.IMREAD_COLOR)
-        if img is None:
-            raise SystemExit(f"{src / 'frames' / r['filename']}: unreadable")
-        if img_fn is not None:
-            img = img_fn(img, i)
-        params = [cv2.IMWRITE_JPEG_QUALITY, jpeg_q] if name.endswith(".jpg") else []
-        cv2.imwrite(str(drive / "frames" / name), img, params)
+        if img_fn is None and ext is None:  # the same pixels: the same bytes (no re-encoding)
+            shutil.copyfile(src / "frames" / r["filename"], drive / "frames" / name)
+        else:
+            img = cv2.imread(str(src / "frames" / r["filename"]), cv2.IMREAD_COLOR)
+            if img is None:
+                raise SystemExit(f"{src / 'frames' / r['filename']}: unreadable")
+            if img_fn is not None:
+                img = img_fn(img, i)
+            params = [cv2.IMWRITE_JPEG_QUALITY, jpeg_q] if name.endswith(".jpg") else []
+            cv2.imwrite(str(drive / "frames" / name), img, params)
         lab = cv2.imread(str(src.parent / "labels" / f"{stem}.png"), cv2.IMREAD_GRAYSCALE)
         if lab is not None:
             cv2.imwrite(str(labels / f"{stem}.png"), lab_fn(lab) if lab_fn else lab)

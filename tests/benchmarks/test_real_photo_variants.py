@@ -50,6 +50,9 @@ def test_each_case_is_a_consistent_drive(tmp_path: Path, name: str) -> None:
         assert img.shape[:2] == lab.shape == (cam.height, cam.width)
     img0 = cv2.imread(str(d.frames[0].path), cv2.IMREAD_UNCHANGED)
     lab0 = cv2.imread(str(drive.parent / "labels" / "000000.png"), cv2.IMREAD_GRAYSCALE)
+    if name in ("base", "height10"):  # the images untouched, byte for byte
+        src0 = src / "frames" / "000000.jpg"
+        assert d.frames[0].path.read_bytes() == src0.read_bytes()
     if name == "frame20":
         # black within JPEG's ringing (the 8 px blocks wholly inside the border)
         assert img0[:16].max() <= BLACK_DN and img0[:, -16:].max() <= BLACK_DN
