@@ -91,8 +91,8 @@ def check_out_folder(drive_dir: Path, out: Path) -> None:
             "would overwrite its frames.csv with the run's frame labels. Choose an empty or "
             f"new folder, e.g. --out {o.parent / (o.name + '_run')}"
         )
-    # live.rrd: `run --rerun`'s own stream, opened before this check on a machine without a
-    # display
+    # live.rrd: `run --rerun`'s own stream (a run refused here after its first stage may
+    # have left one); the lock file: a run stopped before it wrote run.json
     clash = sorted(held & (rf.artifact_names() - {rf.LIVE_RRD, rf.RUN_LOCK}))
     if clash:
         raise ConfigError(

@@ -111,6 +111,17 @@ def test_too_few_or_unreadable_frames_say_nothing(tmp_path: Path) -> None:
     assert static_pixels(frames, W, H) is None
 
 
+def test_a_photo_pair_s_black_border_is_found_from_two_frames(tmp_path: Path) -> None:
+    """Two frames cannot tell a stamp from the road, but a black border they can: a photo
+    pair from an undistorted camera has it masked too (no pixel called static)."""
+    frames, truth = _drive(tmp_path, n=2, border=True, box=True)
+    sp = static_pixels(frames, W, H)
+    assert sp is not None and not sp.static.any()
+    ring = np.ones((H, W), bool)
+    ring[BORDER:-BORDER, BORDER:-BORDER] = False
+    assert sp.black_border[ring].mean() > 0.99 and not sp.black_border[~truth].any()
+
+
 def test_a_black_border_is_its_own_not_a_static_ring_round_everything(tmp_path: Path) -> None:
     """A black frame round every image (letterbox, undistortion): found as the black border,
     left out of the static pixels; it used to close into a ring whose filled inside made the

@@ -26,7 +26,8 @@ from roadsurf.io.drive.types import Drive, Frame
 log = logging.getLogger(__name__)
 
 N_FRAMES = 12  # frames sampled, evenly over the drive (count)
-MIN_FRAMES = 6  # below this many readable frames the test says nothing (count)
+MIN_FRAMES = 6  # below this many readable frames the test says nothing (count) ...
+MIN_BORDER_FRAMES = 2  # ... but a black border is told from two (a photo pair's)
 # the σ map is judged at this width (px): the test is about regions; σ itself is taken at full
 # resolution first (downscaling the frames would average a fine road grain to "static")
 WORK_PX = 640
@@ -99,9 +100,10 @@ def static_pixels(
 ) -> StaticPixels | None:
     """The static pixels of ``frames`` (a camera of ``width`` x ``height``), from up to
     ``N_FRAMES`` frames spread over the drive, among the ``usable`` ones (camera.yaml's mask,
-    (height, width) bool; None = all) and apart from a black border (``black_border``); None
-    when the drive cannot tell (too few readable frames, a road that does not vary)."""
-    if len(frames) < MIN_FRAMES:
+    (height, width) bool; None = all) and apart from a black border (``black_border``, told
+    from ``MIN_BORDER_FRAMES``: with fewer than ``MIN_FRAMES`` no pixel is called static);
+    None when the drive cannot tell (too few readable frames, a road that does not vary)."""
+    if len(frames) < MIN_BORDER_FRAMES:
         return None
     pick = np.unique(np.linspace(0, len(frames) - 1, min(N_FRAMES, len(frames))).round())
     s1 = np.zeros((height, width), np.float64)
@@ -122,14 +124,15 @@ def static_pixels(
         np.minimum(lo, g, out=lo)
         np.maximum(hi, g, out=hi)
         n += 1
-    if n < MIN_FRAMES:
+    if n < MIN_BORDER_FRAMES:
         return None
     sd = np.sqrt(np.maximum(s2 / n - np.square(s1 / n), 0.0)).astype(np.float32)
     inside = np.ones((height, width), bool) if usable is None else np.asarray(usable, bool)
     border = _black_border(hi, inside)
     inside = inside & ~border
-    if not inside.any():
-        return None
+    none = np.zeros((height, width), bool)
+    if n < MIN_FRAMES or not inside.any():  # too few frames to tell a stamp: the border only
+        return StaticPixels(none, none, n, 0, border) if border.any() else None
     med = float(np.median(sd[inside]))
     if med < MIN_MEDIAN_DN:
         return None
