@@ -88,20 +88,24 @@ def run(
     prod = build_map(cfg, drive, pairs, traj, run_dir)
     rep = {"fingerprint": key, **prod.to_report()}
     rep["file_bytes"] = {
-        f: (run_dir / f).stat().st_size
-        for f in rep.get("files", {}).values()
-        if (run_dir / f).is_file()
+        f: (run_dir / f).stat().st_size for f in _map_files(rep) if (run_dir / f).is_file()
     }
     write_json_atomic(rep_path, rep)
     return prod
 
 
+def _map_files(rep: dict) -> list[str]:
+    """The map's files a report names (run-folder paths): ``files`` and every tile's."""
+    tiles = [v for t in rep.get("tiles", []) for v in t.values() if isinstance(v, str)]
+    return [*rep.get("files", {}).values(), *tiles]
+
+
 def _changed_files(run_dir: Path, rep: dict) -> str:
-    """The map's files (``files`` of map_report.json) that are missing, or whose size differs
-    from the one recorded (``file_bytes``; a truncated raster), as text; "" when none."""
+    """The map's files (``_map_files``) that are missing, or whose size differs from the one
+    recorded (``file_bytes``; a truncated raster or tile), as text; "" when none."""
     sizes = rep.get("file_bytes") or {}
     bad = []
-    for f in rep.get("files", {}).values():
+    for f in _map_files(rep):
         p = run_dir / f
         if not p.exists() or (f in sizes and p.is_file() and p.stat().st_size != sizes[f]):
             bad.append(str(f))

@@ -190,6 +190,11 @@ def test_a_stopped_rewrite_or_a_truncated_raster_is_rebuilt(
     globalmap.run(CFG, syn.drive, syn.pairs, traj, run)
     with rasterio.open(surf) as a, rasterio.open(run0 / "surface.tif") as b:
         np.testing.assert_array_equal(a.read(), b.read())
+    tile = run / json.loads((run / "map_report.json").read_text())["tiles"][0]["surface"]
+    tile.write_bytes(tile.read_bytes()[:100])  # a tile too (surface.vrt reads it)
+    globalmap.run(CFG, syn.drive, syn.pairs, traj, run)
+    with rasterio.open(tile) as t:
+        assert np.isfinite(t.read(1)).any()
 
     def stopped(*a, **k):
         raise KeyboardInterrupt
