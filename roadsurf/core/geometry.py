@@ -89,11 +89,16 @@ def lla_from_enu(enu_m: np.ndarray, ref: EnuReference) -> np.ndarray:
     return np.stack([np.asarray(lat), np.asarray(lon), np.asarray(alt)], axis=-1)
 
 
+def utm_zone_number(lon_deg: float) -> int:
+    """The plain 6° UTM zone (1-60) of a longitude (degrees), without the grid's exceptions."""
+    return int((lon_deg + 180.0) // 6.0) % 60 + 1
+
+
 def utm_epsg_for(lat_deg: float, lon_deg: float) -> int:
     """EPSG code of the WGS84 UTM zone holding (lat, lon), e.g. 32617 for 17N, with the grid's
     two exceptions: south-west Norway (56-64°N, 3-12°E) is in zone 32, and Svalbard (72-84°N,
     0-42°E) in zones 31, 33, 35 and 37 only (the zones Norwegian agencies and MGRS use)."""
-    zone = int((lon_deg + 180.0) // 6.0) % 60 + 1
+    zone = utm_zone_number(lon_deg)
     if 56.0 <= lat_deg < 64.0 and 3.0 <= lon_deg < 12.0:
         zone = 32
     elif 72.0 <= lat_deg < 84.0 and 0.0 <= lon_deg < 42.0:
@@ -105,7 +110,7 @@ def utm_exception_key(lat_deg: float, lon_deg: float) -> str:
     """ "" where ``utm_epsg_for`` gives the plain 6° zone, else "utm:<EPSG>": the resume keys
     of outputs in the export CRS hold it, so runs made before the exceptions (Bergen in 31N)
     are redone in the zone now named, and every other run keeps its key."""
-    plain = int((lon_deg + 180.0) // 6.0) % 60 + 1 + (32600 if lat_deg >= 0 else 32700)
+    plain = utm_zone_number(lon_deg) + (32600 if lat_deg >= 0 else 32700)
     epsg = utm_epsg_for(lat_deg, lon_deg)
     return "" if epsg == plain else f"utm:{epsg}"
 

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 from pyproj import Geod
 
+from roadsurf.core.geometry import utm_zone_number
 from roadsurf.io.drive.types import Frame, GpsTrack, ObdLog, Skipped
 
 log = logging.getLogger(__name__)
@@ -42,15 +43,11 @@ def _dist_m(lat0: np.ndarray, lon0: np.ndarray, lat1: np.ndarray, lon1: np.ndarr
     return np.atleast_1d(np.asarray(d, dtype=float))
 
 
-def _utm_zone(lon: float) -> int:
-    return int((lon + 180.0) // 6.0) % 60 + 1
-
-
 def _jump_kind(lat0: float, lon0: float, lat1: float, lon1: float) -> str:
     if (lat0 < 0) != (lat1 < 0) or (lon0 < 0) != (lon1 < 0):
         return "hemisphere flip"
-    if _utm_zone(lon0) != _utm_zone(lon1):
-        return f"UTM zone jump {_utm_zone(lon0)} -> {_utm_zone(lon1)}"
+    if utm_zone_number(lon0) != utm_zone_number(lon1):
+        return f"UTM zone jump {utm_zone_number(lon0)} -> {utm_zone_number(lon1)}"
     return "jump"
 
 
